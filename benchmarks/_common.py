@@ -1,0 +1,56 @@
+"""Helpers for the benchmark scripts: machine description and isolated, memory-measured runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from importlib import metadata
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "out"
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    libs = ", ".join(f"{p} {metadata.version(p)}" for p in
+                     ("numpy", "numba", "dask", "distributed", "xarray", "zarr", "rasterio"))
+    return (f"{os.cpu_count()} cores ({cpu}), {mem:.0f} GiB, Python {platform.python_version()}, "
+            f"{libs}; {time.strftime('%Y-%m-%d')}")
+
+
+_WRAP = """
+import json, resource
+{code}
+_self = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+_kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+result["peak_rss_gib"] = round(_self / 2**20, 3)
+result["peak_rss_children_gib"] = round(_kids / 2**20, 3)
+print(json.dumps(result))
+"""
+
+
+def run_isolated(code: str, *, timeout: float = 1800) -> dict:
+    """Run ``code`` (which sets a dict ``result``) in a fresh Python process.
+
+    Returns ``result`` plus ``peak_rss_gib``, the process's own peak resident memory, and
+    ``peak_rss_children_gib``, the largest of its child processes (dask workers), as the
+    kernel counts them (ru_maxrss).
+    """
+    proc = subprocess.run([sys.executable, "-c", _WRAP.format(code=code)], capture_output=True,
+                          text=True, timeout=timeout, cwd=HERE.parent)
+    if proc.returncode != 0:
+        raise RuntimeError(f"benchmark child failed:\n{proc.stderr[-4000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -1,0 +1,36 @@
+"""Bounded near-bottom cruise trajectory planning (RA* + MCPC) for AUVs over large seabed grids.
+
+The public API (SPEC section 8); later stages are added as they land.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from .dem import cell_size, import_dem, open_dem, write_dem
+from .exceptions import (
+    InvalidDEMError,
+    InvalidParameterError,
+    JobFileError,
+    PipelineError,
+    StoreExistsError,
+)
+from .synthetic import synthetic_dem
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "InvalidDEMError",
+    "InvalidParameterError",
+    "JobFileError",
+    "PipelineError",
+    "StoreExistsError",
+    "__version__",
+    "cell_size",
+    "import_dem",
+    "open_dem",
+    "synthetic_dem",
+    "write_dem",
+]
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())

@@ -1,0 +1,138 @@
+"""The ``pipeline`` command line: thin, it parses and calls the library."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import click
+
+from .exceptions import PipelineError
+
+
+def _setup_logging(verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    for noisy in ("distributed", "numba", "rasterio", "fsspec", "asyncio"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def _progress(what: str):
+    from dask.diagnostics import ProgressBar
+
+    click.echo(what, err=True)
+    return ProgressBar(dt=1.0, out=sys.stderr)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", is_flag=True, help="Debug logging.")
+@click.version_option(package_name="auv-pipeline")
+def main(verbose: bool) -> None:
+    """Plan near-bottom AUV cruise trajectories over large seabed grids (RA* + MCPC)."""
+    _setup_logging(verbose)
+
+
+@main.group()
+def dem() -> None:
+    """Create or import DEMs as canonical chunked Zarr stores."""
+
+
+@dem.command("synth")
+@click.argument("out", type=click.Path())
+@click.option("--shape", nargs=2, type=int, default=(2000, 2000), show_default=True,
+              help="Rows and columns.")
+@click.option("--cell-size", type=float, default=30.0, show_default=True, help="Metres.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--islands", type=int, default=2, show_default=True)
+@click.option("--chunks", type=int, default=1024, show_default=True)
+@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite):
+    """Write a virtual mid-ocean-ridge DEM to the Zarr store OUT."""
+    from .dem import write_dem
+    from .synthetic import synthetic_dem
+
+    with _errors():
+        t0 = time.perf_counter()
+        d = synthetic_dem(shape, cell_size=cell_size, seed=seed, chunks=chunks, islands=islands)
+        with _progress(f"generating {shape[0]} x {shape[1]} cells into {out}"):
+            write_dem(d, out, chunks=chunks, overwrite=overwrite)
+        click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
+
+
+@dem.command("import")
+@click.argument("source", type=click.Path())
+@click.argument("out", type=click.Path())
+@click.option("--chunks", type=int, default=1024, show_default=True)
+@click.option("--variable", default=None, help="Variable to read from a NetCDF/Zarr file.")
+@click.option("--cell-size", type=float, default=None,
+              help="Cell side (m) for a grid without coordinates.")
+@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+def dem_import(source, out, chunks, variable, cell_size, overwrite):
+    """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT."""
+    from .dem import open_dem, write_dem
+
+    with _errors():
+        t0 = time.perf_counter()
+        d = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size)
+        with _progress(f"importing {source} ({d.shape[0]} x {d.shape[1]} cells) into {out}"):
+            write_dem(d, out, chunks=chunks, overwrite=overwrite)
+        click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
+
+
+@dem.command("info")
+@click.argument("path", type=click.Path())
+def dem_info(path):
+    """Describe a DEM file as open_dem sees it."""
+    from .dem import open_dem
+
+    with _errors():
+        d = open_dem(path, chunks=1024)
+        click.echo(f"{path}: {d.shape[0]} x {d.shape[1]} cells of {d.attrs['cell_size']:g} m, "
+                   f"chunks {d.data.chunksize}")
+        click.echo(f"crs: {'set' if 'crs_wkt' in d.attrs else 'none (local metric grid)'}")
+        lo, hi = float(d.min().compute()), float(d.max().compute())
+        click.echo(f"elevation: {lo:.1f} .. {hi:.1f} m")
+
+
+@main.command("run")
+@click.argument("job", type=click.Path())
+@click.option("--scheduler", default=None, help="Address of a dask scheduler (tcp://host:port).")
+@click.option("--scheduler-file", default=None, type=click.Path(),
+              help="A dask scheduler file (JSON) instead of an address.")
+@click.option("--dry-run", is_flag=True, help="Validate the job file and stop.")
+@click.option("--overwrite", is_flag=True, help="Recompute what exists already.")
+def run(job, scheduler, scheduler_file, dry_run, overwrite):
+    """Run the job file JOB (TOML)."""
+    from .jobs import run_job
+
+    if scheduler and scheduler_file:
+        raise click.UsageError("give --scheduler or --scheduler-file, not both")
+    if scheduler_file:
+        import json
+
+        with open(scheduler_file) as fh:
+            scheduler = json.load(fh)["address"]
+    with _errors():
+        with _progress(f"running job {job}"):
+            res = run_job(job, scheduler=scheduler, overwrite=overwrite, dry_run=dry_run)
+        state = "valid (dry run)" if dry_run else ("reused" if res.reused else "written")
+        click.echo(f"job {res.job.name}: DEM store {res.dem_store} {state} "
+                   f"({res.seconds:.1f} s)")
+
+
+class _errors:
+    """Turn a PipelineError into one clear line on stderr and exit code 2."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc is not None and isinstance(exc, PipelineError):
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+        return False
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,458 @@
+"""Open, validate, reproject and write digital elevation models (SPEC section 1).
+
+The canonical DEM is an ``xarray.DataArray`` named ``elevation``: dims ``(y, x)``, float32
+metres positive up (seabed negative), NaN for no-data, square cells in a metric CRS, with
+``cell_size`` (metres) and, when known, ``crs_wkt`` in its attributes. ``open_dem`` turns a
+GeoTIFF, a NetCDF / GMT grid or a Zarr store into that form; ``write_dem`` writes it as the
+canonical chunked Zarr (v3) store, atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+
+import dask.array as da
+import numpy as np
+import xarray as xr
+
+from ._io import atomic_path
+from ._validate import chunks2d, positive_float
+from .exceptions import InvalidDEMError, InvalidParameterError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CHUNK = 1024
+CANONICAL_ATTR = "pipeline_dem_version"
+CANONICAL_VERSION = 1
+
+_X_NAMES = ("x", "lon", "longitude", "easting", "east", "xc")
+_Y_NAMES = ("y", "lat", "latitude", "northing", "north", "yc")
+_ELEVATION_NAMES = ("elevation", "z", "band_data", "Band1", "topo", "bathymetry", "height",
+                    "depth", "altitude", "elev")
+_NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".grd", ".netcdf")
+_TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff")
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def cell_size(dem: xr.DataArray) -> float:
+    """Side of a (square) cell of ``dem`` in metres.
+
+    Examples
+    --------
+    >>> cell_size(synthetic_dem((64, 64), cell_size=30.0))  # doctest: +SKIP
+    30.0
+    """
+    if not isinstance(dem, xr.DataArray):
+        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}")
+    if "cell_size" in dem.attrs:
+        return float(dem.attrs["cell_size"])
+    dx, dy = _spacing(dem, "x"), _spacing(dem, "y")
+    if not math.isclose(abs(dx), abs(dy), rel_tol=1e-6):
+        raise InvalidDEMError(f"cells are not square (dx={abs(dx)}, dy={abs(dy)}); "
+                              "open the DEM with pipeline.open_dem to resample it")
+    return abs(dx)
+
+
+def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | None = None,
+             cell_size: float | None = None, validate: bool = True) -> xr.DataArray:
+    """Open a DEM file as the canonical elevation DataArray.
+
+    Parameters
+    ----------
+    path : str or path
+        A GeoTIFF (``.tif``), a NetCDF or GMT grid (``.nc``, ``.grd``), or a Zarr store
+        (a directory, usually ``.zarr``).
+    chunks : int, (int, int) or None
+        Dask chunk sides; ``None`` loads the grid into memory as numpy.
+    variable : str, optional
+        The data variable to use in a NetCDF or Zarr file with several.
+    cell_size : float, optional
+        Cell side in metres for a grid that has no coordinates.
+    validate : bool
+        Check that the grid holds at least one valid cell (one pass over the data). Stores
+        written by :func:`write_dem` were checked when written and skip this pass.
+
+    Examples
+    --------
+    >>> dem = open_dem("seabed.tif", chunks=1024)  # doctest: +SKIP
+    >>> dem.dims, dem.dtype, dem.attrs["cell_size"]  # doctest: +SKIP
+    (('y', 'x'), dtype('float32'), 30.0)
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InvalidDEMError(f"DEM file {path} does not exist")
+    if cell_size is not None:
+        cell_size = positive_float("cell_size", cell_size)
+    kind = _kind_of(path)
+    raw = _read(path, kind, chunks, variable)
+    if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION:
+        dem = raw
+        if chunks is None:
+            dem = dem.load()
+        else:
+            dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
+        return dem
+    dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size)
+    if validate:
+        _check_has_data(dem, path)
+    return dem
+
+
+def write_dem(dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK,
+              overwrite: bool = False) -> Path:
+    """Write ``dem`` as the canonical chunked Zarr (v3) store, atomically.
+
+    The store is written beside ``store`` and moved into place only when complete. Chunk sides
+    default to 1024 (a multiple of 64, so that coarsening by 2, 4, 8, 16, 32 or 64 needs no
+    rechunk). Computation streams chunk by chunk on the current dask scheduler.
+    """
+    _check_canonical(dem)
+    ch = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, dem.shape)
+    for side in ch:
+        if side % 64 and side not in dem.shape:
+            log.warning("chunk side %d is not a multiple of 64: coarsening may need a rechunk",
+                        side)
+    data = dem.data if isinstance(dem.data, da.Array) else da.from_array(dem.data, chunks=ch)
+    data = data.astype(np.float32).rechunk(ch)
+    out = dem.copy(data=data)
+    out.attrs[CANONICAL_ATTR] = CANONICAL_VERSION
+    out.encoding = {}
+    ds = out.to_dataset(name="elevation")
+    ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
+    encoding = {"elevation": {"chunks": ch}}
+    with atomic_path(store, overwrite=overwrite) as tmp:
+        ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
+    log.info("wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)", store, *dem.shape,
+             dem.attrs["cell_size"], ch)
+    return Path(store)
+
+
+def import_dem(source: str | os.PathLike, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK,
+               variable: str | None = None, cell_size: float | None = None,
+               overwrite: bool = False) -> Path:
+    """Open ``source`` with :func:`open_dem` and write it as the canonical Zarr store."""
+    dem = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size)
+    return write_dem(dem, store, chunks=chunks, overwrite=overwrite)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _kind_of(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if path.is_dir():
+        if (path / "zarr.json").exists() or (path / ".zgroup").exists() or suffix == ".zarr":
+            return "zarr"
+        raise InvalidDEMError(f"DEM path {path} is a directory but not a Zarr store "
+                              "(no zarr.json or .zgroup inside)")
+    if suffix in _TIFF_SUFFIXES:
+        return "tiff"
+    if suffix in _NETCDF_SUFFIXES:
+        return "netcdf"
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic[:2] in (b"II", b"MM"):
+        return "tiff"
+    if magic[:3] == b"CDF" or magic == b"\x89HDF":
+        return "netcdf"
+    raise InvalidDEMError(f"DEM file {path}: unknown format (suffix {suffix!r}); use a GeoTIFF "
+                          "(.tif), a NetCDF or GMT grid (.nc, .grd) or a Zarr store")
+
+
+def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
+    dask_chunks = None if chunks is None else {}
+    try:
+        if kind == "tiff":
+            import rioxarray
+
+            arr = rioxarray.open_rasterio(path, masked=True, chunks=dask_chunks)
+            if isinstance(arr, list | xr.Dataset):
+                raise InvalidDEMError(f"DEM file {path} holds several subdatasets; "
+                                      "export the elevation band to its own GeoTIFF")
+            return arr
+        if kind == "netcdf":
+            ds = xr.open_dataset(path, chunks=dask_chunks)
+        else:
+            ds = xr.open_zarr(path, chunks=dask_chunks, consolidated=False)
+    except InvalidDEMError:
+        raise
+    except Exception as exc:  # the readers raise many types; one clear message for all
+        raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
+    if _is_old_gmt(ds):
+        return _from_old_gmt(ds, path)
+    return _pick_variable(ds, path, variable)
+
+
+def _pick_variable(ds: xr.Dataset, path: Path, variable: str | None) -> xr.DataArray:
+    if variable is not None:
+        if variable not in ds.data_vars:
+            raise InvalidDEMError(f"DEM file {path} has no variable {variable!r}; "
+                                  f"it has {sorted(map(str, ds.data_vars))}")
+        return ds[variable]
+    gridded = [k for k, v in ds.data_vars.items() if v.ndim >= 2]
+    if not gridded:
+        raise InvalidDEMError(f"DEM file {path} has no 2-D variable "
+                              f"(variables: {sorted(map(str, ds.data_vars)) or 'none'})")
+    if len(gridded) == 1:
+        return ds[gridded[0]]
+    for name in _ELEVATION_NAMES:
+        if name in gridded:
+            return ds[name]
+    raise InvalidDEMError(f"DEM file {path} has several 2-D variables {sorted(map(str, gridded))}; "
+                          "name the elevation with variable=... (--variable)")
+
+
+def _is_old_gmt(ds: xr.Dataset) -> bool:
+    return {"x_range", "y_range", "dimension", "z"} <= set(ds.variables) and ds["z"].ndim == 1
+
+
+def _from_old_gmt(ds: xr.Dataset, path: Path) -> xr.DataArray:
+    """The 1-D GMT grid format (GMT 4 ``=cf``): z is a flat row-major array, top row first."""
+    nx, ny = (int(v) for v in np.asarray(ds["dimension"].values))
+    x0, x1 = (float(v) for v in np.asarray(ds["x_range"].values))
+    y0, y1 = (float(v) for v in np.asarray(ds["y_range"].values))
+    pixel = int(ds["z"].attrs.get("node_offset", 0)) == 1
+    z = np.asarray(ds["z"].values, dtype=np.float64)
+    if z.size != nx * ny:
+        raise InvalidDEMError(f"GMT grid {path}: z has {z.size} values, dimension says {nx} x {ny}")
+    if pixel:  # cell-centre (pixel) registration: ranges are the outer edges
+        x = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
+        y = y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny
+    else:  # gridline registration: ranges are the outer nodes
+        x = np.linspace(x0, x1, nx)
+        y = np.linspace(y1, y0, ny)
+    arr = xr.DataArray(z.reshape(ny, nx), dims=("y", "x"), coords={"x": x, "y": y},
+                       attrs=dict(ds["z"].attrs))
+    xunits = str(ds["x_range"].attrs.get("units", "")).lower()
+    if "deg" in xunits:
+        arr = arr.rename(y="lat", x="lon")
+    return arr
+
+
+# --------------------------------------------------------------------------- canonical form
+
+
+def _canonicalise(arr: xr.DataArray, path: Path, *, chunks,
+                  cell_size: float | None) -> xr.DataArray:
+    if arr.dtype.kind not in "iuf":
+        raise InvalidDEMError(f"DEM file {path}: values are of type {arr.dtype}, not numbers")
+    arr = _squeeze_to_2d(arr, path)
+    crs = _crs_of(arr)
+    ydim, xdim = _spatial_dims(arr, path)
+    arr = arr.transpose(ydim, xdim).rename({ydim: "y", xdim: "x"})
+    arr = arr.drop_vars([c for c in arr.coords if c not in ("x", "y")])
+    if min(arr.shape) < 2:
+        raise InvalidDEMError(f"DEM file {path} is {arr.shape[0]} x {arr.shape[1]} cells; "
+                              "at least 2 x 2 are needed")
+    if "x" not in arr.coords or "y" not in arr.coords:
+        arr = _synthesise_coords(arr, path, cell_size)
+    geographic = _is_geographic(arr, crs, xdim, ydim)
+    sign = _depth_sign(arr, path)
+    attrs = {k: v for k, v in arr.attrs.items() if k in ("long_name", "standard_name", "title")}
+    values = arr.astype(np.float32) * np.float32(sign) if sign != 1 else arr.astype(np.float32)
+    values = _regularise(values.where(np.isfinite(values)), path)
+    if geographic:
+        values, crs = _reproject_geographic(values, path, crs)
+    else:
+        dx, dy = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
+        if not math.isclose(dx, dy, rel_tol=1e-4):
+            values = _resample_square(values, path, dx, dy, crs)
+    a = abs(_spacing(values, "x", path))
+    attrs.update(cell_size=float(a), units="m", positive="up", source=str(path))
+    if crs is not None:
+        attrs["crs_wkt"] = crs.to_wkt()
+    out = values.astype(np.float32)
+    out.name = "elevation"
+    out.attrs = attrs
+    out.encoding = {}
+    if chunks is None:
+        return out.load() if isinstance(out.data, da.Array) else out
+    return out.chunk(dict(zip(("y", "x"), chunks2d(chunks, out.shape), strict=True)))
+
+
+def _squeeze_to_2d(arr: xr.DataArray, path: Path) -> xr.DataArray:
+    extra = [d for d in arr.dims if arr.sizes[d] == 1 and d not in _X_NAMES + _Y_NAMES]
+    if extra:
+        arr = arr.isel({d: 0 for d in extra}, drop=True)
+    if arr.ndim != 2:
+        shape = " x ".join(f"{d}={n}" for d, n in arr.sizes.items())
+        raise InvalidDEMError(f"DEM file {path} is {arr.ndim}-D ({shape}); a DEM is one 2-D "
+                              "grid: select one band or time step and save that")
+    return arr
+
+
+def _spatial_dims(arr: xr.DataArray, path: Path) -> tuple[str, str]:
+    names = [str(d) for d in arr.dims]
+    lower = [n.lower() for n in names]
+    x = next((names[i] for i, n in enumerate(lower) if n in _X_NAMES), None)
+    y = next((names[i] for i, n in enumerate(lower) if n in _Y_NAMES), None)
+    if x is None and y is None:
+        return names[0], names[1]  # row-major convention: (rows, cols)
+    if x is None or y is None or x == y:
+        raise InvalidDEMError(f"DEM file {path}: cannot tell the x and y dimensions of {names}")
+    return y, x
+
+
+def _synthesise_coords(arr: xr.DataArray, path: Path, cell_size: float | None) -> xr.DataArray:
+    a = cell_size
+    if a is None:
+        for key in ("cell_size", "spacing", "resolution", "res", "dx"):
+            if key in arr.attrs:
+                try:
+                    a = positive_float(key, float(np.atleast_1d(arr.attrs[key])[0]))
+                except (InvalidParameterError, TypeError, ValueError):
+                    a = None
+                break
+    if a is None:
+        raise InvalidDEMError(f"DEM file {path} has no coordinates and no cell size; pass "
+                              "cell_size=... (--cell-size) in metres")
+    rows, cols = arr.shape
+    log.info("DEM %s has no coordinates: using cells of %g m from (0, 0)", path, a)
+    return arr.assign_coords(x=(np.arange(cols) + 0.5) * a, y=(rows - np.arange(rows) - 0.5) * a)
+
+
+def _spacing(arr: xr.DataArray, dim: str, path: Path | str = "DEM") -> float:
+    """The (signed) step of an evenly spaced coordinate; refuse an uneven one."""
+    step, even = _step(arr, dim, path)
+    if not even:
+        raise InvalidDEMError(f"{path}: {dim} coordinates are not evenly spaced; "
+                              "open the DEM with pipeline.open_dem to resample it")
+    return step
+
+
+def _step(arr: xr.DataArray, dim: str, path: Path | str) -> tuple[float, bool]:
+    """Mean step of coordinate ``dim`` and whether it is even up to the storage precision."""
+    raw = np.asarray(arr[dim].values)
+    c = raw.astype(np.float64)
+    if c.size < 2:
+        raise InvalidDEMError(f"{path}: dimension {dim} has fewer than 2 coordinates")
+    d = np.diff(c)
+    if not (np.all(d > 0) or np.all(d < 0)):
+        raise InvalidDEMError(f"{path}: {dim} coordinates are not strictly increasing or "
+                              "decreasing (repeated or unordered values); fix the grid's "
+                              "coordinates")
+    step = (c[-1] - c[0]) / (c.size - 1)
+    eps = np.finfo(raw.dtype).eps if raw.dtype.kind == "f" else 0.0
+    tol = max(1e-6 * abs(step), 4.0 * eps * float(np.abs(c).max()))
+    return float(step), bool(np.all(np.abs(d - step) <= tol))
+
+
+def _regularise(values: xr.DataArray, path: Path) -> xr.DataArray:
+    """Resample monotonic but unevenly spaced axes (e.g. Mercator latitudes) to even steps."""
+    for dim in ("y", "x"):
+        step, even = _step(values, dim, path)
+        c = np.asarray(values[dim].values, dtype=np.float64)
+        if even:
+            values = values.assign_coords({dim: c[0] + step * np.arange(c.size)})
+            continue
+        d = np.diff(c)
+        log.warning("DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
+                    "resampling linearly onto an even grid", path, dim, d.min(), d.max())
+        values = values.load().interp({dim: c[0] + step * np.arange(c.size)}, method="linear")
+    return values
+
+
+def _crs_of(arr: xr.DataArray):
+    from pyproj import CRS
+
+    try:
+        crs = arr.rio.crs
+    except Exception:  # rioxarray may not know this array's layout
+        crs = None
+    if crs is not None:
+        return CRS.from_user_input(crs)
+    for key in ("crs_wkt", "crs", "spatial_ref"):
+        if key in arr.attrs:
+            try:
+                return CRS.from_user_input(arr.attrs[key])
+            except Exception:
+                continue
+    return None
+
+
+def _is_geographic(arr: xr.DataArray, crs, xdim: str, ydim: str) -> bool:
+    if crs is not None:
+        return bool(crs.is_geographic)
+    if xdim.lower() in ("lon", "longitude") or ydim.lower() in ("lat", "latitude"):
+        return True
+    units = str(arr["x"].attrs.get("units", "")).lower()
+    return units.startswith("degree")
+
+
+def _depth_sign(arr: xr.DataArray, path: Path) -> int:
+    if str(arr.attrs.get("positive", "")).lower() == "down":
+        log.warning("DEM %s has positive='down' (depths): negating to elevation, positive up", path)
+        return -1
+    return 1
+
+
+def _reproject_geographic(values: xr.DataArray, path: Path, crs):
+    """Reproject a lon/lat grid to an azimuthal equidistant projection centred on the grid."""
+    import rioxarray  # noqa: F401  (registers .rio)
+    from pyproj import CRS
+    from rasterio.enums import Resampling
+
+    src_crs = crs if crs is not None else CRS.from_epsg(4326)
+    lon = np.asarray(values["x"].values, dtype=np.float64)
+    lat = np.asarray(values["y"].values, dtype=np.float64)
+    if lon.min() >= 180.0:
+        values = values.assign_coords(x=lon - 360.0)
+        lon = lon - 360.0
+    lon0, lat0 = float(lon.mean()), float(lat.mean())
+    dlon, dlat = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
+    metres_per_degree = 111_320.0
+    dx_m = dlon * metres_per_degree * math.cos(math.radians(lat0))
+    dy_m = dlat * metres_per_degree
+    a = float(f"{math.sqrt(dx_m * dy_m):.3g}")
+    dst = CRS.from_proj4(f"+proj=aeqd +lat_0={lat0:.6f} +lon_0={lon0:.6f} +datum=WGS84 +units=m")
+    log.warning("DEM %s is in geographic coordinates: reprojecting to a local azimuthal "
+                "equidistant projection centred at (%.4f E, %.4f N) with %.3g m cells",
+                path, lon0, lat0, a)
+    src = values.load().rio.set_spatial_dims(x_dim="x", y_dim="y").rio.write_crs(src_crs)
+    src = src.rio.write_nodata(np.nan, encoded=False)
+    out = src.rio.reproject(dst, resolution=a, resampling=Resampling.bilinear, nodata=np.nan)
+    out = out.drop_vars([c for c in out.coords if c not in ("x", "y")])
+    return out, dst
+
+
+def _resample_square(values: xr.DataArray, path: Path, dx: float, dy: float, crs):
+    """Bilinear resample onto square cells of the geometric-mean size, keeping the extent."""
+    a = float(f"{math.sqrt(dx * dy):.4g}")
+    log.warning("DEM %s has cells of %g x %g m: resampling to square %g m cells", path, dx, dy, a)
+    x = np.asarray(values["x"].values)
+    y = np.asarray(values["y"].values)
+    x0, x1 = x.min() - dx / 2, x.max() + dx / 2
+    y0, y1 = y.min() - dy / 2, y.max() + dy / 2
+    nx, ny = max(2, int(round((x1 - x0) / a))), max(2, int(round((y1 - y0) / a)))
+    new_x = x0 + (np.arange(nx) + 0.5) * a
+    new_y = y1 - (np.arange(ny) + 0.5) * a
+    if y[0] < y[-1]:
+        new_y = new_y[::-1]
+    out = values.load().interp(x=new_x, y=new_y, method="linear",
+                               kwargs={"fill_value": None})
+    return out
+
+
+def _check_has_data(dem: xr.DataArray, path: Path) -> None:
+    anyvalid = np.isfinite(dem.data).any()
+    if isinstance(anyvalid, da.Array):
+        anyvalid = anyvalid.compute()
+    if not bool(anyvalid):
+        raise InvalidDEMError(f"DEM file {path} holds no valid elevation: every cell is "
+                              "no-data (NaN or the file's nodata value)")
+
+
+def _check_canonical(dem) -> None:
+    if not isinstance(dem, xr.DataArray):
+        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}")
+    if dem.dims != ("y", "x"):
+        raise InvalidDEMError(f"`dem` must have dims ('y', 'x'), got {dem.dims}; "
+                              "open it with pipeline.open_dem")
+    if "cell_size" not in dem.attrs:
+        raise InvalidDEMError("`dem` has no 'cell_size' attribute; open it with pipeline.open_dem "
+                              "or pipeline.synthetic_dem")

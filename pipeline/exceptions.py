@@ -1,0 +1,27 @@
+"""The one base error of the pipeline and its specific subclasses.
+
+Every message names the argument or file, the value, and how to fix it, so that a batch job
+can record it as a mission's failure reason and a person can act on it.
+"""
+
+from __future__ import annotations
+
+
+class PipelineError(Exception):
+    """Base class of every error the pipeline raises on purpose."""
+
+
+class InvalidParameterError(PipelineError, ValueError):
+    """An argument has a wrong type or value (e.g. ``omega < 1``, a chunk size of 0)."""
+
+
+class InvalidDEMError(PipelineError, ValueError):
+    """A DEM file or array cannot be understood as a seabed grid."""
+
+
+class JobFileError(PipelineError, ValueError):
+    """A job file (TOML) is malformed, has an unknown key, or names a missing file."""
+
+
+class StoreExistsError(PipelineError, FileExistsError):
+    """An output store exists already and ``overwrite`` was not given."""

@@ -1,0 +1,80 @@
+"""Shared fixtures: real bathymetry (matplotlib's topobathy sample) and small synthetic grids."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+# chunkings every chunked function is checked with: tiny uneven, power of two, ragged, single
+CHUNKINGS = [(7, 5), (64, 64), (100, 37), None]
+
+
+@pytest.fixture(scope="session")
+def topobathy():
+    """(elevation, lon, lat): real bathymetry and topography off Vancouver Island, lon/lat grid."""
+    from matplotlib import cbook
+
+    d = cbook.get_sample_data("topobathy.npz")
+    z = np.asarray(d["topo"], dtype=np.float32)
+    lon = np.asarray(d["longitude"], dtype=np.float64)
+    lat = np.asarray(d["latitude"], dtype=np.float64)
+    return z, lon, lat
+
+
+def lonlat_dataarray(z, lon, lat) -> xr.DataArray:
+    """A CF-style lon/lat DataArray (latitudes north first, as a GeoTIFF stores them)."""
+    if lat[0] < lat[-1]:
+        z, lat = z[::-1], lat[::-1]
+    return xr.DataArray(
+        z, dims=("lat", "lon"),
+        coords={"lat": ("lat", lat, {"units": "degrees_north", "standard_name": "latitude"}),
+                "lon": ("lon", lon, {"units": "degrees_east", "standard_name": "longitude"})},
+        name="topo", attrs={"units": "m"},
+    )
+
+
+@pytest.fixture(scope="session")
+def topobathy_tif(tmp_path_factory, topobathy):
+    """The topobathy grid written as a real EPSG:4326 GeoTIFF."""
+    import rioxarray  # noqa: F401
+
+    z, lon, lat = topobathy
+    arr = lonlat_dataarray(z, lon - 360.0, lat).rename(lat="y", lon="x")
+    arr = arr.rio.write_crs("EPSG:4326")
+    path = tmp_path_factory.mktemp("real") / "topobathy.tif"
+    arr.rio.to_raster(path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def topobathy_nc(tmp_path_factory, topobathy):
+    """The topobathy grid written as a real CF NetCDF file (lat/lon dims, 0..360 longitudes)."""
+    z, lon, lat = topobathy
+    path = tmp_path_factory.mktemp("real") / "topobathy.nc"
+    lonlat_dataarray(z, lon, lat).to_dataset().to_netcdf(path)
+    return path
+
+
+def metric_dataarray(z: np.ndarray, a: float = 50.0, x0: float = 500_000.0,
+                     y0: float = 5_000_000.0) -> xr.DataArray:
+    """A north-up projected grid of cell side ``a`` with ``z`` as values."""
+    rows, cols = z.shape
+    return xr.DataArray(z, dims=("y", "x"),
+                        coords={"x": x0 + (np.arange(cols) + 0.5) * a,
+                                "y": y0 - (np.arange(rows) + 0.5) * a})
+
+
+def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
+    """A rough random seabed (smoothed noise), optionally with flats and no-data holes."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    z = ndimage.gaussian_filter(rng.normal(size=shape), 2.0) * 400.0 - 3000.0
+    z += rng.normal(size=shape) * 5.0
+    if flats:
+        z[shape[0] // 4: shape[0] // 2, shape[1] // 4: shape[1] // 2] = -2900.0
+    if holes:
+        z[rng.random(shape) < 0.01] = np.nan
+        z[: shape[0] // 6, -shape[1] // 6:] = np.nan
+    return z.astype(np.float32)

@@ -1,0 +1,351 @@
+"""DEM ingestion: GeoTIFF, NetCDF, GMT grids and Zarr to the canonical elevation DataArray.
+
+References are independent of the code under test: the arrays the tests themselves wrote, and
+for reprojection, pyproj plus scipy's RegularGridInterpolator on the source lon/lat grid.
+"""
+
+from __future__ import annotations
+
+import dask.array as da
+import numpy as np
+import pytest
+import xarray as xr
+from conftest import lonlat_dataarray, metric_dataarray, random_surface
+from pyproj import CRS, Transformer
+from scipy.interpolate import RegularGridInterpolator
+
+import pipeline
+from pipeline.exceptions import InvalidDEMError, StoreExistsError
+
+
+def _write_tif(arr: xr.DataArray, path, crs="EPSG:32610", nodata=None):
+    import rioxarray  # noqa: F401
+
+    arr = arr.rio.write_crs(crs)
+    if nodata is not None:
+        arr = arr.rio.write_nodata(nodata)
+    arr.rio.to_raster(path)
+    return path
+
+
+def test_geotiff_projected_int16_with_nodata(tmp_path):
+    rng = np.random.default_rng(1)
+    z = rng.integers(-5000, -100, size=(40, 30)).astype(np.int16)
+    z[3, 4] = -32768
+    path = _write_tif(metric_dataarray(z, a=50.0), tmp_path / "dem.tif", nodata=-32768)
+    dem = pipeline.open_dem(path, chunks=16)
+    assert dem.name == "elevation" and dem.dims == ("y", "x") and dem.dtype == np.float32
+    assert isinstance(dem.data, da.Array) and dem.data.chunksize == (16, 16)
+    assert dem.attrs["cell_size"] == 50.0 and pipeline.cell_size(dem) == 50.0
+    assert CRS.from_wkt(dem.attrs["crs_wkt"]).to_epsg() == 32610
+    v = dem.values
+    assert np.isnan(v[3, 4])
+    expected = z.astype(np.float32)
+    expected[3, 4] = np.nan
+    np.testing.assert_array_equal(v, expected)
+    np.testing.assert_allclose(dem.x.values, 500_000 + (np.arange(30) + 0.5) * 50.0)
+
+
+def test_geotiff_in_memory(tmp_path):
+    z = random_surface((20, 25))
+    path = _write_tif(metric_dataarray(z, a=10.0), tmp_path / "dem.tif")
+    dem = pipeline.open_dem(path, chunks=None)
+    assert isinstance(dem.data, np.ndarray)
+    np.testing.assert_array_equal(dem.values, z)
+
+
+def _reference_reprojection(dem, z, lon, lat):
+    """Sample the source lon/lat grid bilinearly at the lon/lat of the output cell centres."""
+    crs = CRS.from_wkt(dem.attrs["crs_wkt"])
+    to_ll = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    xx, yy = np.meshgrid(dem.x.values, dem.y.values)
+    lo, la = to_ll.transform(xx, yy)
+    lo = np.where(lo < 0, lo + 360.0, lo) if lon.min() > 180 else lo
+    order = np.argsort(lat)
+    interp = RegularGridInterpolator((lat[order], lon), z[order].astype(np.float64),
+                                     bounds_error=False, fill_value=np.nan)
+    return interp(np.stack([la, lo], axis=-1))
+
+
+@pytest.mark.parametrize("fixture", ["topobathy_tif", "topobathy_nc"])
+def test_real_lonlat_dem_is_reprojected(request, fixture, topobathy, caplog):
+    """matplotlib's real bathymetry off Vancouver Island, through a real GeoTIFF and NetCDF."""
+    z, lon, lat = topobathy
+    path = request.getfixturevalue(fixture)
+    with caplog.at_level("WARNING", logger="pipeline"):
+        dem = pipeline.open_dem(path, chunks=32)
+    assert "geographic" in caplog.text and "azimuthal equidistant" in caplog.text
+    crs = CRS.from_wkt(dem.attrs["crs_wkt"])
+    assert crs.is_projected and "Azimuthal Equidistant" in crs.to_wkt()
+    # resolution close to the source's: 1/30 deg of longitude at 49 N, 1/45 deg of latitude
+    dx_m = (lon[1] - lon[0]) * 111_320 * np.cos(np.radians(lat.mean()))
+    dy_m = abs(lat[1] - lat[0]) * 111_320
+    a = pipeline.cell_size(dem)
+    assert 0.9 * min(dx_m, dy_m) <= a <= 1.1 * max(dx_m, dy_m)
+    # square cells, metric coordinates, extent about the source's
+    assert np.allclose(np.diff(dem.x.values), a) and np.allclose(np.diff(dem.y.values), -a)
+    width_km = (dem.x.values[-1] - dem.x.values[0]) / 1e3
+    assert 250 < width_km < 330  # 4 degrees of longitude at 49 N is about 292 km
+    # values equal an independent bilinear resampling of the source, away from the rim
+    ref = _reference_reprojection(dem, z, lon, lat)
+    v = dem.values.astype(np.float64)
+    inner = np.isfinite(ref) & np.isfinite(v)
+    inner[:3], inner[-3:], inner[:, :3], inner[:, -3:] = False, False, False, False
+    assert inner.sum() > 0.7 * v.size
+    err = np.abs(v[inner] - ref[inner])
+    assert np.median(err) < 25.0, np.median(err)  # metres, on a 3600 m relief
+    # land detection: real land and sea both present, and classified as the source says
+    land_ref = ref[inner] >= 0
+    land_out = v[inner] >= 0
+    assert 0.2 < land_ref.mean() < 0.8
+    # cells classified differently sit on the coastline, where the two resamplings of a
+    # 2.4 km grid may straddle zero: none of them is more than 150 m from sea level
+    differ = land_ref != land_out
+    assert differ.mean() < 0.03
+    assert np.all(np.abs(ref[inner][differ]) < 150.0)
+
+
+def test_netcdf_projected_grd_and_depth_positive_down(tmp_path, caplog):
+    z = random_surface((30, 40))
+    arr = metric_dataarray(-z, a=25.0)  # stored as depths, positive down
+    arr.attrs["positive"] = "down"
+    path = tmp_path / "depth.grd"
+    arr.to_dataset(name="z").to_netcdf(path)
+    with caplog.at_level("WARNING", logger="pipeline"):
+        dem = pipeline.open_dem(path, chunks=None)
+    assert "positive='down'" in caplog.text
+    np.testing.assert_array_equal(dem.values, z)
+    assert dem.attrs["cell_size"] == 25.0
+
+
+def test_old_gmt_grid_format(tmp_path):
+    """The 1-D GMT grid layout: z flattened row-major from the top row, x_range/y_range."""
+    z = random_surface((12, 9))
+    ny, nx = z.shape
+    ds = xr.Dataset(
+        {"x_range": ("side", [1000.0, 1000.0 + 8 * 20.0], {"units": "m"}),
+         "y_range": ("side", [0.0, 11 * 20.0], {"units": "m"}),
+         "z_range": ("side", [float(z.min()), float(z.max())]),
+         "spacing": ("side", [20.0, 20.0]),
+         "dimension": ("side", np.array([nx, ny], dtype=np.int32)),
+         "z": ("xysize", z.ravel(), {"node_offset": 0})})
+    path = tmp_path / "old.grd"
+    ds.to_netcdf(path, format="NETCDF3_CLASSIC")
+    dem = pipeline.open_dem(path, chunks=None)
+    np.testing.assert_array_equal(dem.values, z)
+    np.testing.assert_allclose(dem.x.values, 1000.0 + np.arange(9) * 20.0)
+    np.testing.assert_allclose(dem.y.values, 220.0 - np.arange(12) * 20.0)
+
+
+def test_non_square_cells_are_resampled(tmp_path, caplog):
+    rows, cols = 40, 30
+    x = (np.arange(cols) + 0.5) * 40.0
+    y = 4000.0 - (np.arange(rows) + 0.5) * 10.0
+    xx, yy = np.meshgrid(x, y)
+    z = (-3000 + 0.5 * xx - 0.8 * yy).astype(np.float32)  # a plane: bilinear is exact
+    arr = xr.DataArray(z, dims=("y", "x"), coords={"x": x, "y": y})
+    path = tmp_path / "rect.nc"
+    arr.to_dataset(name="elevation").to_netcdf(path)
+    with caplog.at_level("WARNING", logger="pipeline"):
+        dem = pipeline.open_dem(path, chunks=None)
+    assert "resampling to square" in caplog.text
+    a = pipeline.cell_size(dem)
+    assert a == pytest.approx(20.0)
+    xx2, yy2 = np.meshgrid(dem.x.values, dem.y.values)
+    ref = -3000 + 0.5 * xx2 - 0.8 * yy2
+    inside = (xx2 >= x[0]) & (xx2 <= x[-1]) & (yy2 <= y[0]) & (yy2 >= y[-1])
+    np.testing.assert_allclose(dem.values[inside], ref[inside], atol=0.05)
+
+
+def test_uneven_axis_is_resampled(tmp_path, caplog):
+    x = np.array([0.0, 10.0, 21.0, 30.0, 40.0, 49.0, 60.0])
+    y = 100.0 - np.arange(5) * 10.0
+    z = np.broadcast_to(-2000.0 + 2.0 * x, (5, 7)).astype(np.float32)  # linear in x
+    path = tmp_path / "uneven.nc"
+    xr.DataArray(z, dims=("y", "x"), coords={"x": x, "y": y}).to_dataset(
+        name="elevation").to_netcdf(path)
+    with caplog.at_level("WARNING", logger="pipeline"):
+        dem = pipeline.open_dem(path, chunks=None)
+    assert "unevenly spaced" in caplog.text
+    np.testing.assert_allclose(dem.x.values, np.arange(7) * 10.0)
+    np.testing.assert_allclose(dem.values, np.broadcast_to(-2000.0 + 2.0 * dem.x.values, (5, 7)),
+                               atol=1e-3)
+
+
+def test_no_coordinates_needs_cell_size(tmp_path):
+    z = random_surface((10, 12))
+    path = tmp_path / "bare.nc"
+    xr.DataArray(z, dims=("row", "col")).to_dataset(name="elevation").to_netcdf(path)
+    with pytest.raises(InvalidDEMError, match="no coordinates and no cell size"):
+        pipeline.open_dem(path)
+    dem = pipeline.open_dem(path, chunks=None, cell_size=5.0)
+    assert pipeline.cell_size(dem) == 5.0
+    np.testing.assert_array_equal(dem.values, z)
+
+
+def test_zarr_roundtrip_any_chunks(tmp_path):
+    z = random_surface((130, 70), holes=True)
+    src = metric_dataarray(z, a=30.0)
+    tif = _write_tif(src, tmp_path / "in.tif")
+    dem = pipeline.open_dem(tif, chunks=(33, 17))
+    store = pipeline.write_dem(dem, tmp_path / "dem.zarr", chunks=64)
+    back = pipeline.open_dem(store, chunks=64)
+    assert back.data.chunksize == (64, 64)
+    np.testing.assert_array_equal(back.values, z)
+    assert back.attrs["cell_size"] == 30.0
+    assert CRS.from_wkt(back.attrs["crs_wkt"]).to_epsg() == 32610
+    import zarr
+
+    g = zarr.open_group(store, mode="r")
+    assert g.metadata.zarr_format == 3
+    assert g["elevation"].chunks == (64, 64)
+
+
+def test_write_is_atomic_and_refuses_to_clobber(tmp_path):
+    dem = pipeline.synthetic_dem((64, 64), chunks=32)
+    store = pipeline.write_dem(dem, tmp_path / "d.zarr", chunks=32)
+    with pytest.raises(StoreExistsError, match="overwrite"):
+        pipeline.write_dem(dem, store)
+
+    def boom(block, block_info=None):
+        if block_info[0]["chunk-location"] == (1, 1):
+            raise RuntimeError("disk full")
+        return block
+
+    bad = dem.copy(data=dem.data.map_blocks(boom, dtype=np.float32))
+    with pytest.raises(RuntimeError, match="disk full"):
+        pipeline.write_dem(bad, store, chunks=32, overwrite=True)
+    # the old complete store is still there, no temporary left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.zarr"]
+    np.testing.assert_array_equal(pipeline.open_dem(store, chunks=None).values, dem.values)
+
+
+def test_import_dem_cli_function(tmp_path, topobathy_tif):
+    store = pipeline.import_dem(topobathy_tif, tmp_path / "real.zarr", chunks=64)
+    dem = pipeline.open_dem(store)
+    assert dem.attrs["pipeline_dem_version"] == 1 and "crs_wkt" in dem.attrs
+    assert (dem.values >= 0).any() and (dem.values < -500).any()
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def _bad_multiband(p):
+    arr = xr.DataArray(np.zeros((3, 8, 8), np.float32), dims=("band", "y", "x"),
+                       coords={"band": [1, 2, 3], "x": np.arange(8.0) * 10,
+                               "y": 80 - np.arange(8.0) * 10})
+    return _write_tif(arr, p.with_suffix(".tif"))
+
+
+def _bad_all_nan(p):
+    return _write_tif(metric_dataarray(np.full((8, 8), np.nan, np.float32)), p.with_suffix(".tif"))
+
+
+def _bad_nodata_everywhere(p):
+    z = np.full((8, 8), -9999, np.int16)
+    return _write_tif(metric_dataarray(z), p.with_suffix(".tif"), nodata=-9999)
+
+
+def _bad_no_coords(p):
+    xr.DataArray(np.zeros((8, 8), np.float32), dims=("a", "b")).to_dataset(
+        name="elevation").to_netcdf(p.with_suffix(".nc"))
+    return p.with_suffix(".nc")
+
+
+def _bad_text_type(p):
+    arr = xr.DataArray(np.array([["a", "b"], ["c", "d"]]), dims=("y", "x"),
+                       coords={"x": [0.0, 1.0], "y": [1.0, 0.0]})
+    arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
+    return p.with_suffix(".nc")
+
+
+def _bad_garbage(p):
+    q = p.with_suffix(".tif")
+    q.write_bytes(b"this is not a tiff at all" * 10)
+    return q
+
+
+def _bad_empty_nc(p):
+    q = p.with_suffix(".nc")
+    q.write_bytes(b"")
+    return q
+
+
+def _bad_unordered(p):
+    arr = xr.DataArray(np.zeros((4, 4), np.float32), dims=("y", "x"),
+                       coords={"x": [0.0, 2.0, 1.0, 3.0], "y": [3.0, 2.0, 1.0, 0.0]})
+    arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
+    return p.with_suffix(".nc")
+
+
+def _bad_3d_netcdf(p):
+    arr = xr.DataArray(np.zeros((2, 4, 4), np.float32), dims=("time", "y", "x"),
+                       coords={"x": np.arange(4.0), "y": np.arange(4.0)[::-1]})
+    arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
+    return p.with_suffix(".nc")
+
+
+def _bad_two_vars(p):
+    c = {"x": np.arange(4.0), "y": np.arange(4.0)[::-1]}
+    xr.Dataset({"a": (("y", "x"), np.zeros((4, 4))), "b": (("y", "x"), np.ones((4, 4)))},
+               coords=c).to_netcdf(p.with_suffix(".nc"))
+    return p.with_suffix(".nc")
+
+
+def _bad_plain_dir(p):
+    p.mkdir()
+    return p
+
+
+def _bad_missing(p):
+    return p.with_suffix(".tif")
+
+
+def _bad_one_row(p):
+    arr = xr.DataArray(np.zeros((1, 5), np.float32), dims=("y", "x"),
+                       coords={"x": np.arange(5.0), "y": [0.0]})
+    arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
+    return p.with_suffix(".nc")
+
+
+@pytest.mark.parametrize("make, match", [
+    (_bad_multiband, r"3-D \(band=3.*select one band"),
+    (_bad_3d_netcdf, r"3-D \(time=2"),
+    (_bad_all_nan, "holds no valid elevation"),
+    (_bad_nodata_everywhere, "holds no valid elevation"),
+    (_bad_no_coords, "no coordinates and no cell size"),
+    (_bad_text_type, "not numbers"),
+    (_bad_garbage, "cannot read DEM file"),
+    (_bad_empty_nc, "cannot read DEM file"),
+    (_bad_unordered, "not strictly increasing or decreasing"),
+    (_bad_two_vars, r"several 2-D variables \['a', 'b'\]"),
+    (_bad_plain_dir, "not a Zarr store"),
+    (_bad_missing, "does not exist"),
+    (_bad_one_row, "at least 2 x 2"),
+])
+def test_bad_files_are_refused_clearly(tmp_path, make, match):
+    path = make(tmp_path / "bad")
+    with pytest.raises(InvalidDEMError, match=match) as info:
+        pipeline.open_dem(path)
+    assert str(path) in str(info.value)  # the message names the file
+
+
+def test_variable_picks_one_of_several(tmp_path):
+    c = {"x": np.arange(4.0) * 10, "y": (np.arange(4.0) * 10)[::-1]}
+    path = tmp_path / "two.nc"
+    xr.Dataset({"a": (("y", "x"), np.zeros((4, 4))), "b": (("y", "x"), -np.ones((4, 4)))},
+               coords=c).to_netcdf(path)
+    assert float(pipeline.open_dem(path, variable="b", chunks=None).mean()) == -1.0
+    with pytest.raises(InvalidDEMError, match="no variable 'c'"):
+        pipeline.open_dem(path, variable="c")
+
+
+def test_cell_size_rejects_non_dataarray():
+    with pytest.raises(pipeline.InvalidParameterError, match="xarray.DataArray"):
+        pipeline.cell_size(np.zeros((3, 3)))
+
+
+def test_lonlat_dataarray_helper_roundtrip(topobathy):
+    z, lon, lat = topobathy
+    arr = lonlat_dataarray(z, lon, lat)
+    assert arr.lat.values[0] > arr.lat.values[-1]

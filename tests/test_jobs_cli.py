@@ -1,0 +1,140 @@
+"""Job files and the command line: real TOML files, the real console script, real stores."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import pipeline
+from pipeline.cli import main
+from pipeline.exceptions import JobFileError
+from pipeline.jobs import load_job, run_job
+
+GOOD = """
+name = "small"
+[dem]
+chunks = 64
+[dem.synthetic]
+shape = [150, 120]
+cell_size = 50.0
+seed = 4
+[output]
+catalog = "{catalog}"
+"""
+
+
+def _job(tmp_path, text, name="job.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_run_job_builds_then_reuses_the_dem_store(tmp_path):
+    job = _job(tmp_path, GOOD.format(catalog=tmp_path / "cat"))
+    first = run_job(job)
+    assert not first.reused and first.dem_store.parent == tmp_path / "cat"
+    dem = pipeline.open_dem(first.dem_store, chunks=None)
+    ref = pipeline.synthetic_dem((150, 120), cell_size=50.0, seed=4, chunks=None)
+    np.testing.assert_array_equal(dem.values, ref.values)
+    again = run_job(job)
+    assert again.reused and again.dem_store == first.dem_store
+    forced = run_job(job, overwrite=True)
+    assert not forced.reused
+
+
+def test_dry_run_computes_nothing(tmp_path):
+    job = _job(tmp_path, GOOD.format(catalog=tmp_path / "cat"))
+    res = run_job(job, dry_run=True)
+    assert not res.dem_store.exists() and not (tmp_path / "cat").exists()
+
+
+def test_job_with_a_dem_file(tmp_path, topobathy_tif):
+    job = _job(tmp_path, f'name = "real"\n[dem]\npath = "{topobathy_tif}"\nchunks = 64\n'
+                         f'[output]\ncatalog = "{tmp_path / "cat"}"\n')
+    res = run_job(job)
+    dem = pipeline.open_dem(res.dem_store)
+    assert "crs_wkt" in dem.attrs and (dem.values >= 0).any()
+
+
+@pytest.mark.parametrize("text, match", [
+    ("name = 'x'\n", r"a \[dem\] table is required"),
+    ("[dem]\npath = 'a.tif'\n[dem.synthetic]\nshape = [4, 4]\n", "exactly one of"),
+    ("[dem]\nsynthetic = { shape = [4, 4] }\ncolour = 'red'\n", "unknown key dem.'colour'"),
+    ("[dem.synthetic]\nshape = [4, 4]\nsed = 3\n", r"unknown key dem.synthetic.'sed'"),
+    ("[dem.synthetic]\nshape = [4]\n", r"shape must be \[rows, cols\]"),
+    ("[dem.synthetic]\nshape = [4, 4]\nseed = 'one'\n", "dem.synthetic.seed must be an integer"),
+    ("[dem.synthetic]\ncell_size = 3.0\n", "shape is required"),
+    ("[dem]\nchunks = 0\nsynthetic = { shape = [4, 4] }\n", "dem.chunks must be a positive"),
+    ("[dem]\npath = 'missing.tif'\n", r"dem.path 'missing.tif' does not exist"),
+    ("[dem]\npath = 3\n", "dem.path must be a file path"),
+    ("planners = 1\n[dem.synthetic]\nshape = [4, 4]\n", "unknown key 'planners'"),
+    ("[dem.synthetic\nshape = [4, 4]\n", "not valid TOML"),
+    ("name = '../up'\n[dem.synthetic]\nshape = [4, 4]\n", "name must be"),
+])
+def test_bad_job_files(tmp_path, text, match):
+    job = _job(tmp_path, text)
+    with pytest.raises(JobFileError, match=match) as info:
+        load_job(job)
+    assert str(job) in str(info.value)
+
+
+def test_missing_job_file(tmp_path):
+    with pytest.raises(JobFileError, match="does not exist"):
+        load_job(tmp_path / "nope.toml")
+
+
+def test_demo_job_file_is_valid():
+    job = load_job(Path(__file__).parents[1] / "tasks" / "demo.toml")
+    assert job.name == "demo" and job.synthetic["shape"] == [2000, 2000]
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def test_cli_synth_import_info(tmp_path, topobathy_tif):
+    r = CliRunner()
+    out = tmp_path / "s.zarr"
+    res = r.invoke(main, ["dem", "synth", str(out), "--shape", "100", "80", "--seed", "2",
+                          "--chunks", "64"])
+    assert res.exit_code == 0, res.output
+    ref = pipeline.synthetic_dem((100, 80), seed=2, chunks=None).values
+    np.testing.assert_array_equal(pipeline.open_dem(out, chunks=None).values, ref)
+    res = r.invoke(main, ["dem", "synth", str(out), "--shape", "100", "80"])
+    assert res.exit_code == 2 and "exists already" in res.output
+    res = r.invoke(main, ["dem", "import", str(topobathy_tif), str(tmp_path / "r.zarr")])
+    assert res.exit_code == 0, res.output
+    res = r.invoke(main, ["dem", "info", str(tmp_path / "r.zarr")])
+    assert res.exit_code == 0 and "cells of" in res.output and "crs: set" in res.output
+
+
+def test_cli_bad_file_is_one_clear_line(tmp_path):
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"nope")
+    res = CliRunner().invoke(main, ["dem", "import", str(bad), str(tmp_path / "o.zarr")])
+    assert res.exit_code == 2
+    assert f"error: cannot read DEM file {bad}" in res.output
+    assert "Traceback" not in res.output
+
+
+def test_console_script_runs_a_job(tmp_path):
+    """The installed `pipeline` entry point, as a scheduled job would call it."""
+    job = _job(tmp_path, GOOD.format(catalog=tmp_path / "cat"))
+    exe = Path(sys.executable).parent / "pipeline"
+    env = dict(os.environ)
+    proc = subprocess.run([str(exe), "run", str(job)], capture_output=True, text=True,
+                          timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "DEM store" in proc.stdout and "written" in proc.stdout
+    proc = subprocess.run([str(exe), "run", str(job)], capture_output=True, text=True,
+                          timeout=300, env=env)
+    assert proc.returncode == 0 and "reused" in proc.stdout
+    bad = _job(tmp_path, "[dem]\n", "bad.toml")
+    proc = subprocess.run([str(exe), "run", str(bad)], capture_output=True, text=True,
+                          timeout=300, env=env)
+    assert proc.returncode == 2 and "error: job file" in proc.stderr
