@@ -15,6 +15,8 @@ from .exceptions import (
     PipelineError,
     StoreExistsError,
 )
+from .maps import build_maps, dem_hash, open_maps
+from .safety import passable, safety_map
 from .synthetic import synthetic_dem
 
 __version__ = "0.1.0"
@@ -26,9 +28,14 @@ __all__ = [
     "PipelineError",
     "StoreExistsError",
     "__version__",
+    "build_maps",
     "cell_size",
+    "dem_hash",
     "import_dem",
     "open_dem",
+    "open_maps",
+    "passable",
+    "safety_map",
     "synthetic_dem",
     "write_dem",
 ]

@@ -95,6 +95,40 @@ def dem_info(path):
         click.echo(f"elevation: {lo:.1f} .. {hi:.1f} m")
 
 
+@main.command("build-maps")
+@click.argument("dem_path", type=click.Path())
+@click.argument("out", type=click.Path())
+@click.option("--method", type=click.Choice(["spherical", "horizontal", "vertical"]),
+              default="spherical", show_default=True)
+@click.option("--clearance", type=float, default=300.0, show_default=True, help="R (m).")
+@click.option("--horizontal-clearance", type=float, default=None,
+              help="R_h (m) for the horizontal method; default R.")
+@click.option("--sea-level", type=float, default=0.0, show_default=True)
+@click.option("--surface-clearance", type=float, default=None,
+              help="Depth (m) the safety surface must stay below sea level; default R.")
+@click.option("--chunks", type=int, default=None, help="Chunk side; default the DEM's.")
+@click.option("--scheduler", default=None, help="Address of a dask scheduler.")
+@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+def build_maps_cmd(dem_path, out, method, clearance, horizontal_clearance, sea_level,
+                   surface_clearance, chunks, scheduler, overwrite):
+    """Build the maps store OUT (elevation, safety, passable) from the DEM at DEM_PATH."""
+    from .dem import open_dem
+    from .jobs import _scheduler
+    from .maps import build_maps
+
+    with _errors():
+        t0 = time.perf_counter()
+        dem = open_dem(dem_path, chunks=chunks or 1024)
+        with _scheduler(scheduler), _progress(f"building {method} maps of {dem_path} into {out}"):
+            maps = build_maps(dem, out, method=method, clearance=clearance,
+                              horizontal_clearance=horizontal_clearance, sea_level=sea_level,
+                              surface_clearance=surface_clearance, chunks=chunks,
+                              overwrite=overwrite)
+        share = float(maps["passable"].mean().compute())
+        click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s; "
+                   f"{100 * share:.1f} % of cells passable")
+
+
 @main.command("run")
 @click.argument("job", type=click.Path())
 @click.option("--scheduler", default=None, help="Address of a dask scheduler (tcp://host:port).")

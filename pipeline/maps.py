@@ -1,0 +1,164 @@
+"""The maps store: one Zarr (v3) store per DEM and parameter set (SPEC section 1).
+
+It holds ``elevation``, ``safety`` and ``passable`` (and, once the ridge stage lands,
+``accumulation`` and ``ridge``), chunked identically, with the parameters and a content hash of
+the input DEM in its attributes. It is written once, atomically, and read by every mission.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import dask
+import dask.array as da
+import numpy as np
+import xarray as xr
+from numba import njit
+
+from ._io import atomic_path
+from ._validate import chunks2d
+from .dem import DEFAULT_CHUNK, open_dem
+from .exceptions import InvalidParameterError, PipelineError
+from .safety import passable, safety_map
+
+log = logging.getLogger(__name__)
+
+MAPS_VERSION = 1
+
+
+@njit(nogil=True, cache=True)
+def _mix64(x):
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(nogil=True, cache=True)
+def _block_hash(block, r0, c0, ncols):
+    """Sum over cells of mix(value bits, global index): order-free, so any chunking agrees."""
+    bits = block.view(np.uint32)
+    h = np.uint64(0)
+    for i in range(block.shape[0]):
+        for j in range(block.shape[1]):
+            idx = np.uint64((r0 + i) * ncols + (c0 + j))
+            h += _mix64(np.uint64(bits[i, j]) ^ _mix64(idx + np.uint64(0x9E3779B97F4A7C15)))
+    return h
+
+
+def dem_hash(dem: xr.DataArray):
+    """A 64-bit content hash of the DEM's float32 values (NaN-normalised), independent of how
+    it is chunked. Returns a hex string, or a dask array of per-chunk partials when lazy."""
+    ncols = dem.shape[1]
+    z = dem.data
+
+    def part(block, block_info=None):
+        (r0, _), (c0, _) = block_info[0]["array-location"]
+        b = np.ascontiguousarray(np.where(np.isnan(block), np.float32(np.nan), block),
+                                 dtype=np.float32)
+        return np.array([[_block_hash(b, r0, c0, ncols)]], dtype=np.uint64)
+
+    if isinstance(z, da.Array):
+        return z.map_blocks(part, chunks=(1, 1), dtype=np.uint64)
+    return _hex(part(np.asarray(z, np.float32), {0: {"array-location": [(0, 0), (0, 0)]}}))
+
+
+def _hex(partials) -> str:
+    total = int(np.asarray(partials, dtype=np.uint64).sum(dtype=np.uint64))
+    return f"{total:016x}"
+
+
+def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
+               clearance: float = 300.0, horizontal_clearance: float | None = None,
+               sea_level: float = 0.0, surface_clearance: float | None = None,
+               chunks=None, overwrite: bool = False) -> xr.Dataset:
+    """Build the maps of ``dem`` chunk-wise and write them to the Zarr store ``store``.
+
+    Parameters
+    ----------
+    dem : xarray.DataArray or path
+        The canonical DEM, or a file :func:`pipeline.open_dem` can read.
+    store : path
+        Destination Zarr store, written atomically.
+    method, clearance, horizontal_clearance
+        As :func:`pipeline.safety_map`.
+    sea_level, surface_clearance
+        As :func:`pipeline.passable`.
+    chunks : int or (int, int), optional
+        Chunk sides of the store; default the DEM's chunks, else 1024.
+    overwrite : bool
+        Replace an existing store.
+
+    Returns
+    -------
+    xarray.Dataset
+        The store, opened lazily (:func:`open_maps`).
+
+    Examples
+    --------
+    >>> dem = pipeline.synthetic_dem((2000, 2000), chunks=512)           # doctest: +SKIP
+    >>> maps = build_maps(dem, "maps.zarr", clearance=300.0)             # doctest: +SKIP
+    >>> sorted(maps.data_vars)                                           # doctest: +SKIP
+    ['elevation', 'passable', 'safety']
+    """
+    if not isinstance(dem, xr.DataArray):
+        dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
+    store = Path(store)
+    if store.exists() and not overwrite:
+        from .exceptions import StoreExistsError
+
+        raise StoreExistsError(f"maps store {store} exists already; pass overwrite=True "
+                               "(--overwrite) to rebuild it")
+    if chunks is None:
+        chunks = dem.data.chunksize if isinstance(dem.data, da.Array) else DEFAULT_CHUNK
+    ch = chunks2d(chunks, dem.shape)
+    dem = dem.chunk(dict(zip(("y", "x"), ch, strict=True))).astype(np.float32)
+    # validate every parameter before any compute
+    S = safety_map(dem, method=method, clearance=clearance,
+                   horizontal_clearance=horizontal_clearance)
+    ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
+    params = {"method": method, "clearance_m": S.attrs["clearance_m"],
+              "horizontal_clearance_m": S.attrs.get("horizontal_clearance_m"),
+              "sea_level_m": ok.attrs["sea_level_m"],
+              "surface_clearance_m": ok.attrs["surface_clearance_m"],
+              "cell_size": dem.attrs["cell_size"], "chunks": list(ch)}
+    elev = dem.copy()
+    elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
+    ds = xr.Dataset({"elevation": elev, "safety": S, "passable": ok})
+    for v in ds.data_vars.values():
+        v.encoding = {}
+    ds.attrs = {"title": "pipeline maps store", "maps_version": MAPS_VERSION,
+                "parameters": json.dumps(params), "cell_size": dem.attrs["cell_size"]}
+    if "crs_wkt" in dem.attrs:
+        ds.attrs["crs_wkt"] = dem.attrs["crs_wkt"]
+    encoding = {k: {"chunks": ch} for k in ds.data_vars}
+    t0 = time.perf_counter()
+    with atomic_path(store, overwrite=overwrite) as tmp:
+        write = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False,
+                           encoding=encoding, compute=False)
+        _, partials = dask.compute(write, dem_hash(dem))
+        import zarr
+
+        group = zarr.open_group(tmp, mode="r+")
+        group.attrs["dem_hash"] = _hex(partials)
+    log.info("built maps store %s (%s, R = %g m) in %.1f s", store, method,
+             params["clearance_m"], time.perf_counter() - t0)
+    return open_maps(store)
+
+
+def open_maps(store: str | os.PathLike, chunks="store") -> xr.Dataset:
+    """Open a maps store lazily; ``chunks="store"`` keeps the store's own chunks."""
+    store = Path(store)
+    if not store.exists():
+        raise PipelineError(f"maps store {store} does not exist; build it with "
+                            "pipeline.build_maps or `pipeline build-maps`")
+    ds = xr.open_zarr(store, consolidated=False, chunks={} if chunks == "store" else chunks)
+    if ds.attrs.get("maps_version") != MAPS_VERSION:
+        raise InvalidParameterError(f"{store} is not a maps store of this version "
+                                    f"(maps_version={ds.attrs.get('maps_version')!r}); rebuild it")
+    ds.attrs["parameters"] = json.loads(ds.attrs["parameters"]) \
+        if isinstance(ds.attrs.get("parameters"), str) else ds.attrs.get("parameters")
+    return ds

@@ -1,0 +1,332 @@
+"""Safety maps (SPEC section 2, the paper's 4.2.1 with its formulas corrected) and passability.
+
+With clearance ``R``, horizontal clearance ``R_h`` and ``|q - p|`` the horizontal distance
+between cell centres:
+
+- vertical:   ``S(p) = z(p) + R``
+- horizontal: ``S(p) = max{ z(q) : |q - p| <= R_h } + R``
+- spherical:  ``S(p) = max{ z(q) + sqrt(R^2 - |q - p|^2) : |q - p| <= R }``, the lowest height
+  above ``p`` at which a sphere of radius ``R`` touches no terrain grid point: a grey dilation
+  with a non-flat spherical structuring element.
+
+The structuring element (the disc ``|q - p| <= R``, or ``R_h``) is clipped at the map edge.
+Where it holds a no-data cell the terrain is unknown, so ``S`` is NaN there (and such cells are
+not passable, as SPEC requires).
+
+The kernels are exact. The spherical one splits the disc by row offset ``d``: every input row
+is dilated once per offset by the 1-D spherical cap of that offset (contiguous loops that the
+compiler vectorises), and ``S(i, j)`` is the maximum over ``d`` of those row results, read from a
+ring buffer of ``2r + 1`` rows. The horizontal one is the same dilation with a flat disc.
+"""
+
+from __future__ import annotations
+
+import math
+
+import dask.array as da
+import numpy as np
+import xarray as xr
+from numba import njit
+
+from ._validate import positive_float
+from .dem import cell_size as _cell_size
+from .exceptions import InvalidDEMError, InvalidParameterError
+
+METHODS = ("vertical", "horizontal", "spherical")
+
+
+# --------------------------------------------------------------------------- structuring element
+
+
+def disc_widths(radius_m: float, a: float) -> np.ndarray:
+    """Half-widths of the disc ``|q - p| <= radius_m`` per row offset, in cells.
+
+    ``widths[d]`` is the largest ``w`` with ``a^2 (d^2 + w^2) <= radius_m^2``; the disc spans row
+    offsets ``-r .. r`` with ``r = len(widths) - 1``.
+    """
+    r = int(math.floor(radius_m / a))
+    while (r + 1) * (r + 1) * a * a <= radius_m * radius_m:
+        r += 1
+    while r > 0 and r * r * a * a > radius_m * radius_m:
+        r -= 1
+    widths = np.empty(r + 1, dtype=np.int64)
+    for d in range(r + 1):
+        w = int(math.floor(math.sqrt(max(radius_m * radius_m / (a * a) - d * d, 0.0))))
+        while (d * d + (w + 1) * (w + 1)) * a * a <= radius_m * radius_m:
+            w += 1
+        while w > 0 and (d * d + w * w) * a * a > radius_m * radius_m:
+            w -= 1
+        widths[d] = w
+    return widths
+
+
+def sphere_heights(radius_m: float, a: float, widths: np.ndarray) -> np.ndarray:
+    """``b[d, k] = sqrt(R^2 - a^2 (d^2 + k^2))`` inside the disc, -inf outside."""
+    r = widths.size - 1
+    b = np.full((r + 1, r + 1), -np.inf)
+    for d in range(r + 1):
+        k = np.arange(widths[d] + 1)
+        b[d, : widths[d] + 1] = np.sqrt(np.maximum(radius_m * radius_m
+                                                   - a * a * (d * d + k * k), 0.0))
+    return b
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@njit(inline="always", cache=True)
+def _max_into(dst, src, add):
+    """``dst[j] = max(dst[j], src[j] + add)``; two distinct contiguous views, so it vectorises."""
+    for j in range(dst.size):
+        v = src[j] + add
+        if v > dst[j]:
+            dst[j] = v
+
+
+@njit(nogil=True, cache=True)
+def _nodata_near(z, widths):
+    """True where the disc given by ``widths`` around a cell holds a NaN cell."""
+    rows, cols = z.shape
+    r = widths.size - 1
+    near = np.zeros((rows, cols), dtype=np.bool_)
+    count = np.zeros((rows, cols + 1), dtype=np.int32)  # row prefix sums of NaN cells
+    anynan = False
+    for i in range(rows):
+        for j in range(cols):
+            isnan = z[i, j] != z[i, j]
+            anynan |= isnan
+            count[i, j + 1] = count[i, j] + (1 if isnan else 0)
+    if not anynan:
+        return near
+    for i in range(rows):
+        for j in range(cols):
+            for d in range(-r, r + 1):
+                ii = i + d
+                if ii < 0 or ii >= rows:
+                    continue
+                w = widths[abs(d)]
+                lo = max(j - w, 0)
+                hi = min(j + w + 1, cols)
+                if count[ii, hi] - count[ii, lo] > 0:
+                    near[i, j] = True
+                    break
+    return near
+
+
+@njit(nogil=True, cache=True)
+def _row_dilation(zr, widths, b, e, t):
+    """``t[j] = max_k zr[j + k] + b[e, |k|]`` over ``|k| <= widths[e]`` (clipped to the row)."""
+    cols = zr.size
+    bb = b[e, 0]
+    for j in range(cols):
+        t[j] = zr[j] + bb
+    for k in range(1, min(widths[e], cols - 1) + 1):
+        n = cols - k
+        _max_into(t[:n], zr[k:], b[e, k])  # right neighbour j + k
+        _max_into(t[k:], zr[:n], b[e, k])  # left neighbour j - k
+
+
+@njit(nogil=True, cache=True)
+def _dilate(z, widths, b):
+    """Exact grey dilation of ``z`` by the structuring function ``b`` on the disc ``widths``.
+
+    ``b[d, k]`` is the height added for row offset ``d`` and column offset ``k`` (the spherical
+    cap, or zeros for the flat disc); by row offsets:
+
+    ``S(i, j) = max_d T_|d|(i + d, j)`` with ``T_e(row, j) = max_k z(row, j + k) + b(e, k)``.
+    Each input row's ``T_e`` (e = 0..r) is computed once and kept in a ring buffer of 2r + 1
+    rows. Candidates are summed in float64; storing ``T`` as float32 rounds each maximum once
+    (rounding is monotone, so the max of rounded values is the rounded max).
+    """
+    rows, cols = z.shape
+    r = widths.size - 1
+    ring = 2 * r + 1
+    near = _nodata_near(z, widths)
+    tbuf = np.empty((ring, r + 1, cols), dtype=np.float32)
+    zr = np.empty(cols, dtype=np.float64)
+    t = np.empty(cols, dtype=np.float64)
+    acc = np.empty(cols, dtype=np.float32)
+    out = np.empty((rows, cols), dtype=np.float32)
+    for row in range(rows + r):
+        if row < rows:
+            for j in range(cols):
+                zr[j] = z[row, j]
+            slot = row % ring
+            for e in range(r + 1):
+                _row_dilation(zr, widths, b, e, t)
+                tbuf[slot, e] = t  # rounds each maximum to float32 once
+        i = row - r
+        if i < 0:
+            continue
+        acc[:] = tbuf[i % ring, 0]
+        for d in range(1, r + 1):
+            if i - d >= 0:
+                _max_into(acc, tbuf[(i - d) % ring, d], np.float32(0.0))
+            if i + d < rows:
+                _max_into(acc, tbuf[(i + d) % ring, d], np.float32(0.0))
+        for j in range(cols):
+            out[i, j] = np.nan if near[i, j] else acc[j]
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _horizontal(z, widths, clearance):
+    flat = np.zeros((widths.size, widths.size))
+    out = _dilate(z, widths, flat)
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[i, j] = np.float64(out[i, j]) + clearance
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _vertical(z, clearance):
+    out = np.empty(z.shape, dtype=np.float32)
+    for i in range(z.shape[0]):
+        for j in range(z.shape[1]):
+            out[i, j] = np.float64(z[i, j]) + clearance
+    return out
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def _check_dem(dem) -> float:
+    if not isinstance(dem, xr.DataArray):
+        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}; "
+                                    "open it with pipeline.open_dem")
+    if dem.ndim != 2 or dem.dims != ("y", "x"):
+        raise InvalidDEMError(f"`dem` must be 2-D with dims ('y', 'x'), got dims {dem.dims}; "
+                              "open it with pipeline.open_dem")
+    if dem.dtype.kind != "f":
+        raise InvalidDEMError(f"`dem` must hold floating-point elevations, got {dem.dtype}")
+    return _cell_size(dem)
+
+
+def _check_clearance(name: str, value, a: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise InvalidParameterError(f"`{name}` must be a number of metres > 0, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value) or value <= 0:
+        raise InvalidParameterError(f"`{name}` must be a finite number of metres > 0, got {value}")
+    if value < a / 2:
+        raise InvalidParameterError(
+            f"`{name}` = {value:g} m is smaller than half a cell ({a / 2:g} m): the clearance "
+            "zone would hold no grid point but the cell itself, so the DEM cannot resolve it; "
+            "use a larger clearance or a finer DEM")
+    return value
+
+
+def safety_map(dem: xr.DataArray, method: str = "spherical", clearance: float = 300.0,
+               horizontal_clearance: float | None = None) -> xr.DataArray:
+    """The safety surface: the lowest height at which the vehicle keeps its clearance.
+
+    Parameters
+    ----------
+    dem : xarray.DataArray
+        Canonical elevation (see :func:`pipeline.open_dem`), numpy- or dask-backed.
+    method : {"spherical", "horizontal", "vertical"}
+        Clearance measured in 3-D (a sphere), horizontally (a disc) or vertically.
+    clearance : float
+        ``R`` in metres.
+    horizontal_clearance : float, optional
+        ``R_h`` for the horizontal method; defaults to ``clearance``.
+
+    Returns
+    -------
+    xarray.DataArray
+        ``safety`` (float32 metres), same coords as ``dem``; lazy for dask input. NaN where the
+        structuring element holds no-data.
+
+    Examples
+    --------
+    >>> dem = pipeline.synthetic_dem((500, 500), cell_size=30.0, chunks=256)  # doctest: +SKIP
+    >>> S = safety_map(dem, "spherical", clearance=300.0)                     # doctest: +SKIP
+    >>> bool((S >= dem + 300 - 1e-3).all())                                   # doctest: +SKIP
+    True
+    """
+    a = _check_dem(dem)
+    if method not in METHODS:
+        raise InvalidParameterError(
+            f"method must be 'vertical', 'horizontal' or 'spherical', got {method!r}")
+    clearance = _check_clearance("clearance", clearance, a)
+    if horizontal_clearance is None:
+        horizontal_clearance = clearance
+    horizontal_clearance = _check_clearance("horizontal_clearance", horizontal_clearance, a)
+
+    if method == "vertical":
+        def kernel(block):
+            return _vertical(block, clearance)
+        depth = 0
+    elif method == "horizontal":
+        widths = disc_widths(horizontal_clearance, a)
+
+        def kernel(block):
+            return _horizontal(block, widths, clearance)
+        depth = widths.size - 1
+    else:
+        widths = disc_widths(clearance, a)
+        b = sphere_heights(clearance, a, widths)
+
+        def kernel(block):
+            return _dilate(block, widths, b)
+        depth = widths.size - 1
+
+    z = dem.data
+    if isinstance(z, da.Array):
+        z = z.astype(np.float32)
+        meta = np.empty((0, 0), dtype=np.float32)
+        if depth == 0:
+            data = z.map_blocks(kernel, dtype=np.float32, meta=meta)
+        else:
+            data = z.map_overlap(kernel, depth={0: depth, 1: depth}, boundary="none",
+                                 dtype=np.float32, meta=meta)
+    else:
+        data = kernel(np.ascontiguousarray(z, dtype=np.float32))
+    attrs = {
+        "long_name": f"{method} safety surface", "units": "m", "method": method,
+        "clearance_m": clearance, "cell_size": a,
+        "element_radius_cells": int(depth),
+    }
+    if method == "horizontal":
+        attrs["horizontal_clearance_m"] = horizontal_clearance
+    for key in ("crs_wkt",):
+        if key in dem.attrs:
+            attrs[key] = dem.attrs[key]
+    return xr.DataArray(data, dims=dem.dims, coords=dem.coords, name="safety", attrs=attrs)
+
+
+def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = 0.0,
+             surface_clearance: float | None = None) -> xr.DataArray:
+    """Cells the vehicle may occupy (SPEC section 2).
+
+    A cell is passable when its elevation is known and below ``sea_level`` (not land), no
+    no-data cell lies within the safety map's structuring element (``safety`` is finite), and
+    the safety surface leaves the vehicle submerged: ``S <= sea_level - surface_clearance``
+    (``surface_clearance`` defaults to the safety map's clearance ``R``).
+
+    Examples
+    --------
+    >>> ok = passable(dem, safety_map(dem))  # doctest: +SKIP
+    """
+    _check_dem(dem)
+    if not isinstance(safety, xr.DataArray) or safety.shape != dem.shape:
+        got = safety.shape if isinstance(safety, xr.DataArray) else type(safety).__name__
+        raise InvalidParameterError(f"`safety` must be a DataArray of the DEM's shape "
+                                    f"{dem.shape}, got {got}; build it with safety_map(dem)")
+    if isinstance(sea_level, bool) or not isinstance(sea_level, int | float | np.number) \
+            or not math.isfinite(sea_level):
+        raise InvalidParameterError(f"`sea_level` must be a finite number of metres, "
+                                    f"got {sea_level!r}")
+    if surface_clearance is None:
+        surface_clearance = float(safety.attrs.get("clearance_m", 0.0))
+    surface_clearance = positive_float("surface_clearance", surface_clearance, allow_zero=True)
+    z = dem.data
+    s = safety.data
+    ok = ((z == z) & (z < sea_level) & (s == s)
+          & (s <= np.float32(sea_level - surface_clearance)))
+    return xr.DataArray(ok, dims=dem.dims, coords=dem.coords, name="passable",
+                        attrs={"long_name": "passable cells", "sea_level_m": float(sea_level),
+                               "surface_clearance_m": surface_clearance,
+                               "safety_method": safety.attrs.get("method", "unknown"),
+                               "clearance_m": safety.attrs.get("clearance_m", float("nan"))})

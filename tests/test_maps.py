@@ -1,0 +1,84 @@
+"""The maps store: written once, atomically, read lazily; values against scipy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+from click.testing import CliRunner
+from test_safety import scipy_reference
+
+import pipeline
+from pipeline.cli import main
+from pipeline.exceptions import StoreExistsError
+
+
+def test_build_maps_store(tmp_path):
+    dem = pipeline.synthetic_dem((300, 250), cell_size=30.0, seed=2, chunks=64)
+    maps = pipeline.build_maps(dem, tmp_path / "maps.zarr", clearance=300.0)
+    assert set(maps.data_vars) == {"elevation", "safety", "passable"}
+    for v in maps.data_vars.values():
+        assert v.data.chunksize == (64, 64)  # chunked identically
+    g = zarr.open_group(tmp_path / "maps.zarr", mode="r")
+    assert g.metadata.zarr_format == 3 and g["safety"].chunks == (64, 64)
+    z = dem.values
+    ref = scipy_reference(z, 30.0, 300.0).astype(np.float32)
+    np.testing.assert_array_equal(maps["safety"].values, ref)
+    np.testing.assert_array_equal(maps["elevation"].values, z)
+    np.testing.assert_array_equal(maps["passable"].values, (z < 0) & (ref <= -300.0))
+    p = maps.attrs["parameters"]
+    assert p["method"] == "spherical" and p["clearance_m"] == 300.0 and p["chunks"] == [64, 64]
+    assert maps.attrs["dem_hash"] == pipeline.dem_hash(dem.compute())
+    assert maps.attrs["cell_size"] == 30.0
+
+
+def test_dem_hash_is_chunking_independent_and_content_sensitive():
+    dem = pipeline.synthetic_dem((200, 170), seed=0, chunks=None)
+    h = pipeline.dem_hash(dem)
+    for ch in [(7, 5), (64, 64), (200, 170)]:
+        parts = pipeline.dem_hash(dem.chunk(dict(zip(("y", "x"), ch, strict=True))))
+        total = int(parts.compute().sum(dtype=np.uint64))
+        assert f"{total:016x}" == h
+    other = dem.copy(data=dem.values.copy())
+    other.values[100, 100] += np.float32(0.5)
+    assert pipeline.dem_hash(other) != h
+    swapped = dem.copy(data=dem.values[::-1].copy())  # same values, other places
+    assert pipeline.dem_hash(swapped) != h
+
+
+def test_refuses_to_clobber_and_rebuilds_on_request(tmp_path):
+    dem = pipeline.synthetic_dem((64, 64), chunks=32)
+    pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=90.0)
+    with pytest.raises(StoreExistsError, match="overwrite"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=90.0)
+    m = pipeline.build_maps(dem, tmp_path / "m.zarr", method="vertical", clearance=90.0,
+                            overwrite=True)
+    assert m.attrs["parameters"]["method"] == "vertical"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.zarr"]
+
+
+def test_bad_parameters_fail_before_any_write(tmp_path):
+    dem = pipeline.synthetic_dem((64, 64), chunks=32)
+    with pytest.raises(pipeline.InvalidParameterError, match="method must be"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", method="cube")
+    assert not any(tmp_path.iterdir())
+
+
+def test_open_maps_missing(tmp_path):
+    with pytest.raises(pipeline.PipelineError, match="does not exist"):
+        pipeline.open_maps(tmp_path / "none.zarr")
+
+
+def test_cli_build_maps(tmp_path):
+    r = CliRunner()
+    dem_store = tmp_path / "dem.zarr"
+    pipeline.write_dem(pipeline.synthetic_dem((120, 100), chunks=64), dem_store, chunks=64)
+    res = r.invoke(main, ["build-maps", str(dem_store), str(tmp_path / "maps.zarr"),
+                          "--method", "horizontal", "--clearance", "200"])
+    assert res.exit_code == 0, res.output
+    assert "passable" in res.output
+    maps = pipeline.open_maps(tmp_path / "maps.zarr")
+    assert maps.attrs["parameters"]["method"] == "horizontal"
+    res = r.invoke(main, ["build-maps", str(dem_store), str(tmp_path / "m2.zarr"),
+                          "--clearance", "5"])
+    assert res.exit_code == 2 and "smaller than half a cell" in res.output
