@@ -16,6 +16,7 @@ from .exceptions import (
     StoreExistsError,
 )
 from .maps import build_maps, dem_hash, open_maps
+from .ridges import fill_depressions, flow_accumulation, ridge_map
 from .safety import passable, safety_map
 from .synthetic import synthetic_dem
 
@@ -31,10 +32,13 @@ __all__ = [
     "build_maps",
     "cell_size",
     "dem_hash",
+    "fill_depressions",
+    "flow_accumulation",
     "import_dem",
     "open_dem",
     "open_maps",
     "passable",
+    "ridge_map",
     "safety_map",
     "synthetic_dem",
     "write_dem",

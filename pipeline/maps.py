@@ -1,8 +1,15 @@
 """The maps store: one Zarr (v3) store per DEM and parameter set (SPEC section 1).
 
-It holds ``elevation``, ``safety`` and ``passable`` (and, once the ridge stage lands,
-``accumulation`` and ``ridge``), chunked identically, with the parameters and a content hash of
-the input DEM in its attributes. It is written once, atomically, and read by every mission.
+It holds ``elevation``, ``safety``, ``passable``, ``accumulation`` and ``ridge``, chunked
+identically, with the parameters and a content hash of the input DEM in its attributes. It is
+written once, atomically, and read by every mission.
+
+The build runs as a few streaming passes, each a separate dask computation that reads its
+input chunk by chunk, so that no worker ever holds more than a chunk or two plus perimeter
+data: (1) the depression-fill summaries of every tile and their small global solve; (2) the
+elevation, safety, passability and filled layers; (3) the flow summaries of every tile (from
+the stored filled layer) and their global solve; (4) the accumulation and ridge layers. The
+intermediate filled layer is dropped at the end.
 """
 
 from __future__ import annotations
@@ -20,9 +27,10 @@ import xarray as xr
 from numba import njit
 
 from ._io import atomic_path
-from ._validate import chunks2d
+from ._validate import chunks2d, positive_int
 from .dem import DEFAULT_CHUNK, open_dem
-from .exceptions import InvalidParameterError, PipelineError
+from .exceptions import InvalidDEMError, InvalidParameterError, PipelineError, StoreExistsError
+from .ridges import _accumulation_dask, _fill_dask, default_min_accumulation
 from .safety import passable, safety_map
 
 log = logging.getLogger(__name__)
@@ -74,7 +82,8 @@ def _hex(partials) -> str:
 def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
                clearance: float = 300.0, horizontal_clearance: float | None = None,
                sea_level: float = 0.0, surface_clearance: float | None = None,
-               chunks=None, overwrite: bool = False) -> xr.Dataset:
+               min_accumulation: int | None = None, chunks=None,
+               overwrite: bool = False) -> xr.Dataset:
     """Build the maps of ``dem`` chunk-wise and write them to the Zarr store ``store``.
 
     Parameters
@@ -87,6 +96,8 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
         As :func:`pipeline.safety_map`.
     sea_level, surface_clearance
         As :func:`pipeline.passable`.
+    min_accumulation : int, optional
+        Ridge threshold in cells, as :func:`pipeline.ridge_map` (default: a 1 km^2 area).
     chunks : int or (int, int), optional
         Chunk sides of the store; default the DEM's chunks, else 1024.
     overwrite : bool
@@ -102,14 +113,12 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
     >>> dem = pipeline.synthetic_dem((2000, 2000), chunks=512)           # doctest: +SKIP
     >>> maps = build_maps(dem, "maps.zarr", clearance=300.0)             # doctest: +SKIP
     >>> sorted(maps.data_vars)                                           # doctest: +SKIP
-    ['elevation', 'passable', 'safety']
+    ['accumulation', 'elevation', 'passable', 'ridge', 'safety']
     """
     if not isinstance(dem, xr.DataArray):
         dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = Path(store)
     if store.exists() and not overwrite:
-        from .exceptions import StoreExistsError
-
         raise StoreExistsError(f"maps store {store} exists already; pass overwrite=True "
                                "(--overwrite) to rebuild it")
     if chunks is None:
@@ -120,33 +129,67 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
     S = safety_map(dem, method=method, clearance=clearance,
                    horizontal_clearance=horizontal_clearance)
     ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
+    if min_accumulation is None:
+        min_accumulation = default_min_accumulation(float(dem.attrs["cell_size"]))
+    min_accumulation = positive_int("min_accumulation", min_accumulation)
+    if not bool(np.isfinite(dem.data).any().compute()):
+        raise InvalidDEMError("the DEM is entirely no-data (NaN); nothing to build maps from")
     params = {"method": method, "clearance_m": S.attrs["clearance_m"],
               "horizontal_clearance_m": S.attrs.get("horizontal_clearance_m"),
               "sea_level_m": ok.attrs["sea_level_m"],
               "surface_clearance_m": ok.attrs["surface_clearance_m"],
+              "min_accumulation": min_accumulation,
               "cell_size": dem.attrs["cell_size"], "chunks": list(ch)}
     elev = dem.copy()
     elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
-    ds = xr.Dataset({"elevation": elev, "safety": S, "passable": ok})
-    for v in ds.data_vars.values():
-        v.encoding = {}
-    ds.attrs = {"title": "pipeline maps store", "maps_version": MAPS_VERSION,
-                "parameters": json.dumps(params), "cell_size": dem.attrs["cell_size"]}
-    if "crs_wkt" in dem.attrs:
-        ds.attrs["crs_wkt"] = dem.attrs["crs_wkt"]
-    encoding = {k: {"chunks": ch} for k in ds.data_vars}
     t0 = time.perf_counter()
     with atomic_path(store, overwrite=overwrite) as tmp:
-        write = ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False,
-                           encoding=encoding, compute=False)
-        _, partials = dask.compute(write, dem_hash(dem))
+        # pass 1: fill summaries of every tile and their global solve
+        filled = _fill_dask(dem.data, eager_solve=True).rechunk(ch)
+        log.info("maps %s: depression-fill summaries solved (%.1f s)", store,
+                 time.perf_counter() - t0)
+        # pass 2: elevation, safety, passable, filled (+ the DEM content hash)
+        ds = xr.Dataset({"elevation": elev, "safety": S, "passable": ok,
+                         "filled": (("y", "x"), filled)})
+        partials = _write(ds, tmp, ch, mode="w", extra=dem_hash(dem))
+        log.info("maps %s: elevation, safety, passable, filled written (%.1f s)", store,
+                 time.perf_counter() - t0)
+        # pass 3: flow summaries from the stored filled layer, and their global solve
+        stored = xr.open_zarr(tmp, consolidated=False)["filled"].data
+        acc = _accumulation_dask(stored, eager_solve=True).rechunk(ch)
+        log.info("maps %s: flow summaries solved (%.1f s)", store, time.perf_counter() - t0)
+        # pass 4: accumulation and ridge
+        ds2 = xr.Dataset({
+            "accumulation": (("y", "x"), acc, {
+                "long_name": "flow accumulation of the inverted filled DEM", "units": "cells"}),
+            "ridge": (("y", "x"), acc >= min_accumulation, {
+                "long_name": "ridge cells", "min_accumulation": min_accumulation})},
+            coords={"y": dem.y, "x": dem.x})
+        _write(ds2, tmp, ch, mode="a")
         import zarr
 
         group = zarr.open_group(tmp, mode="r+")
-        group.attrs["dem_hash"] = _hex(partials)
-    log.info("built maps store %s (%s, R = %g m) in %.1f s", store, method,
-             params["clearance_m"], time.perf_counter() - t0)
+        del group["filled"]
+        group.attrs.update({"title": "pipeline maps store", "maps_version": MAPS_VERSION,
+                            "parameters": json.dumps(params),
+                            "cell_size": dem.attrs["cell_size"],
+                            "dem_hash": _hex(partials)})
+        if "crs_wkt" in dem.attrs:
+            group.attrs["crs_wkt"] = dem.attrs["crs_wkt"]
+    log.info("built maps store %s (%s, R = %g m, ridge >= %d cells) in %.1f s", store, method,
+             params["clearance_m"], min_accumulation, time.perf_counter() - t0)
     return open_maps(store)
+
+
+def _write(ds: xr.Dataset, path, ch, *, mode: str, extra=None):
+    """Write ``ds`` (dask-backed) to the Zarr store ``path`` in one streaming computation;
+    ``extra`` (a dask collection sharing its inputs) is computed in the same pass and returned."""
+    for v in ds.data_vars.values():
+        v.encoding = {}
+    write = ds.to_zarr(path, mode=mode, zarr_format=3, consolidated=False,
+                       encoding={k: {"chunks": ch} for k in ds.data_vars}, compute=False)
+    _, value = dask.compute(write, extra)
+    return value
 
 
 def open_maps(store: str | os.PathLike, chunks="store") -> xr.Dataset:

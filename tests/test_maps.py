@@ -16,7 +16,7 @@ from pipeline.exceptions import StoreExistsError
 def test_build_maps_store(tmp_path):
     dem = pipeline.synthetic_dem((300, 250), cell_size=30.0, seed=2, chunks=64)
     maps = pipeline.build_maps(dem, tmp_path / "maps.zarr", clearance=300.0)
-    assert set(maps.data_vars) == {"elevation", "safety", "passable"}
+    assert set(maps.data_vars) == {"elevation", "safety", "passable", "accumulation", "ridge"}
     for v in maps.data_vars.values():
         assert v.data.chunksize == (64, 64)  # chunked identically
     g = zarr.open_group(tmp_path / "maps.zarr", mode="r")
@@ -26,8 +26,17 @@ def test_build_maps_store(tmp_path):
     np.testing.assert_array_equal(maps["safety"].values, ref)
     np.testing.assert_array_equal(maps["elevation"].values, z)
     np.testing.assert_array_equal(maps["passable"].values, (z < 0) & (ref <= -300.0))
+    # ridge layers equal the single-array computation (checked against pysheds in
+    # test_ridges.py), threshold 1112 cells = 1 km^2 of 30 m cells
+    from pipeline.ridges import accumulation_single, fill_single
+
+    acc = accumulation_single(fill_single(z))
+    np.testing.assert_array_equal(maps["accumulation"].values, acc)
+    np.testing.assert_array_equal(maps["ridge"].values, acc >= 1112)
+    assert maps["ridge"].values.any()
     p = maps.attrs["parameters"]
     assert p["method"] == "spherical" and p["clearance_m"] == 300.0 and p["chunks"] == [64, 64]
+    assert p["min_accumulation"] == 1112
     assert maps.attrs["dem_hash"] == pipeline.dem_hash(dem.compute())
     assert maps.attrs["cell_size"] == 30.0
 
