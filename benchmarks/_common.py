@@ -54,3 +54,26 @@ def run_isolated(code: str, *, timeout: float = 1800) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark child failed:\n{proc.stderr[-4000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# a preamble for run_isolated snippets: make the n x n synthetic DEM store if it is missing,
+# then start a LocalCluster of 2 single-threaded workers (`client`), warmed with `warm()`
+CLUSTER_PREAMBLE = """
+import time, dask, pipeline, shutil, resource, xarray as xr
+from pathlib import Path
+from distributed import Client, LocalCluster
+src = "{src}"
+if not Path(src).exists():
+    with dask.config.set(scheduler="threads"):
+        pipeline.write_dem(pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0,
+                                                  chunks=1024), src, chunks=1024)
+cluster = LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)
+client = Client(cluster)
+small = pipeline.synthetic_dem((300, 300), chunks=100)
+pipeline.safety_map(small, "spherical", 300.0).compute()   # warm the workers' numba caches
+pipeline.flow_accumulation(small).compute()
+def worker_peaks():
+    return [round(v / 2**20, 3) for v in client.run(
+        lambda: __import__("resource").getrusage(__import__("resource").RUSAGE_SELF).ru_maxrss
+    ).values()]
+"""

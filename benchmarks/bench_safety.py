@@ -10,7 +10,7 @@ import argparse
 import json
 from pathlib import Path
 
-from _common import OUT, machine, run_isolated
+from _common import CLUSTER_PREAMBLE, OUT, machine, run_isolated
 
 TABLE1 = """
 import numpy as np, pipeline
@@ -50,34 +50,14 @@ result = dict(ours_s=min(ours), scipy64_s=t64, scipy32_s=t32,
               footprint_cells=int(fp.sum()))
 """
 
-BIG = """
-import time, dask, pipeline, shutil
-from distributed import Client, LocalCluster
-src = "{src}"
-from pathlib import Path
-if not Path(src).exists():
-    with dask.config.set(scheduler="threads"):
-        pipeline.write_dem(pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0,
-                                                  chunks=1024), src, chunks=1024)
-with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster, \\
-        Client(cluster) as client:
-    small = pipeline.synthetic_dem((300, 300), chunks=128)
-    pipeline.safety_map(small, "spherical", 300.0).compute()      # warm workers' numba cache
-    dem = pipeline.open_dem(src, chunks=1024)
-    t = time.perf_counter()
-    S = pipeline.safety_map(dem, "spherical", 300.0)
-    S.to_dataset().to_zarr("{out}/safety.zarr", mode="w", zarr_format=3, consolidated=False)
-    safety_s = time.perf_counter() - t
-    t = time.perf_counter()
-    pipeline.build_maps(dem, "{out}/maps.zarr", method="spherical", clearance=300.0,
-                        overwrite=True)
-    maps_s = time.perf_counter() - t
-    mem = client.run(lambda: __import__("resource").getrusage(
-        __import__("resource").RUSAGE_SELF).ru_maxrss)
+BIG = CLUSTER_PREAMBLE + """
+dem = pipeline.open_dem(src, chunks=1024)
+t = time.perf_counter()
+S = pipeline.safety_map(dem, "spherical", 300.0)
+S.to_dataset().to_zarr("{out}/safety.zarr", mode="w", zarr_format=3, consolidated=False)
+result = dict(safety_zarr_s=time.perf_counter() - t, worker_peak_gib=worker_peaks())
+client.close(); cluster.close()
 shutil.rmtree("{out}/safety.zarr", ignore_errors=True)
-shutil.rmtree("{out}/maps.zarr", ignore_errors=True)
-result = dict(safety_zarr_s=safety_s, build_maps_s=maps_s,
-              worker_peak_gib=[round(v / 2**20, 3) for v in mem.values()])
 """
 
 PROFILE = """
@@ -128,9 +108,8 @@ def main() -> None:
     nb = 3000 if args.quick else 10000
     b = run_isolated(BIG.format(n=nb, src=OUT / f"dem{nb}.zarr", out=OUT), timeout=3600)
     print(f"\n{nb} x {nb}, spherical R = 300 m, Zarr -> Zarr, LocalCluster 2 workers x 1 thread:")
-    print(f"safety only {b['safety_zarr_s']:.1f} s; build_maps (elevation, safety, passable, "
-          f"hash) {b['build_maps_s']:.1f} s; worker peak RSS {b['worker_peak_gib']} GiB; "
-          f"client peak {b['peak_rss_gib']} GiB")
+    print(f"safety layer {b['safety_zarr_s']:.1f} s; worker peak RSS {b['worker_peak_gib']} "
+          f"GiB; client peak {b['peak_rss_gib']} GiB")
     png = Path(__file__).resolve().parents[1] / "docs" / "safety-profile.png"
     run_isolated(PROFILE.format(png=png))
     print(f"\nprofile plot: {png}")

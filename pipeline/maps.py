@@ -4,12 +4,12 @@ It holds ``elevation``, ``safety``, ``passable``, ``accumulation`` and ``ridge``
 identically, with the parameters and a content hash of the input DEM in its attributes. It is
 written once, atomically, and read by every mission.
 
-The build runs as a few streaming passes, each a separate dask computation that reads its
-input chunk by chunk, so that no worker ever holds more than a chunk or two plus perimeter
-data: (1) the depression-fill summaries of every tile and their small global solve; (2) the
-elevation, safety, passability and filled layers; (3) the flow summaries of every tile (from
-the stored filled layer) and their global solve; (4) the accumulation and ridge layers. The
-intermediate filled layer is dropped at the end.
+The build runs as three streaming passes, each a dask computation that reads its input chunk
+by chunk, so that no worker holds more than a chunk or two plus perimeter data: (1) every tile
+is flooded once, its local fill and label indices go to a scratch store, and the spill edges
+to a small global solve; (2) the fill is finished elementwise per tile (plus a one-cell halo)
+and the flow summaries go to the second global solve; (3) every layer is written. The scratch
+store is removed at the end.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from ._io import atomic_path
 from ._validate import chunks2d, positive_int
 from .dem import DEFAULT_CHUNK, open_dem
 from .exceptions import InvalidDEMError, InvalidParameterError, PipelineError, StoreExistsError
-from .ridges import _accumulation_dask, _fill_dask, default_min_accumulation
+from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
 
 log = logging.getLogger(__name__)
@@ -144,32 +145,26 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
     elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
     t0 = time.perf_counter()
     with atomic_path(store, overwrite=overwrite) as tmp:
-        # pass 1: fill summaries of every tile and their global solve
-        filled = _fill_dask(dem.data, eager_solve=True).rechunk(ch)
-        log.info("maps %s: depression-fill summaries solved (%.1f s)", store,
-                 time.perf_counter() - t0)
-        # pass 2: elevation, safety, passable, filled (+ the DEM content hash)
-        ds = xr.Dataset({"elevation": elev, "safety": S, "passable": ok,
-                         "filled": (("y", "x"), filled)})
-        partials = _write(ds, tmp, ch, mode="w", extra=dem_hash(dem))
-        log.info("maps %s: elevation, safety, passable, filled written (%.1f s)", store,
-                 time.perf_counter() - t0)
-        # pass 3: flow summaries from the stored filled layer, and their global solve
-        stored = xr.open_zarr(tmp, consolidated=False)["filled"].data
-        acc = _accumulation_dask(stored, eager_solve=True).rechunk(ch)
-        log.info("maps %s: flow summaries solved (%.1f s)", store, time.perf_counter() - t0)
-        # pass 4: accumulation and ridge
-        ds2 = xr.Dataset({
-            "accumulation": (("y", "x"), acc, {
-                "long_name": "flow accumulation of the inverted filled DEM", "units": "cells"}),
-            "ridge": (("y", "x"), acc >= min_accumulation, {
-                "long_name": "ridge cells", "min_accumulation": min_accumulation})},
-            coords={"y": dem.y, "x": dem.x})
-        _write(ds2, tmp, ch, mode="a")
+        scratch = tmp.with_name(tmp.name + "-scratch")
+        try:
+            # passes 1-2: tiles flooded once, fill and flow summaries solved globally
+            _, acc, ridge = ridge_layers_staged(dem.data, scratch, min_accumulation,
+                                                log=lambda msg, *a: log.info(
+                                                    f"maps {store}: " + msg, *a))
+            # pass 3: every layer written in one streaming computation (+ the DEM hash)
+            ds = xr.Dataset({
+                "elevation": elev, "safety": S, "passable": ok,
+                "accumulation": (("y", "x"), acc, {
+                    "long_name": "flow accumulation of the inverted filled DEM",
+                    "units": "cells"}),
+                "ridge": (("y", "x"), ridge, {"long_name": "ridge cells",
+                                              "min_accumulation": min_accumulation})})
+            partials = _write(ds, tmp, ch, mode="w", extra=dem_hash(dem))
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
         import zarr
 
         group = zarr.open_group(tmp, mode="r+")
-        del group["filled"]
         group.attrs.update({"title": "pipeline maps store", "maps_version": MAPS_VERSION,
                             "parameters": json.dumps(params),
                             "cell_size": dem.attrs["cell_size"],

@@ -49,55 +49,49 @@ DIST = np.array([1.0, math.sqrt(2.0)] * 4)
 
 
 # --------------------------------------------------------------------------- a binary heap
+# (value, item) pairs in two arrays; ties pop in any order: the filled surface is unique
+# whatever the order among equal heights, and the tiled solve is exact for any valid order.
 
 
 @njit(inline="always", cache=True)
-def _less(hv, hs, a, b):
-    return hv[a] < hv[b] or (hv[a] == hv[b] and hs[a] < hs[b])
-
-
-@njit(cache=True)
-def _heap_push(hv, hs, hi, n, value, seq, item):
-    hv[n] = value
-    hs[n] = seq
-    hi[n] = item
+def _heap_push(hv, hi, n, value, item):
     k = n
     while k > 0:
         p = (k - 1) >> 1
-        if _less(hv, hs, k, p):
-            hv[k], hv[p] = hv[p], hv[k]
-            hs[k], hs[p] = hs[p], hs[k]
-            hi[k], hi[p] = hi[p], hi[k]
+        if value < hv[p]:
+            hv[k] = hv[p]
+            hi[k] = hi[p]
             k = p
         else:
             break
+    hv[k] = value
+    hi[k] = item
     return n + 1
 
 
-@njit(cache=True)
-def _heap_pop(hv, hs, hi, n):
+@njit(inline="always", cache=True)
+def _heap_pop(hv, hi, n):
     """Remove the smallest entry (returned as value, item); ``n`` is the size before."""
     value = hv[0]
     item = hi[0]
     n -= 1
-    hv[0] = hv[n]
-    hs[0] = hs[n]
-    hi[0] = hi[n]
+    last_v = hv[n]
+    last_i = hi[n]
     k = 0
     while True:
-        left = 2 * k + 1
-        if left >= n:
+        child = 2 * k + 1
+        if child >= n:
             break
-        m = left
-        if left + 1 < n and _less(hv, hs, left + 1, left):
-            m = left + 1
-        if _less(hv, hs, m, k):
-            hv[k], hv[m] = hv[m], hv[k]
-            hs[k], hs[m] = hs[m], hs[k]
-            hi[k], hi[m] = hi[m], hi[k]
-            k = m
+        if child + 1 < n and hv[child + 1] < hv[child]:
+            child += 1
+        if hv[child] < last_v:
+            hv[k] = hv[child]
+            hi[k] = hi[child]
+            k = child
         else:
             break
+    hv[k] = last_v
+    hi[k] = last_i
     return value, item
 
 
@@ -108,20 +102,19 @@ def _heap_pop(hv, hs, hi, n):
 def _flood(z, is_seed, seed_label, want_edges):
     """Priority-flood of ``z`` (NaN = no-data) from the cells marked ``is_seed``.
 
-    Returns the filled surface, the label each cell was flooded from, and (if ``want_edges``)
-    the spill edges ``(label_a, label_b, height)`` where two labels meet.
+    Barnes et al. (2014): cells at or below the current level go through a FIFO (pit) queue,
+    the others through a binary heap. Returns the filled surface, the label each cell was
+    flooded from (-3 for no-data), and (if ``want_edges``) the spill edges
+    ``(label_a, label_b, height)`` where two labels meet.
     """
     rows, cols = z.shape
     n = rows * cols
     filled = np.full((rows, cols), np.nan, dtype=np.float32)
-    label = np.full((rows, cols), -2, dtype=np.int64)
-    closed = np.zeros((rows, cols), dtype=np.bool_)
-    hv = np.empty(n, dtype=np.float64)
-    hs = np.empty(n, dtype=np.int64)
-    hi = np.empty(n, dtype=np.int64)
-    pit = np.empty(n, dtype=np.int64)
+    label = np.full((rows, cols), -2, dtype=np.int64)  # -2: not reached yet, -3: no-data
+    hv = np.empty(n, dtype=np.float32)
+    hi = np.empty(n, dtype=np.int32)
+    pit = np.empty(n, dtype=np.int32)
     hn = 0
-    seq = 0
     cap = 1024
     ea = np.empty(cap, dtype=np.int64)
     eb = np.empty(cap, dtype=np.int64)
@@ -130,13 +123,11 @@ def _flood(z, is_seed, seed_label, want_edges):
     for i in range(rows):
         for j in range(cols):
             if z[i, j] != z[i, j]:
-                closed[i, j] = True
+                label[i, j] = -3
             elif is_seed[i, j]:
-                closed[i, j] = True
                 filled[i, j] = z[i, j]
                 label[i, j] = seed_label[i, j]
-                hn = _heap_push(hv, hs, hi, hn, z[i, j], seq, i * cols + j)
-                seq += 1
+                hn = _heap_push(hv, hi, hn, z[i, j], np.int32(i * cols + j))
     pit_head = 0
     pit_tail = 0
     while hn > 0 or pit_head < pit_tail:
@@ -144,10 +135,10 @@ def _flood(z, is_seed, seed_label, want_edges):
             c = pit[pit_head]
             pit_head += 1
         else:
-            _, c = _heap_pop(hv, hs, hi, hn)
+            _, c = _heap_pop(hv, hi, hn)
             hn -= 1
         ci = c // cols
-        cj = c % cols
+        cj = c - ci * cols
         fc = filled[ci, cj]
         lc = label[ci, cj]
         for k in range(8):
@@ -155,8 +146,9 @@ def _flood(z, is_seed, seed_label, want_edges):
             nj = cj + DC[k]
             if ni < 0 or ni >= rows or nj < 0 or nj >= cols:
                 continue
-            if closed[ni, nj]:
-                if want_edges and label[ni, nj] != lc and label[ni, nj] != -2:
+            ln = label[ni, nj]
+            if ln != -2:
+                if want_edges and ln != lc and ln != -3:
                     if ne == cap:
                         cap *= 2
                         ea2 = np.empty(cap, dtype=np.int64)
@@ -167,20 +159,19 @@ def _flood(z, is_seed, seed_label, want_edges):
                         ew2[:ne] = ew[:ne]
                         ea, eb, ew = ea2, eb2, ew2
                     ea[ne] = lc
-                    eb[ne] = label[ni, nj]
+                    eb[ne] = ln
                     ew[ne] = max(fc, filled[ni, nj])
                     ne += 1
                 continue
-            closed[ni, nj] = True
             label[ni, nj] = lc
-            if z[ni, nj] <= fc:
+            zn = z[ni, nj]
+            if zn <= fc:
                 filled[ni, nj] = fc
                 pit[pit_tail] = ni * cols + nj
                 pit_tail += 1
             else:
-                filled[ni, nj] = z[ni, nj]
-                hn = _heap_push(hv, hs, hi, hn, z[ni, nj], seq, ni * cols + nj)
-                seq += 1
+                filled[ni, nj] = zn
+                hn = _heap_push(hv, hi, hn, zn, np.int32(ni * cols + nj))
     return filled, label, ea[:ne], eb[:ne], ew[:ne]
 
 
@@ -238,10 +229,10 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
     perim[:, 0] = perim[:, -1] = True
     gi = (r0 + np.arange(rows))[:, None] * ncols + (c0 + np.arange(cols))[None, :]
     seed_label = np.where(outlet, OUTLET, gi).astype(np.int64)
-    filled, label, ea, eb, ew = _flood(np.ascontiguousarray(z), outlet | perim, seed_label,
-                                       want_edges)
+    z = np.ascontiguousarray(z)
+    filled, label, ea, eb, ew = _flood(z, outlet | perim, seed_label, want_edges)
     if not want_edges:
-        return filled, label
+        return filled, label, None
     # edges across the tile border: perimeter cell c and neighbour n in the next tile
     a_list, b_list, w_list = [ea], [eb], [ew.astype(np.float64)]
     zf = zh.astype(np.float64)
@@ -259,8 +250,12 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
         a_list.append(label[ci, cj])
         b_list.append(nlabel.astype(np.int64))
         w_list.append(np.maximum(zf[ci + top, cj + left], zf[ni, nj]))
-    return _lowest_edges(np.concatenate(a_list), np.concatenate(b_list),
-                         np.concatenate(w_list))
+    return filled, label, _lowest_edges(np.concatenate(a_list), np.concatenate(b_list),
+                                        np.concatenate(w_list))
+
+
+def _tile_fill_summary(zh, r0, c0, ncols, halo):
+    return _tile_flood(zh, r0, c0, ncols, halo, True)[2]
 
 
 def _lowest_edges(a, b, w):
@@ -286,13 +281,11 @@ def _minimax_from_outlet(n, start, src, dst, wt):
     spill = np.full(n, np.inf)
     done = np.zeros(n, dtype=np.bool_)
     hv = np.empty(src.size + 1, dtype=np.float64)
-    hs = np.empty(src.size + 1, dtype=np.int64)
     hi = np.empty(src.size + 1, dtype=np.int64)
     spill[start] = -np.inf
-    hn = _heap_push(hv, hs, hi, 0, -np.inf, 0, start)
-    seq = 1
+    hn = _heap_push(hv, hi, 0, -np.inf, start)
     while hn > 0:
-        v, u = _heap_pop(hv, hs, hi, hn)
+        v, u = _heap_pop(hv, hi, hn)
         hn -= 1
         if done[u]:
             continue
@@ -302,8 +295,7 @@ def _minimax_from_outlet(n, start, src, dst, wt):
             nv = max(v, s_wt[e])
             if nv < spill[x]:
                 spill[x] = nv
-                hn = _heap_push(hv, hs, hi, hn, nv, seq, x)
-                seq += 1
+                hn = _heap_push(hv, hi, hn, nv, x)
     return spill
 
 
@@ -327,7 +319,7 @@ def _fill_finish(zh, solution, block_info=None):
     nbr, nbc = block_info[0]["num-chunks"]
     (r0, _), (c0, _) = block_info[None]["array-location"]
     ncols = block_info[None]["shape"][1]
-    filled, label = _tile_flood(zh, r0, c0, ncols, _halo(bi, bj, nbr, nbc, 2), False)
+    filled, label, _ = _tile_flood(zh, r0, c0, ncols, _halo(bi, bj, nbr, nbc, 2), False)
     pos = np.clip(np.searchsorted(ids, label), 0, ids.size - 1)
     lev = np.where(ids[pos] == label, spill[pos], -np.inf).astype(np.float32)
     return np.where(np.isnan(filled), filled, np.maximum(filled, lev)).astype(np.float32)
@@ -365,7 +357,7 @@ def _min_chunks(chunks, depth):
 def _fill_dask(z: da.Array, *, eager_solve: bool) -> da.Array:
     ncols = z.shape[1]
     z, zo, tiles = _tiles(z.astype(np.float32), 2)
-    summaries = [dask.delayed(_tile_flood, pure=True)(blk, r0, c0, ncols, halo, True)
+    summaries = [dask.delayed(_tile_fill_summary, pure=True)(blk, r0, c0, ncols, halo)
                  for blk, r0, c0, halo in tiles]
     solution = dask.delayed(_solve_fill, pure=True)(*summaries)
     if eager_solve:
@@ -698,3 +690,138 @@ def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
     ridge.attrs = {"long_name": "ridge cells", "min_accumulation": int(min_accumulation),
                    "cell_size": a}
     return ridge
+
+
+# --------------------------------------------------------------------------- staged build
+# For maps built into a store (build_maps), each tile is flooded once: its local fill and, for
+# every cell, the index of its label in the tile's perimeter list go to a scratch Zarr store.
+# The later passes finish the fill elementwise (max(local fill, spill[label])) on a tile plus
+# a one-cell halo, and run the flow passes from it, so the fill is never flooded twice.
+
+
+def _perimeter_index(label, r0, c0, rows, cols, ncols):
+    """Index of each cell's label in the tile's perimeter list (row-major), -1 for outlets."""
+    perim = np.zeros((rows, cols), dtype=bool)
+    perim[0, :] = perim[-1, :] = True
+    perim[:, 0] = perim[:, -1] = True
+    pi, pj = np.nonzero(perim)
+    glabels = (r0 + pi) * ncols + (c0 + pj)  # increasing: row-major order
+    pos = np.clip(np.searchsorted(glabels, label), 0, glabels.size - 1)
+    return np.where(label == OUTLET, -1, np.where(glabels[pos] == label, pos, -2)) \
+        .astype(np.int32), glabels
+
+
+def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
+    """Pass 1 for one tile: flood, write local fill and label indices, return spill edges."""
+    import zarr
+
+    filled, label, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
+    rows, cols = filled.shape
+    index, _ = _perimeter_index(label, r0, c0, rows, cols, ncols)
+    g = zarr.open_group(scratch, mode="r+")
+    g["floc"][r0: r0 + rows, c0: c0 + cols] = filled
+    g["plab"][r0: r0 + rows, c0: c0 + cols] = index
+    return edges
+
+
+def _spill_tables(ids, spill, r_off, c_off, ncols):
+    """Concatenated per-tile spill tables (indexed by perimeter index) and each tile's base."""
+    tables, bases, base = [], [], 0
+    for bi in range(len(r_off) - 1):
+        for bj in range(len(c_off) - 1):
+            rows, cols = r_off[bi + 1] - r_off[bi], c_off[bj + 1] - c_off[bj]
+            _, glabels = _perimeter_index(np.empty((0,), np.int64), r_off[bi], c_off[bj], rows,
+                                          cols, ncols)
+            pos = np.clip(np.searchsorted(ids, glabels), 0, ids.size - 1)
+            tables.append(np.where(ids[pos] == glabels, spill[pos], -np.inf))
+            bases.append(base)
+            base += glabels.size
+    return np.concatenate(tables).astype(np.float32), np.array(bases, dtype=np.int64)
+
+
+def _finish_from_scratch(floc, plab, tables, bases, r_off, c_off, gr0, gc0):
+    """Final fill of a block (with halo) whose first cell is global (gr0, gc0)."""
+    rows, cols = floc.shape
+    ti = np.searchsorted(r_off, gr0 + np.arange(rows), side="right") - 1
+    tj = np.searchsorted(c_off, gc0 + np.arange(cols), side="right") - 1
+    ntc = len(c_off) - 1
+    base = bases[ti[:, None] * ntc + tj[None, :]]
+    idx = plab.astype(np.int64)
+    lev = np.where(idx >= 0, tables[base + np.maximum(idx, 0)], np.float32(-np.inf))
+    return np.where(np.isnan(floc), floc, np.maximum(floc, lev)).astype(np.float32)
+
+
+def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
+    """(filled, accumulation, ridge) dask arrays of the DEM ``z``, computing the two small
+    global solves eagerly and flooding each tile once (see the section comment).
+
+    ``scratch`` is a directory for the temporary Zarr store; the returned arrays read it, so
+    it must live until they are written.
+    """
+    import time
+
+    import zarr
+
+    t0 = time.perf_counter()
+    z = z.astype(np.float32)
+    ncols = z.shape[1]
+    z, _, tiles = _tiles(z, 2)
+    g = zarr.open_group(scratch, mode="w", zarr_format=3)
+    tile = (max(z.chunks[0]), max(z.chunks[1]))
+    g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32")
+    g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32")
+    edges = dask.compute(*[dask.delayed(_scratch_flood, pure=False)(blk, r0, c0, ncols, halo,
+                                                                      str(scratch))
+                           for blk, r0, c0, halo in tiles])
+    ids, spill = _solve_fill(*edges)
+    r_off = np.concatenate([[0], np.cumsum(z.chunks[0])]).astype(np.int64)
+    c_off = np.concatenate([[0], np.cumsum(z.chunks[1])]).astype(np.int64)
+    tables, bases = _spill_tables(ids, spill, r_off, c_off, ncols)
+    if log:
+        log("fill: tiles flooded and solved (%.1f s)", time.perf_counter() - t0)
+    floc = da.from_zarr(g["floc"]).rechunk(z.chunks)
+    plab = da.from_zarr(g["plab"]).rechunk(z.chunks)
+    fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
+    po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
+    nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
+    # large constants travel as single graph keys (sent once to each worker), not in closures
+    geometry = dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
+    fd, pd = fo.to_delayed(), po.to_delayed()
+    flow = dask.compute(*[dask.delayed(_scratch_flow_summary, pure=True)(
+        fd[bi, bj], pd[bi, bj], bi, bj, geometry) for bi in range(nbr) for bj in range(nbc)])
+    solution = dask.delayed(_solve_flow(*flow), pure=True)
+    if log:
+        log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
+    acc = da.map_blocks(_scratch_accumulate, fo, po, geometry, solution, chunks=z.chunks,
+                        dtype=np.int32, meta=np.empty((0, 0), np.int32))
+    filled = da.map_blocks(_scratch_inner_fill, fo, po, geometry, chunks=z.chunks,
+                           dtype=np.float32, meta=np.empty((0, 0), np.float32))
+    return filled, acc, acc >= min_accumulation
+
+
+def _scratch_finished(fblk, pblk, bi, bj, geometry):
+    tables, bases, r_off, c_off, nbr, nbc, _ = geometry
+    top, left, _, _ = _halo(bi, bj, nbr, nbc, 1)
+    return _finish_from_scratch(fblk, pblk, tables, bases, r_off, c_off,
+                                r_off[bi] - top, c_off[bj] - left)
+
+
+def _scratch_flow_summary(fblk, pblk, bi, bj, geometry):
+    _, _, r_off, c_off, nbr, nbc, ncols = geometry
+    fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
+    return _tile_flow_summary(fh, int(r_off[bi]), int(c_off[bj]), ncols,
+                              _halo(bi, bj, nbr, nbc, 1))
+
+
+def _scratch_accumulate(fblk, pblk, geometry, solution, block_info=None):
+    bi, bj = block_info[0]["chunk-location"]
+    fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
+    return _flow_finish(fh, solution, block_info).astype(np.int32)
+
+
+def _scratch_inner_fill(fblk, pblk, geometry, block_info=None):
+    bi, bj = block_info[0]["chunk-location"]
+    nbr, nbc = geometry[4], geometry[5]
+    top, left, _, _ = _halo(bi, bj, nbr, nbc, 1)
+    rows, cols = block_info[None]["chunk-shape"]
+    return _scratch_finished(fblk, pblk, bi, bj, geometry)[top: top + rows, left: left + cols]

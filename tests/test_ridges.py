@@ -269,3 +269,22 @@ def test_not_a_dataarray():
         pipeline.flow_accumulation(np.zeros((4, 4)))
     with pytest.raises(InvalidDEMError, match="dims"):
         pipeline.fill_depressions(xr.DataArray(np.zeros((4, 4)), dims=("a", "b")))
+
+
+@pytest.mark.parametrize("chunks", [(7, 5), (64, 64), (100, 37), (90, 70)])
+def test_staged_build_path_equals_single_array(tmp_path, chunks):
+    """The path build_maps takes (each tile flooded once, a scratch Zarr store, elementwise
+    finish with halos) equals the single array too."""
+    import dask
+    import dask.array as da
+
+    from pipeline.ridges import ridge_layers_staged
+
+    z = random_surface((90, 70), seed=21, flats=True, holes=True)
+    F = fill_single(z)
+    A = accumulation_single(F)
+    f, a, r = ridge_layers_staged(da.from_array(z, chunks=chunks), tmp_path / "s.zarr", 20)
+    fv, av, rv = dask.compute(f, a, r)
+    np.testing.assert_array_equal(fv, F)
+    np.testing.assert_array_equal(av, A)
+    np.testing.assert_array_equal(rv, A >= 20)
