@@ -16,6 +16,7 @@ from .exceptions import (
     StoreExistsError,
 )
 from .maps import build_maps, dem_hash, open_maps
+from .planners import Trajectory, plan_window
 from .ridges import fill_depressions, flow_accumulation, ridge_map
 from .safety import passable, safety_map
 from .synthetic import synthetic_dem
@@ -28,6 +29,7 @@ __all__ = [
     "JobFileError",
     "PipelineError",
     "StoreExistsError",
+    "Trajectory",
     "__version__",
     "build_maps",
     "cell_size",
@@ -38,6 +40,7 @@ __all__ = [
     "open_dem",
     "open_maps",
     "passable",
+    "plan_window",
     "ridge_map",
     "safety_map",
     "synthetic_dem",

@@ -110,7 +110,7 @@ def _flood(z, is_seed, seed_label, want_edges):
     rows, cols = z.shape
     n = rows * cols
     filled = np.full((rows, cols), np.nan, dtype=np.float32)
-    label = np.full((rows, cols), -2, dtype=np.int64)  # -2: not reached yet, -3: no-data
+    label = np.full((rows, cols), -2, dtype=seed_label.dtype)  # -2: not reached, -3: no-data
     hv = np.empty(n, dtype=np.float32)
     hi = np.empty(n, dtype=np.int32)
     pit = np.empty(n, dtype=np.int32)
@@ -214,48 +214,71 @@ def _halo(bi, bj, nbr, nbc, depth):
             depth if bi < nbr - 1 else 0, depth if bj < nbc - 1 else 0)
 
 
+def _perimeter_glabels(r0, c0, rows, cols, ncols):
+    """Global labels (cell indices) of a tile's perimeter cells, in row-major order."""
+    perim = np.zeros((rows, cols), dtype=bool)
+    perim[0, :] = perim[-1, :] = True
+    perim[:, 0] = perim[:, -1] = True
+    pi, pj = np.nonzero(perim)
+    return pi, pj, (r0 + pi) * ncols + (c0 + pj)
+
+
+def _to_global(local, glabels):
+    """Tile-local labels (perimeter index, -1 outlet, -3 no-data) to global labels."""
+    local = np.asarray(local, dtype=np.int64)
+    return np.where(local >= 0, glabels[np.maximum(local, 0)], np.where(local == -1, OUTLET, -3))
+
+
 def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
-    """Flood one tile: ``zh`` is the tile with a halo of 2 (none at map edges)."""
+    """Flood one tile: ``zh`` is the tile with a halo of 2 (none at map edges).
+
+    Returns the local fill, the tile-local label of every cell (int32: the index of its
+    perimeter seed in row-major order, -1 for a true outlet, -3 for no-data), the perimeter's
+    global labels, and (if ``want_edges``) the spill edges between global labels.
+    """
     top, left, bottom, right = halo
     zh = np.ascontiguousarray(zh, dtype=np.float32)
     outlet_h = _outlets(zh, top, left, bottom, right, top == 0, left == 0, bottom == 0,
                         right == 0)
     rows = zh.shape[0] - top - bottom
     cols = zh.shape[1] - left - right
-    z = zh[top: top + rows, left: left + cols]
+    z = np.ascontiguousarray(zh[top: top + rows, left: left + cols])
     outlet = outlet_h[top: top + rows, left: left + cols]
-    perim = np.zeros((rows, cols), dtype=np.bool_)
-    perim[0, :] = perim[-1, :] = True
-    perim[:, 0] = perim[:, -1] = True
-    gi = (r0 + np.arange(rows))[:, None] * ncols + (c0 + np.arange(cols))[None, :]
-    seed_label = np.where(outlet, OUTLET, gi).astype(np.int64)
-    z = np.ascontiguousarray(z)
-    filled, label, ea, eb, ew = _flood(z, outlet | perim, seed_label, want_edges)
+    pi, pj, glabels = _perimeter_glabels(r0, c0, rows, cols, ncols)
+    seed_label = np.full((rows, cols), -2, dtype=np.int32)
+    seed_label[pi, pj] = np.arange(pi.size, dtype=np.int32)
+    seed_label[outlet] = -1
+    is_seed = outlet.copy()
+    is_seed[pi, pj] = True
+    filled, label, ea, eb, ew = _flood(z, is_seed, seed_label, want_edges)
     if not want_edges:
-        return filled, label, None
+        return filled, label, glabels, None
     # edges across the tile border: perimeter cell c and neighbour n in the next tile
-    a_list, b_list, w_list = [ea], [eb], [ew.astype(np.float64)]
+    a_list, b_list = [_to_global(ea, glabels)], [_to_global(eb, glabels)]
+    w_list = [ew.astype(np.float64)]
     zf = zh.astype(np.float64)
     hr, hc = zh.shape
-    pi, pj = np.nonzero(perim & np.isfinite(z))
+    ok = np.isfinite(z[pi, pj])
+    qi, qj = pi[ok], pj[ok]
     for k in range(8):
-        ni, nj = pi + top + DR[k], pj + left + DC[k]
+        ni, nj = qi + top + DR[k], qj + left + DC[k]
         ok = (ni >= 0) & (ni < hr) & (nj >= 0) & (nj < hc)
         ok &= ~((ni >= top) & (ni < top + rows) & (nj >= left) & (nj < left + cols))
-        ci, cj, ni, nj = pi[ok], pj[ok], ni[ok], nj[ok]
+        ci, cj, ni, nj = qi[ok], qj[ok], ni[ok], nj[ok]
         ok = np.isfinite(zf[ni, nj])
         ci, cj, ni, nj = ci[ok], cj[ok], ni[ok], nj[ok]
         nlabel = np.where(outlet_h[ni, nj], OUTLET,
                           (r0 + ni - top) * ncols + (c0 + nj - left))
-        a_list.append(label[ci, cj])
+        a_list.append(_to_global(label[ci, cj], glabels))
         b_list.append(nlabel.astype(np.int64))
         w_list.append(np.maximum(zf[ci + top, cj + left], zf[ni, nj]))
-    return filled, label, _lowest_edges(np.concatenate(a_list), np.concatenate(b_list),
-                                        np.concatenate(w_list))
+    return filled, label, glabels, _lowest_edges(np.concatenate(a_list),
+                                                 np.concatenate(b_list),
+                                                 np.concatenate(w_list))
 
 
 def _tile_fill_summary(zh, r0, c0, ncols, halo):
-    return _tile_flood(zh, r0, c0, ncols, halo, True)[2]
+    return _tile_flood(zh, r0, c0, ncols, halo, True)[3]
 
 
 def _lowest_edges(a, b, w):
@@ -319,7 +342,9 @@ def _fill_finish(zh, solution, block_info=None):
     nbr, nbc = block_info[0]["num-chunks"]
     (r0, _), (c0, _) = block_info[None]["array-location"]
     ncols = block_info[None]["shape"][1]
-    filled, label, _ = _tile_flood(zh, r0, c0, ncols, _halo(bi, bj, nbr, nbc, 2), False)
+    filled, local, glabels, _ = _tile_flood(zh, r0, c0, ncols, _halo(bi, bj, nbr, nbc, 2),
+                                            False)
+    label = _to_global(local, glabels)
     pos = np.clip(np.searchsorted(ids, label), 0, ids.size - 1)
     lev = np.where(ids[pos] == label, spill[pos], -np.inf).astype(np.float32)
     return np.where(np.isnan(filled), filled, np.maximum(filled, lev)).astype(np.float32)
@@ -699,28 +724,15 @@ def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
 # a one-cell halo, and run the flow passes from it, so the fill is never flooded twice.
 
 
-def _perimeter_index(label, r0, c0, rows, cols, ncols):
-    """Index of each cell's label in the tile's perimeter list (row-major), -1 for outlets."""
-    perim = np.zeros((rows, cols), dtype=bool)
-    perim[0, :] = perim[-1, :] = True
-    perim[:, 0] = perim[:, -1] = True
-    pi, pj = np.nonzero(perim)
-    glabels = (r0 + pi) * ncols + (c0 + pj)  # increasing: row-major order
-    pos = np.clip(np.searchsorted(glabels, label), 0, glabels.size - 1)
-    return np.where(label == OUTLET, -1, np.where(glabels[pos] == label, pos, -2)) \
-        .astype(np.int32), glabels
-
-
 def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
     """Pass 1 for one tile: flood, write local fill and label indices, return spill edges."""
     import zarr
 
-    filled, label, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
+    filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     rows, cols = filled.shape
-    index, _ = _perimeter_index(label, r0, c0, rows, cols, ncols)
     g = zarr.open_group(scratch, mode="r+")
     g["floc"][r0: r0 + rows, c0: c0 + cols] = filled
-    g["plab"][r0: r0 + rows, c0: c0 + cols] = index
+    g["plab"][r0: r0 + rows, c0: c0 + cols] = label
     return edges
 
 
@@ -730,8 +742,7 @@ def _spill_tables(ids, spill, r_off, c_off, ncols):
     for bi in range(len(r_off) - 1):
         for bj in range(len(c_off) - 1):
             rows, cols = r_off[bi + 1] - r_off[bi], c_off[bj + 1] - c_off[bj]
-            _, glabels = _perimeter_index(np.empty((0,), np.int64), r_off[bi], c_off[bj], rows,
-                                          cols, ncols)
+            _, _, glabels = _perimeter_glabels(r_off[bi], c_off[bj], rows, cols, ncols)
             pos = np.clip(np.searchsorted(ids, glabels), 0, ids.size - 1)
             tables.append(np.where(ids[pos] == glabels, spill[pos], -np.inf))
             bases.append(base)
@@ -768,8 +779,9 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     z, _, tiles = _tiles(z, 2)
     g = zarr.open_group(scratch, mode="w", zarr_format=3)
     tile = (max(z.chunks[0]), max(z.chunks[1]))
-    g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32")
-    g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32")
+    # written once, read twice: uncompressed is faster than any codec here
+    g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32", compressors=None)
+    g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32", compressors=None)
     edges = dask.compute(*[dask.delayed(_scratch_flood, pure=False)(blk, r0, c0, ncols, halo,
                                                                       str(scratch))
                            for blk, r0, c0, halo in tiles])

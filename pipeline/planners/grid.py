@@ -1,0 +1,299 @@
+"""The grid graph shared by every planner, A* / Dijkstra / weighted A*, and ``plan_window``.
+
+Graph (SPEC section 4): 8-connected over passable cells; a diagonal move only when both
+orthogonal cells it passes between are passable (no corner cutting). Edge cost: the 3-D length
+along the safety surface ``sqrt(a^2 (dr^2 + dc^2) + (S(q) - S(p))^2)``; heuristic: the
+horizontal straight-line distance to the goal (admissible and consistent, since every edge is
+at least as long as its horizontal projection).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from ..exceptions import InvalidParameterError, PipelineError
+
+PLANNERS = ("dijkstra", "astar", "wastar", "ra_star", "lagrangian")
+_IMPLEMENTED = ("dijkstra", "astar", "wastar")
+
+DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
+DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
+
+
+class UnreachableGoalError(PipelineError):
+    """No path joins the start and the goal through passable cells."""
+
+
+class InvalidEndpointError(PipelineError, ValueError):
+    """A start or goal is off the map or not passable."""
+
+
+@dataclass
+class Trajectory:
+    """A planned path and its metrics (SPEC section 8); lengths in metres."""
+
+    cells: np.ndarray
+    points: np.ndarray
+    length_m: float
+    ridge_length_m: float
+    ridge_ratio: float
+    lower_bound_m: float
+    expansions: int
+    runtime_s: float
+    planner: str
+    omega: float
+    status: str = "ok"
+    message: str = ""
+    extra: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- heap (f, g-tiebreak)
+
+
+@njit(inline="always", cache=True)
+def _push(hk, hi, n, key, item):
+    k = n
+    while k > 0:
+        p = (k - 1) >> 1
+        if key < hk[p]:
+            hk[k] = hk[p]
+            hi[k] = hi[p]
+            k = p
+        else:
+            break
+    hk[k] = key
+    hi[k] = item
+    return n + 1
+
+
+@njit(inline="always", cache=True)
+def _pop(hk, hi, n):
+    key = hk[0]
+    item = hi[0]
+    n -= 1
+    lk = hk[n]
+    li = hi[n]
+    k = 0
+    while True:
+        c = 2 * k + 1
+        if c >= n:
+            break
+        if c + 1 < n and hk[c + 1] < hk[c]:
+            c += 1
+        if hk[c] < lk:
+            hk[k] = hk[c]
+            hi[k] = hi[c]
+            k = c
+        else:
+            break
+    hk[k] = lk
+    hi[k] = li
+    return key, item
+
+
+@njit(inline="always", cache=True)
+def edge_cost(surface, a, r, c, nr, nc):
+    dr = nr - r
+    dc = nc - c
+    dz = np.float64(surface[nr, nc]) - np.float64(surface[r, c])
+    return math.sqrt(a * a * (dr * dr + dc * dc) + dz * dz)
+
+
+@njit(inline="always", cache=True)
+def can_move(passable, rows, cols, r, c, k):
+    nr = r + DR[k]
+    nc = c + DC[k]
+    if nr < 0 or nr >= rows or nc < 0 or nc >= cols or not passable[nr, nc]:
+        return False
+    if k % 2 == 1:  # diagonal: both orthogonal cells it passes between must be passable
+        return passable[r, nc] and passable[nr, c]
+    return True
+
+
+@njit(nogil=True, cache=True)
+def _astar(surface, passable, a, sr, sc, gr, gc, weight, use_h):
+    """(Weighted) A* from (sr, sc) to (gr, gc); weight = 1 is A*, use_h False is Dijkstra.
+
+    No re-expansions: with a consistent heuristic, weighted A* without reopening still
+    returns a path within ``weight`` of the optimum (Likhachev et al. 2003).
+    Returns parent array (flat indices, -1 none), g, expansions, found flag.
+    """
+    rows, cols = surface.shape
+    n = rows * cols
+    g = np.full(n, np.inf)
+    parent = np.full(n, -1, dtype=np.int64)
+    closed = np.zeros(n, dtype=np.bool_)
+    cap = 1024
+    hk = np.empty(cap)
+    hi = np.empty(cap, dtype=np.int64)
+    s = sr * cols + sc
+    t = gr * cols + gc
+    g[s] = 0.0
+    h0 = a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2) if use_h else 0.0
+    hn = _push(hk, hi, 0, weight * h0, s)
+    expansions = 0
+    while hn > 0:
+        _, u = _pop(hk, hi, hn)
+        hn -= 1
+        if closed[u]:
+            continue
+        closed[u] = True
+        expansions += 1
+        if u == t:
+            return parent, g, expansions, True
+        r = u // cols
+        c = u - r * cols
+        gu = g[u]
+        for k in range(8):
+            if not can_move(passable, rows, cols, r, c, k):
+                continue
+            nr = r + DR[k]
+            nc = c + DC[k]
+            v = nr * cols + nc
+            if closed[v]:
+                continue
+            ng = gu + edge_cost(surface, a, r, c, nr, nc)
+            if ng < g[v]:
+                g[v] = ng
+                parent[v] = u
+                h = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2) if use_h else 0.0
+                if hn == cap:  # grow the heap: lazy deletion may hold a node several times
+                    cap *= 2
+                    hk2 = np.empty(cap)
+                    hi2 = np.empty(cap, dtype=np.int64)
+                    hk2[:hn] = hk[:hn]
+                    hi2[:hn] = hi[:hn]
+                    hk, hi = hk2, hi2
+                hn = _push(hk, hi, hn, ng + weight * h, v)
+    return parent, g, expansions, False
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _nearest_passable(passable: np.ndarray, cell) -> tuple[int, int] | None:
+    idx = np.argwhere(passable)
+    if idx.size == 0:
+        return None
+    d = ((idx - np.asarray(cell)) ** 2).sum(axis=1)
+    r, c = idx[int(np.argmin(d))]
+    return int(r), int(c)
+
+
+def _check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
+    try:
+        r, c = (int(v) for v in cell)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"`{name}` must be a cell (row, col), got {cell!r}") from None
+    rows, cols = passable.shape
+    if not (0 <= r < rows and 0 <= c < cols):
+        raise InvalidEndpointError(f"{name} ({r}, {c}) is off the map (rows 0..{rows - 1}, "
+                                   f"cols 0..{cols - 1})")
+    if not passable[r, c]:
+        near = _nearest_passable(passable, (r, c))
+        hint = f"nearest passable cell: {near}" if near else "no cell of the map is passable"
+        raise InvalidEndpointError(f"{name} ({r}, {c}) is on land or inside the clearance zone;"
+                                   f" {hint}")
+    return r, c
+
+
+def _check_arrays(surface, ridge, passable):
+    surface = np.asarray(surface, dtype=np.float64)
+    ridge = np.asarray(ridge, dtype=bool)
+    passable = np.asarray(passable, dtype=bool)
+    if surface.ndim != 2 or ridge.shape != surface.shape or passable.shape != surface.shape:
+        raise InvalidParameterError(f"surface, ridge and passable must be 2-D arrays of one "
+                                    f"shape; got {surface.shape}, {ridge.shape}, "
+                                    f"{passable.shape}")
+    bad = passable & ~np.isfinite(surface)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise InvalidParameterError(f"the surface is NaN or infinite at passable cell "
+                                    f"({r}, {c}) ({int(bad.sum())} such cells); mark no-data "
+                                    "cells impassable")
+    return surface, ridge, passable
+
+
+def path_metrics(cells: np.ndarray, surface: np.ndarray, ridge: np.ndarray, a: float):
+    """length, ridge length (steps whose end cell is a ridge cell), ridge ratio."""
+    if len(cells) < 2:
+        return 0.0, 0.0, 0.0
+    r, c = cells[:, 0], cells[:, 1]
+    dz = np.diff(surface[r, c].astype(np.float64))
+    step = np.sqrt(a * a * (np.diff(r) ** 2 + np.diff(c) ** 2) + dz * dz)
+    length = float(step.sum())
+    ridge_len = float(step[ridge[r[1:], c[1:]]].sum())
+    return length, ridge_len, ridge_len / length if length > 0 else 0.0
+
+
+def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
+                planner: str = "ra_star", omega: float = 2.0, x=None, y=None) -> Trajectory:
+    """Plan on one in-memory window.
+
+    Parameters
+    ----------
+    surface : 2-D array
+        The safety surface ``S`` (metres) the vehicle flies on.
+    ridge, passable : 2-D bool arrays
+        Ridge cells and passable cells.
+    start, goal : (row, col)
+    cell_size : float
+        Metres.
+    planner : {"dijkstra", "astar", "wastar", "ra_star", "lagrangian"}
+    omega : float
+        Length bound (>= 1) for the bounded planners.
+    x, y : 1-D arrays, optional
+        Map coordinates of the columns and rows for ``points`` (default: ``col * a``,
+        ``row * a``).
+
+    Examples
+    --------
+    >>> t = plan_window(S, rdg, ok, (5, 5), (90, 120), cell_size=30.0, planner="astar")
+    ... # doctest: +SKIP
+    """
+    if planner not in PLANNERS:
+        raise InvalidParameterError(f"planner must be one of {', '.join(map(repr, PLANNERS))}, "
+                                    f"got {planner!r}")
+    if planner not in _IMPLEMENTED:
+        raise NotImplementedError(f"planner {planner!r} is not implemented yet (issue 5); "
+                                  f"available: {', '.join(_IMPLEMENTED)}")
+    if isinstance(omega, bool) or not isinstance(omega, int | float) or not omega >= 1.0 \
+            or not math.isfinite(omega):
+        raise InvalidParameterError(f"`omega` must be >= 1, got {omega}")
+    if isinstance(cell_size, bool) or not isinstance(cell_size, int | float) \
+            or not cell_size > 0 or not math.isfinite(cell_size):
+        raise InvalidParameterError(f"`cell_size` must be a finite number > 0, got {cell_size}")
+    surface, ridge, passable = _check_arrays(surface, ridge, passable)
+    s = _check_endpoint("start", start, passable)
+    t = _check_endpoint("goal", goal, passable)
+    a = float(cell_size)
+    t0 = time.perf_counter()
+    weight = float(omega) if planner == "wastar" else 1.0
+    parent, g, expansions, found = _astar(surface, passable, a, s[0], s[1], t[0], t[1],
+                                          weight, planner != "dijkstra")
+    runtime = time.perf_counter() - t0
+    if not found:
+        raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
+                                   "cells: they lie in separate regions")
+    cols = surface.shape[1]
+    node = t[0] * cols + t[1]
+    seq = []
+    while node != -1:
+        seq.append(divmod(int(node), cols))
+        node = parent[node]
+    cells = np.array(seq[::-1], dtype=np.int64)
+    length, ridge_len, ratio = path_metrics(cells, surface, ridge, a)
+    h0 = a * math.hypot(s[0] - t[0], s[1] - t[1])
+    lower = length if planner in ("astar", "dijkstra") else max(h0, length / weight)
+    xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
+    ys = np.asarray(y, dtype=np.float64) if y is not None else np.arange(surface.shape[0]) * a
+    points = np.column_stack([xs[cells[:, 1]], ys[cells[:, 0]],
+                              surface[cells[:, 0], cells[:, 1]]])
+    return Trajectory(cells=cells, points=points, length_m=length, ridge_length_m=ridge_len,
+                      ridge_ratio=ratio, lower_bound_m=float(lower), expansions=int(expansions),
+                      runtime_s=runtime, planner=planner, omega=float(omega))

@@ -1,0 +1,208 @@
+"""Planners on one window: optimal lengths against scipy's Dijkstra on a graph built here,
+skimage's MCP on flat ground, the weighted-A* bound as a property, path validity, errors.
+
+(RA* and the Lagrangian planner are part of issue 5 and not implemented yet.)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from conftest import random_surface
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+import pipeline
+from pipeline.exceptions import InvalidParameterError
+from pipeline.planners.grid import InvalidEndpointError, UnreachableGoalError
+
+MOVES = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
+
+
+def reference_length(surface, passable, a, start, goal):
+    """SPEC section 4's graph built edge by edge, solved by scipy.sparse.csgraph.dijkstra."""
+    d = reference_distances(surface, passable, a, start)
+    return float(d[goal[0] * surface.shape[1] + goal[1]])
+
+
+def reference_distances(surface, passable, a, start):
+    rows, cols = surface.shape
+    src, dst, w = [], [], []
+    for r in range(rows):
+        for c in range(cols):
+            if not passable[r, c]:
+                continue
+            for dr, dc in MOVES:
+                nr, nc = r + dr, c + dc
+                if not (0 <= nr < rows and 0 <= nc < cols and passable[nr, nc]):
+                    continue
+                if dr and dc and not (passable[r, nc] and passable[nr, c]):
+                    continue  # no corner cutting
+                src.append(r * cols + c)
+                dst.append(nr * cols + nc)
+                dz = float(surface[nr, nc]) - float(surface[r, c])
+                w.append(math.sqrt(a * a * (dr * dr + dc * dc) + dz * dz))
+    g = coo_matrix((w, (src, dst)), shape=(rows * cols, rows * cols)).tocsr()
+    return dijkstra(g, indices=start[0] * cols + start[1])
+
+
+def check_path(t, passable, start, goal):
+    cells = t.cells
+    assert tuple(cells[0]) == tuple(start) and tuple(cells[-1]) == tuple(goal)
+    assert passable[cells[:, 0], cells[:, 1]].all()
+    steps = np.diff(cells, axis=0)
+    assert np.all(np.abs(steps).max(axis=1) == 1)  # 8-neighbour moves, no jumps, no stays
+    for (r, c), (dr, dc) in zip(cells[:-1], steps, strict=True):
+        if dr and dc:
+            assert passable[r, c + dc] and passable[r + dr, c]  # no corner cutting
+    assert len({tuple(x) for x in cells}) == len(cells)  # simple
+
+
+def independent_metrics(t, surface, ridge, a):
+    length = ridge_len = 0.0
+    for (r0, c0), (r1, c1) in zip(t.cells[:-1], t.cells[1:], strict=True):
+        step = math.sqrt(a * a * ((r1 - r0) ** 2 + (c1 - c0) ** 2)
+                         + (float(surface[r1, c1]) - float(surface[r0, c0])) ** 2)
+        length += step
+        ridge_len += step if ridge[r1, c1] else 0.0
+    return length, ridge_len
+
+
+def obstacle_map(shape, seed, density=0.25):
+    rng = np.random.default_rng(seed)
+    surface = random_surface(shape, seed=seed).astype(np.float64)
+    passable = rng.random(shape) > density
+    ridge = rng.random(shape) < 0.3
+    return surface, ridge, passable
+
+
+def endpoints(passable, seed):
+    rng = np.random.default_rng(seed)
+    cells = np.argwhere(passable)
+    a, b = rng.choice(len(cells), 2, replace=False)
+    return tuple(cells[a]), tuple(cells[b])
+
+
+@pytest.mark.parametrize("planner", ["astar", "dijkstra"])
+@pytest.mark.parametrize("seed", range(6))
+def test_optimal_against_scipy(planner, seed):
+    surface, ridge, passable = obstacle_map((40, 35), seed, density=0.2 + 0.04 * seed)
+    s, g = endpoints(passable, seed)
+    ref = reference_length(surface, passable, 30.0, s, g)
+    if not np.isfinite(ref):
+        with pytest.raises(UnreachableGoalError, match="no path"):
+            pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner=planner)
+        return
+    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner=planner)
+    assert t.length_m == pytest.approx(ref, rel=1e-9)
+    assert t.lower_bound_m == pytest.approx(ref, rel=1e-9)
+    check_path(t, passable, s, g)
+    length, ridge_len = independent_metrics(t, surface, ridge, 30.0)
+    assert t.length_m == pytest.approx(length, rel=1e-12)
+    assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
+    assert t.ridge_ratio == pytest.approx(ridge_len / length, rel=1e-12)
+
+
+def test_optimal_on_real_bathymetry(topobathy_tif):
+    """Real relief and a real coastline: matplotlib's topobathy (2.4 km cells, too coarse for
+    a clearance sphere), planned on the seabed itself over sea cells deeper than 50 m."""
+    dem = pipeline.open_dem(topobathy_tif, chunks=None)
+    a = pipeline.cell_size(dem)
+    z = dem.values.astype(np.float64)
+    ok = np.isfinite(z) & (z < -50.0)
+    surface = np.nan_to_num(z, nan=0.0)
+    s = tuple(np.argwhere(ok)[0])
+    d = reference_distances(surface, ok, a, s)
+    far = int(np.argmax(np.where(np.isfinite(d), d, -1.0)))  # the farthest reachable cell
+    g, ref = divmod(far, surface.shape[1]), float(d[far])
+    assert ref > 50 * a
+    t = pipeline.plan_window(surface, np.zeros_like(ok), ok, s, g, cell_size=a, planner="astar")
+    assert t.length_m == pytest.approx(ref, rel=1e-9)
+    check_path(t, ok, s, g)
+
+
+def test_flat_ground_equals_skimage_mcp():
+    from skimage.graph import MCP_Geometric
+
+    shape = (60, 80)
+    surface = np.full(shape, -2000.0)
+    ok = np.ones(shape, bool)
+    m = MCP_Geometric(np.ones(shape), fully_connected=True)
+    costs, _ = m.find_costs([(3, 4)])
+    for goal in [(50, 70), (3, 79), (59, 4), (30, 30)]:
+        t = pipeline.plan_window(surface, ok, ok, (3, 4), goal, cell_size=25.0, planner="astar")
+        assert t.length_m == pytest.approx(25.0 * costs[goal], rel=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0),
+       density=st.floats(0.0, 0.35))
+def test_wastar_bound_and_validity(seed, omega, density):
+    surface, ridge, passable = obstacle_map((25, 30), seed, density)
+    s, g = endpoints(passable, seed)
+    ref = reference_length(surface, passable, 30.0, s, g)
+    if not np.isfinite(ref):
+        return
+    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="wastar",
+                             omega=omega)
+    check_path(t, passable, s, g)
+    assert t.length_m <= omega * ref * (1 + 1e-9)
+    assert t.lower_bound_m <= ref * (1 + 1e-9)  # a proven lower bound, here checked
+    again = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
+                                 planner="wastar", omega=omega)
+    np.testing.assert_array_equal(again.cells, t.cells)  # deterministic
+
+
+def test_points_use_coordinates():
+    surface = np.full((5, 6), -100.0)
+    ok = np.ones((5, 6), bool)
+    t = pipeline.plan_window(surface, ok, ok, (0, 0), (4, 5), cell_size=10.0, planner="astar",
+                             x=1000.0 + 10.0 * np.arange(6), y=500.0 - 10.0 * np.arange(5))
+    assert tuple(t.points[0]) == (1000.0, 500.0, -100.0)
+    assert tuple(t.points[-1]) == (1050.0, 460.0, -100.0)
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+def _small():
+    surface = np.full((10, 10), -500.0)
+    ok = np.ones((10, 10), bool)
+    ok[:, 5] = False  # a wall: the right half is unreachable
+    ok[2, 2] = False
+    return surface, ok.copy(), ok
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"start": (10, 0)}, InvalidEndpointError, r"start \(10, 0\) is off the map"),
+    ({"goal": (-1, 3)}, InvalidEndpointError, r"goal \(-1, 3\) is off the map"),
+    ({"start": (2, 2)}, InvalidEndpointError,
+     r"start \(2, 2\) is on land or inside the clearance zone; nearest passable cell"),
+    ({"goal": (0, 8)}, UnreachableGoalError, "no path from start"),
+    ({"omega": 0.5}, InvalidParameterError, "`omega` must be >= 1, got 0.5"),
+    ({"omega": float("nan")}, InvalidParameterError, "`omega` must be >= 1"),
+    ({"cell_size": 0.0}, InvalidParameterError, "`cell_size` must be"),
+    ({"planner": "bfs"}, InvalidParameterError, "planner must be one of"),
+    ({"start": "a"}, InvalidParameterError, "must be a cell"),
+])
+def test_errors(kwargs, error, match):
+    surface, ridge, ok = _small()
+    args = dict(start=(0, 0), goal=(9, 4), cell_size=30.0, planner="astar", omega=2.0)
+    args.update(kwargs)
+    with pytest.raises(error, match=match):
+        pipeline.plan_window(surface, ridge, ok, **args)
+
+
+def test_shape_mismatch_and_nan():
+    surface, ridge, ok = _small()
+    with pytest.raises(InvalidParameterError, match="one shape"):
+        pipeline.plan_window(surface, ridge[:5], ok, (0, 0), (9, 4), cell_size=30.0,
+                             planner="astar")
+    surface[7, 1] = np.nan
+    with pytest.raises(InvalidParameterError, match=r"NaN or infinite at passable cell \(7, 1\)"):
+        pipeline.plan_window(surface, ridge, ok, (0, 0), (9, 4), cell_size=30.0,
+                             planner="astar")
