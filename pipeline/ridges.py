@@ -37,6 +37,7 @@ import numpy as np
 import xarray as xr
 from numba import njit
 
+from ._heap import heap_pop, heap_push
 from ._validate import positive_int
 from .dem import cell_size as _cell_size
 from .exceptions import InvalidDEMError, InvalidParameterError
@@ -46,53 +47,6 @@ OUTLET = -1
 DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
 DIST = np.array([1.0, math.sqrt(2.0)] * 4)
-
-
-# --------------------------------------------------------------------------- a binary heap
-# (value, item) pairs in two arrays; ties pop in any order: the filled surface is unique
-# whatever the order among equal heights, and the tiled solve is exact for any valid order.
-
-
-@njit(inline="always", cache=True)
-def _heap_push(hv, hi, n, value, item):
-    k = n
-    while k > 0:
-        p = (k - 1) >> 1
-        if value < hv[p]:
-            hv[k] = hv[p]
-            hi[k] = hi[p]
-            k = p
-        else:
-            break
-    hv[k] = value
-    hi[k] = item
-    return n + 1
-
-
-@njit(inline="always", cache=True)
-def _heap_pop(hv, hi, n):
-    """Remove the smallest entry (returned as value, item); ``n`` is the size before."""
-    value = hv[0]
-    item = hi[0]
-    n -= 1
-    last_v = hv[n]
-    last_i = hi[n]
-    k = 0
-    while True:
-        child = 2 * k + 1
-        if child >= n:
-            break
-        if child + 1 < n and hv[child + 1] < hv[child]:
-            child += 1
-        if hv[child] < last_v:
-            hv[k] = hv[child]
-            hi[k] = hi[child]
-            k = child
-        else:
-            break
-    hv[k] = last_v
-    hi[k] = last_i
-    return value, item
 
 
 # --------------------------------------------------------------------------- fill
@@ -127,7 +81,7 @@ def _flood(z, is_seed, seed_label, want_edges):
             elif is_seed[i, j]:
                 filled[i, j] = z[i, j]
                 label[i, j] = seed_label[i, j]
-                hn = _heap_push(hv, hi, hn, z[i, j], np.int32(i * cols + j))
+                hn = heap_push(hv, hi, hn, z[i, j], np.int32(i * cols + j))
     pit_head = 0
     pit_tail = 0
     while hn > 0 or pit_head < pit_tail:
@@ -135,7 +89,7 @@ def _flood(z, is_seed, seed_label, want_edges):
             c = pit[pit_head]
             pit_head += 1
         else:
-            _, c = _heap_pop(hv, hi, hn)
+            _, c = heap_pop(hv, hi, hn)
             hn -= 1
         ci = c // cols
         cj = c - ci * cols
@@ -171,7 +125,7 @@ def _flood(z, is_seed, seed_label, want_edges):
                 pit_tail += 1
             else:
                 filled[ni, nj] = zn
-                hn = _heap_push(hv, hi, hn, zn, np.int32(ni * cols + nj))
+                hn = heap_push(hv, hi, hn, zn, np.int32(ni * cols + nj))
     return filled, label, ea[:ne], eb[:ne], ew[:ne]
 
 
@@ -306,9 +260,9 @@ def _minimax_from_outlet(n, start, src, dst, wt):
     hv = np.empty(src.size + 1, dtype=np.float64)
     hi = np.empty(src.size + 1, dtype=np.int64)
     spill[start] = -np.inf
-    hn = _heap_push(hv, hi, 0, -np.inf, start)
+    hn = heap_push(hv, hi, 0, -np.inf, start)
     while hn > 0:
-        v, u = _heap_pop(hv, hi, hn)
+        v, u = heap_pop(hv, hi, hn)
         hn -= 1
         if done[u]:
             continue
@@ -318,7 +272,7 @@ def _minimax_from_outlet(n, start, src, dst, wt):
             nv = max(v, s_wt[e])
             if nv < spill[x]:
                 spill[x] = nv
-                hn = _heap_push(hv, hi, hn, nv, x)
+                hn = heap_push(hv, hi, hn, nv, x)
     return spill
 
 

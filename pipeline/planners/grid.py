@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from .._heap import heap_pop, heap_push
 from ..exceptions import InvalidParameterError, PipelineError
 
 PLANNERS = ("dijkstra", "astar", "wastar", "ra_star", "lagrangian")
@@ -50,50 +51,6 @@ class Trajectory:
     status: str = "ok"
     message: str = ""
     extra: dict = field(default_factory=dict)
-
-
-# --------------------------------------------------------------------------- heap (f, g-tiebreak)
-
-
-@njit(inline="always", cache=True)
-def _push(hk, hi, n, key, item):
-    k = n
-    while k > 0:
-        p = (k - 1) >> 1
-        if key < hk[p]:
-            hk[k] = hk[p]
-            hi[k] = hi[p]
-            k = p
-        else:
-            break
-    hk[k] = key
-    hi[k] = item
-    return n + 1
-
-
-@njit(inline="always", cache=True)
-def _pop(hk, hi, n):
-    key = hk[0]
-    item = hi[0]
-    n -= 1
-    lk = hk[n]
-    li = hi[n]
-    k = 0
-    while True:
-        c = 2 * k + 1
-        if c >= n:
-            break
-        if c + 1 < n and hk[c + 1] < hk[c]:
-            c += 1
-        if hk[c] < lk:
-            hk[k] = hk[c]
-            hi[k] = hi[c]
-            k = c
-        else:
-            break
-    hk[k] = lk
-    hi[k] = li
-    return key, item
 
 
 @njit(inline="always", cache=True)
@@ -135,10 +92,10 @@ def _astar(surface, passable, a, sr, sc, gr, gc, weight, use_h):
     t = gr * cols + gc
     g[s] = 0.0
     h0 = a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2) if use_h else 0.0
-    hn = _push(hk, hi, 0, weight * h0, s)
+    hn = heap_push(hk, hi, 0, weight * h0, s)
     expansions = 0
     while hn > 0:
-        _, u = _pop(hk, hi, hn)
+        _, u = heap_pop(hk, hi, hn)
         hn -= 1
         if closed[u]:
             continue
@@ -169,7 +126,7 @@ def _astar(surface, passable, a, sr, sc, gr, gc, weight, use_h):
                     hk2[:hn] = hk[:hn]
                     hi2[:hn] = hi[:hn]
                     hk, hi = hk2, hi2
-                hn = _push(hk, hi, hn, ng + weight * h, v)
+                hn = heap_push(hk, hi, hn, ng + weight * h, v)
     return parent, g, expansions, False
 
 

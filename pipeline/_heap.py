@@ -1,0 +1,52 @@
+"""A binary min-heap over two parallel arrays (keys, items), for numba kernels.
+
+Generic over dtypes (numba compiles one version per signature): the fill uses float32 keys
+and int32 items, the searches float64 keys and int64 items. Ties pop in no set order.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+
+@njit(inline="always", cache=True)
+def heap_push(keys, items, n, key, item):
+    """Insert (key, item) into the heap of size ``n``; returns the new size."""
+    k = n
+    while k > 0:
+        p = (k - 1) >> 1
+        if key < keys[p]:
+            keys[k] = keys[p]
+            items[k] = items[p]
+            k = p
+        else:
+            break
+    keys[k] = key
+    items[k] = item
+    return n + 1
+
+
+@njit(inline="always", cache=True)
+def heap_pop(keys, items, n):
+    """Remove the smallest entry of the heap of size ``n``; returns (key, item)."""
+    key = keys[0]
+    item = items[0]
+    n -= 1
+    last_k = keys[n]
+    last_i = items[n]
+    k = 0
+    while True:
+        c = 2 * k + 1
+        if c >= n:
+            break
+        if c + 1 < n and keys[c + 1] < keys[c]:
+            c += 1
+        if keys[c] < last_k:
+            keys[k] = keys[c]
+            items[k] = items[c]
+            k = c
+        else:
+            break
+    keys[k] = last_k
+    items[k] = last_i
+    return key, item
