@@ -6,6 +6,7 @@ and int32 items, the searches float64 keys and int64 items. Ties pop in no set o
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 
@@ -50,3 +51,15 @@ def heap_pop(keys, items, n):
     keys[k] = last_k
     items[k] = last_i
     return key, item
+
+
+@njit(inline="always", cache=True)
+def heap_grow(keys, items, n):
+    """The heap's arrays, doubled when full (lazy deletion can hold a node several times)."""
+    if n < keys.size:
+        return keys, items
+    k2 = np.empty(2 * keys.size, dtype=keys.dtype)
+    i2 = np.empty(2 * keys.size, dtype=items.dtype)
+    k2[:n] = keys[:n]
+    i2[:n] = items[:n]
+    return k2, i2

@@ -1,7 +1,7 @@
 """Planners on one window: optimal lengths against scipy's Dijkstra on a graph built here,
 skimage's MCP on flat ground, the weighted-A* bound as a property, path validity, errors.
 
-(RA* and the Lagrangian planner are part of issue 5 and not implemented yet.)
+(The Lagrangian planner is part of issue 5 and not implemented yet.)
 """
 
 from __future__ import annotations
@@ -206,3 +206,61 @@ def test_shape_mismatch_and_nan():
     with pytest.raises(InvalidParameterError, match=r"NaN or infinite at passable cell \(7, 1\)"):
         pipeline.plan_window(surface, ridge, ok, (0, 0), (9, 4), cell_size=30.0,
                              planner="astar")
+
+
+# ----------------------------------------------------------------------------- RA*
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_ra_star_with_omega_one_is_optimal(seed):
+    surface, ridge, passable = obstacle_map((35, 40), seed, density=0.2)
+    s, g = endpoints(passable, seed)
+    ref = reference_length(surface, passable, 30.0, s, g)
+    if not np.isfinite(ref):
+        return
+    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star",
+                             omega=1.0)
+    assert t.length_m == pytest.approx(ref, rel=1e-9)
+    check_path(t, passable, s, g)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0), density=st.floats(0.0, 0.35),
+       ridge_share=st.floats(0.05, 0.6))
+def test_ra_star_bound_validity_and_lower_bound(seed, omega, density, ridge_share):
+    surface, _, passable = obstacle_map((25, 30), seed, density)
+    ridge = np.random.default_rng(seed + 1).random(surface.shape) < ridge_share
+    s, g = endpoints(passable, seed)
+    ref = reference_length(surface, passable, 30.0, s, g)
+    if not np.isfinite(ref):
+        return
+    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star",
+                             omega=omega)
+    check_path(t, passable, s, g)  # simple, continuous, passable, no corner cutting
+    assert t.length_m <= omega * ref * (1 + 1e-9)
+    assert t.lower_bound_m <= ref * (1 + 1e-9)
+    length, ridge_len = independent_metrics(t, surface, ridge, 30.0)
+    assert t.length_m == pytest.approx(length, rel=1e-12)
+    assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
+    again = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
+                                 planner="ra_star", omega=omega)
+    np.testing.assert_array_equal(again.cells, t.cells)
+
+
+def test_ra_star_follows_more_ridge_than_astar_on_average():
+    ratios = {"astar": [], "ra_star": []}
+    for seed in range(12):
+        surface, _, passable = obstacle_map((40, 40), seed, density=0.1)
+        ridge = np.zeros(surface.shape, bool)
+        ridge[::6, :] = True  # ridge lines the planner can follow at some extra length
+        ridge[:, ::9] = True
+        s, g = endpoints(passable, seed)
+        if not np.isfinite(reference_length(surface, passable, 30.0, s, g)):
+            continue
+        for planner in ratios:
+            t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
+                                     planner=planner, omega=2.0)
+            ratios[planner].append(t.ridge_ratio)
+    assert len(ratios["astar"]) >= 8
+    assert np.mean(ratios["ra_star"]) >= np.mean(ratios["astar"])
+    assert np.mean(ratios["ra_star"]) > 0.4

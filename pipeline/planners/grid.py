@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .._heap import heap_pop, heap_push
+from .._heap import heap_grow, heap_pop, heap_push
 from ..exceptions import InvalidParameterError, PipelineError
 
 PLANNERS = ("dijkstra", "astar", "wastar", "ra_star", "lagrangian")
-_IMPLEMENTED = ("dijkstra", "astar", "wastar")
+_IMPLEMENTED = ("dijkstra", "astar", "wastar", "ra_star")
 
 DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
@@ -72,9 +72,34 @@ def can_move(passable, rows, cols, r, c, k):
     return True
 
 
+@njit(inline="always", cache=True)
+def relax_successors(surface, passable, a, u, g, parent, closed, hk, hi, hn, gr, gc, weight):
+    """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
+    ``g + weight * h`` (weight 0: Dijkstra). Returns the (possibly grown) heap and its size."""
+    rows, cols = surface.shape
+    r = u // cols
+    c = u - r * cols
+    for k in range(8):
+        if not can_move(passable, rows, cols, r, c, k):
+            continue
+        nr = r + DR[k]
+        nc = c + DC[k]
+        v = nr * cols + nc
+        if closed[v]:
+            continue
+        ng = g[u] + edge_cost(surface, a, r, c, nr, nc)
+        if ng < g[v]:
+            g[v] = ng
+            parent[v] = u
+            hk, hi = heap_grow(hk, hi, hn)
+            hn = heap_push(hk, hi, hn, ng + weight * a * math.sqrt((nr - gr) ** 2
+                                                                   + (nc - gc) ** 2), v)
+    return hk, hi, hn
+
+
 @njit(nogil=True, cache=True)
-def _astar(surface, passable, a, sr, sc, gr, gc, weight, use_h):
-    """(Weighted) A* from (sr, sc) to (gr, gc); weight = 1 is A*, use_h False is Dijkstra.
+def _astar(surface, passable, a, sr, sc, gr, gc, weight):
+    """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
     No re-expansions: with a consistent heuristic, weighted A* without reopening still
     returns a path within ``weight`` of the optimum (Likhachev et al. 2003).
@@ -85,14 +110,12 @@ def _astar(surface, passable, a, sr, sc, gr, gc, weight, use_h):
     g = np.full(n, np.inf)
     parent = np.full(n, -1, dtype=np.int64)
     closed = np.zeros(n, dtype=np.bool_)
-    cap = 1024
-    hk = np.empty(cap)
-    hi = np.empty(cap, dtype=np.int64)
+    hk = np.empty(1024)
+    hi = np.empty(1024, dtype=np.int64)
     s = sr * cols + sc
     t = gr * cols + gc
     g[s] = 0.0
-    h0 = a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2) if use_h else 0.0
-    hn = heap_push(hk, hi, 0, weight * h0, s)
+    hn = heap_push(hk, hi, 0, weight * a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2), s)
     expansions = 0
     while hn > 0:
         _, u = heap_pop(hk, hi, hn)
@@ -103,30 +126,8 @@ def _astar(surface, passable, a, sr, sc, gr, gc, weight, use_h):
         expansions += 1
         if u == t:
             return parent, g, expansions, True
-        r = u // cols
-        c = u - r * cols
-        gu = g[u]
-        for k in range(8):
-            if not can_move(passable, rows, cols, r, c, k):
-                continue
-            nr = r + DR[k]
-            nc = c + DC[k]
-            v = nr * cols + nc
-            if closed[v]:
-                continue
-            ng = gu + edge_cost(surface, a, r, c, nr, nc)
-            if ng < g[v]:
-                g[v] = ng
-                parent[v] = u
-                h = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2) if use_h else 0.0
-                if hn == cap:  # grow the heap: lazy deletion may hold a node several times
-                    cap *= 2
-                    hk2 = np.empty(cap)
-                    hi2 = np.empty(cap, dtype=np.int64)
-                    hk2[:hn] = hk[:hn]
-                    hi2[:hn] = hi[:hn]
-                    hk, hi = hk2, hi2
-                hn = heap_push(hk, hi, hn, ng + weight * h, v)
+        hk, hi, hn = relax_successors(surface, passable, a, u, g, parent, closed, hk, hi, hn,
+                                      gr, gc, weight)
     return parent, g, expansions, False
 
 
@@ -231,12 +232,21 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     a = float(cell_size)
     t0 = time.perf_counter()
     weight = float(omega) if planner == "wastar" else 1.0
-    parent, g, expansions, found = _astar(surface, passable, a, s[0], s[1], t[0], t[1],
-                                          weight, planner != "dijkstra")
+    if planner == "ra_star":
+        from .ra_star import _ra_star
+
+        par_cost, par_nor, expansions, status, f_min = _ra_star(
+            surface, ridge, passable, float(cell_size), s[0], s[1], t[0], t[1], float(omega))
+        found = status > 0
+        parent = par_nor if status == 2 else par_cost
+    else:
+        parent, _, expansions, found = _astar(surface, passable, float(cell_size), s[0], s[1],
+                                              t[0], t[1], 0.0 if planner == "dijkstra" else weight)
     runtime = time.perf_counter() - t0
     if not found:
         raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
                                    "cells: they lie in separate regions")
+    a = float(cell_size)
     cols = surface.shape[1]
     node = t[0] * cols + t[1]
     seq = []
@@ -246,7 +256,12 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     cells = np.array(seq[::-1], dtype=np.int64)
     length, ridge_len, ratio = path_metrics(cells, surface, ridge, a)
     h0 = a * math.hypot(s[0] - t[0], s[1] - t[1])
-    lower = length if planner in ("astar", "dijkstra") else max(h0, length / weight)
+    if planner in ("astar", "dijkstra"):
+        lower = length
+    elif planner == "ra_star":
+        lower = min(f_min, length)  # A*'s f_min never exceeds the optimum
+    else:
+        lower = max(h0, length / weight)
     xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
     ys = np.asarray(y, dtype=np.float64) if y is not None else np.arange(surface.shape[0]) * a
     points = np.column_stack([xs[cells[:, 1]], ys[cells[:, 0]],

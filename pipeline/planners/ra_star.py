@@ -1,0 +1,162 @@
+"""RA* (the paper's Algorithms 1-2) as the focal search SPEC section 5 makes precise.
+
+- OPEN_cost is plain A* (``f = g + h``, its own ``g`` and best predecessor); its smallest
+  ``f``, ``f_min``, never decreases and is a lower bound on the optimum ``L*``.
+- The ridge search keeps its own record per state: ``g_incons`` (the length of its path so
+  far), ``Nor`` (ridge cells on that path) and predecessor. OPEN_nor is split into FOCAL, the
+  admissible states (``g_incons + h < limit``, ``limit = omega * f_min``) ordered by the largest
+  ``Nor`` (then the smallest ``g_incons``), and WAIT, the others ordered by ``g_incons + h``;
+  as ``f_min`` grows, WAIT states move to FOCAL (the admissible set only grows).
+- Each iteration expands the FOCAL top if there is one (and, when it is also the OPEN_cost top,
+  performs the A* expansion too), else the OPEN_cost top.
+- The ridge search relaxes a successor when ``g_incons(s) + c(s, s') < limit`` (the paper's
+  test, with ``g_incons`` where it prints ``g``) and the successor is new to the ridge search or
+  its ``Nor`` improves (on a tie, a smaller ``g_incons`` wins). Each state is expanded at most
+  once by the ridge search (CLOSE_nor), and a record changes only while the state has not been
+  expanded, i.e. has no children: the ridge tree stays a tree, the returned path is simple and
+  its length is exactly the ``g_incons`` that was checked against the limit.
+
+Guarantee: a path returned by the ridge search has ``length = g_incons(goal) < omega * f_min <=
+omega * L*``; one returned by OPEN_cost is optimal. With ``omega = 1`` nothing is ever strictly
+below the limit, so RA* is A*.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .._heap import heap_grow, heap_pop, heap_push
+from .grid import DC, DR, can_move, edge_cost, relax_successors
+
+
+@njit(inline="always", cache=True)
+def _focal_key(nor, g, gscale):
+    # largest Nor first; among equals the smallest g_incons (g / gscale < 1)
+    return -np.float64(nor) + g / gscale
+
+
+@njit(nogil=True, cache=True)
+def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
+    rows, cols = surface.shape
+    n = rows * cols
+    s = sr * cols + sc
+    # status returned: 0 unreachable, 1 goal expanded by A* (optimal path, par_cost),
+    # 2 goal expanded by the ridge search (par_nor)
+    t = gr * cols + gc
+    # A* (OPEN_cost)
+    g = np.full(n, np.inf)
+    par_cost = np.full(n, -1, dtype=np.int64)
+    closed_cost = np.zeros(n, dtype=np.bool_)
+    ck = np.empty(1024)
+    ci = np.empty(1024, dtype=np.int64)
+    cn = 0
+    # ridge search (OPEN_nor = FOCAL + WAIT)
+    gi = np.full(n, np.inf)
+    nor = np.zeros(n, dtype=np.int64)
+    par_nor = np.full(n, -1, dtype=np.int64)
+    has_rec = np.zeros(n, dtype=np.bool_)
+    closed_nor = np.zeros(n, dtype=np.bool_)
+    fk = np.empty(1024)
+    fi = np.empty(1024, dtype=np.int64)
+    fn = 0
+    wk = np.empty(1024)
+    wi = np.empty(1024, dtype=np.int64)
+    wn = 0
+    h0 = a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2)
+    gscale = 1e6 * (h0 + a) * (1.0 + omega) + 1.0  # > any g_incons that can pass the limit
+    g[s] = 0.0
+    cn = heap_push(ck, ci, cn, h0, s)
+    gi[s] = 0.0
+    has_rec[s] = True
+    f_min = h0
+    limit = omega * f_min
+    if h0 < limit:
+        fn = heap_push(fk, fi, fn, _focal_key(0, 0.0, gscale), s)
+    else:
+        wn = heap_push(wk, wi, wn, h0, s)
+    expansions = 0
+    while True:
+        # the OPEN_cost top (drop stale entries) gives f_min and the limit
+        top = -1
+        while cn > 0:
+            u = ci[0]
+            if closed_cost[u] or ck[0] != g[u] + a * math.sqrt(
+                    (u // cols - gr) ** 2 + (u % cols - gc) ** 2):
+                heap_pop(ck, ci, cn)
+                cn -= 1
+                continue
+            top = u
+            if ck[0] > f_min:
+                f_min = ck[0]
+            break
+        limit = omega * f_min
+        # WAIT states that the grown limit admits move to FOCAL
+        while wn > 0 and wk[0] < limit:
+            _, v = heap_pop(wk, wi, wn)
+            wn -= 1
+            hv = a * math.sqrt((v // cols - gr) ** 2 + (v % cols - gc) ** 2)
+            if not closed_nor[v] and gi[v] + hv < limit:  # else stale: a newer record waits
+                fk, fi = heap_grow(fk, fi, fn)
+                fn = heap_push(fk, fi, fn, _focal_key(nor[v], gi[v], gscale), v)
+        # the FOCAL top (drop stale entries)
+        pick = -1
+        while fn > 0:
+            v = fi[0]
+            if closed_nor[v] or fk[0] != _focal_key(nor[v], gi[v], gscale):
+                heap_pop(fk, fi, fn)
+                fn -= 1
+                continue
+            pick = v
+            break
+        if pick < 0 and top < 0:
+            return par_cost, par_nor, expansions, 0, f_min  # nothing left: unreachable
+        if pick >= 0:
+            heap_pop(fk, fi, fn)
+            fn -= 1
+            closed_nor[pick] = True
+            expansions += 1
+            if pick == t:
+                return par_cost, par_nor, expansions, 2, f_min
+            r = pick // cols
+            c = pick - r * cols
+            for k in range(8):
+                if not can_move(passable, rows, cols, r, c, k):
+                    continue
+                nr = r + DR[k]
+                nc = c + DC[k]
+                v = nr * cols + nc
+                if closed_nor[v]:
+                    continue
+                ng = gi[pick] + edge_cost(surface, a, r, c, nr, nc)
+                if ng >= limit:
+                    continue
+                nn = nor[pick] + (1 if ridge[nr, nc] else 0)
+                if has_rec[v] and not (nn > nor[v] or (nn == nor[v] and ng < gi[v])):
+                    continue
+                has_rec[v] = True
+                gi[v] = ng
+                nor[v] = nn
+                par_nor[v] = pick
+                hv = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2)
+                if ng + hv < limit:
+                    fk, fi = heap_grow(fk, fi, fn)
+                    fn = heap_push(fk, fi, fn, _focal_key(nn, ng, gscale), v)
+                else:
+                    wk, wi = heap_grow(wk, wi, wn)
+                    wn = heap_push(wk, wi, wn, ng + hv, v)
+            if pick != top:
+                continue
+            # the picked state is also the OPEN_cost top: do the A* update as well
+        u = top
+        heap_pop(ck, ci, cn)
+        cn -= 1
+        closed_cost[u] = True
+        if pick < 0:
+            expansions += 1
+        if u == t:
+            return par_cost, par_nor, expansions, 1, f_min
+        ck, ci, cn = relax_successors(surface, passable, a, u, g, par_cost, closed_cost, ck, ci,
+                                      cn, gr, gc, 1.0)
