@@ -1,7 +1,7 @@
 """Planners on one window: optimal lengths against scipy's Dijkstra on a graph built here,
 skimage's MCP on flat ground, the weighted-A* bound as a property, path validity, errors.
 
-(The Lagrangian planner is part of issue 5 and not implemented yet.)
+
 """
 
 from __future__ import annotations
@@ -211,6 +211,16 @@ def test_shape_mismatch_and_nan():
 # ----------------------------------------------------------------------------- RA*
 
 
+def random_mission(seed, density, ridge_share):
+    """An obstacle field with random ridge cells, two endpoints, and the scipy optimum; None
+    when the endpoints are not connected."""
+    surface, _, passable = obstacle_map((25, 30), seed, density)
+    ridge = np.random.default_rng(seed + 1).random(surface.shape) < ridge_share
+    s, g = endpoints(passable, seed)
+    ref = reference_length(surface, passable, 30.0, s, g)
+    return (surface, ridge, passable, s, g, ref) if np.isfinite(ref) else None
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_ra_star_with_omega_one_is_optimal(seed):
     surface, ridge, passable = obstacle_map((35, 40), seed, density=0.2)
@@ -228,12 +238,10 @@ def test_ra_star_with_omega_one_is_optimal(seed):
 @given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0), density=st.floats(0.0, 0.35),
        ridge_share=st.floats(0.05, 0.6))
 def test_ra_star_bound_validity_and_lower_bound(seed, omega, density, ridge_share):
-    surface, _, passable = obstacle_map((25, 30), seed, density)
-    ridge = np.random.default_rng(seed + 1).random(surface.shape) < ridge_share
-    s, g = endpoints(passable, seed)
-    ref = reference_length(surface, passable, 30.0, s, g)
-    if not np.isfinite(ref):
+    mission = random_mission(seed, density, ridge_share)
+    if mission is None:
         return
+    surface, ridge, passable, s, g, ref = mission
     t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star",
                              omega=omega)
     check_path(t, passable, s, g)  # simple, continuous, passable, no corner cutting
@@ -247,8 +255,8 @@ def test_ra_star_bound_validity_and_lower_bound(seed, omega, density, ridge_shar
     np.testing.assert_array_equal(again.cells, t.cells)
 
 
-def test_ra_star_follows_more_ridge_than_astar_on_average():
-    ratios = {"astar": [], "ra_star": []}
+def test_ridge_following_ranks_lagrangian_ra_star_astar_on_average():
+    ratios = {"astar": [], "ra_star": [], "lagrangian": []}
     for seed in range(12):
         surface, _, passable = obstacle_map((40, 40), seed, density=0.1)
         ridge = np.zeros(surface.shape, bool)
@@ -264,3 +272,27 @@ def test_ra_star_follows_more_ridge_than_astar_on_average():
     assert len(ratios["astar"]) >= 8
     assert np.mean(ratios["ra_star"]) >= np.mean(ratios["astar"])
     assert np.mean(ratios["ra_star"]) > 0.4
+    assert np.mean(ratios["lagrangian"]) >= np.mean(ratios["ra_star"])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0), density=st.floats(0.0, 0.35),
+       ridge_share=st.floats(0.05, 0.6))
+def test_lagrangian_bound_validity_and_duality(seed, omega, density, ridge_share):
+    mission = random_mission(seed, density, ridge_share)
+    if mission is None:
+        return
+    surface, ridge, passable, s, g, ref = mission
+    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
+                             planner="lagrangian", omega=omega)
+    check_path(t, passable, s, g)
+    assert t.length_m <= omega * ref * (1 + 1e-9)
+    assert t.lower_bound_m == pytest.approx(ref, rel=1e-9)  # it computes the optimum
+    length, ridge_len = independent_metrics(t, surface, ridge, 30.0)
+    assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
+    # weak duality: the dual bound never exceeds the off-ridge length of a feasible path
+    assert t.extra["dual_bound_off_ridge_m"] <= (length - ridge_len) * (1 + 1e-9) + 1e-6
+    ra = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
+                              planner="ra_star", omega=omega)
+    assert t.extra["dual_bound_off_ridge_m"] <= (ra.length_m - ra.ridge_length_m) * (1 + 1e-9) \
+        + 1e-6

@@ -20,7 +20,6 @@ from .._heap import heap_grow, heap_pop, heap_push
 from ..exceptions import InvalidParameterError, PipelineError
 
 PLANNERS = ("dijkstra", "astar", "wastar", "ra_star", "lagrangian")
-_IMPLEMENTED = ("dijkstra", "astar", "wastar", "ra_star")
 
 DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
@@ -73,9 +72,12 @@ def can_move(passable, rows, cols, r, c, k):
 
 
 @njit(inline="always", cache=True)
-def relax_successors(surface, passable, a, u, g, parent, closed, hk, hi, hn, gr, gc, weight):
+def relax_successors(surface, ridge, passable, a, u, g, parent, closed, hk, hi, hn, gr, gc,
+                     weight, off_weight):
     """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
-    ``g + weight * h`` (weight 0: Dijkstra). Returns the (possibly grown) heap and its size."""
+    ``g + weight * h`` (weight 0: Dijkstra). An edge costs its 3-D length, times
+    ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
+    ``length + off_ridge / lambda``; 0 for plain length). Returns the heap and its size."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
@@ -87,7 +89,10 @@ def relax_successors(surface, passable, a, u, g, parent, closed, hk, hi, hn, gr,
         v = nr * cols + nc
         if closed[v]:
             continue
-        ng = g[u] + edge_cost(surface, a, r, c, nr, nc)
+        cost = edge_cost(surface, a, r, c, nr, nc)
+        if off_weight > 0.0 and not ridge[nr, nc]:
+            cost *= 1.0 + off_weight
+        ng = g[u] + cost
         if ng < g[v]:
             g[v] = ng
             parent[v] = u
@@ -98,7 +103,7 @@ def relax_successors(surface, passable, a, u, g, parent, closed, hk, hi, hn, gr,
 
 
 @njit(nogil=True, cache=True)
-def _astar(surface, passable, a, sr, sc, gr, gc, weight):
+def _astar(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
     No re-expansions: with a consistent heuristic, weighted A* without reopening still
@@ -126,8 +131,8 @@ def _astar(surface, passable, a, sr, sc, gr, gc, weight):
         expansions += 1
         if u == t:
             return parent, g, expansions, True
-        hk, hi, hn = relax_successors(surface, passable, a, u, g, parent, closed, hk, hi, hn,
-                                      gr, gc, weight)
+        hk, hi, hn = relax_successors(surface, ridge, passable, a, u, g, parent, closed, hk, hi,
+                                      hn, gr, gc, weight, off_weight)
     return parent, g, expansions, False
 
 
@@ -217,9 +222,6 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     if planner not in PLANNERS:
         raise InvalidParameterError(f"planner must be one of {', '.join(map(repr, PLANNERS))}, "
                                     f"got {planner!r}")
-    if planner not in _IMPLEMENTED:
-        raise NotImplementedError(f"planner {planner!r} is not implemented yet (issue 5); "
-                                  f"available: {', '.join(_IMPLEMENTED)}")
     if isinstance(omega, bool) or not isinstance(omega, int | float) or not omega >= 1.0 \
             or not math.isfinite(omega):
         raise InvalidParameterError(f"`omega` must be >= 1, got {omega}")
@@ -232,6 +234,7 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     a = float(cell_size)
     t0 = time.perf_counter()
     weight = float(omega) if planner == "wastar" else 1.0
+    extra = {}
     if planner == "ra_star":
         from .ra_star import _ra_star
 
@@ -239,9 +242,16 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
             surface, ridge, passable, float(cell_size), s[0], s[1], t[0], t[1], float(omega))
         found = status > 0
         parent = par_nor if status == 2 else par_cost
+    elif planner == "lagrangian":
+        from .lagrangian import larac
+
+        parent, expansions, found, extra = larac(surface, ridge, passable, float(cell_size), s,
+                                                 t, float(omega))
+        f_min = extra.get("optimum_m", 0.0)
     else:
-        parent, _, expansions, found = _astar(surface, passable, float(cell_size), s[0], s[1],
-                                              t[0], t[1], 0.0 if planner == "dijkstra" else weight)
+        parent, _, expansions, found = _astar(surface, ridge, passable, float(cell_size), s[0],
+                                              s[1], t[0], t[1],
+                                              0.0 if planner == "dijkstra" else weight, 0.0)
     runtime = time.perf_counter() - t0
     if not found:
         raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
@@ -258,8 +268,8 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     h0 = a * math.hypot(s[0] - t[0], s[1] - t[1])
     if planner in ("astar", "dijkstra"):
         lower = length
-    elif planner == "ra_star":
-        lower = min(f_min, length)  # A*'s f_min never exceeds the optimum
+    elif planner in ("ra_star", "lagrangian"):
+        lower = min(f_min, length)  # A*'s f_min (the optimum itself for lagrangian)
     else:
         lower = max(h0, length / weight)
     xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
@@ -268,4 +278,4 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
                               surface[cells[:, 0], cells[:, 1]]])
     return Trajectory(cells=cells, points=points, length_m=length, ridge_length_m=ridge_len,
                       ridge_ratio=ratio, lower_bound_m=float(lower), expansions=int(expansions),
-                      runtime_s=runtime, planner=planner, omega=float(omega))
+                      runtime_s=runtime, planner=planner, omega=float(omega), extra=extra)

@@ -158,5 +158,5 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
             expansions += 1
         if u == t:
             return par_cost, par_nor, expansions, 1, f_min
-        ck, ci, cn = relax_successors(surface, passable, a, u, g, par_cost, closed_cost, ck, ci,
-                                      cn, gr, gc, 1.0)
+        ck, ci, cn = relax_successors(surface, ridge, passable, a, u, g, par_cost, closed_cost,
+                                      ck, ci, cn, gr, gc, 1.0, 0.0)

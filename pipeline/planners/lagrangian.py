@@ -1,0 +1,92 @@
+"""The Lagrangian ridge planner (SPEC section 5, beyond the paper).
+
+Maximising ridge length under ``length <= omega * L*`` is a constrained shortest path problem:
+minimise the off-ridge length subject to the length bound. Lagrangian relaxation turns it into
+a sequence of plain shortest paths on ``off_ridge + lambda * length`` (no negative weights),
+solved as A* on ``length + off_ridge / lambda`` (the same order for lambda > 0, and the plain
+length heuristic stays admissible and consistent). ``lambda`` follows the LARAC rule (Juettner
+et al. 2001): keep the best feasible path P_d and the best infeasible one P_c, set
+``lambda = (off(P_d) - off(P_c)) / (len(P_c) - len(P_d))`` and stop when the relaxed optimum no
+longer improves on P_c. Every path found is a shortest path for some weighting, hence
+Pareto-optimal between length and off-ridge length. The feasible one with the most ridge is
+returned, with the dual lower bound on the off-ridge length in ``extra``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .grid import _astar
+
+# lambda -> 0 end: off-ridge length first, length only as a tie-break
+_OFF_FIRST = 1e7
+
+
+def _path(parent, cols, t):
+    node = t[0] * cols + t[1]
+    seq = []
+    while node != -1:
+        seq.append(divmod(int(node), cols))
+        node = parent[node]
+    return np.array(seq[::-1], dtype=np.int64)
+
+
+def _measure(cells, surface, ridge, a):
+    r, c = cells[:, 0], cells[:, 1]
+    dz = np.diff(surface[r, c])
+    step = np.sqrt(a * a * (np.diff(r) ** 2 + np.diff(c) ** 2) + dz * dz)
+    length = float(step.sum())
+    return length, float(step[~ridge[r[1:], c[1:]]].sum())  # length, off-ridge length
+
+
+def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
+    """(parent array of the chosen path, expansions, found, extra) for ``plan_window``."""
+    cols = surface.shape[1]
+    expansions = 0
+
+    def search(off_weight):
+        nonlocal expansions
+        parent, _, exp, found = _astar(surface, ridge, passable, a, s[0], s[1], t[0], t[1], 1.0,
+                                       off_weight)
+        expansions += exp
+        if not found:
+            return None
+        cells = _path(parent, cols, t)
+        return parent, cells, *_measure(cells, surface, ridge, a)
+
+    shortest = search(0.0)
+    if shortest is None:
+        return None, expansions, False, {}
+    optimum = shortest[2]
+    bound = omega * optimum
+    feasible = shortest
+    extra = {"optimum_m": optimum, "searches": 1, "lambda": None}
+    off_first = search(_OFF_FIRST)
+    extra["searches"] += 1
+    if off_first[2] <= bound:
+        extra.update(dual_bound_off_ridge_m=off_first[3], lambda_=0.0)
+        return off_first[0], expansions, True, extra
+    infeasible = off_first
+    dual = 0.0
+    for _ in range(max_iter):
+        # P_d (feasible) is shorter with more off-ridge, P_c (infeasible) the reverse
+        dlen = infeasible[2] - feasible[2]
+        doff = feasible[3] - infeasible[3]
+        if dlen <= 0 or doff <= 0:
+            break
+        lam = doff / dlen  # the weighting under which P_c and P_d cost the same
+        r = search(1.0 / lam)
+        extra["searches"] += 1
+        value_r = r[3] + lam * r[2]
+        value_c = infeasible[3] + lam * infeasible[2]
+        dual = max(dual, value_r - lam * bound)
+        extra["lambda"] = lam
+        if value_r >= value_c * (1.0 - 1e-12):
+            break  # no weighting improves on the bracket: LARAC's stop
+        if r[2] <= bound:
+            if r[3] < feasible[3]:
+                feasible = r
+        else:
+            infeasible = r
+    extra["dual_bound_off_ridge_m"] = max(dual, 0.0)
+    return feasible[0], expansions, True, extra
