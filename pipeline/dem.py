@@ -99,7 +99,8 @@ def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | N
         return dem
     dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size)
     if validate:
-        _check_has_data(dem, path)
+        require_valid_cells(dem, f"DEM file {path} holds no valid elevation: every cell is "
+                                 "no-data (NaN or the file's nodata value)")
     return dem
 
 
@@ -438,21 +439,30 @@ def _resample_square(values: xr.DataArray, path: Path, dx: float, dy: float, crs
     return out
 
 
-def _check_has_data(dem: xr.DataArray, path: Path) -> None:
+def check_dem(dem, *, floating: bool = False) -> float:
+    """Validate a canonical DEM argument (before any graph is built); return its cell size."""
+    if not isinstance(dem, xr.DataArray):
+        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}; "
+                                    "open it with pipeline.open_dem")
+    if dem.ndim != 2 or dem.dims != ("y", "x"):
+        raise InvalidDEMError(f"`dem` must be 2-D with dims ('y', 'x'), got dims {dem.dims}; "
+                              "open it with pipeline.open_dem")
+    if floating and dem.dtype.kind != "f":
+        raise InvalidDEMError(f"`dem` must hold floating-point elevations, got {dem.dtype}")
+    return cell_size(dem)
+
+
+def require_valid_cells(dem: xr.DataArray, message: str) -> None:
+    """Raise InvalidDEMError(message) when every cell of ``dem`` is NaN (one pass if lazy)."""
     anyvalid = np.isfinite(dem.data).any()
     if isinstance(anyvalid, da.Array):
         anyvalid = anyvalid.compute()
     if not bool(anyvalid):
-        raise InvalidDEMError(f"DEM file {path} holds no valid elevation: every cell is "
-                              "no-data (NaN or the file's nodata value)")
+        raise InvalidDEMError(message)
 
 
 def _check_canonical(dem) -> None:
-    if not isinstance(dem, xr.DataArray):
-        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}")
-    if dem.dims != ("y", "x"):
-        raise InvalidDEMError(f"`dem` must have dims ('y', 'x'), got {dem.dims}; "
-                              "open it with pipeline.open_dem")
+    check_dem(dem)
     if "cell_size" not in dem.attrs:
         raise InvalidDEMError("`dem` has no 'cell_size' attribute; open it with pipeline.open_dem "
                               "or pipeline.synthetic_dem")

@@ -25,12 +25,13 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+import zarr
 from numba import njit
 
 from ._io import atomic_path
 from ._validate import chunks2d, positive_int
-from .dem import DEFAULT_CHUNK, open_dem
-from .exceptions import InvalidDEMError, InvalidParameterError, PipelineError, StoreExistsError
+from .dem import DEFAULT_CHUNK, open_dem, require_valid_cells
+from .exceptions import InvalidParameterError, PipelineError, StoreExistsError
 from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
 
@@ -133,8 +134,7 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
     if min_accumulation is None:
         min_accumulation = default_min_accumulation(float(dem.attrs["cell_size"]))
     min_accumulation = positive_int("min_accumulation", min_accumulation)
-    if not bool(np.isfinite(dem.data).any().compute()):
-        raise InvalidDEMError("the DEM is entirely no-data (NaN); nothing to build maps from")
+    require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
     params = {"method": method, "clearance_m": S.attrs["clearance_m"],
               "horizontal_clearance_m": S.attrs.get("horizontal_clearance_m"),
               "sea_level_m": ok.attrs["sea_level_m"],
@@ -159,11 +159,9 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
                     "units": "cells"}),
                 "ridge": (("y", "x"), ridge, {"long_name": "ridge cells",
                                               "min_accumulation": min_accumulation})})
-            partials = _write(ds, tmp, ch, mode="w", extra=dem_hash(dem))
+            partials = _write(ds, tmp, ch, also=dem_hash(dem))
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
-        import zarr
-
         group = zarr.open_group(tmp, mode="r+")
         group.attrs.update({"title": "pipeline maps store", "maps_version": MAPS_VERSION,
                             "parameters": json.dumps(params),
@@ -176,14 +174,14 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
     return open_maps(store)
 
 
-def _write(ds: xr.Dataset, path, ch, *, mode: str, extra=None):
-    """Write ``ds`` (dask-backed) to the Zarr store ``path`` in one streaming computation;
-    ``extra`` (a dask collection sharing its inputs) is computed in the same pass and returned."""
+def _write(ds: xr.Dataset, path, ch, *, also):
+    """Write ``ds`` (dask-backed) as a new Zarr store ``path`` in one streaming computation;
+    ``also`` (a dask collection sharing its inputs) is computed in the same pass and returned."""
     for v in ds.data_vars.values():
         v.encoding = {}
-    write = ds.to_zarr(path, mode=mode, zarr_format=3, consolidated=False,
+    write = ds.to_zarr(path, mode="w", zarr_format=3, consolidated=False,
                        encoding={k: {"chunks": ch} for k in ds.data_vars}, compute=False)
-    _, value = dask.compute(write, extra)
+    _, value = dask.compute(write, also)
     return value
 
 

@@ -30,23 +30,22 @@ for cell (integer accumulation, fill values copied from the input).
 from __future__ import annotations
 
 import math
+import time
 
 import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+import zarr
 from numba import njit
 
+from ._grid8 import DC, DIST, DR
 from ._heap import heap_pop, heap_push
 from ._validate import positive_int
 from .dem import cell_size as _cell_size
-from .exceptions import InvalidDEMError, InvalidParameterError
+from .dem import check_dem, require_valid_cells
 
 OUTLET = -1
-# neighbour order (fixed): E, SE, S, SW, W, NW, N, NE
-DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
-DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
-DIST = np.array([1.0, math.sqrt(2.0)] * 4)
 
 
 # --------------------------------------------------------------------------- fill
@@ -210,7 +209,6 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
     # edges across the tile border: perimeter cell c and neighbour n in the next tile
     a_list, b_list = [_to_global(ea, glabels)], [_to_global(eb, glabels)]
     w_list = [ew.astype(np.float64)]
-    zf = zh.astype(np.float64)
     hr, hc = zh.shape
     ok = np.isfinite(z[pi, pj])
     qi, qj = pi[ok], pj[ok]
@@ -219,13 +217,13 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
         ok = (ni >= 0) & (ni < hr) & (nj >= 0) & (nj < hc)
         ok &= ~((ni >= top) & (ni < top + rows) & (nj >= left) & (nj < left + cols))
         ci, cj, ni, nj = qi[ok], qj[ok], ni[ok], nj[ok]
-        ok = np.isfinite(zf[ni, nj])
+        ok = np.isfinite(zh[ni, nj])
         ci, cj, ni, nj = ci[ok], cj[ok], ni[ok], nj[ok]
         nlabel = np.where(outlet_h[ni, nj], OUTLET,
                           (r0 + ni - top) * ncols + (c0 + nj - left))
         a_list.append(_to_global(label[ci, cj], glabels))
         b_list.append(nlabel.astype(np.int64))
-        w_list.append(np.maximum(zf[ci + top, cj + left], zf[ni, nj]))
+        w_list.append(np.maximum(zh[ci + top, cj + left], zh[ni, nj]).astype(np.float64))
     return filled, label, glabels, _lowest_edges(np.concatenate(a_list),
                                                  np.concatenate(b_list),
                                                  np.concatenate(w_list))
@@ -456,11 +454,9 @@ def _tile_flow_summary(fh, r0, c0, ncols, halo):
     link_id = np.full((rows, cols), -1, dtype=np.int64)
     link_id[li, lj] = np.arange(li.size)
     exit_link = _exit_links(dirs, order, link_id)
-    border = np.zeros((rows, cols), dtype=np.bool_)
-    border[0, :] = border[-1, :] = True
-    border[:, 0] = border[:, -1] = True
-    bi, bj = np.nonzero(border & ~nodata)
-    border_cell = (r0 + bi) * ncols + (c0 + bj)
+    bi, bj, border_cell = _perimeter_glabels(r0, c0, rows, cols, ncols)
+    valid_border = ~nodata[bi, bj]
+    bi, bj, border_cell = bi[valid_border], bj[valid_border], border_cell[valid_border]
     return link_src, link_dst, link_amount, border_cell, exit_link[bi, bj]
 
 
@@ -574,24 +570,6 @@ def _accumulation_dask(filled: da.Array, *, eager_solve: bool) -> da.Array:
 # --------------------------------------------------------------------------- public API
 
 
-def _check_dem(dem) -> float:
-    if not isinstance(dem, xr.DataArray):
-        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}; "
-                                    "open it with pipeline.open_dem")
-    if dem.ndim != 2 or dem.dims != ("y", "x"):
-        raise InvalidDEMError(f"`dem` must be 2-D with dims ('y', 'x'), got dims {dem.dims}")
-    return _cell_size(dem)
-
-
-def _check_has_data(dem) -> None:
-    ok = np.isfinite(dem.data).any()
-    if isinstance(ok, da.Array):
-        ok = ok.compute()
-    if not bool(ok):
-        raise InvalidDEMError("the DEM is entirely no-data (NaN): there is no terrain to "
-                              "derive ridges from")
-
-
 def _wrap(data, dem, name, attrs):
     return xr.DataArray(data, dims=dem.dims, coords=dem.coords, name=name, attrs=attrs)
 
@@ -602,8 +580,9 @@ def fill_depressions(dem: xr.DataArray, *, eager_solve: bool = False) -> xr.Data
     Exact for any chunking; lazy for dask input (the small global step is a task of the graph,
     or computed at once with ``eager_solve=True`` so that the graph left holds no summaries).
     """
-    _check_dem(dem)
-    _check_has_data(dem)
+    check_dem(dem)
+    require_valid_cells(dem, "the DEM is entirely no-data (NaN): there is no terrain to "
+                             "derive ridges from")
     z = dem.data
     if isinstance(z, da.Array):
         data = _fill_dask(z, eager_solve=eager_solve)
@@ -625,7 +604,7 @@ def flow_accumulation(dem: xr.DataArray, *, filled: xr.DataArray | None = None,
     >>> int(acc.min())                                                             # doctest: +SKIP
     1
     """
-    _check_dem(dem)
+    check_dem(dem)
     if filled is None:
         filled = fill_depressions(dem, eager_solve=eager_solve)
     f = filled.data
@@ -658,7 +637,7 @@ def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
     --------
     >>> rdg = ridge_map(pipeline.synthetic_dem((500, 500), chunks=128))  # doctest: +SKIP
     """
-    a = _check_dem(dem)
+    a = check_dem(dem)
     if min_accumulation is None:
         min_accumulation = default_min_accumulation(a)
     min_accumulation = positive_int("min_accumulation", min_accumulation)
@@ -680,8 +659,6 @@ def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
 
 def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
     """Pass 1 for one tile: flood, write local fill and label indices, return spill edges."""
-    import zarr
-
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     rows, cols = filled.shape
     g = zarr.open_group(scratch, mode="r+")
@@ -723,10 +700,6 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     ``scratch`` is a directory for the temporary Zarr store; the returned arrays read it, so
     it must live until they are written.
     """
-    import time
-
-    import zarr
-
     t0 = time.perf_counter()
     z = z.astype(np.float32)
     ncols = z.shape[1]

@@ -29,8 +29,8 @@ import xarray as xr
 from numba import njit
 
 from ._validate import positive_float
-from .dem import cell_size as _cell_size
-from .exceptions import InvalidDEMError, InvalidParameterError
+from .dem import check_dem
+from .exceptions import InvalidParameterError
 
 METHODS = ("vertical", "horizontal", "spherical")
 
@@ -191,18 +191,6 @@ def _vertical(z, clearance):
 # --------------------------------------------------------------------------- public API
 
 
-def _check_dem(dem) -> float:
-    if not isinstance(dem, xr.DataArray):
-        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}; "
-                                    "open it with pipeline.open_dem")
-    if dem.ndim != 2 or dem.dims != ("y", "x"):
-        raise InvalidDEMError(f"`dem` must be 2-D with dims ('y', 'x'), got dims {dem.dims}; "
-                              "open it with pipeline.open_dem")
-    if dem.dtype.kind != "f":
-        raise InvalidDEMError(f"`dem` must hold floating-point elevations, got {dem.dtype}")
-    return _cell_size(dem)
-
-
 def _check_clearance(name: str, value, a: float) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
         raise InvalidParameterError(f"`{name}` must be a number of metres > 0, got {value!r}")
@@ -245,7 +233,7 @@ def safety_map(dem: xr.DataArray, method: str = "spherical", clearance: float = 
     >>> bool((S >= dem + 300 - 1e-3).all())                                   # doctest: +SKIP
     True
     """
-    a = _check_dem(dem)
+    a = check_dem(dem, floating=True)
     if method not in METHODS:
         raise InvalidParameterError(
             f"method must be 'vertical', 'horizontal' or 'spherical', got {method!r}")
@@ -309,7 +297,7 @@ def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = 0.0,
     --------
     >>> ok = passable(dem, safety_map(dem))  # doctest: +SKIP
     """
-    _check_dem(dem)
+    check_dem(dem, floating=True)
     if not isinstance(safety, xr.DataArray) or safety.shape != dem.shape:
         got = safety.shape if isinstance(safety, xr.DataArray) else type(safety).__name__
         raise InvalidParameterError(f"`safety` must be a DataArray of the DEM's shape "

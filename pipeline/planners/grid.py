@@ -16,13 +16,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from .._grid8 import DC, DR
 from .._heap import heap_grow, heap_pop, heap_push
 from ..exceptions import InvalidParameterError, PipelineError
 
 PLANNERS = ("dijkstra", "astar", "wastar", "ra_star", "lagrangian")
 
-DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
-DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
 
 
 class UnreachableGoalError(PipelineError):
@@ -182,15 +181,30 @@ def _check_arrays(surface, ridge, passable):
     return surface, ridge, passable
 
 
+def trace_path(parent: np.ndarray, cols: int, goal) -> np.ndarray:
+    """The cells (k x 2) from the root of a search tree (flat ``parent`` indices) to ``goal``."""
+    node = goal[0] * cols + goal[1]
+    seq = []
+    while node != -1:
+        seq.append(divmod(int(node), cols))
+        node = parent[node]
+    return np.array(seq[::-1], dtype=np.int64)
+
+
+def path_steps(cells: np.ndarray, surface: np.ndarray, a: float):
+    """The 3-D length of every step of a path (step i ends at ``cells[i + 1]``)."""
+    r, c = cells[:, 0], cells[:, 1]
+    dz = np.diff(surface[r, c].astype(np.float64))
+    return np.sqrt(a * a * (np.diff(r) ** 2 + np.diff(c) ** 2) + dz * dz)
+
+
 def path_metrics(cells: np.ndarray, surface: np.ndarray, ridge: np.ndarray, a: float):
     """length, ridge length (steps whose end cell is a ridge cell), ridge ratio."""
     if len(cells) < 2:
         return 0.0, 0.0, 0.0
-    r, c = cells[:, 0], cells[:, 1]
-    dz = np.diff(surface[r, c].astype(np.float64))
-    step = np.sqrt(a * a * (np.diff(r) ** 2 + np.diff(c) ** 2) + dz * dz)
+    step = path_steps(cells, surface, a)
     length = float(step.sum())
-    ridge_len = float(step[ridge[r[1:], c[1:]]].sum())
+    ridge_len = float(step[ridge[cells[1:, 0], cells[1:, 1]]].sum())
     return length, ridge_len, ridge_len / length if length > 0 else 0.0
 
 
@@ -239,31 +253,24 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
         from .ra_star import _ra_star
 
         par_cost, par_nor, expansions, status, f_min = _ra_star(
-            surface, ridge, passable, float(cell_size), s[0], s[1], t[0], t[1], float(omega))
+            surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega))
         found = status > 0
         parent = par_nor if status == 2 else par_cost
     elif planner == "lagrangian":
         from .lagrangian import larac
 
-        parent, expansions, found, extra = larac(surface, ridge, passable, float(cell_size), s,
-                                                 t, float(omega))
+        parent, expansions, found, extra = larac(surface, ridge, passable, a, s, t,
+                                                 float(omega))
         f_min = extra.get("optimum_m", 0.0)
     else:
-        parent, _, expansions, found = _astar(surface, ridge, passable, float(cell_size), s[0],
-                                              s[1], t[0], t[1],
-                                              0.0 if planner == "dijkstra" else weight, 0.0)
+        parent, _, expansions, found = _astar(surface, ridge, passable, a, s[0], s[1], t[0],
+                                              t[1], 0.0 if planner == "dijkstra" else weight,
+                                              0.0)
     runtime = time.perf_counter() - t0
     if not found:
         raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
                                    "cells: they lie in separate regions")
-    a = float(cell_size)
-    cols = surface.shape[1]
-    node = t[0] * cols + t[1]
-    seq = []
-    while node != -1:
-        seq.append(divmod(int(node), cols))
-        node = parent[node]
-    cells = np.array(seq[::-1], dtype=np.int64)
+    cells = trace_path(parent, surface.shape[1], t)
     length, ridge_len, ratio = path_metrics(cells, surface, ridge, a)
     h0 = a * math.hypot(s[0] - t[0], s[1] - t[1])
     if planner in ("astar", "dijkstra"):

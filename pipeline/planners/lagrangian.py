@@ -14,29 +14,16 @@ returned, with the dual lower bound on the off-ridge length in ``extra``.
 
 from __future__ import annotations
 
-import numpy as np
-
-from .grid import _astar
+from .grid import _astar, path_steps, trace_path
 
 # lambda -> 0 end: off-ridge length first, length only as a tie-break
 _OFF_FIRST = 1e7
 
 
-def _path(parent, cols, t):
-    node = t[0] * cols + t[1]
-    seq = []
-    while node != -1:
-        seq.append(divmod(int(node), cols))
-        node = parent[node]
-    return np.array(seq[::-1], dtype=np.int64)
-
-
 def _measure(cells, surface, ridge, a):
-    r, c = cells[:, 0], cells[:, 1]
-    dz = np.diff(surface[r, c])
-    step = np.sqrt(a * a * (np.diff(r) ** 2 + np.diff(c) ** 2) + dz * dz)
-    length = float(step.sum())
-    return length, float(step[~ridge[r[1:], c[1:]]].sum())  # length, off-ridge length
+    """(length, off-ridge length) of a path."""
+    step = path_steps(cells, surface, a)
+    return float(step.sum()), float(step[~ridge[cells[1:, 0], cells[1:, 1]]].sum())
 
 
 def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
@@ -51,7 +38,7 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
         expansions += exp
         if not found:
             return None
-        cells = _path(parent, cols, t)
+        cells = trace_path(parent, cols, t)
         return parent, cells, *_measure(cells, surface, ridge, a)
 
     shortest = search(0.0)

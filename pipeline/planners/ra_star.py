@@ -28,8 +28,9 @@ import math
 import numpy as np
 from numba import njit
 
+from .._grid8 import DC, DR
 from .._heap import heap_grow, heap_pop, heap_push
-from .grid import DC, DR, can_move, edge_cost, relax_successors
+from .grid import can_move, edge_cost, relax_successors
 
 
 @njit(inline="always", cache=True)
