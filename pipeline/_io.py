@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -36,8 +37,28 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
         else:
             os.rename(tmp, path)
     except BaseException:
-        _remove(tmp)
+        remove_settled(tmp)
         raise
+
+
+def remove_settled(p: Path, *, settle_s: float = 1.0, give_up_s: float = 30.0) -> None:
+    """Remove ``p`` and keep removing it until it has stayed absent for ``settle_s``.
+
+    When one task of a dask computation fails, tasks already running on other threads or
+    workers still finish and write their chunks, which can recreate the temporary store after a
+    single removal.
+    """
+    deadline = time.monotonic() + give_up_s
+    quiet_since = None
+    while time.monotonic() < deadline:
+        if p.exists() or p.is_symlink():
+            _remove(p)
+            quiet_since = None
+        elif quiet_since is None:
+            quiet_since = time.monotonic()
+        elif time.monotonic() - quiet_since >= settle_s:
+            return
+        time.sleep(0.05)
 
 
 def _remove(p: Path) -> None:

@@ -28,7 +28,7 @@ import xarray as xr
 import zarr
 from numba import njit
 
-from ._io import atomic_path
+from ._io import atomic_path, remove_settled
 from ._validate import chunks2d, positive_int
 from .dem import DEFAULT_CHUNK, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError, PipelineError, StoreExistsError
@@ -160,8 +160,10 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
                 "ridge": (("y", "x"), ridge, {"long_name": "ridge cells",
                                               "min_accumulation": min_accumulation})})
             partials = _write(ds, tmp, ch, also=dem_hash(dem))
-        finally:
-            shutil.rmtree(scratch, ignore_errors=True)
+        except BaseException:
+            remove_settled(scratch)  # tasks still running may write into it after a failure
+            raise
+        shutil.rmtree(scratch, ignore_errors=True)
         group = zarr.open_group(tmp, mode="r+")
         group.attrs.update({"title": "pipeline maps store", "maps_version": MAPS_VERSION,
                             "parameters": json.dumps(params),
