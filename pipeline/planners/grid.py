@@ -59,6 +59,23 @@ def edge_cost(surface, a, r, c, nr, nc):
     return math.sqrt(a * a * (dr * dr + dc * dc) + dz * dz)
 
 
+# ties in f go to the state nearer the goal: the heap key is g + weight * (1 + TIE) * h. A* with
+# it is weighted A* of weight 1 + TIE, so its path is within a factor 1 + TIE of the optimum
+TIE = 1e-10
+
+
+@njit(inline="always", cache=True)
+def heuristic(a, r, c, gr, gc, octile):
+    """A lower bound on the length from (r, c) to the goal: the octile distance (the exact
+    horizontal length on the open 8-connected grid) or SPEC's straight line; both are admissible
+    and consistent, since no edge is shorter than its horizontal projection."""
+    dr = abs(r - gr)
+    dc = abs(c - gc)
+    if octile:
+        return a * (max(dr, dc) + (math.sqrt(2.0) - 1.0) * min(dr, dc))
+    return a * math.sqrt(dr * dr + dc * dc)
+
+
 @njit(inline="always", cache=True)
 def can_move(passable, rows, cols, r, c, k):
     nr = r + DR[k]
@@ -70,9 +87,18 @@ def can_move(passable, rows, cols, r, c, k):
     return True
 
 
+# Search state, one byte a cell: bits 0-2 the neighbour index (``_grid8``) of the move that
+# entered the cell, PARENT when it has one, CLOSED once expanded, SEEN for the root. ``g`` is
+# valid only where PARENT or SEEN is set, so it needs no initialisation pass (np.empty).
+PARENT = 8
+CLOSED = 16
+SEEN = 32
+INWAIT = 64  # RA*'s ridge search: the state has an entry in WAIT
+
+
 @njit(inline="always", cache=True)
-def relax_successors(surface, ridge, passable, a, u, g, parent, closed, hk, hi, hn, gr, gc,
-                     weight, off_weight):
+def relax_successors(surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, gc,
+                     weight, off_weight, octile):
     """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
     ``g + weight * h`` (weight 0: Dijkstra). An edge costs its 3-D length, times
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
@@ -80,59 +106,65 @@ def relax_successors(surface, ridge, passable, a, u, g, parent, closed, hk, hi, 
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
+    gu = g[u]
+    if hn + 8 > hk.size:
+        hk, hi = heap_grow(hk, hi, hk.size)
     for k in range(8):
-        if not can_move(passable, rows, cols, r, c, k):
-            continue
         nr = r + DR[k]
         nc = c + DC[k]
-        v = nr * cols + nc
-        if closed[v]:
+        if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
             continue
+        v = nr * cols + nc
+        sv = state[v]
+        if sv & CLOSED or not passable[nr, nc]:
+            continue
+        if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
+            continue  # a diagonal must not cut a corner
         cost = edge_cost(surface, a, r, c, nr, nc)
         if off_weight > 0.0 and not ridge[nr, nc]:
             cost *= 1.0 + off_weight
-        ng = g[u] + cost
-        if ng < g[v]:
+        ng = gu + cost
+        if (sv & (PARENT | SEEN)) == 0 or ng < g[v]:
             g[v] = ng
-            parent[v] = u
-            hk, hi = heap_grow(hk, hi, hn)
-            hn = heap_push(hk, hi, hn, ng + weight * a * math.sqrt((nr - gr) ** 2
-                                                                   + (nc - gc) ** 2), v)
+            state[v] = PARENT | k
+            hn = heap_push(hk, hi, hn, ng + weight * heuristic(a, nr, nc, gr, gc, octile), v)
     return hk, hi, hn
 
 
 @njit(nogil=True, cache=True)
-def _astar(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight):
+def _astar(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octile=True):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
     No re-expansions: with a consistent heuristic, weighted A* without reopening still
     returns a path within ``weight`` of the optimum (Likhachev et al. 2003).
-    Returns parent array (flat indices, -1 none), g, expansions, found flag.
+    Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
+    found flag.
     """
     rows, cols = surface.shape
     n = rows * cols
-    g = np.full(n, np.inf)
-    parent = np.full(n, -1, dtype=np.int64)
-    closed = np.zeros(n, dtype=np.bool_)
+    g = np.empty(n)
+    state = np.zeros(n, dtype=np.int8)
     hk = np.empty(1024)
     hi = np.empty(1024, dtype=np.int64)
     s = sr * cols + sc
     t = gr * cols + gc
     g[s] = 0.0
-    hn = heap_push(hk, hi, 0, weight * a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2), s)
+    state[s] = SEEN
+    weight = weight * (1.0 + TIE)
+    hn = heap_push(hk, hi, 0, weight * heuristic(a, sr, sc, gr, gc, octile), s)
     expansions = 0
     while hn > 0:
         _, u = heap_pop(hk, hi, hn)
         hn -= 1
-        if closed[u]:
+        if state[u] & CLOSED:
             continue
-        closed[u] = True
+        state[u] |= CLOSED
         expansions += 1
         if u == t:
-            return parent, g, expansions, True
-        hk, hi, hn = relax_successors(surface, ridge, passable, a, u, g, parent, closed, hk, hi,
-                                      hn, gr, gc, weight, off_weight)
-    return parent, g, expansions, False
+            return state, g, expansions, True
+        hk, hi, hn = relax_successors(surface, ridge, passable, a, u, g, state, hk, hi, hn, gr,
+                                      gc, weight, off_weight, octile)
+    return state, g, expansions, False
 
 
 # --------------------------------------------------------------------------- validation
@@ -165,7 +197,9 @@ def _check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
 
 
 def _check_arrays(surface, ridge, passable):
-    surface = np.asarray(surface, dtype=np.float64)
+    surface = np.asarray(surface)
+    if surface.dtype not in (np.float32, np.float64):  # float32 maps stay float32: no copy
+        surface = surface.astype(np.float64)
     ridge = np.asarray(ridge, dtype=bool)
     passable = np.asarray(passable, dtype=bool)
     if surface.ndim != 2 or ridge.shape != surface.shape or passable.shape != surface.shape:
@@ -181,14 +215,31 @@ def _check_arrays(surface, ridge, passable):
     return surface, ridge, passable
 
 
-def trace_path(parent: np.ndarray, cols: int, goal) -> np.ndarray:
-    """The cells (k x 2) from the root of a search tree (flat ``parent`` indices) to ``goal``."""
-    node = goal[0] * cols + goal[1]
-    seq = []
-    while node != -1:
-        seq.append(divmod(int(node), cols))
-        node = parent[node]
-    return np.array(seq[::-1], dtype=np.int64)
+@njit(cache=True)
+def _trace(state, cols, gr, gc):
+    n = 1
+    r, c = gr, gc
+    while state[r * cols + c] & PARENT:
+        k = state[r * cols + c] & 7
+        r -= DR[k]
+        c -= DC[k]
+        n += 1
+    out = np.empty((n, 2), dtype=np.int64)
+    r, c = gr, gc
+    for i in range(n - 1, -1, -1):
+        out[i, 0] = r
+        out[i, 1] = c
+        if i:
+            k = state[r * cols + c] & 7
+            r -= DR[k]
+            c -= DC[k]
+    return out
+
+
+def trace_path(state: np.ndarray, cols: int, goal) -> np.ndarray:
+    """The cells (k x 2) from the root of a search tree to ``goal``, read from the search state
+    (per flat cell the move that entered it: one byte a cell, not eight for a predecessor)."""
+    return _trace(state, cols, int(goal[0]), int(goal[1]))
 
 
 def path_steps(cells: np.ndarray, surface: np.ndarray, a: float):
@@ -206,6 +257,16 @@ def path_metrics(cells: np.ndarray, surface: np.ndarray, ridge: np.ndarray, a: f
     length = float(step.sum())
     ridge_len = float(step[ridge[cells[1:, 0], cells[1:, 1]]].sum())
     return length, ridge_len, ridge_len / length if length > 0 else 0.0
+
+
+def check_planner(planner, omega, name: str = "planner") -> None:
+    """A known planner name and a finite ``omega >= 1``, or one clear error."""
+    if planner not in PLANNERS:
+        raise InvalidParameterError(f"{name} must be one of {', '.join(map(repr, PLANNERS))}, "
+                                    f"got {planner!r}")
+    if isinstance(omega, bool) or not isinstance(omega, int | float) or not omega >= 1.0 \
+            or not math.isfinite(omega):
+        raise InvalidParameterError(f"`omega` must be >= 1, got {omega}")
 
 
 def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
@@ -233,12 +294,7 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     >>> t = plan_window(S, rdg, ok, (5, 5), (90, 120), cell_size=30.0, planner="astar")
     ... # doctest: +SKIP
     """
-    if planner not in PLANNERS:
-        raise InvalidParameterError(f"planner must be one of {', '.join(map(repr, PLANNERS))}, "
-                                    f"got {planner!r}")
-    if isinstance(omega, bool) or not isinstance(omega, int | float) or not omega >= 1.0 \
-            or not math.isfinite(omega):
-        raise InvalidParameterError(f"`omega` must be >= 1, got {omega}")
+    check_planner(planner, omega)
     if isinstance(cell_size, bool) or not isinstance(cell_size, int | float) \
             or not cell_size > 0 or not math.isfinite(cell_size):
         raise InvalidParameterError(f"`cell_size` must be a finite number > 0, got {cell_size}")
@@ -252,10 +308,10 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     if planner == "ra_star":
         from .ra_star import _ra_star
 
-        par_cost, par_nor, expansions, status, f_min = _ra_star(
+        st_cost, st_nor, expansions, status, f_min = _ra_star(
             surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega))
         found = status > 0
-        parent = par_nor if status == 2 else par_cost
+        parent = st_nor if status == 2 else st_cost
     elif planner == "lagrangian":
         from .lagrangian import larac
 
@@ -272,13 +328,18 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
                                    "cells: they lie in separate regions")
     cells = trace_path(parent, surface.shape[1], t)
     length, ridge_len, ratio = path_metrics(cells, surface, ridge, a)
-    h0 = a * math.hypot(s[0] - t[0], s[1] - t[1])
+    # proven lower bounds on L*: A* (tie-broken) is within 1 + TIE of it, weighted A* within
+    # omega (1 + TIE); RA*'s f_min; the Lagrangian's first search is A*; and the octile distance
+    h0 = heuristic(a, s[0], s[1], t[0], t[1], True)
     if planner in ("astar", "dijkstra"):
-        lower = length
-    elif planner in ("ra_star", "lagrangian"):
-        lower = min(f_min, length)  # A*'s f_min (the optimum itself for lagrangian)
+        lower = length / (1.0 + TIE)
+    elif planner == "ra_star":
+        lower = min(f_min, length)
+    elif planner == "lagrangian":
+        lower = f_min / (1.0 + TIE)
     else:
-        lower = max(h0, length / weight)
+        lower = length / (weight * (1.0 + TIE))
+    lower = max(lower, h0)
     xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
     ys = np.asarray(y, dtype=np.float64) if y is not None else np.arange(surface.shape[0]) * a
     points = np.column_stack([xs[cells[:, 1]], ys[cells[:, 0]],

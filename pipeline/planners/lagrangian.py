@@ -27,7 +27,7 @@ def _measure(cells, surface, ridge, a):
 
 
 def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
-    """(parent array of the chosen path, expansions, found, extra) for ``plan_window``."""
+    """(search state of the chosen path, expansions, found, extra) for ``plan_window``."""
     cols = surface.shape[1]
     expansions = 0
 

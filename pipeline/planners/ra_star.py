@@ -30,7 +30,7 @@ from numba import njit
 
 from .._grid8 import DC, DR
 from .._heap import heap_grow, heap_pop, heap_push
-from .grid import can_move, edge_cost, relax_successors
+from .grid import CLOSED, INWAIT, PARENT, SEEN, edge_cost, relax_successors
 
 
 @njit(inline="always", cache=True)
@@ -44,22 +44,19 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
     rows, cols = surface.shape
     n = rows * cols
     s = sr * cols + sc
-    # status returned: 0 unreachable, 1 goal expanded by A* (optimal path, par_cost),
-    # 2 goal expanded by the ridge search (par_nor)
+    # status returned: 0 unreachable, 1 goal expanded by A* (optimal path, st_cost),
+    # 2 goal expanded by the ridge search (st_nor); the states as in ``grid.PARENT``
     t = gr * cols + gc
     # A* (OPEN_cost)
-    g = np.full(n, np.inf)
-    par_cost = np.full(n, -1, dtype=np.int64)
-    closed_cost = np.zeros(n, dtype=np.bool_)
+    g = np.empty(n)
+    st_cost = np.zeros(n, dtype=np.int8)
     ck = np.empty(1024)
     ci = np.empty(1024, dtype=np.int64)
     cn = 0
     # ridge search (OPEN_nor = FOCAL + WAIT)
-    gi = np.full(n, np.inf)
-    nor = np.zeros(n, dtype=np.int64)
-    par_nor = np.full(n, -1, dtype=np.int64)
-    has_rec = np.zeros(n, dtype=np.bool_)
-    closed_nor = np.zeros(n, dtype=np.bool_)
+    gi = np.empty(n)
+    nor = np.empty(n, dtype=np.int32)
+    st_nor = np.zeros(n, dtype=np.int8)  # a ridge record exists where PARENT or SEEN
     fk = np.empty(1024)
     fi = np.empty(1024, dtype=np.int64)
     fn = 0
@@ -69,22 +66,25 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
     h0 = a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2)
     gscale = 1e6 * (h0 + a) * (1.0 + omega) + 1.0  # > any g_incons that can pass the limit
     g[s] = 0.0
+    st_cost[s] = SEEN
     cn = heap_push(ck, ci, cn, h0, s)
     gi[s] = 0.0
-    has_rec[s] = True
+    nor[s] = 0
+    st_nor[s] = SEEN
     f_min = h0
     limit = omega * f_min
     if h0 < limit:
         fn = heap_push(fk, fi, fn, _focal_key(0, 0.0, gscale), s)
     else:
         wn = heap_push(wk, wi, wn, h0, s)
+        st_nor[s] |= INWAIT
     expansions = 0
     while True:
         # the OPEN_cost top (drop stale entries) gives f_min and the limit
         top = -1
         while cn > 0:
             u = ci[0]
-            if closed_cost[u] or ck[0] != g[u] + a * math.sqrt(
+            if st_cost[u] & CLOSED or ck[0] != g[u] + a * math.sqrt(
                     (u // cols - gr) ** 2 + (u % cols - gc) ** 2):
                 heap_pop(ck, ci, cn)
                 cn -= 1
@@ -98,66 +98,83 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
         while wn > 0 and wk[0] < limit:
             _, v = heap_pop(wk, wi, wn)
             wn -= 1
+            st_nor[v] &= ~INWAIT
+            if st_nor[v] & CLOSED:
+                continue
             hv = a * math.sqrt((v // cols - gr) ** 2 + (v % cols - gc) ** 2)
-            if not closed_nor[v] and gi[v] + hv < limit:  # else stale: a newer record waits
+            if gi[v] + hv < limit:
                 fk, fi = heap_grow(fk, fi, fn)
                 fn = heap_push(fk, fi, fn, _focal_key(nor[v], gi[v], gscale), v)
+            else:  # the record changed while it waited: wait again under its own key
+                wk, wi = heap_grow(wk, wi, wn)
+                wn = heap_push(wk, wi, wn, gi[v] + hv, v)
+                st_nor[v] |= INWAIT
         # the FOCAL top (drop stale entries)
         pick = -1
         while fn > 0:
             v = fi[0]
-            if closed_nor[v] or fk[0] != _focal_key(nor[v], gi[v], gscale):
+            if st_nor[v] & CLOSED or fk[0] != _focal_key(nor[v], gi[v], gscale):
                 heap_pop(fk, fi, fn)
                 fn -= 1
                 continue
             pick = v
             break
         if pick < 0 and top < 0:
-            return par_cost, par_nor, expansions, 0, f_min  # nothing left: unreachable
+            return st_cost, st_nor, expansions, 0, f_min  # nothing left: unreachable
         if pick >= 0:
             heap_pop(fk, fi, fn)
             fn -= 1
-            closed_nor[pick] = True
+            st_nor[pick] |= CLOSED
             expansions += 1
             if pick == t:
-                return par_cost, par_nor, expansions, 2, f_min
+                return st_cost, st_nor, expansions, 2, f_min
             r = pick // cols
             c = pick - r * cols
+            gp = gi[pick]
+            np_ = nor[pick]
+            if fn + 8 > fk.size:
+                fk, fi = heap_grow(fk, fi, fk.size)
+            if wn + 8 > wk.size:
+                wk, wi = heap_grow(wk, wi, wk.size)
             for k in range(8):
-                if not can_move(passable, rows, cols, r, c, k):
-                    continue
                 nr = r + DR[k]
                 nc = c + DC[k]
-                v = nr * cols + nc
-                if closed_nor[v]:
+                if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
                     continue
-                ng = gi[pick] + edge_cost(surface, a, r, c, nr, nc)
+                v = nr * cols + nc
+                sv = st_nor[v]
+                if sv & CLOSED or not passable[nr, nc]:
+                    continue
+                if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
+                    continue  # no corner cutting
+                ng = gp + edge_cost(surface, a, r, c, nr, nc)
                 if ng >= limit:
                     continue
-                nn = nor[pick] + (1 if ridge[nr, nc] else 0)
-                if has_rec[v] and not (nn > nor[v] or (nn == nor[v] and ng < gi[v])):
+                nn = np_ + (1 if ridge[nr, nc] else 0)
+                if sv & (PARENT | SEEN) and not (nn > nor[v] or (nn == nor[v] and ng < gi[v])):
                     continue
-                has_rec[v] = True
+                # a state's WAIT entries are never later than its record (an early one
+                # rereads the record when it pops), so a record that waits longer needs no push
+                early = (sv & INWAIT) != 0 and ng >= gi[v]
                 gi[v] = ng
                 nor[v] = nn
-                par_nor[v] = pick
+                st_nor[v] = (sv & INWAIT) | PARENT | k
                 hv = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2)
                 if ng + hv < limit:
-                    fk, fi = heap_grow(fk, fi, fn)
                     fn = heap_push(fk, fi, fn, _focal_key(nn, ng, gscale), v)
-                else:
-                    wk, wi = heap_grow(wk, wi, wn)
+                elif not early:
                     wn = heap_push(wk, wi, wn, ng + hv, v)
+                    st_nor[v] |= INWAIT
             if pick != top:
                 continue
             # the picked state is also the OPEN_cost top: do the A* update as well
         u = top
         heap_pop(ck, ci, cn)
         cn -= 1
-        closed_cost[u] = True
+        st_cost[u] |= CLOSED
         if pick < 0:
             expansions += 1
         if u == t:
-            return par_cost, par_nor, expansions, 1, f_min
-        ck, ci, cn = relax_successors(surface, ridge, passable, a, u, g, par_cost, closed_cost,
-                                      ck, ci, cn, gr, gc, 1.0, 0.0)
+            return st_cost, st_nor, expansions, 1, f_min
+        ck, ci, cn = relax_successors(surface, ridge, passable, a, u, g, st_cost, ck, ci, cn,
+                                      gr, gc, 1.0, 0.0, False)
