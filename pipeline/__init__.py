@@ -16,7 +16,9 @@ from .exceptions import (
     StoreExistsError,
 )
 from .maps import build_maps, dem_hash, open_maps
+from .mcpc import plan
 from .planners import Trajectory, plan_window
+from .planners.grid import InvalidEndpointError, UnreachableGoalError
 from .ridges import fill_depressions, flow_accumulation, ridge_map
 from .safety import passable, safety_map
 from .synthetic import synthetic_dem
@@ -25,11 +27,13 @@ __version__ = "0.1.0"
 
 __all__ = [
     "InvalidDEMError",
+    "InvalidEndpointError",
     "InvalidParameterError",
     "JobFileError",
     "PipelineError",
     "StoreExistsError",
     "Trajectory",
+    "UnreachableGoalError",
     "__version__",
     "build_maps",
     "cell_size",
@@ -40,6 +44,7 @@ __all__ = [
     "open_dem",
     "open_maps",
     "passable",
+    "plan",
     "plan_window",
     "ridge_map",
     "safety_map",

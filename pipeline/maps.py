@@ -30,7 +30,7 @@ from numba import njit
 
 from ._io import atomic_path, remove_settled
 from ._validate import chunks2d, positive_int
-from .dem import DEFAULT_CHUNK, open_dem, require_valid_cells
+from .dem import DEFAULT_CHUNK, cell_size, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError, PipelineError, StoreExistsError
 from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
@@ -127,12 +127,13 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
         chunks = dem.data.chunksize if isinstance(dem.data, da.Array) else DEFAULT_CHUNK
     ch = chunks2d(chunks, dem.shape)
     dem = dem.chunk(dict(zip(("y", "x"), ch, strict=True))).astype(np.float32)
+    a = cell_size(dem)  # checks the cells are square
     # validate every parameter before any compute
     S = safety_map(dem, method=method, clearance=clearance,
                    horizontal_clearance=horizontal_clearance)
     ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
     if min_accumulation is None:
-        min_accumulation = default_min_accumulation(float(dem.attrs["cell_size"]))
+        min_accumulation = default_min_accumulation(a)
     min_accumulation = positive_int("min_accumulation", min_accumulation)
     require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
     params = {"method": method, "clearance_m": S.attrs["clearance_m"],
@@ -140,7 +141,7 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
               "sea_level_m": ok.attrs["sea_level_m"],
               "surface_clearance_m": ok.attrs["surface_clearance_m"],
               "min_accumulation": min_accumulation,
-              "cell_size": dem.attrs["cell_size"], "chunks": list(ch)}
+              "cell_size": a, "chunks": list(ch)}
     elev = dem.copy()
     elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
     t0 = time.perf_counter()
@@ -167,7 +168,7 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
         group = zarr.open_group(tmp, mode="r+")
         group.attrs.update({"title": "pipeline maps store", "maps_version": MAPS_VERSION,
                             "parameters": json.dumps(params),
-                            "cell_size": dem.attrs["cell_size"],
+                            "cell_size": a,
                             "dem_hash": _hex(partials)})
         if "crs_wkt" in dem.attrs:
             group.attrs["crs_wkt"] = dem.attrs["crs_wkt"]
@@ -197,6 +198,7 @@ def open_maps(store: str | os.PathLike, chunks="store") -> xr.Dataset:
     if ds.attrs.get("maps_version") != MAPS_VERSION:
         raise InvalidParameterError(f"{store} is not a maps store of this version "
                                     f"(maps_version={ds.attrs.get('maps_version')!r}); rebuild it")
+    ds.attrs["store"] = str(store.resolve())  # section tasks reopen it on the workers
     ds.attrs["parameters"] = json.loads(ds.attrs["parameters"]) \
         if isinstance(ds.attrs.get("parameters"), str) else ds.attrs.get("parameters")
     return ds

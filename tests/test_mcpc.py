@@ -1,0 +1,221 @@
+"""MCPC (SPEC section 6): Algorithm 3 against hand-worked examples, stitched trajectories on a
+real Zarr maps store, the fallbacks, and the same result on the synchronous scheduler, the
+default LocalCluster and real `dask scheduler` / `dask worker` processes on loopback."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import metric_dataarray, random_surface
+from test_planners import check_path, independent_metrics, reference_length
+
+import pipeline
+from pipeline.exceptions import InvalidParameterError
+from pipeline.mcpc import _Maps, plan_sections, remove_loops, restore, segment
+
+A = 30.0
+WALL_ROW, WALL_END = 120, 200  # land wall on row 120 from col 0 to col 199
+RING = (175, 232, 150, 232)  # a closed land ring (rows, cols), interior unreachable
+
+
+def wall_dem():
+    z = random_surface((240, 240), seed=3) * 0.1 - 2500.0  # gentle relief
+    z[WALL_ROW - 1:WALL_ROW + 2, :WALL_END] = 20.0
+    r0, r1, c0, c1 = RING
+    z[r0:r1, c0:c0 + 2] = z[r0:r1, c1 - 2:c1] = 20.0
+    z[r0:r0 + 2, c0:c1] = z[r1 - 2:r1, c0:c1] = 20.0
+    return metric_dataarray(z.astype(np.float32), a=A).chunk(64)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("mcpc") / "maps.zarr"
+    import dask
+
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(wall_dem(), path, clearance=60.0, min_accumulation=8)
+    return path
+
+
+@pytest.fixture(scope="module")
+def arrays(store):
+    ds = pipeline.open_maps(store)
+    return {k: ds[k].values for k in ("safety", "ridge", "passable")}
+
+
+MISSION = dict(start=(20, 20), goal=(225, 30))
+SMALL = dict(rho=4, section_size=24, margin=6)
+
+
+# ------------------------------------------------------------------ Algorithm 3 by hand
+
+
+def test_segment_straight_row_by_hand():
+    pts = np.array([(0, 0), (0, 10), (0, 20), (0, 30), (0, 40), (0, 50)])
+    # side 20 reached at (0, 20): a 21 x 21 square centred on (0, 10), clipped at row 0
+    assert segment(pts, 20, 0, (100, 100)) == [
+        (0, 2, (0, 11, 0, 21)), (2, 4, (0, 11, 20, 41)), (4, 5, (0, 6, 40, 51))]
+
+
+def test_segment_doubling_back_by_hand():
+    pts = np.array([(50, 50), (50, 60), (50, 55), (50, 45), (50, 70), (52, 72)])
+    # the box grows to cols 45..70 (side 25 >= 20) only at the 5th point; square of side 25
+    # centred on (50, 57.5): rows 37..62, cols 45..70, then margin 2
+    assert segment(pts, 20, 2, (100, 100)) == [(0, 4, (35, 65, 43, 73)),
+                                               (4, 5, (48, 55, 68, 75))]
+
+
+def test_segment_clipped_by_the_map_edge_by_hand():
+    pts = np.array([(2, 97), (10, 99), (30, 99)])
+    # box rows 2..30, cols 97..99, side 28: cols 84..112 + margin 3 -> clipped to 81..100
+    assert segment(pts, 25, 3, (40, 100)) == [(0, 2, (0, 34, 81, 100))]
+
+
+def test_restore_by_hand():
+    coarse = np.array([(0, 0), (1, 1), (2, 2), (3, 2)])
+    got = restore(coarse, 10, (35, 100), (1, 2), (33, 27))
+    # (i, j) -> (10 i + 5, 10 j + 5), row 35 clipped to 34, ends replaced
+    assert got.tolist() == [[1, 2], [15, 15], [25, 25], [33, 27]]
+
+
+def test_remove_loops_by_hand():
+    cells = np.array([(0, 0), (0, 1), (1, 1), (1, 0), (0, 1), (0, 2), (1, 3), (0, 2), (0, 3)])
+    assert remove_loops(cells).tolist() == [0, 1, 5, 8]
+
+
+# ------------------------------------------------------------------ stitched trajectories
+
+
+def check_stitched(t, arrays, start, goal):
+    check_path(t, arrays["passable"], start, goal)
+    length, ridge_len = independent_metrics(t, arrays["safety"], arrays["ridge"], A)
+    assert math.isclose(t.length_m, length, rel_tol=1e-9)
+    assert math.isclose(t.ridge_length_m, ridge_len, rel_tol=1e-9, abs_tol=1e-6)
+    assert t.lower_bound_m <= t.length_m
+
+
+@pytest.mark.parametrize("planner", ["astar", "ra_star", "lagrangian"])
+def test_stitched_trajectory_is_valid_and_keeps_the_bound_per_section(store, arrays, planner):
+    t = pipeline.plan(store, **MISSION, planner=planner, omega=1.5, client="synchronous",
+                      **SMALL)
+    check_stitched(t, arrays, MISSION["start"], MISSION["goal"])
+    assert len(t.extra["sections"]) >= 5
+    assert t.cells[:, 0].max() > WALL_ROW and t.cells[:, 1].max() >= WALL_END  # round the wall
+    for sec in t.extra["sections"][:4]:  # each section within omega of its own optimum
+        r0, r1, c0, c1 = sec["window"]
+        s, g = np.subtract(sec["start"], (r0, c0)), np.subtract(sec["goal"], (r0, c0))
+        opt = reference_length(arrays["safety"][r0:r1, c0:c1],
+                               arrays["passable"][r0:r1, c0:c1], A, s, g)
+        assert sec["length_m"] <= 1.5 * opt * (1 + 1e-9)
+
+
+def test_one_window_equals_scipy_and_bounds_mcpc(store, arrays):
+    whole = pipeline.plan(store, **MISSION, planner="astar", mcpc=False, client="synchronous")
+    opt = reference_length(arrays["safety"], arrays["passable"], A, MISSION["start"],
+                           MISSION["goal"])
+    assert math.isclose(whole.length_m, opt, rel_tol=1e-9)
+    mc = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
+    assert opt * (1 - 1e-9) <= mc.length_m <= 1.5 * opt  # MCPC costs some optimality
+
+
+# ------------------------------------------------------------------ fallbacks and errors
+
+
+def test_blocked_section_is_retried_then_merged(store, arrays):
+    m = _Maps(store)
+    sections = [  # the first window is cut by the wall; so is it with the margin doubled
+        dict(win=(95, 146, 90, 111), s=(100, 100), g=(140, 100), attempts=1),
+        dict(win=(130, 151, 95, 240), s=(140, 100), g=(140, 230), attempts=1),
+    ]
+    secs, res = plan_sections("synchronous", m, sections, "astar", 1.5, 6)
+    # attempts over the span: section 0 twice (margin doubled), section 1 once, merged once
+    assert len(secs) == 1 and secs[0]["merged"] and secs[0]["attempts"] == 4
+    assert res[0]["status"] == "ok"
+    cells = res[0]["cells"]
+    assert tuple(cells[0]) == (100, 100) and tuple(cells[-1]) == (140, 230)
+    assert arrays["passable"][cells[:, 0], cells[:, 1]].all()
+    assert cells[:, 1].max() >= WALL_END
+
+
+@pytest.mark.timeout(120)
+def test_unreachable_goal_is_a_clear_error_not_a_hang(store, arrays):
+    inside = ((RING[0] + RING[1]) // 2, (RING[2] + RING[3]) // 2)
+    assert arrays["passable"][inside]
+    with pytest.raises(pipeline.UnreachableGoalError, match="unreachable|no path"):
+        pipeline.plan(store, MISSION["start"], inside, planner="ra_star", client="synchronous",
+                      **SMALL)
+
+
+@pytest.mark.parametrize(("kwargs", "error", "match"), [
+    (dict(start=(WALL_ROW, 10)), pipeline.InvalidEndpointError, "nearest passable cell"),
+    (dict(goal=(500, 3)), pipeline.InvalidEndpointError, "off the map"),
+    (dict(start=(1.5, 2)), InvalidParameterError, "cell"),
+    (dict(omega=0.9), InvalidParameterError, "omega"),
+    (dict(rho=0), InvalidParameterError, "rho"),
+    (dict(rho=300), InvalidParameterError, "rho"),
+    (dict(section_size=3), InvalidParameterError, "section_size"),
+    (dict(margin=-1), InvalidParameterError, "margin"),
+    (dict(planner="rrt"), InvalidParameterError, "planner"),
+    (dict(client=42), InvalidParameterError, "client"),
+])
+def test_parameter_errors(store, kwargs, error, match):
+    args = {**MISSION, "planner": "astar", "client": "synchronous", **SMALL, **kwargs}
+    with pytest.raises(error, match=match):
+        pipeline.plan(store, **args)
+
+
+def test_missing_store_is_a_clear_error(tmp_path):
+    with pytest.raises(pipeline.PipelineError, match="does not exist"):
+        pipeline.plan(tmp_path / "nope.zarr", (0, 0), (1, 1))
+
+
+# ------------------------------------------------------------------ the same on every cluster
+
+
+@pytest.fixture(scope="module")
+def real_cluster(tmp_path_factory):
+    """A real `dask scheduler` and two single-threaded `dask worker` processes on loopback."""
+    d = tmp_path_factory.mktemp("cluster")
+    sched_file = d / "scheduler.json"
+    bindir = Path(sys.executable).parent
+    procs = [subprocess.Popen([bindir / "dask", "scheduler", "--host", "127.0.0.1",
+                               "--port", "0", "--no-dashboard", "--scheduler-file",
+                               sched_file], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)]
+    deadline = time.time() + 60
+    while not sched_file.exists() and time.time() < deadline:
+        time.sleep(0.2)
+    for _ in range(2):
+        procs.append(subprocess.Popen([bindir / "dask", "worker", "--nthreads", "1",
+                                       "--no-dashboard", "--scheduler-file", sched_file],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    import json
+
+    from distributed import Client
+
+    addr = json.loads(sched_file.read_text())["address"]
+    with Client(addr, timeout=60) as c:
+        c.wait_for_workers(2, timeout=60)
+    yield addr
+    pipeline.mcpc.shutdown()  # the clients plan() opened, before their scheduler goes
+    for p in procs[::-1]:
+        p.terminate()
+    for p in procs:
+        p.wait(timeout=30)
+
+
+def test_same_result_on_every_scheduler(store, real_cluster):
+    runs = {}
+    runs["synchronous"] = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
+    runs["default LocalCluster"] = pipeline.plan(store, **MISSION, client=None, **SMALL)
+    runs["scheduler address"] = pipeline.plan(store, **MISSION, client=real_cluster, **SMALL)
+    ref = runs["synchronous"]
+    for name, t in runs.items():
+        assert np.array_equal(t.cells, ref.cells), name
+        assert t.length_m == ref.length_m, name
