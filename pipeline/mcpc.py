@@ -349,7 +349,7 @@ def resolve_client(client):
             c = _LOCAL.get(("addr", client))
             if c is None:
                 try:
-                    c = Client(client, timeout=10)
+                    c = Client(client, timeout=10, set_as_default=False)
                 except OSError as e:
                     raise PipelineError(f"cannot reach the dask scheduler at {client}: {e}; "
                                         "start it (`dask scheduler`) or pass no address to "
@@ -372,7 +372,7 @@ def resolve_client(client):
             cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                    dashboard_address=":0")
             _LOCAL["cluster"] = cluster
-            _LOCAL["client"] = Client(cluster)
+            _LOCAL["client"] = Client(cluster, set_as_default=False)
             atexit.register(shutdown)
         return _LOCAL["client"]
 
