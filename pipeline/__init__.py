@@ -15,8 +15,10 @@ from .exceptions import (
     PipelineError,
     StoreExistsError,
 )
+from .jobs import run_job
 from .maps import build_maps, dem_hash, open_maps
 from .mcpc import plan
+from .missions import plan_missions
 from .planners import Trajectory, plan_window
 from .planners.grid import InvalidEndpointError, UnreachableGoalError
 from .ridges import fill_depressions, flow_accumulation, ridge_map
@@ -45,8 +47,10 @@ __all__ = [
     "open_maps",
     "passable",
     "plan",
+    "plan_missions",
     "plan_window",
     "ridge_map",
+    "run_job",
     "safety_map",
     "synthetic_dem",
     "write_dem",

@@ -12,6 +12,10 @@ from .exceptions import PipelineError
 
 
 def _setup_logging(verbose: bool) -> None:
+    import dask
+
+    # distributed installs its own INFO handler when imported: keep it to warnings
+    dask.config.set({"logging.distributed": "debug" if verbose else "warning"})
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     for noisy in ("distributed", "numba", "rasterio", "fsspec", "asyncio"):
@@ -137,7 +141,10 @@ def build_maps_cmd(dem_path, out, method, clearance, horizontal_clearance, sea_l
 @click.option("--dry-run", is_flag=True, help="Validate the job file and stop.")
 @click.option("--overwrite", is_flag=True, help="Recompute what exists already.")
 def run(job, scheduler, scheduler_file, dry_run, overwrite):
-    """Run the job file JOB (TOML)."""
+    """Run the job file JOB (TOML): DEM and maps stores, every mission, the results catalog.
+
+    Exit status: 0 when every mission was planned, 1 when any failed (each failed mission is
+    an Item with its reason), 2 for a bad job file or another error before planning."""
     from .jobs import run_job
 
     if scheduler and scheduler_file:
@@ -148,11 +155,18 @@ def run(job, scheduler, scheduler_file, dry_run, overwrite):
         with open(scheduler_file) as fh:
             scheduler = json.load(fh)["address"]
     with _errors():
-        with _progress(f"running job {job}"):
-            res = run_job(job, scheduler=scheduler, overwrite=overwrite, dry_run=dry_run)
-        state = "valid (dry run)" if dry_run else ("reused" if res.reused else "written")
-        click.echo(f"job {res.job.name}: DEM store {res.dem_store} {state} "
-                   f"({res.seconds:.1f} s)")
+        res = run_job(job, scheduler=scheduler, overwrite=overwrite, dry_run=dry_run)
+        if dry_run:
+            click.echo(f"job {res.job.name} is valid: {len(res.job.missions)} missions; would "
+                       f"write {res.job.catalog}")
+            return
+        click.echo(f"job {res.job.name}: {res.planned} missions planned, {res.skipped} "
+                   f"skipped (finished before), {len(res.failed)} failed; catalog "
+                   f"{res.catalog} ({res.seconds:.1f} s)")
+        if res.failed:
+            click.echo(f"failed missions: {', '.join(res.failed)} (reasons in their Items, "
+                       "auv:message)", err=True)
+            sys.exit(1)
 
 
 class _errors:

@@ -59,3 +59,42 @@ def hillshade_png(dem, path: str | os.PathLike, *, title: str | None = None) -> 
     fig.savefig(path)
     plt.close(fig)
     return str(path)
+
+
+def mission_quicklook(maps, traj, path: str | os.PathLike, *, title: str = "",
+                      max_side: int = 800) -> str:
+    """A mission's quick look: hillshade of the region around the track, ridge cells, the track
+    coloured by its height above the seabed, start and goal."""
+    r0, c0 = traj.cells.min(axis=0)
+    r1, c1 = traj.cells.max(axis=0) + 1
+    pad = max(20, int(0.15 * max(r1 - r0, c1 - c0)))
+    ds = maps.ds
+    rows, cols = maps.shape
+    r0, c0 = max(int(r0) - pad, 0), max(int(c0) - pad, 0)
+    r1, c1 = min(int(r1) + pad, rows), min(int(c1) + pad, cols)
+    step = max(1, int(np.ceil(max(r1 - r0, c1 - c0) / max_side)))
+    sub = ds["elevation"][r0:r1:step, c0:c1:step].load()
+    sub.attrs["cell_size"] = maps.a
+    rdg = ds["ridge"][r0:r1:step, c0:c1:step].values
+    fig, ax = plt.subplots(figsize=(7.5, 6.5), dpi=100)
+    hillshade_axes(ax, sub, colorbar=False)
+    xs, ys = sub["x"].values / 1e3, sub["y"].values / 1e3
+    rr, cc = np.nonzero(rdg)
+    ax.scatter(xs[cc], ys[rr], s=0.6, c="white", alpha=0.5, linewidths=0)
+    import xarray as xr
+
+    elev = ds["elevation"].isel(y=xr.DataArray(traj.cells[:, 0], dims="p"),
+                                x=xr.DataArray(traj.cells[:, 1], dims="p")).values
+    above = traj.points[:, 2] - elev
+    x, y = traj.points[:, 0] / 1e3, traj.points[:, 1] / 1e3
+    sc = ax.scatter(x, y, c=above, s=3, cmap="plasma", zorder=3)
+    plt.colorbar(sc, ax=ax, shrink=0.8, label="height above the seabed (m)")
+    ax.plot(x[0], y[0], "o", color="lime", ms=8, mec="k", zorder=4, label="start")
+    ax.plot(x[-1], y[-1], "*", color="red", ms=12, mec="k", zorder=4, label="goal")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title(f"{title}: {traj.planner}, omega {traj.omega:g}, {traj.length_m / 1e3:.1f} km, "
+                 f"{100 * traj.ridge_ratio:.0f} % ridge", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return str(path)

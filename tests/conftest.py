@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -78,3 +80,54 @@ def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
         z[rng.random(shape) < 0.01] = np.nan
         z[: shape[0] // 6, -shape[1] // 6:] = np.nan
     return z.astype(np.float32)
+
+
+def start_dask_cluster(directory: Path, workers: int = 2):
+    """A real `dask scheduler` and single-threaded `dask worker` processes on loopback.
+
+    Returns (address, scheduler process, worker processes)."""
+    import json
+    import subprocess
+    import sys
+    import time
+
+    from distributed import Client
+
+    sched_file = directory / "scheduler.json"
+    bindir = Path(sys.executable).parent
+    sched = subprocess.Popen([bindir / "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+                              "--no-dashboard", "--scheduler-file", sched_file],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 60
+    while not sched_file.exists() and time.time() < deadline:
+        time.sleep(0.2)
+    procs = [subprocess.Popen([bindir / "dask", "worker", "--nthreads", "1", "--no-nanny",
+                               "--no-dashboard", "--scheduler-file", sched_file],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             for _ in range(workers)]
+    addr = json.loads(sched_file.read_text())["address"]
+    with Client(addr, timeout=60) as c:
+        c.wait_for_workers(workers, timeout=60)
+    return addr, sched, procs
+
+
+def stop_dask_cluster(sched, procs) -> None:
+    for p in [*procs, sched]:
+        if p.poll() is None:
+            p.terminate()
+    for p in [*procs, sched]:
+        try:
+            p.wait(timeout=30)
+        except Exception:  # noqa: BLE001
+            p.kill()
+
+
+@pytest.fixture(scope="module")
+def real_cluster(tmp_path_factory):
+    """A real `dask scheduler` and two single-threaded `dask worker` processes on loopback."""
+    import pipeline.mcpc
+
+    addr, sched, procs = start_dask_cluster(tmp_path_factory.mktemp("cluster"))
+    yield addr
+    pipeline.mcpc.shutdown()  # the clients plan() opened, before their scheduler goes
+    stop_dask_cluster(sched, procs)

@@ -5,10 +5,6 @@ default LocalCluster and real `dask scheduler` / `dask worker` processes on loop
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -176,38 +172,6 @@ def test_missing_store_is_a_clear_error(tmp_path):
 
 
 # ------------------------------------------------------------------ the same on every cluster
-
-
-@pytest.fixture(scope="module")
-def real_cluster(tmp_path_factory):
-    """A real `dask scheduler` and two single-threaded `dask worker` processes on loopback."""
-    d = tmp_path_factory.mktemp("cluster")
-    sched_file = d / "scheduler.json"
-    bindir = Path(sys.executable).parent
-    procs = [subprocess.Popen([bindir / "dask", "scheduler", "--host", "127.0.0.1",
-                               "--port", "0", "--no-dashboard", "--scheduler-file",
-                               sched_file], stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL)]
-    deadline = time.time() + 60
-    while not sched_file.exists() and time.time() < deadline:
-        time.sleep(0.2)
-    for _ in range(2):
-        procs.append(subprocess.Popen([bindir / "dask", "worker", "--nthreads", "1",
-                                       "--no-dashboard", "--scheduler-file", sched_file],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-    import json
-
-    from distributed import Client
-
-    addr = json.loads(sched_file.read_text())["address"]
-    with Client(addr, timeout=60) as c:
-        c.wait_for_workers(2, timeout=60)
-    yield addr
-    pipeline.mcpc.shutdown()  # the clients plan() opened, before their scheduler goes
-    for p in procs[::-1]:
-        p.terminate()
-    for p in procs:
-        p.wait(timeout=30)
 
 
 def test_same_result_on_every_scheduler(store, real_cluster):

@@ -1,0 +1,157 @@
+"""Many missions at once on one maps store, and the independent clearance check.
+
+``plan_missions`` plans missions concurrently (each mission's coarse search in a client thread,
+every mission's sections as tasks on the same cluster), so the sections of several missions
+are in flight together and the compressed maps are shared. A mission that cannot be planned
+comes back as a ``Trajectory`` with ``status="failed"`` and its reason; the others complete.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
+
+import numpy as np
+
+from .exceptions import InvalidParameterError, PipelineError
+from .mcpc import _CACHE, _maps, plan, resolve_client
+from .planners.grid import Trajectory
+
+log = logging.getLogger(__name__)
+
+_PLAN_KEYS = {"planner", "omega", "mcpc", "rho", "section_size", "margin", "coarse_planner"}
+
+
+def failed_trajectory(mission: dict, message: str) -> Trajectory:
+    """The record of a mission that could not be planned."""
+    return Trajectory(cells=np.zeros((0, 2), dtype=np.int64), points=np.zeros((0, 3)),
+                      length_m=math.nan, ridge_length_m=math.nan, ridge_ratio=math.nan,
+                      lower_bound_m=math.nan, expansions=0, runtime_s=0.0,
+                      planner=str(mission.get("planner", "ra_star")),
+                      omega=float(mission.get("omega", 2.0)) if isinstance(
+                          mission.get("omega", 2.0), int | float) else math.nan,
+                      status="failed", message=message)
+
+
+def _normalise(m) -> dict:
+    if isinstance(m, dict):
+        mission = dict(m)
+    else:
+        try:
+            start, goal = m
+        except (TypeError, ValueError):
+            raise InvalidParameterError("a mission must be a dict with start and goal, or a "
+                                        f"(start, goal) pair, got {m!r}") from None
+        mission = {"start": start, "goal": goal}
+    if "start" not in mission or "goal" not in mission:
+        raise InvalidParameterError(f"a mission needs start and goal cells, got {mission!r}")
+    return mission
+
+
+def plan_missions(maps, missions: Sequence, *, client=None, defaults: dict | None = None,
+                  max_concurrent: int = 4,
+                  on_done: Callable[[int, dict, Trajectory], None] | None = None
+                  ) -> list[Trajectory]:
+    """Plan many missions on one maps store; trajectories come back in mission order.
+
+    Parameters
+    ----------
+    maps : path or xarray.Dataset
+        The maps store (:func:`pipeline.build_maps`).
+    missions : sequence
+        Each a ``(start, goal)`` pair of cells or a dict with ``start``, ``goal`` and any of
+        :func:`pipeline.plan`'s options (``planner``, ``omega``, ``mcpc``, ``rho``,
+        ``section_size``, ``margin``); other keys (a ``name``) are kept for ``on_done``.
+    client : as :func:`pipeline.plan`
+    defaults : dict, optional
+        Options for every mission that does not set them.
+    max_concurrent : int
+        Missions in flight at once (their sections share the cluster).
+    on_done : callable, optional
+        ``on_done(index, mission, trajectory)`` as each mission finishes (in finishing order),
+        e.g. to write its result at once.
+
+    Returns
+    -------
+    list of Trajectory
+        Failed missions have ``status == "failed"`` and the reason in ``message``.
+
+    Examples
+    --------
+    >>> ts = pipeline.plan_missions("maps.zarr", [((5, 5), (900, 950)),
+    ...                                          {"start": (10, 900), "goal": (950, 20),
+    ...                                           "planner": "lagrangian", "omega": 1.5}])
+    ... # doctest: +SKIP
+    """
+    m = _maps(maps)
+    run_on = resolve_client(client)
+    items = [_normalise(x) for x in missions]
+    defaults = dict(defaults or {})
+    unknown = set(defaults) - _PLAN_KEYS
+    if unknown:
+        raise InvalidParameterError(f"unknown planning option {sorted(unknown)[0]!r}; "
+                                    f"allowed: {sorted(_PLAN_KEYS)}")
+
+    def one(i: int) -> Trajectory:
+        mission = items[i]
+        opts = {**defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
+        try:
+            return plan(m, mission["start"], mission["goal"], client=run_on, **opts)
+        except PipelineError as exc:
+            return failed_trajectory({**opts}, str(exc))
+
+    out: list[Trajectory | None] = [None] * len(items)
+    workers = max(1, min(int(max_concurrent), len(items)))
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mission") as pool:
+        futures = {pool.submit(one, i): i for i in range(len(items))}
+        for fut in as_completed(futures):
+            i = futures[fut]
+            try:
+                t = fut.result()
+            except Exception as exc:  # noqa: BLE001 - a crash in one mission must not stop the batch
+                log.exception("mission %d crashed", i)
+                t = failed_trajectory(items[i], f"{type(exc).__name__}: {exc}")
+            out[i] = t
+            if on_done is not None:
+                on_done(i, items[i], t)
+    return out  # type: ignore[return-value]
+
+
+def min_clearance(maps, traj: Trajectory, radius_m: float) -> float:
+    """The smallest 3-D distance from the trajectory's points to the DEM's grid points.
+
+    Independent of the safety map: it reads the elevation layer only and measures, for every
+    point of the track, its distance to every grid point within ``radius_m`` horizontally
+    (farther grid points are farther than ``radius_m`` anyway). Returns ``inf`` when no grid
+    point is that close (and NaN for an empty track).
+    """
+    m = _maps(maps)
+    if len(traj.cells) == 0:
+        return math.nan
+    a = m.a
+    r = int(math.ceil(radius_m / a))
+    off = np.arange(-r, r + 1)
+    dr, dc = np.meshgrid(off, off, indexing="ij")
+    h2 = (a * a) * (dr ** 2 + dc ** 2).ravel()
+    keep = h2 <= radius_m * radius_m
+    dr, dc, h2 = dr.ravel()[keep], dc.ravel()[keep], h2[keep]
+    rows, cols = m.shape
+    best = math.inf
+    cells = traj.cells
+    z = traj.points[:, 2].astype(np.float64)
+    for k in range(0, len(cells), 512):
+        cc, zz = cells[k:k + 512], z[k:k + 512]
+        r0, r1 = max(int(cc[:, 0].min()) - r, 0), min(int(cc[:, 0].max()) + r + 1, rows)
+        c0, c1 = max(int(cc[:, 1].min()) - r, 0), min(int(cc[:, 1].max()) + r + 1, cols)
+        elev = _CACHE.window(m.store, "elevation", r0, r1, c0, c1).astype(np.float64)
+        rr = cc[:, 0:1] + dr[None, :]
+        cl = cc[:, 1:2] + dc[None, :]
+        inside = (rr >= 0) & (rr < rows) & (cl >= 0) & (cl < cols)
+        ze = np.full(rr.shape, np.nan)
+        ze[inside] = elev[rr[inside] - r0, cl[inside] - c0]
+        d2 = h2[None, :] + (zz[:, None] - ze) ** 2
+        d2 = np.where(np.isfinite(d2), d2, np.inf)
+        best = min(best, float(np.sqrt(d2.min())))
+    return best

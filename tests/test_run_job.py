@@ -1,0 +1,279 @@
+"""Batch jobs end to end: real job files, a real LocalCluster or real scheduler and worker
+processes, the results catalog read back with pystac (STAC schema validation), geopandas and
+matplotlib; bad missions, kill-and-resume with SIGKILL, a worker killed mid-job."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import geopandas as gpd
+import numpy as np
+import pystac
+import pytest
+from conftest import start_dask_cluster, stop_dask_cluster
+from matplotlib import image
+
+import pipeline
+from pipeline.exceptions import JobFileError
+from pipeline.jobs import load_job, run_job
+
+ROOT = Path(__file__).parents[1]
+EXE = Path(sys.executable).parent / "pipeline"
+
+JOB = """
+name = "{name}"
+[dem]
+chunks = 128
+[dem.synthetic]
+shape = [{n}, {n}]
+cell_size = 30.0
+seed = 1
+islands = 0
+[maps]
+clearance = 150.0
+min_accumulation = 20
+[planning]
+planner = "ra_star"
+omega = 2.0
+{missions}
+[output]
+catalog = "{catalog}"
+"""
+
+MISSIONS4 = """
+[[missions]]
+name = "cells"
+start = [10, 12]
+goal = [280, 270]
+[[missions]]
+name = "xy"
+start_xy = [600.0, 8500.0]
+goal_xy = [8000.0, 700.0]
+planner = "lagrangian"
+omega = 1.5
+[[missions]]
+name = "one-window"
+start = [150, 5]
+goal = [150, 290]
+mcpc = false
+[[missions]]
+name = "astar"
+start = [280, 20]
+goal = [20, 280]
+planner = "astar"
+"""
+
+
+def write_job(tmp_path, n=300, missions=MISSIONS4, name="t", file="job.toml"):
+    p = tmp_path / file
+    p.write_text(JOB.format(name=name, n=n, missions=missions, catalog=tmp_path / "cat"))
+    return p
+
+
+@pytest.fixture(scope="module")
+def done(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("job")
+    job = write_job(tmp)
+    return job, run_job(job)
+
+
+def test_catalog_loads_and_items_validate_against_the_stac_schema(done):
+    job, res = done
+    assert res.ok and res.planned == 4 and res.catalog.name == "catalog.json"
+    cat = pystac.Catalog.from_file(str(res.catalog))
+    items = {it.id: it for it in cat.get_items(recursive=True)}
+    assert set(items) == {"cells", "xy", "one-window", "astar"}
+    coll = cat.get_child("missions")
+    assert coll is not None and isinstance(coll, pystac.Collection)
+    coll.validate()
+    for it in items.values():
+        it.validate()  # the STAC JSON schemas (bundled with pystac), jsonschema
+        p = it.properties
+        assert p["auv:status"] == "ok" and p["auv:message"] == ""
+        assert p["auv:ridge_length_m"] <= p["auv:length_m"]
+        assert p["auv:lower_bound_m"] <= p["auv:length_m"]
+        assert it.geometry["type"] == "LineString"
+        assert set(it.assets) == {"track", "quicklook"}
+    assert items["xy"].properties["auv:planner"] == "lagrangian"
+    assert items["xy"].properties["auv:omega"] == 1.5
+
+
+def test_geoparquet_and_pngs(done):
+    job, res = done
+    root = res.catalog.parent
+    table = gpd.read_parquet(root / "missions" / "missions.parquet")
+    assert sorted(table["id"]) == ["astar", "cells", "one-window", "xy"]
+    assert (table.geometry.geom_type == "LineString").all()
+    for mid in table["id"]:
+        item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
+        track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
+        coords = np.array(item["geometry"]["coordinates"])
+        np.testing.assert_allclose(np.column_stack([track.geometry.x, track.geometry.y]),
+                                   coords)
+        assert track.geometry.has_z.all()
+        png = image.imread(root / "missions" / mid / "quicklook.png")
+        assert png.ndim == 3 and png.shape[0] > 100 and png.shape[1] > 100
+    assert (root / "performance-report.html").stat().st_size > 1000
+
+
+def test_min_clearance_against_brute_force(done):
+    """The reported clearance, against every grid point of the DEM (3-D distances)."""
+    job, res = done
+    root = res.catalog.parent
+    dem = pipeline.open_dem(next(root.glob("dem-*.zarr")), chunks=None)
+    gx, gy = np.meshgrid(dem["x"].values, dem["y"].values)
+    grid = np.column_stack([gx.ravel(), gy.ravel(), dem.values.ravel().astype(np.float64)])
+    for mid in ("cells", "astar"):
+        item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
+        track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
+        pts = np.column_stack([track.geometry.x, track.geometry.y, track["z"]])
+        best = min(float(np.sqrt(((grid[None, :, :] - pts[k:k + 50, None, :]) ** 2)
+                                 .sum(axis=2)).min()) for k in range(0, len(pts), 50))
+        reported = item["properties"]["auv:min_clearance_m"]
+        assert reported == pytest.approx(best, abs=1e-6)
+        assert reported >= 150.0 - 1e-2  # the spherical map's promise, float32 rounding
+
+
+def test_rerun_skips_finished_missions(done):
+    job, res = done
+    root = res.catalog.parent
+    before = {m: json.loads((root / "missions" / m / f"{m}.json").read_text())
+              ["properties"]["auv:run_id"] for m in ("cells", "xy")}
+    again = run_job(job)
+    assert again.skipped == 4 and again.planned == 0 and again.ok
+    after = {m: json.loads((root / "missions" / m / f"{m}.json").read_text())
+             ["properties"]["auv:run_id"] for m in ("cells", "xy")}
+    assert after == before
+
+
+# ------------------------------------------------------------------ bad jobs and missions
+
+
+@pytest.mark.parametrize("extra, match", [
+    ("[maps]\nmethod = 'round'\n", "maps.method must be"),
+    ("[maps]\nclearance = -5\n", "maps.clearance must be a number >= 0"),
+    ("[maps]\nmin_accumulation = 2.5\n", "maps.min_accumulation must be an integer"),
+    ("[maps]\nradius = 3\n", "unknown key maps.'radius'"),
+    ("[planning]\nomega = 0.5\n", "planning.omega must be a number >= 1"),
+    ("[planning]\nplanner = 'rrt'\n", "planning.planner must be one of"),
+    ("[planning]\nmcpc = 'yes'\n", "planning.mcpc must be true or false"),
+    ("[planning]\nrho = 0\n", "planning.rho must be an integer >= 1"),
+    ("[[missions]]\nstart = [1, 2]\n", r"missions\[0\]. needs exactly one of goal"),
+    ("[[missions]]\nstart = [1, 2]\nstart_xy = [1.0, 2.0]\ngoal = [3, 4]\n",
+     "needs exactly one of start"),
+    ("[[missions]]\nstart = [1.5, 2]\ngoal = [3, 4]\n", r"start must be \[row, col\]"),
+    ("[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nspeed = 3\n",
+     r"unknown key missions\[0\].'speed'"),
+    ("[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n"
+     "[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n", "used twice"),
+    ("[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nomega = 0\n",
+     r"missions\[0\].omega must be a number >= 1"),
+    ("missions = 3\n", "missions must be an array of tables"),
+])
+def test_bad_job_files_name_the_key(tmp_path, extra, match):
+    p = tmp_path / "bad.toml"
+    # top-level keys and tables go before [dem.synthetic], arrays of tables after it
+    p.write_text(f"{extra}\n[dem.synthetic]\nshape = [40, 40]\n"
+                 if not extra.startswith("[[") else f"[dem.synthetic]\nshape = [40, 40]\n{extra}")
+    with pytest.raises(JobFileError, match=match) as info:
+        load_job(p)
+    assert str(p) in str(info.value)
+
+
+def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path):
+    proc = subprocess.run([str(EXE), "run", str(ROOT / "tasks" / "bad-missions.toml")],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "4 failed" in proc.stdout
+    root = tmp_path / "catalogs" / "bad-missions"
+    cat = pystac.Catalog.from_file(str(root / "catalog.json"))
+    items = {it.id: it for it in cat.get_items(recursive=True)}
+    for it in items.values():
+        it.validate()
+    status = {k: (it.properties["auv:status"], it.properties["auv:message"])
+              for k, it in items.items()}
+    assert status["good-one"] == ("ok", "")
+    assert status["start-on-land"][0] == "failed"
+    assert "on land" in status["start-on-land"][1] and "nearest passable" in \
+        status["start-on-land"][1]
+    assert "unreachable" in status["goal-in-the-lagoon"][1]
+    assert "off the map" in status["off-the-map"][1]
+    assert "no coordinate reference system" in status["lonlat-without-crs"][1]
+    assert items["start-on-land"].geometry is None
+
+
+# ------------------------------------------------------------------ kill, resume, lose a worker
+
+MANY = "".join(f"""
+[[missions]]
+name = "m{i:02d}"
+start = [{5 + 3 * i}, 5]
+goal = [{290 - 2 * i}, 290]
+planner = "lagrangian"
+mcpc = false
+""" for i in range(12))
+
+
+def _items(root):
+    out = {}
+    for p in (root / "missions").glob("*/*.json"):
+        out[p.parent.name] = json.loads(p.read_text())["properties"]["auv:run_id"]
+    return out
+
+
+def test_killed_job_resumes_with_every_mission_once(tmp_path):
+    job = write_job(tmp_path, n=300, missions=MANY, name="kill")
+    root = tmp_path / "cat"
+    proc = subprocess.Popen([str(EXE), "run", str(job)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 400
+    while time.time() < deadline and not _items(root) and proc.poll() is None:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)  # the job and its local workers, at once
+    proc.wait()
+    first = _items(root)
+    assert 1 <= len(first) < 12, "the job should be killed halfway"
+    again = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True,
+                           timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"{len(first)} skipped" in again.stdout
+    final = _items(root)
+    assert sorted(final) == [f"m{i:02d}" for i in range(12)]  # every mission, once
+    assert all(final[k] == v for k, v in first.items())      # finished ones not recomputed
+    assert not list((root / "missions").glob(".*tmp*"))      # nothing half-written left
+    cat = pystac.Catalog.from_file(str(root / "catalog.json"))
+    assert len(list(cat.get_items(recursive=True))) == 12
+
+
+def test_job_on_a_real_scheduler_survives_a_killed_worker(tmp_path):
+    addr, sched, workers = start_dask_cluster(tmp_path)
+    try:
+        job = write_job(tmp_path, n=300, missions=MANY, name="workers")
+        root = tmp_path / "cat"
+        proc = subprocess.Popen([str(EXE), "run", str(job), "--scheduler", addr],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.time() + 400
+        while time.time() < deadline and not _items(root) and proc.poll() is None:
+            time.sleep(0.05)
+        workers[0].kill()  # SIGKILL one of the two workers mid-job
+        out, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err[-3000:]
+        assert "12 missions planned" in out or "skipped" in out
+        final = _items(root)
+        assert sorted(final) == [f"m{i:02d}" for i in range(12)]
+        assert workers[0].poll() is not None  # it really died
+    finally:
+        stop_dask_cluster(sched, workers)
+
+
+def test_demo_job_file_is_valid_and_has_six_or_more_missions():
+    job = load_job(ROOT / "tasks" / "demo.toml")
+    assert len(job.missions) >= 6
+    assert len({m.get("planner", job.planning["planner"]) for m in job.missions}) >= 3
+    assert len({m.get("omega", job.planning["omega"]) for m in job.missions}) >= 3
