@@ -76,17 +76,6 @@ def heuristic(a, r, c, gr, gc, octile):
     return a * math.sqrt(dr * dr + dc * dc)
 
 
-@njit(inline="always", cache=True)
-def can_move(passable, rows, cols, r, c, k):
-    nr = r + DR[k]
-    nc = c + DC[k]
-    if nr < 0 or nr >= rows or nc < 0 or nc >= cols or not passable[nr, nc]:
-        return False
-    if k % 2 == 1:  # diagonal: both orthogonal cells it passes between must be passable
-        return passable[r, nc] and passable[nr, c]
-    return True
-
-
 # Search state, one byte a cell: bits 0-2 the neighbour index (``_grid8``) of the move that
 # entered the cell, PARENT when it has one, CLOSED once expanded, SEEN for the root. ``g`` is
 # valid only where PARENT or SEEN is set, so it needs no initialisation pass (np.empty).
