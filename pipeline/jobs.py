@@ -343,12 +343,10 @@ def run_job(path: str | os.PathLike, scheduler: str | None = None, overwrite: bo
         with performance_report(filename=str(tmp_report)):
             res.reused = _dem_store(job, dem_store, overwrite)
             _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
-            _missions(job, maps_store, client, overwrite, res)
+            crs = _missions(job, maps_store, client, overwrite, res)
         os.replace(tmp_report, report)
     from .catalog import write_catalog
-    from .dem import open_dem
 
-    crs = open_dem(dem_store).attrs.get("crs_wkt")
     res.catalog = write_catalog(job.catalog, job.name, [m["name"] for m in job.missions],
                                 description=f"Missions of job {job.name} ({job.path})",
                                 lonlat=bool(crs))
@@ -396,7 +394,8 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
         raise JobFileError(f"job file {job.path}: [maps]: {exc}") from exc
 
 
-def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResult) -> None:
+def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResult):
+    """Plan the missions not finished yet, writing each as it ends; returns the DEM's CRS."""
     import uuid
 
     from .catalog import finished, write_mission
@@ -453,6 +452,7 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
     if ready:
         plan_missions(maps, ready, client=client, defaults=job.planning,
                       on_done=lambda i, mission, traj: record(mission, traj))
+    return crs
 
 
 class _scheduler:

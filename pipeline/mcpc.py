@@ -39,11 +39,13 @@ from numba.typed import Dict
 from ._validate import positive_int
 from .exceptions import InvalidParameterError, PipelineError
 from .planners.grid import (
-    InvalidEndpointError,
     Trajectory,
     UnreachableGoalError,
+    _nearest_passable,
     check_planner,
     heuristic,
+    not_passable_error,
+    off_map_error,
     plan_window,
 )
 
@@ -305,10 +307,6 @@ def remove_loops(cells: np.ndarray) -> np.ndarray:
     return _remove_loops(flat)
 
 
-def _inside(cell, win) -> bool:
-    return win[0] <= cell[0] < win[1] and win[2] <= cell[1] < win[3]
-
-
 def _snap(m: _Maps, cell, wins, radius: int):
     """The passable cell nearest ``cell`` inside every window of ``wins`` (within
     ``radius``), or None."""
@@ -318,13 +316,7 @@ def _snap(m: _Maps, cell, wins, radius: int):
     c1 = min(min(w[3] for w in wins), cell[1] + radius + 1)
     if r0 >= r1 or c0 >= c1:
         return None
-    ok = m.window("passable", r0, r1, c0, c1)
-    idx = np.argwhere(ok)
-    if idx.size == 0:
-        return None
-    d = (idx[:, 0] + r0 - cell[0]) ** 2 + (idx[:, 1] + c0 - cell[1]) ** 2
-    k = int(np.argmin(d))
-    return int(idx[k, 0] + r0), int(idx[k, 1] + c0)
+    return _nearest_passable(m.window("passable", r0, r1, c0, c1), cell, (r0, c0))
 
 
 # --------------------------------------------------------------------------- section tasks
@@ -452,7 +444,7 @@ def _check_args(planner, omega, m: _Maps, rho, section_size, margin):
     return rho, section_size, margin
 
 
-def _cell(name, value, shape) -> tuple[int, int]:
+def _cell(name, value) -> tuple[int, int]:
     try:
         r, c = value
         if not all(isinstance(v, Integral) and not isinstance(v, bool) for v in (r, c)):
@@ -466,23 +458,16 @@ def _cell(name, value, shape) -> tuple[int, int]:
 def _check_endpoints(m: _Maps, start, goal):
     out = []
     for name, cell in (("start", start), ("goal", goal)):
-        r, c = _cell(name, cell, m.shape)
+        r, c = _cell(name, cell)
         rows, cols = m.shape
         if not (0 <= r < rows and 0 <= c < cols):
-            raise InvalidEndpointError(f"{name} ({r}, {c}) is off the map (rows 0..{rows - 1},"
-                                       f" cols 0..{cols - 1})")
+            raise off_map_error(name, r, c, m.shape)
         h = 64
         r0, r1, c0, c1 = max(r - h, 0), min(r + h + 1, rows), max(c - h, 0), min(c + h + 1, cols)
         ok = m.window("passable", r0, r1, c0, c1)
         if not ok[r - r0, c - c0]:
-            idx = np.argwhere(ok)
-            if idx.size:
-                k = int(np.argmin(((idx - [r - r0, c - c0]) ** 2).sum(axis=1)))
-                hint = f"nearest passable cell: ({idx[k, 0] + r0}, {idx[k, 1] + c0})"
-            else:
-                hint = f"no passable cell within {h} cells"
-            raise InvalidEndpointError(f"{name} ({r}, {c}) is on land or inside the clearance "
-                                       f"zone; {hint}")
+            raise not_passable_error(name, r, c, _nearest_passable(ok, (r, c), (r0, c0)),
+                                     f"no passable cell within {h} cells")
         out.append((r, c))
     return out
 
@@ -688,9 +673,8 @@ def _coarse_endpoint(passable: np.ndarray, cell):
         return r, c
     for radius in (1, 2, 4):
         r0, c0 = max(r - radius, 0), max(c - radius, 0)
-        sub = passable[r0:r + radius + 1, c0:c + radius + 1]
-        idx = np.argwhere(sub)
-        if idx.size:
-            k = int(np.argmin(((idx + [r0, c0] - [r, c]) ** 2).sum(axis=1)))
-            return int(idx[k, 0] + r0), int(idx[k, 1] + c0)
+        near = _nearest_passable(passable[r0:r + radius + 1, c0:c + radius + 1], (r, c),
+                                 (r0, c0))
+        if near is not None:
+            return near
     return None

@@ -159,13 +159,26 @@ def _astar(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octi
 # --------------------------------------------------------------------------- validation
 
 
-def _nearest_passable(passable: np.ndarray, cell) -> tuple[int, int] | None:
+def _nearest_passable(passable: np.ndarray, cell, origin=(0, 0)) -> tuple[int, int] | None:
+    """The passable cell of ``passable`` nearest ``cell``, or None; ``passable`` may be a window
+    whose first cell is ``origin`` (cells in and out are then in map coordinates)."""
     idx = np.argwhere(passable)
     if idx.size == 0:
         return None
-    d = ((idx - np.asarray(cell)) ** 2).sum(axis=1)
-    r, c = idx[int(np.argmin(d))]
+    d = ((idx + np.asarray(origin) - np.asarray(cell)) ** 2).sum(axis=1)
+    r, c = idx[int(np.argmin(d))] + np.asarray(origin)
     return int(r), int(c)
+
+
+def off_map_error(name: str, r: int, c: int, shape) -> InvalidEndpointError:
+    return InvalidEndpointError(f"{name} ({r}, {c}) is off the map (rows 0..{shape[0] - 1}, "
+                                f"cols 0..{shape[1] - 1})")
+
+
+def not_passable_error(name: str, r: int, c: int, near, none_hint: str) -> InvalidEndpointError:
+    hint = f"nearest passable cell: {near}" if near else none_hint
+    return InvalidEndpointError(f"{name} ({r}, {c}) is on land or inside the clearance zone;"
+                                f" {hint}")
 
 
 def _check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
@@ -175,13 +188,10 @@ def _check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
         raise InvalidParameterError(f"`{name}` must be a cell (row, col), got {cell!r}") from None
     rows, cols = passable.shape
     if not (0 <= r < rows and 0 <= c < cols):
-        raise InvalidEndpointError(f"{name} ({r}, {c}) is off the map (rows 0..{rows - 1}, "
-                                   f"cols 0..{cols - 1})")
+        raise off_map_error(name, r, c, passable.shape)
     if not passable[r, c]:
-        near = _nearest_passable(passable, (r, c))
-        hint = f"nearest passable cell: {near}" if near else "no cell of the map is passable"
-        raise InvalidEndpointError(f"{name} ({r}, {c}) is on land or inside the clearance zone;"
-                                   f" {hint}")
+        raise not_passable_error(name, r, c, _nearest_passable(passable, (r, c)),
+                                 "no cell of the map is passable")
     return r, c
 
 
