@@ -15,7 +15,13 @@ HERE = Path(__file__).resolve().parent
 OUT = HERE / "out"
 
 
-def machine() -> str:
+LIBRARIES = ("numpy", "numba", "scipy", "dask", "distributed", "xarray", "zarr", "rasterio",
+             "rioxarray", "pystac", "geopandas", "matplotlib", "pyastar2d", "scikit-image",
+             "pysheds")
+
+
+def machine_info() -> dict:
+    """Cores, CPU model, memory, OS, Python and the versions of the libraries measured."""
     cpu = "unknown CPU"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -25,10 +31,39 @@ def machine() -> str:
     except OSError:
         pass
     mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    libs = ", ".join(f"{p} {metadata.version(p)}" for p in
-                     ("numpy", "numba", "dask", "distributed", "xarray", "zarr", "rasterio"))
-    return (f"{os.cpu_count()} cores ({cpu}), {mem:.0f} GiB, Python {platform.python_version()}, "
+    libs = {}
+    for p in LIBRARIES:
+        try:
+            libs[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            libs[p] = "missing"
+    return dict(cores=os.cpu_count(), cpu=cpu, memory_gib=round(mem), os=platform.platform(),
+                python=platform.python_version(), libs=libs)
+
+
+def machine() -> str:
+    m = machine_info()
+    libs = ", ".join(f"{k} {v}" for k, v in m["libs"].items())
+    return (f"{m['cores']} cores ({m['cpu']}), {m['memory_gib']} GiB, Python {m['python']}, "
             f"{libs}; {time.strftime('%Y-%m-%d')}")
+
+
+def run_job_timed(job: Path) -> dict:
+    """``pipeline run JOB`` under ``/usr/bin/time -v`` from an empty catalog: exit code, wall
+    time, the client process's peak RSS, its stderr (the log) and its last stdout line."""
+    import re
+    import shutil
+
+    shutil.rmtree(HERE.parent / "catalogs" / job.stem, ignore_errors=True)
+    cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "pipeline"), "run",
+           str(job)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
+    wall = time.perf_counter() - t0
+    peak = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
+    return dict(exit=proc.returncode, wall_s=wall,
+                client_peak_gib=int(peak.group(1)) / 2**20 if peak else float("nan"),
+                log=proc.stderr, summary=(proc.stdout.strip().splitlines() or ["-"])[-1])
 
 
 _WRAP = """
@@ -85,19 +120,20 @@ BENCH_MIN_ACC = 20
 
 def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
     """``benchmarks/out/maps{n}.zarr``: the maps of the n x n synthetic ridge DEM (seed 0, 30 m,
-    spherical clearance 300 m), built once with 2 local workers and reused afterwards."""
+    spherical clearance 300 m), built once and reused afterwards."""
     store = OUT / f"maps{n}.zarr"
     if store.exists():
         return store
-    code = f"""
-import dask, pipeline
-from distributed import Client, LocalCluster
-with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl, Client(cl):
+    build = f"""
     dem = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0, chunks=1024)
     pipeline.build_maps(dem, "{store}", method="spherical", clearance=300.0,
-                        min_accumulation={min_accumulation}, chunks=1024)
-result = {{}}
-"""
+                        min_accumulation={min_accumulation}, chunks=1024)"""
+    # up to 5000^2 dask's threads in one process are quickest (no cluster to start); larger maps
+    # are built the way a job builds them, by a LocalCluster of 2 single-threaded workers
+    code = ("import dask, pipeline\nfrom distributed import Client, LocalCluster\n"
+            + ("with dask.config.set(scheduler='threads', num_workers=2):" if n <= 5000 else
+               "with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) "
+               "as cl, Client(cl):") + build + "\nresult = {}\n")
     OUT.mkdir(exist_ok=True)
     print(f"building {store.name} (once) ...", flush=True)
     run_isolated(code, timeout=7200)

@@ -13,6 +13,7 @@ import json
 import shutil
 
 from _common import OUT, machine, run_isolated
+from _report import Report, quick_mode
 
 SYNTH = """
 import time, dask, pipeline
@@ -45,22 +46,34 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="smaller maps (a check, not a figure)")
     args = ap.parse_args()
-    n_synth, n_tif = (2000, 1000) if args.quick else (10000, 4000)
+    quick = quick_mode(args.quick)
+    n_synth, n_tif = (2000, 1000) if quick else (10000, 4000)
     OUT.mkdir(exist_ok=True)
     print(f"machine: {machine()}")
-    rows = []
+    rep = Report("dem", 1, "DEM ingestion and generation", ".venv/bin/python "
+                 "benchmarks/bench_dem.py", quick)
     store = OUT / "synth.zarr"
-    r = run_isolated(SYNTH.format(n=n_synth, store=store))
-    rows.append((f"synthetic_dem {n_synth} x {n_synth} -> Zarr", r))
+    synth = run_isolated(SYNTH.format(n=n_synth, store=store))
     tif, store2 = OUT / "import.tif", OUT / "import.zarr"
     run_isolated(MAKE_TIFF.format(n=n_tif, tif=tif))
-    r = run_isolated(IMPORT.format(tif=tif, store=store2))
-    rows.append((f"open_dem + import {n_tif} x {n_tif} GeoTIFF -> Zarr", r))
-    print("| case | wall time (s) | peak memory (GiB) |")
-    print("|---|---|---|")
-    for name, r in rows:
-        print(f"| {name} | {r['seconds']:.1f} | {r['peak_rss_gib']} |")
-    print(json.dumps({name: r for name, r in rows}))
+    imp = run_isolated(IMPORT.format(tif=tif, store=store2))
+    rep.p("Dask's threaded scheduler with 2 threads, chunks of 1024^2; each case in its own "
+          "process, its peak resident memory beside it. The paper has no such figure (its "
+          "DEMs come from ArcGIS).")
+    rep.table(["case", "wall time (s)", "peak memory (GiB)", "target"], [
+        [f"`synthetic_dem` {n_synth} x {n_synth} (30 m) -> Zarr v3 store", synth["seconds"],
+         synth["peak_rss_gib"], "< 30 s, < 2 GiB at 10000^2"],
+        [f"`open_dem` + `import_dem` of a {n_tif} x {n_tif} GeoTIFF (tiled, DEFLATE) -> Zarr",
+         imp["seconds"], imp["peak_rss_gib"], "measured"]])
+    rep.p("""The generator evaluates the map-scaled part of the scene on a global lattice (every
+          `max(1, n // 2500)` cells) and interpolates it, adding per-cell roughness; the lattice
+          nodes depend only on their global index, so the result is bit-identical for any
+          chunking (tested). Memory stays at a few chunks per thread: the map is never held.""")
+    rep.headline("synth", 10, f"`synthetic_dem` {n_synth}^2 -> Zarr",
+                 f"{synth['seconds']:.1f} s, {synth['peak_rss_gib']:.2f} GiB",
+                 target="< 30 s, < 2 GiB (10000^2)")
+    rep.save()
+    print(json.dumps({"synthetic": synth, "import": imp}))
     for p in (store, store2, tif):
         shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 

@@ -9,13 +9,10 @@ from __future__ import annotations
 
 import argparse
 import re
-import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-from _common import OUT, machine, maps_store, run_isolated
+from _common import OUT, machine, maps_store, run_isolated, run_job_timed
+from _report import Report, quick_mode
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,40 +49,47 @@ result = dict(missions=len(ts), ok=sum(t.status == "ok" for t in ts), seconds=dt
 
 
 def demo() -> dict:
-    cat = ROOT / "catalogs" / "demo"
-    shutil.rmtree(cat, ignore_errors=True)
-    cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "pipeline"), "run",
-           str(ROOT / "tasks" / "demo.toml")]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-    wall = time.perf_counter() - t0
-    peak = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr).group(1))
-    stages = re.findall(r"INFO pipeline\.\w+: (built maps store .*|wrote DEM store .*)",
-                        proc.stderr)
-    return dict(exit=proc.returncode, wall_s=wall, client_peak_gib=peak / 2**20,
-                summary=proc.stdout.strip().splitlines()[-1], stages=stages)
+    d = run_job_timed(ROOT / "tasks" / "demo.toml")
+    d["stages"] = re.findall(r"INFO pipeline\.\w+: (built maps store .*|wrote DEM store .*)",
+                             d["log"])
+    return d
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="20 missions on 2000^2")
     args = ap.parse_args()
+    quick = quick_mode(args.quick)
     print(machine(), flush=True)
     OUT.mkdir(exist_ok=True)
+    rep = Report("jobs", 6, "Batch jobs", ".venv/bin/python benchmarks/bench_jobs.py", quick)
     d = demo()
-    print(f"\nDemo job from an empty catalog (`pipeline run tasks/demo.toml`): exit {d['exit']}, "
-          f"wall {d['wall_s']:.1f} s, client process peak RSS {d['client_peak_gib']:.2f} GiB "
-          f"(/usr/bin/time -v; the 2 workers are separate processes)")
-    print(f"  {d['summary']}")
-    for s in d["stages"]:
-        print(f"  {s}")
-    n, k = (2000, 20) if args.quick else (4000, 100)
+    rep.h("The demo job")
+    rep.p(f"""`pipeline run tasks/demo.toml` (the README's `./dev demo`) from an empty catalog,
+          under `/usr/bin/time -v`: exit {d['exit']}, **{d['wall_s']:.1f} s** wall, client
+          process peak RSS **{d['client_peak_gib']:.2f} GiB** (the 2 workers are separate
+          processes). It generates the 2000 x 2000 DEM store, builds the maps store, plans eight
+          missions (four at a time), writes the catalog and starts and stops its cluster.
+          Its last line: `{d['summary']}`.""")
+    for line in d["stages"]:
+        rep.p(f"- {line}")
+    rep.headline("demo", 60, "the demo job (`./dev demo`) from an empty catalog",
+                 f"{d['wall_s']:.0f} s, client {d['client_peak_gib']:.2f} GiB, exit {d['exit']}",
+                 target="a few minutes")
+    n, k = (2000, 20) if quick else (4000, 100)
     r = run_isolated(THROUGHPUT.format(store=maps_store(n), k=k))
-    print(f"\nplan_missions: {r['missions']} missions ({r['ok']} ok) on {n} x {n}, ra_star "
-          f"omega 1.5-3, 2 workers: {r['seconds']:.1f} s = **{r['per_s']:.1f} missions/s** "
-          f"(one at a time with plan(): {r['sequential_s']:.3f} s each = "
-          f"{1 / r['sequential_s']:.1f} /s); mean ridge {100 * r['ridge']:.0f} %; client peak "
-          f"{r['peak_rss_gib']} GiB, workers {r['worker_peak_gib']} GiB")
+    rep.h("Many missions at once: `plan_missions`")
+    rep.p(f"""{r['missions']} random missions (start-goal > 0.3 x side, omega 1.5 / 2 / 3,
+          ra_star + MCPC) on the {n} x {n} maps store, LocalCluster of 2 single-threaded
+          workers, coarse maps and chunk caches warm: {r['seconds']:.1f} s =
+          **{r['per_s']:.1f} missions/s** ({r['ok']} of {r['missions']} ok; mean ridge ratio
+          {100 * r['ridge']:.0f} %), against {1 / r['sequential_s']:.1f} missions/s one `plan()`
+          at a time. Peak RSS: client {r['peak_rss_gib']} GiB, workers {r['worker_peak_gib']}
+          GiB.""")
+    rep.headline("throughput", 61, f"`plan_missions`, {k} missions on {n}^2, 2 workers",
+                 f"{r['per_s']:.1f} missions/s",
+                 peer=f"one `plan()` at a time: {1 / r['sequential_s']:.1f} /s")
+    rep.save()
 
 
 if __name__ == "__main__":

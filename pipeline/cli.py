@@ -71,14 +71,17 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite):
 @click.option("--variable", default=None, help="Variable to read from a NetCDF/Zarr file.")
 @click.option("--cell-size", type=float, default=None,
               help="Cell side (m) for a grid without coordinates.")
+@click.option("--resolution", type=float, default=None,
+              help="Resample to square cells of this side (m), e.g. to plan a coarse grid finer.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def dem_import(source, out, chunks, variable, cell_size, overwrite):
+def dem_import(source, out, chunks, variable, cell_size, resolution, overwrite):
     """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT."""
     from .dem import open_dem, write_dem
 
     with _errors():
         t0 = time.perf_counter()
-        d = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size)
+        d = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size,
+                     resolution=resolution)
         with _progress(f"importing {source} ({d.shape[0]} x {d.shape[1]} cells) into {out}"):
             write_dem(d, out, chunks=chunks, overwrite=overwrite)
         click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")

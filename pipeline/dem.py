@@ -59,7 +59,8 @@ def cell_size(dem: xr.DataArray) -> float:
 
 
 def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | None = None,
-             cell_size: float | None = None, validate: bool = True) -> xr.DataArray:
+             cell_size: float | None = None, resolution: float | None = None,
+             validate: bool = True) -> xr.DataArray:
     """Open a DEM file as the canonical elevation DataArray.
 
     Parameters
@@ -73,6 +74,11 @@ def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | N
         The data variable to use in a NetCDF or Zarr file with several.
     cell_size : float, optional
         Cell side in metres for a grid that has no coordinates.
+    resolution : float, optional
+        Resample (bilinear) to square cells of this side in metres, keeping the extent: to
+        plan a coarse survey grid at a finer step, or to choose the step a lon/lat grid is
+        reprojected at (by default the geometric mean of its cells). A clearance needs cells
+        of at most twice its size.
     validate : bool
         Check that the grid holds at least one valid cell (one pass over the data). Stores
         written by :func:`write_dem` were checked when written and skip this pass.
@@ -88,16 +94,18 @@ def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | N
         raise InvalidDEMError(f"DEM file {path} does not exist")
     if cell_size is not None:
         cell_size = positive_float("cell_size", cell_size)
+    if resolution is not None:
+        resolution = positive_float("resolution", resolution)
     kind = _kind_of(path)
     raw = _read(path, kind, chunks, variable)
-    if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION:
+    if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION and resolution is None:
         dem = raw
         if chunks is None:
             dem = dem.load()
         else:
             dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
         return dem
-    dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size)
+    dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution)
     if validate:
         require_valid_cells(dem, f"DEM file {path} holds no valid elevation: every cell is "
                                  "no-data (NaN or the file's nodata value)")
@@ -135,9 +143,11 @@ def write_dem(dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHU
 
 def import_dem(source: str | os.PathLike, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK,
                variable: str | None = None, cell_size: float | None = None,
+               resolution: float | None = None,
                overwrite: bool = False) -> Path:
     """Open ``source`` with :func:`open_dem` and write it as the canonical Zarr store."""
-    dem = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size)
+    dem = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size,
+                   resolution=resolution)
     return write_dem(dem, store, chunks=chunks, overwrite=overwrite)
 
 
@@ -239,7 +249,7 @@ def _from_old_gmt(ds: xr.Dataset, path: Path) -> xr.DataArray:
 
 
 def _canonicalise(arr: xr.DataArray, path: Path, *, chunks,
-                  cell_size: float | None) -> xr.DataArray:
+                  cell_size: float | None, resolution: float | None = None) -> xr.DataArray:
     if arr.dtype.kind not in "iuf":
         raise InvalidDEMError(f"DEM file {path}: values are of type {arr.dtype}, not numbers")
     arr = _squeeze_to_2d(arr, path)
@@ -258,11 +268,12 @@ def _canonicalise(arr: xr.DataArray, path: Path, *, chunks,
     values = arr.astype(np.float32) * np.float32(sign) if sign != 1 else arr.astype(np.float32)
     values = _regularise(values.where(np.isfinite(values)), path)
     if geographic:
-        values, crs = _reproject_geographic(values, path, crs)
+        values, crs = _reproject_geographic(values, path, crs, resolution)
     else:
         dx, dy = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
-        if not math.isclose(dx, dy, rel_tol=1e-4):
-            values = _resample_square(values, path, dx, dy, crs)
+        if not math.isclose(dx, dy, rel_tol=1e-4) or (
+                resolution is not None and not math.isclose(dx, resolution, rel_tol=1e-4)):
+            values = _resample_square(values, path, dx, dy, crs, resolution)
     a = abs(_spacing(values, "x", path))
     attrs.update(cell_size=float(a), units="m", positive="up", source=str(path))
     if crs is not None:
@@ -392,7 +403,7 @@ def _depth_sign(arr: xr.DataArray, path: Path) -> int:
     return 1
 
 
-def _reproject_geographic(values: xr.DataArray, path: Path, crs):
+def _reproject_geographic(values: xr.DataArray, path: Path, crs, resolution: float | None = None):
     """Reproject a lon/lat grid to an azimuthal equidistant projection centred on the grid."""
     import rioxarray  # noqa: F401  (registers .rio)
     from pyproj import CRS
@@ -409,7 +420,7 @@ def _reproject_geographic(values: xr.DataArray, path: Path, crs):
     metres_per_degree = 111_320.0
     dx_m = dlon * metres_per_degree * math.cos(math.radians(lat0))
     dy_m = dlat * metres_per_degree
-    a = float(f"{math.sqrt(dx_m * dy_m):.3g}")
+    a = resolution or float(f"{math.sqrt(dx_m * dy_m):.3g}")
     dst = CRS.from_proj4(f"+proj=aeqd +lat_0={lat0:.6f} +lon_0={lon0:.6f} +datum=WGS84 +units=m")
     log.warning("DEM %s is in geographic coordinates: reprojecting to a local azimuthal "
                 "equidistant projection centred at (%.4f E, %.4f N) with %.3g m cells",
@@ -421,9 +432,11 @@ def _reproject_geographic(values: xr.DataArray, path: Path, crs):
     return out, dst
 
 
-def _resample_square(values: xr.DataArray, path: Path, dx: float, dy: float, crs):
-    """Bilinear resample onto square cells of the geometric-mean size, keeping the extent."""
-    a = float(f"{math.sqrt(dx * dy):.4g}")
+def _resample_square(values: xr.DataArray, path: Path, dx: float, dy: float, crs,
+                     resolution: float | None = None):
+    """Bilinear resample onto square cells (of ``resolution``, by default of the geometric-mean
+    size), keeping the extent."""
+    a = resolution or float(f"{math.sqrt(dx * dy):.4g}")
     log.warning("DEM %s has cells of %g x %g m: resampling to square %g m cells", path, dx, dy, a)
     x = np.asarray(values["x"].values)
     y = np.asarray(values["y"].values)

@@ -5,7 +5,7 @@ missing file is one :class:`~pipeline.exceptions.JobFileError` naming the key an
 A job file::
 
     name = "demo"
-    [dem]                       # path = "survey.tif" (+ variable, cell_size), or:
+    [dem]                       # path = "survey.tif" (+ variable, cell_size, resolution), or:
     chunks = 512
     [dem.synthetic]
     shape = [2000, 2000]        # cell_size, seed, islands
@@ -45,7 +45,7 @@ _MAPS_KEYS = {"method", "clearance", "horizontal_clearance", "sea_level", "surfa
 _PLANNING_KEYS = {"planner", "omega", "mcpc", "rho", "section_size", "margin"}
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
 _MISSION_KEYS = {"name"} | _PLANNING_KEYS | _ENDPOINT_KEYS
-_DEM_KEYS = {"path", "synthetic", "chunks", "variable", "cell_size"}
+_DEM_KEYS = {"path", "synthetic", "chunks", "variable", "cell_size", "resolution"}
 _SYNTH_KEYS = {"shape", "cell_size", "seed", "islands"}
 _OUTPUT_KEYS = {"catalog"}
 
@@ -61,6 +61,7 @@ class Job:
     dem_path: Path | None = None
     variable: str | None = None
     cell_size: float | None = None
+    resolution: float | None = None
     synthetic: dict = field(default_factory=dict)
     maps: dict = field(default_factory=lambda: {"method": "spherical", "clearance": 300.0})
     planning: dict = field(default_factory=dict)
@@ -78,6 +79,8 @@ class Job:
             what = {"path": str(self.dem_path.resolve()), "size": st.st_size,
                     "mtime_ns": st.st_mtime_ns, "variable": self.variable,
                     "cell_size": self.cell_size}
+            if self.resolution is not None:
+                what["resolution"] = self.resolution
         else:
             from .synthetic import GENERATOR_VERSION
 
@@ -136,8 +139,12 @@ def load_job(path: str | os.PathLike) -> Job:
         job.dem_path = p
         if "variable" in dem:
             job.variable = _typed(path, dem, "variable", str, "dem.", "a string")
-        if "cell_size" in dem:
-            job.cell_size = float(_typed(path, dem, "cell_size", int | float, "dem.", "a number"))
+        for key in ("cell_size", "resolution"):
+            if key in dem:
+                v = float(_typed(path, dem, key, int | float, "dem.", "a number of metres > 0"))
+                if not v > 0:
+                    _fail(path, f"dem.{key} must be a number of metres > 0, got {dem[key]!r}")
+                setattr(job, key, v)
     else:
         syn = dem["synthetic"]
         if not isinstance(syn, dict):
@@ -367,7 +374,7 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
     try:
         if job.dem_path is not None:
             dem = open_dem(job.dem_path, chunks=job.chunks, variable=job.variable,
-                           cell_size=job.cell_size)
+                           cell_size=job.cell_size, resolution=job.resolution)
         else:
             dem = synthetic_dem(chunks=job.chunks, **job.synthetic)
     except PipelineError as exc:

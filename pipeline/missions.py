@@ -119,17 +119,18 @@ def plan_missions(maps, missions: Sequence, *, client=None, defaults: dict | Non
     return out  # type: ignore[return-value]
 
 
-def min_clearance(maps, traj: Trajectory, radius_m: float) -> float:
-    """The smallest 3-D distance from the trajectory's points to the DEM's grid points.
+def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
+    """For each point of the trajectory, its 3-D distance to the nearest DEM grid point.
 
     Independent of the safety map: it reads the elevation layer only and measures, for every
     point of the track, its distance to every grid point within ``radius_m`` horizontally
-    (farther grid points are farther than ``radius_m`` anyway). Returns ``inf`` when no grid
-    point is that close (and NaN for an empty track).
+    (farther grid points are farther than ``radius_m`` anyway); a point with no grid point that
+    close gets ``inf``.
     """
     m = _maps(maps)
+    out = np.full(len(traj.cells), np.inf)
     if len(traj.cells) == 0:
-        return math.nan
+        return out
     a = m.a
     r = int(math.ceil(radius_m / a))
     off = np.arange(-r, r + 1)
@@ -138,7 +139,6 @@ def min_clearance(maps, traj: Trajectory, radius_m: float) -> float:
     keep = h2 <= radius_m * radius_m
     dr, dc, h2 = dr.ravel()[keep], dc.ravel()[keep], h2[keep]
     rows, cols = m.shape
-    best = math.inf
     cells = traj.cells
     z = traj.points[:, 2].astype(np.float64)
     for k in range(0, len(cells), 512):
@@ -153,5 +153,14 @@ def min_clearance(maps, traj: Trajectory, radius_m: float) -> float:
         ze[inside] = elev[rr[inside] - r0, cl[inside] - c0]
         d2 = h2[None, :] + (zz[:, None] - ze) ** 2
         d2 = np.where(np.isfinite(d2), d2, np.inf)
-        best = min(best, float(np.sqrt(d2.min())))
-    return best
+        out[k:k + 512] = np.sqrt(d2.min(axis=1))
+    return out
+
+
+def min_clearance(maps, traj: Trajectory, radius_m: float) -> float:
+    """The smallest 3-D distance from the trajectory's points to the DEM's grid points
+    (:func:`clearances`); ``inf`` when no grid point is within ``radius_m``, NaN for an empty
+    track."""
+    if len(traj.cells) == 0:
+        return math.nan
+    return float(clearances(maps, traj, radius_m).min())

@@ -157,6 +157,47 @@ def test_non_square_cells_are_resampled(tmp_path, caplog):
     np.testing.assert_allclose(dem.values[inside], ref[inside], atol=0.05)
 
 
+def test_resolution_resamples_a_projected_grid(tmp_path):
+    """A 50 m survey grid asked at 20 m: values against scipy's bilinear interpolation."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    z = random_surface((30, 40), seed=3)
+    arr = metric_dataarray(z, a=50.0)
+    path = tmp_path / "survey.nc"
+    arr.to_dataset(name="elevation").to_netcdf(path)
+    dem = pipeline.open_dem(path, chunks=None, resolution=20.0)
+    assert pipeline.cell_size(dem) == 20.0
+    assert dem.shape == (75, 100)  # the same extent: 1500 x 2000 m
+    assert np.allclose(np.diff(dem.x.values), 20.0) and np.allclose(np.diff(dem.y.values), -20.0)
+    x, y = arr.x.values, arr.y.values
+    interp = RegularGridInterpolator((y[::-1], x), z[::-1].astype(np.float64))
+    xx, yy = np.meshgrid(dem.x.values, dem.y.values)
+    inside = (xx >= x[0]) & (xx <= x[-1]) & (yy <= y[0]) & (yy >= y[-1])
+    ref = interp(np.stack([yy[inside], xx[inside]], axis=-1))
+    np.testing.assert_allclose(dem.values[inside], ref, atol=2e-3)  # float32 at 3 km depth
+
+
+def test_resolution_sets_the_reprojected_cell(topobathy_nc, topobathy):
+    z, lon, lat = topobathy
+    dem = pipeline.open_dem(topobathy_nc, chunks=None, resolution=1000.0)
+    assert pipeline.cell_size(dem) == 1000.0
+    assert np.allclose(np.diff(dem.x.values), 1000.0)
+    width_km = (dem.x.values[-1] - dem.x.values[0]) / 1e3
+    assert 250 < width_km < 330  # the same extent as at the default (2.4 km) cells
+    ref = _reference_reprojection(dem, z, lon, lat)
+    ok = np.isfinite(ref) & np.isfinite(dem.values)
+    assert ok.mean() > 0.7
+    assert np.median(np.abs(dem.values[ok] - ref[ok])) < 25.0
+
+
+@pytest.mark.parametrize("bad", [0.0, -5.0, float("nan")])
+def test_resolution_must_be_positive(tmp_path, bad):
+    path = tmp_path / "g.nc"
+    metric_dataarray(random_surface((10, 10))).to_dataset(name="elevation").to_netcdf(path)
+    with pytest.raises(pipeline.PipelineError, match="resolution"):
+        pipeline.open_dem(path, chunks=None, resolution=bad)
+
+
 def test_uneven_axis_is_resampled(tmp_path, caplog):
     x = np.array([0.0, 10.0, 21.0, 30.0, 40.0, 49.0, 60.0])
     y = 100.0 - np.arange(5) * 10.0

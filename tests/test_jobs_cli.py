@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xarray as xr
 from click.testing import CliRunner
 
 import pipeline
@@ -54,11 +55,13 @@ def test_dry_run_computes_nothing(tmp_path):
 
 def test_job_with_a_dem_file(tmp_path, topobathy_tif):
     job = _job(tmp_path, f'name = "real"\n[dem]\npath = "{topobathy_tif}"\nchunks = 64\n'
-                         f'[maps]\nclearance = 3000.0\n'  # 2.4 km cells
+                         f'resolution = 1200.0\n'  # the file's cells are 2.4 km
+                         f'[maps]\nclearance = 1000.0\n'
                          f'[output]\ncatalog = "{tmp_path / "cat"}"\n')
     res = run_job(job)
     dem = pipeline.open_dem(res.dem_store)
     assert "crs_wkt" in dem.attrs and (dem.values >= 0).any()
+    assert pipeline.cell_size(dem) == 1200.0
 
 
 @pytest.mark.parametrize("text, match", [
@@ -72,6 +75,8 @@ def test_job_with_a_dem_file(tmp_path, topobathy_tif):
     ("[dem]\nchunks = 0\nsynthetic = { shape = [4, 4] }\n", "dem.chunks must be a positive"),
     ("[dem]\npath = 'missing.tif'\n", r"dem.path 'missing.tif' does not exist"),
     ("[dem]\npath = 3\n", "dem.path must be a file path"),
+    ("[dem]\npath = '.'\nresolution = -1.0\n", r"dem.resolution must be a number of metres > 0"),
+    ("[dem]\npath = '.'\nresolution = 'fine'\n", r"dem.resolution must be a number"),
     ("planners = 1\n[dem.synthetic]\nshape = [4, 4]\n", "unknown key 'planners'"),
     ("[dem.synthetic\nshape = [4, 4]\n", "not valid TOML"),
     ("name = '../up'\n[dem.synthetic]\nshape = [4, 4]\n", "name must be"),
@@ -91,6 +96,26 @@ def test_missing_job_file(tmp_path):
 def test_demo_job_file_is_valid():
     job = load_job(Path(__file__).parents[1] / "tasks" / "demo.toml")
     assert job.name == "demo" and job.synthetic["shape"] == [2000, 2000]
+
+
+def test_real_data_job_file_is_valid(tmp_path, topobathy):
+    """tasks/topobathy.toml with its DEM made by tasks/data/make_topobathy.py: the file holds
+    matplotlib's grid as it is (north first, longitudes west negative)."""
+    import runpy
+    import shutil
+
+    tasks = Path(__file__).parents[1] / "tasks"
+    make = runpy.run_path(str(tasks / "data" / "make_topobathy.py"))["main"]
+    (tmp_path / "data").mkdir()
+    nc = make(tmp_path / "data" / "topobathy.nc")
+    shutil.copy(tasks / "topobathy.toml", tmp_path / "topobathy.toml")
+    job = load_job(tmp_path / "topobathy.toml")
+    assert job.dem_path == nc and job.resolution == 150.0 and len(job.missions) == 5
+    z, lon, lat = topobathy
+    ds = xr.open_dataset(nc)
+    np.testing.assert_array_equal(ds["elevation"].values[::-1], z)
+    np.testing.assert_allclose(ds["lon"].values, lon - 360.0)
+    assert all(m["start_form"] == m["goal_form"] == "lonlat" for m in job.missions)
 
 
 # ----------------------------------------------------------------------------- CLI
