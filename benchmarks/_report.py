@@ -52,6 +52,16 @@ def faster(peer_s: float, ours_s: float) -> str:
     return f"ours {r:.1f}x faster" if r >= 1 else f"ours {1 / r:.1f}x slower"
 
 
+def faster_range(peer_s: list[float], ours_s: list[float]) -> str:
+    """'ours 2.2-2.4x faster' over several cases (or 'ours 1.5x slower to 2.0x faster')."""
+    r = sorted(p / o for p, o in zip(peer_s, ours_s, strict=True))
+    if r[0] >= 1:
+        return f"ours {r[0]:.1f}-{r[-1]:.1f}x faster"
+    if r[-1] < 1:
+        return f"ours {1 / r[-1]:.1f}-{1 / r[0]:.1f}x slower"
+    return f"{faster(r[0], 1.0)} to {faster(r[-1], 1.0)[5:]}"
+
+
 class Report:
     """One script's part of RESULTS.md (``order`` sorts the parts)."""
 

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 from _common import OUT, machine, maps_store
-from _report import Report, faster, figure_dir, quick_mode
+from _report import Report, faster, faster_range, figure_dir, quick_mode
 
 PAPER_T5 = {500: 0.26, 10000: 3.12}
 
@@ -461,9 +461,8 @@ def t6_part(rep, client, n):
                  f"{min(r[2] for r in rows if r[1].startswith('ra_star')):.2f}-"
                  f"{max(r[2] for r in rows if r[1].startswith('ra_star')):.2f} s",
                  paper="RA* 3.12 s; WA* 25.4 s",
-                 peer=f"against pyastar2d: {faster(min(py), 1.0)} to "
-                      f"{faster(max(py), 1.0)}; against wastar: {faster(min(wa), 1.0)} to "
-                      f"{faster(max(wa), 1.0)}",
+                 peer=f"pyastar2d: {faster_range(py, [1.0] * len(py))}; wastar: "
+                      f"{faster_range(wa, [1.0] * len(wa))}",
                  target="3x faster than pyastar2d")
 
 

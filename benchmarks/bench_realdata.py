@@ -138,7 +138,8 @@ def main() -> None:
     plot(rows, info, png)
     rep.figure(png, "the five missions on the real bathymetry")
     ok = sum(x["status"] == "ok" for x in rows)
-    rep.headline("real", 70, "real bathymetry (topobathy, lon/lat, 56 % land): whole job",
+    rep.headline("real", 70, "real bathymetry (matplotlib's topobathy, lon/lat, with land): "
+                 "the whole job",
                  f"{r['wall_s']:.0f} s, {ok} of {len(rows)} missions ok, min clearance "
                  f"{min(x['min_clearance_m'] for x in rows if x['status'] == 'ok'):.1f} m",
                  target="import, maps, missions, catalog, plots")

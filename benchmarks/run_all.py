@@ -55,7 +55,8 @@ PAPER_INDEX = [
     ("Table 6", "RA* against MRA*, RRT*, WA* on 10000^2", "mcpc",
      "MRA* and RRT* are not available to run; WA* (ours) and pyastar2d are"),
     ("Figure 14", "case study: 2000^2, RA*+MCPC omega 3, corner to corner", "mcpc",
-     "time and mean clearance measured the same way"),
+     "their \"average safety distance\" is not defined: we give the height above the seabed "
+     "and the 3-D distance to the ground"),
 ]
 
 
@@ -87,7 +88,7 @@ def run_script(name: str, quick: bool) -> tuple[int, float]:
 
 def headline_rows(quick: bool) -> list[dict]:
     rows = []
-    for f in sorted(parts_dir(quick).glob("*.json")):
+    for f in sorted(parts_dir(quick).glob("[0-9]*.json")):
         rows += json.loads(f.read_text()).values()
     return sorted(rows, key=lambda r: r["order"])
 
@@ -186,7 +187,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller cases, under 10 minutes")
     ap.add_argument("--only", nargs="+", choices=SCRIPTS, help="run these scripts only")
+    ap.add_argument("--assemble", action="store_true",
+                    help="run nothing: rebuild the report from the parts of the last run")
     args = ap.parse_args()
+    run_file = parts_dir(args.quick) / "_run.json"
+    if args.assemble:
+        last = json.loads(run_file.read_text())
+        return write(args.quick, last["times"], last["failed"], last["total"])
     env_quick = "1" if args.quick else "0"
     os.environ["AUV_BENCH_QUICK"] = env_quick
     names = args.only or SCRIPTS
@@ -201,9 +208,20 @@ def main() -> int:
         if rc != 0:
             failed.append(f"bench_{name}.py")
     total = time.perf_counter() - t0
-    target = OUT / "RESULTS-quick.md" if args.quick else HERE / "RESULTS.md"
-    target.write_text(assemble(args.quick, times, failed, total))
-    if not args.quick:
+    parts_dir(args.quick).mkdir(parents=True, exist_ok=True)
+    if args.only and run_file.exists():  # the other parts are from the last run: keep its times
+        last = json.loads(run_file.read_text())
+        times = {**last["times"], **times}
+        failed = [f for f in last["failed"] if f[len("bench_"):-3] not in names] + failed
+        total = sum(times.values())
+    run_file.write_text(json.dumps(dict(times=times, failed=failed, total=total)))
+    return write(args.quick, times, failed, total)
+
+
+def write(quick: bool, times: dict, failed: list, total: float) -> int:
+    target = OUT / "RESULTS-quick.md" if quick else HERE / "RESULTS.md"
+    target.write_text(assemble(quick, times, failed, total))
+    if not quick:
         update_readme()
     print(f"\nwrote {target} ({total / 60:.1f} min)" + (f"; FAILED: {failed}" if failed else ""))
     return 1 if failed else 0
