@@ -24,10 +24,6 @@ def parts_dir(quick: bool) -> Path:
     return OUT / ("report-quick" if quick else "report")
 
 
-def quick_mode(argv_quick: bool) -> bool:
-    return argv_quick or os.environ.get("AUV_BENCH_QUICK") == "1"
-
-
 def figure_dir(quick: bool) -> Path:
     """Where figures go: ``docs/`` (shown in the README) in full mode; a scratch folder with
     ``--quick``, so that a check does not replace the published figures."""

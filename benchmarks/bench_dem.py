@@ -13,7 +13,7 @@ import json
 import shutil
 
 from _common import OUT, machine, run_isolated
-from _report import Report, quick_mode
+from _report import Report
 
 SYNTH = """
 import time, dask, pipeline
@@ -46,7 +46,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="smaller maps (a check, not a figure)")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     n_synth, n_tif = (2000, 1000) if quick else (10000, 4000)
     OUT.mkdir(exist_ok=True)
     print(f"machine: {machine()}")

@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 
 from _common import OUT, machine, maps_store, run_isolated, run_job_timed
-from _report import Report, quick_mode
+from _report import Report
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,7 +59,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="20 missions on 2000^2")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     print(machine(), flush=True)
     OUT.mkdir(exist_ok=True)
     rep = Report("jobs", 6, "Batch jobs", ".venv/bin/python benchmarks/bench_jobs.py", quick)

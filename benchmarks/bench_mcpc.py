@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 from _common import OUT, machine, maps_store
-from _report import Report, faster, faster_range, figure_dir, quick_mode
+from _report import Report, faster, faster_range, figure_dir
 
 PAPER_T5 = {500: 0.26, 10000: 3.12}
 
@@ -338,7 +338,7 @@ def main() -> None:
     ap.add_argument("--only", choices=("t5", "t4", "t6", "quality", "case"),
                     help="one section (printed; the report part is written by a full run)")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     sides = args.sides or ([500, 1000, 2000] if quick else [500, 1000, 2000, 3000, 5000, 10000])
     k = 5 if quick else 20
     print(machine(), flush=True)

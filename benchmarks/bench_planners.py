@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import OUT, machine, maps_store, run_isolated
-from _report import Report, faster, figure_dir, quick_mode
+from _report import Report, faster, figure_dir
 
 OMEGAS = (2.5, 2.0, 1.8, 1.0)
 PAPER = {  # SPEC section 7: (length km, ridge ratio %) per omega
@@ -261,7 +261,7 @@ def main() -> None:
     ap.add_argument("--only", choices=("tables", "pareto", "core", "ra5000"),
                     help="one section (printed; the report part is written by a full run)")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     print(machine(), flush=True)
     OUT.mkdir(exist_ok=True)
     figs = figure_dir(quick)

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from _common import machine, run_job_timed
-from _report import Report, figure_dir, quick_mode
+from _report import Report, figure_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 JOB = ROOT / "tasks" / "topobathy.toml"
@@ -108,7 +108,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="the same (the case is small)")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     print(machine(), flush=True)
     rep = Report("realdata", 7, "Real data: bathymetry off Vancouver Island",
                  ".venv/bin/python benchmarks/bench_realdata.py", quick)

@@ -12,7 +12,7 @@ import argparse
 import json
 
 from _common import CLUSTER_PREAMBLE, OUT, machine, run_isolated
-from _report import Report, faster, figure_dir, quick_mode
+from _report import Report, faster, figure_dir
 
 RIDGE_ZARR = CLUSTER_PREAMBLE + """
 out = "{out}"
@@ -95,7 +95,7 @@ def main() -> None:
     ap.add_argument("--sides", type=int, nargs="*", help="only these map sides, Zarr only "
                     "(printed, not reported)")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     OUT.mkdir(exist_ok=True)
     print(f"machine: {machine()}")
     sides = [2000] if quick else [10000] + ([] if args.skip_20000 else [20000])

@@ -10,7 +10,7 @@ import argparse
 import json
 
 from _common import CLUSTER_PREAMBLE, OUT, machine, run_isolated
-from _report import Report, faster, figure_dir, quick_mode
+from _report import Report, faster, figure_dir
 
 TABLE1 = """
 import numpy as np, pipeline
@@ -118,7 +118,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    quick = quick_mode(args.quick)
+    quick = args.quick
     OUT.mkdir(exist_ok=True)
     figs = figure_dir(quick)
     print(f"machine: {machine()}")

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -101,7 +100,7 @@ def headline_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def assemble(quick: bool, times: dict, failed: list[str], total_s: float) -> str:
+def assemble(quick: bool, times: dict, failed: list[str], total_s: float, commit: str) -> str:
     m = machine()
     libs = ", ".join(f"{k} {v}" for k, v in m["libs"].items())
     mode = ("quick mode: smaller cases, a check that everything runs (the sizes are in every "
@@ -112,8 +111,8 @@ def assemble(quick: bool, times: dict, failed: list[str], total_s: float) -> str
         "# Benchmark results" + (" (quick check)" if quick else ""),
         "",
         "Regenerated as a whole by `./dev bench" + (" --quick" if quick else "") + "` "
-        f"(`benchmarks/run_all.py`) on {time.strftime('%Y-%m-%d')}, {mode}; commit "
-        f"{git_commit()}; the run took {total_s / 60:.1f} min ("
+        f"(`benchmarks/run_all.py`) on {time.strftime('%Y-%m-%d')}, {mode}; measured at commit "
+        f"{commit}; the run took {total_s / 60:.1f} min ("
         + ", ".join(f"{k} {v / 60:.1f}" for k, v in times.items()) + " min). Do not edit by "
         "hand: the scripts write every number and sentence below.",
         "",
@@ -193,9 +192,7 @@ def main() -> int:
     run_file = parts_dir(args.quick) / "_run.json"
     if args.assemble:
         last = json.loads(run_file.read_text())
-        return write(args.quick, last["times"], last["failed"], last["total"])
-    env_quick = "1" if args.quick else "0"
-    os.environ["AUV_BENCH_QUICK"] = env_quick
+        return write(args.quick, last["times"], last["failed"], last["total"], last["commit"])
     names = args.only or SCRIPTS
     if not args.only:
         shutil.rmtree(parts_dir(args.quick), ignore_errors=True)
@@ -214,13 +211,14 @@ def main() -> int:
         times = {**last["times"], **times}
         failed = [f for f in last["failed"] if f[len("bench_"):-3] not in names] + failed
         total = sum(times.values())
-    run_file.write_text(json.dumps(dict(times=times, failed=failed, total=total)))
-    return write(args.quick, times, failed, total)
+    commit = git_commit()  # the code that measured (--assemble later keeps it)
+    run_file.write_text(json.dumps(dict(times=times, failed=failed, total=total, commit=commit)))
+    return write(args.quick, times, failed, total, commit)
 
 
-def write(quick: bool, times: dict, failed: list, total: float) -> int:
+def write(quick: bool, times: dict, failed: list, total: float, commit: str) -> int:
     target = OUT / "RESULTS-quick.md" if quick else HERE / "RESULTS.md"
-    target.write_text(assemble(quick, times, failed, total))
+    target.write_text(assemble(quick, times, failed, total, commit))
     if not quick:
         update_readme()
     print(f"\nwrote {target} ({total / 60:.1f} min)" + (f"; FAILED: {failed}" if failed else ""))
