@@ -54,7 +54,9 @@ def run_job_timed(job: Path) -> dict:
     import re
     import shutil
 
-    shutil.rmtree(HERE.parent / "catalogs" / job.stem, ignore_errors=True)
+    from pipeline.jobs import load_job
+
+    shutil.rmtree(HERE.parent / load_job(job).catalog, ignore_errors=True)
     cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "pipeline"), "run",
            str(job)]
     t0 = time.perf_counter()

@@ -141,10 +141,7 @@ def load_job(path: str | os.PathLike) -> Job:
             job.variable = _typed(path, dem, "variable", str, "dem.", "a string")
         for key in ("cell_size", "resolution"):
             if key in dem:
-                v = float(_typed(path, dem, key, int | float, "dem.", "a number of metres > 0"))
-                if not v > 0:
-                    _fail(path, f"dem.{key} must be a number of metres > 0, got {dem[key]!r}")
-                setattr(job, key, v)
+                setattr(job, key, float(_number(path, dem, key, "dem.", above=0, unit="metres")))
     else:
         syn = dem["synthetic"]
         if not isinstance(syn, dict):
@@ -175,12 +172,15 @@ def load_job(path: str | os.PathLike) -> Job:
     return job
 
 
-def _number(path, table, key, where, *, minimum=None, integer=False):
+def _number(path, table, key, where, *, minimum=None, above=None, integer=False, unit=""):
+    """``table[key]`` if it is a finite number (an integer) >= ``minimum`` / > ``above``."""
     v = table[key]
     ok = isinstance(v, int if integer else int | float) and not isinstance(v, bool)
-    if not ok or (minimum is not None and v < minimum) or (not integer and not math.isfinite(v)):
-        what = "an integer" if integer else "a number"
-        bound = f" >= {minimum}" if minimum is not None else ""
+    if (not ok or (minimum is not None and v < minimum) or (above is not None and v <= above)
+            or (not integer and not math.isfinite(v))):
+        what = ("an integer" if integer else "a number") + (f" of {unit}" if unit else "")
+        bound = (f" >= {minimum}" if minimum is not None else "") + (
+            f" > {above}" if above is not None else "")
         _fail(path, f"{where}{key} must be {what}{bound}, got {v!r}")
     return v
 
