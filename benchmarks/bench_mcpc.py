@@ -242,13 +242,13 @@ def case_study(client):
     """Figure 14: 2000^2, RA*+MCPC omega 3 between opposite corners; time, mean clearance."""
     import pipeline
     from pipeline.missions import clearances
-    from pipeline.planners.grid import _nearest_passable
+    from pipeline.planners.core import nearest_passable
 
     store = maps_store(2000)
     ok = pipeline.open_maps(store)["passable"].values
     n = ok.shape[0]
-    s = _nearest_passable(ok, (20, 20))
-    g = _nearest_passable(ok, (n - 21, n - 21))
+    s = nearest_passable(ok, (20, 20))
+    g = nearest_passable(ok, (n - 21, n - 21))
     pipeline.plan(store, s, g, planner="ra_star", omega=3.0, client=client)  # warm the workers
     t, dt, _ = timed(pipeline.plan, store, s, g, planner="ra_star", omega=3.0, client=client)
     c = clearances(store, t, 1000.0)

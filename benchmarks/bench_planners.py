@@ -234,12 +234,12 @@ for s, t in missions:
 RA5000 = """
 import time, numpy as np, pipeline
 from pipeline.planners import plan_window
-from pipeline.planners.grid import _nearest_passable
+from pipeline.planners.core import nearest_passable
 ds = pipeline.open_maps("{store}")
 S = ds.safety.values; rdg = ds.ridge.values; ok = ds.passable.values
 n = S.shape[0]
-s = _nearest_passable(ok[:300, :300], (100, 100))
-g = _nearest_passable(ok[-300:, -300:], (200, 200)); g = (g[0] + n - 300, g[1] + n - 300)
+s = nearest_passable(ok[:300, :300], (100, 100))
+g = nearest_passable(ok[-300:, -300:], (200, 200)); g = (g[0] + n - 300, g[1] + n - 300)
 plan_window(S[:64, :64], rdg[:64, :64], ok[:64, :64], (1, 1), (60, 60), cell_size=30.0,
             planner="{planner}", omega=3.0)   # compile outside the timing
 import resource

@@ -10,19 +10,22 @@ import logging
 from .dem import cell_size, import_dem, open_dem, write_dem
 from .exceptions import (
     InvalidDEMError,
+    InvalidEndpointError,
     InvalidParameterError,
     JobFileError,
     PipelineError,
+    SchedulerError,
     StoreExistsError,
+    UnreachableGoalError,
 )
 from .jobs import run_job
-from .maps import build_maps, dem_hash, open_maps
+from .maps import build_maps, dem_hash
 from .mcpc import plan
 from .missions import plan_missions
-from .planners import Trajectory, plan_window
-from .planners.grid import InvalidEndpointError, UnreachableGoalError
+from .planners import PLANNERS, Trajectory, plan_window
 from .ridges import fill_depressions, flow_accumulation, ridge_map
 from .safety import passable, safety_map
+from .store import MapsStore, open_maps, open_store
 from .synthetic import synthetic_dem
 
 __version__ = "0.1.0"
@@ -32,7 +35,10 @@ __all__ = [
     "InvalidEndpointError",
     "InvalidParameterError",
     "JobFileError",
+    "MapsStore",
+    "PLANNERS",
     "PipelineError",
+    "SchedulerError",
     "StoreExistsError",
     "Trajectory",
     "UnreachableGoalError",
@@ -45,6 +51,7 @@ __all__ = [
     "import_dem",
     "open_dem",
     "open_maps",
+    "open_store",
     "passable",
     "plan",
     "plan_missions",

@@ -9,6 +9,18 @@ import time
 import click
 
 from .exceptions import PipelineError
+from .params import DEM, MAPS, SYNTHETIC, Param
+
+
+def _option(param: Param, *, flag: str | None = None):
+    """A click option from the parameter schema: its type, default and help text."""
+    if param.kind == "choice":
+        kind = click.Choice(list(param.options()))
+    else:
+        kind = {"float": float, "int": int, "str": str}[param.kind]
+    flag = flag or "--" + param.name.replace("_", "-")
+    return click.option(flag, param.name, type=kind, default=param.default,
+                        show_default=param.default is not None, help=param.option_help())
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -46,10 +58,10 @@ def dem() -> None:
 @click.argument("out", type=click.Path())
 @click.option("--shape", nargs=2, type=int, default=(2000, 2000), show_default=True,
               help="Rows and columns.")
-@click.option("--cell-size", type=float, default=30.0, show_default=True, help="Metres.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--islands", type=int, default=2, show_default=True)
-@click.option("--chunks", type=int, default=1024, show_default=True)
+@_option(SYNTHETIC.cell_size)
+@_option(SYNTHETIC.seed)
+@_option(SYNTHETIC.islands)
+@_option(DEM.chunks)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite):
     """Write a virtual mid-ocean-ridge DEM to the Zarr store OUT."""
@@ -67,12 +79,10 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite):
 @dem.command("import")
 @click.argument("source", type=click.Path())
 @click.argument("out", type=click.Path())
-@click.option("--chunks", type=int, default=1024, show_default=True)
-@click.option("--variable", default=None, help="Variable to read from a NetCDF/Zarr file.")
-@click.option("--cell-size", type=float, default=None,
-              help="Cell side (m) for a grid without coordinates.")
-@click.option("--resolution", type=float, default=None,
-              help="Resample to square cells of this side (m), e.g. to plan a coarse grid finer.")
+@_option(DEM.chunks)
+@_option(DEM.variable)
+@_option(DEM.cell_size)
+@_option(DEM.resolution)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def dem_import(source, out, chunks, variable, cell_size, resolution, overwrite):
     """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT."""
@@ -94,7 +104,7 @@ def dem_info(path):
     from .dem import open_dem
 
     with _errors():
-        d = open_dem(path, chunks=1024)
+        d = open_dem(path, chunks=DEM.chunks.default)
         click.echo(f"{path}: {d.shape[0]} x {d.shape[1]} cells of {d.attrs['cell_size']:g} m, "
                    f"chunks {d.data.chunksize}")
         click.echo(f"crs: {'set' if 'crs_wkt' in d.attrs else 'none (local metric grid)'}")
@@ -105,32 +115,30 @@ def dem_info(path):
 @main.command("build-maps")
 @click.argument("dem_path", type=click.Path())
 @click.argument("out", type=click.Path())
-@click.option("--method", type=click.Choice(["spherical", "horizontal", "vertical"]),
-              default="spherical", show_default=True)
-@click.option("--clearance", type=float, default=300.0, show_default=True, help="R (m).")
-@click.option("--horizontal-clearance", type=float, default=None,
-              help="R_h (m) for the horizontal method; default R.")
-@click.option("--sea-level", type=float, default=0.0, show_default=True)
-@click.option("--surface-clearance", type=float, default=None,
-              help="Depth (m) the safety surface must stay below sea level; default R.")
+@_option(MAPS.method)
+@_option(MAPS.clearance)
+@_option(MAPS.horizontal_clearance)
+@_option(MAPS.sea_level)
+@_option(MAPS.surface_clearance)
+@_option(MAPS.min_accumulation)
 @click.option("--chunks", type=int, default=None, help="Chunk side; default the DEM's.")
 @click.option("--scheduler", default=None, help="Address of a dask scheduler.")
+@click.option("--scheduler-file", default=None, type=click.Path(),
+              help="A dask scheduler file (JSON) instead of an address.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def build_maps_cmd(dem_path, out, method, clearance, horizontal_clearance, sea_level,
-                   surface_clearance, chunks, scheduler, overwrite):
-    """Build the maps store OUT (elevation, safety, passable) from the DEM at DEM_PATH."""
+def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, **params):
+    """Build the maps store OUT (elevation, safety, passable, accumulation, ridge) from the
+    DEM at DEM_PATH."""
+    from .cluster import session
     from .dem import open_dem
-    from .jobs import _scheduler
     from .maps import build_maps
 
     with _errors():
         t0 = time.perf_counter()
-        dem = open_dem(dem_path, chunks=chunks or 1024)
-        with _scheduler(scheduler), _progress(f"building {method} maps of {dem_path} into {out}"):
-            maps = build_maps(dem, out, method=method, clearance=clearance,
-                              horizontal_clearance=horizontal_clearance, sea_level=sea_level,
-                              surface_clearance=surface_clearance, chunks=chunks,
-                              overwrite=overwrite)
+        dem = open_dem(dem_path, chunks=chunks or DEM.chunks.default)
+        with session(scheduler, scheduler_file), \
+                _progress(f"building {params['method']} maps of {dem_path} into {out}"):
+            maps = build_maps(dem, out, chunks=chunks, overwrite=overwrite, **params)
         share = float(maps["passable"].mean().compute())
         click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s; "
                    f"{100 * share:.1f} % of cells passable")
@@ -152,13 +160,9 @@ def run(job, scheduler, scheduler_file, dry_run, overwrite):
 
     if scheduler and scheduler_file:
         raise click.UsageError("give --scheduler or --scheduler-file, not both")
-    if scheduler_file:
-        import json
-
-        with open(scheduler_file) as fh:
-            scheduler = json.load(fh)["address"]
     with _errors():
-        res = run_job(job, scheduler=scheduler, overwrite=overwrite, dry_run=dry_run)
+        res = run_job(job, scheduler=scheduler, scheduler_file=scheduler_file,
+                      overwrite=overwrite, dry_run=dry_run)
         if dry_run:
             click.echo(f"job {res.job.name} is valid: {len(res.job.missions)} missions; would "
                        f"write {res.job.catalog}")

@@ -19,12 +19,11 @@ import numpy as np
 import xarray as xr
 
 from ._io import atomic_path
-from ._validate import chunks2d, positive_float
 from .exceptions import InvalidDEMError, InvalidParameterError
+from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, chunks2d
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHUNK = 1024
 CANONICAL_ATTR = "pipeline_dem_version"
 CANONICAL_VERSION = 1
 
@@ -93,9 +92,9 @@ def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | N
     if not path.exists():
         raise InvalidDEMError(f"DEM file {path} does not exist")
     if cell_size is not None:
-        cell_size = positive_float("cell_size", cell_size)
+        cell_size = DEM.cell_size.check(cell_size)
     if resolution is not None:
-        resolution = positive_float("resolution", resolution)
+        resolution = DEM.resolution.check(resolution)
     kind = _kind_of(path)
     raw = _read(path, kind, chunks, variable)
     if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION and resolution is None:
@@ -316,7 +315,7 @@ def _synthesise_coords(arr: xr.DataArray, path: Path, cell_size: float | None) -
         for key in ("cell_size", "spacing", "resolution", "res", "dx"):
             if key in arr.attrs:
                 try:
-                    a = positive_float(key, float(np.atleast_1d(arr.attrs[key])[0]))
+                    a = CELL_SIZE.check(float(np.atleast_1d(arr.attrs[key])[0]), key)
                 except (InvalidParameterError, TypeError, ValueError):
                     a = None
                 break

@@ -25,3 +25,15 @@ class JobFileError(PipelineError, ValueError):
 
 class StoreExistsError(PipelineError, FileExistsError):
     """An output store exists already and ``overwrite`` was not given."""
+
+
+class InvalidEndpointError(PipelineError, ValueError):
+    """A start or goal is off the map or not passable."""
+
+
+class UnreachableGoalError(PipelineError):
+    """No path joins the start and the goal through passable cells."""
+
+
+class SchedulerError(PipelineError):
+    """The dask cluster to run on cannot be reached or started."""

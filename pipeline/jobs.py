@@ -28,26 +28,26 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import math
 import os
 import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .exceptions import JobFileError, PipelineError
+from .exceptions import InvalidParameterError, JobFileError, PipelineError
+from .params import DEFAULT_CHUNK, DEM, MAPS, PLANNING, SYNTHETIC, Param, Schema, shape2d
 
 log = logging.getLogger(__name__)
 
 _TOP_KEYS = {"name", "dem", "maps", "planning", "missions", "output"}
-_MAPS_KEYS = {"method", "clearance", "horizontal_clearance", "sea_level", "surface_clearance",
-              "min_accumulation"}
-_PLANNING_KEYS = {"planner", "omega", "mcpc", "rho", "section_size", "margin"}
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
-_MISSION_KEYS = {"name"} | _PLANNING_KEYS | _ENDPOINT_KEYS
-_DEM_KEYS = {"path", "synthetic", "chunks", "variable", "cell_size", "resolution"}
-_SYNTH_KEYS = {"shape", "cell_size", "seed", "islands"}
+_MISSION_KEYS = {"name"} | PLANNING.names() | _ENDPOINT_KEYS
+_DEM_KEYS = {"path", "synthetic"} | DEM.names()
+_SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
 _OUTPUT_KEYS = {"catalog"}
+_COORD = Param("coordinate", "float", None, "")
+_LON = Param("longitude", "float", None, "", "degrees", minimum=-180.0, maximum=360.0)
+_LAT = Param("latitude", "float", None, "", "degrees", minimum=-90.0, maximum=90.0)
 
 
 @dataclass
@@ -57,13 +57,13 @@ class Job:
     path: Path
     name: str
     catalog: Path
-    chunks: int = 1024
+    chunks: int = DEFAULT_CHUNK
     dem_path: Path | None = None
     variable: str | None = None
     cell_size: float | None = None
     resolution: float | None = None
     synthetic: dict = field(default_factory=dict)
-    maps: dict = field(default_factory=lambda: {"method": "spherical", "clearance": 300.0})
+    maps: dict = field(default_factory=lambda: _maps_defaults({}))
     planning: dict = field(default_factory=dict)
     missions: list = field(default_factory=list)
 
@@ -106,6 +106,20 @@ def _typed(path: Path, table: dict, key: str, types, where: str, what: str):
     return value
 
 
+def _checked(path: Path, schema: Schema, table: dict, where: str) -> dict:
+    """``table``'s values checked by the library's own schema: the same bounds and messages
+    as the library, the key named as the job file names it."""
+    try:
+        return schema.check(table, where)
+    except InvalidParameterError as exc:
+        _fail(path, str(exc))
+
+
+def _maps_defaults(table: dict) -> dict:
+    # method and clearance always, the rest as given: the maps store's fingerprint
+    return {"method": MAPS.method.default, "clearance": MAPS.clearance.default, **table}
+
+
 def load_job(path: str | os.PathLike) -> Job:
     """Read and validate a job file without computing anything."""
     path = Path(path)
@@ -127,21 +141,18 @@ def load_job(path: str | os.PathLike) -> Job:
     if ("path" in dem) == ("synthetic" in dem):
         _fail(path, "[dem] needs exactly one of path = '...' or a [dem.synthetic] table")
     job = Job(path=path, name=name, catalog=Path("catalogs") / name)
-    if "chunks" in dem:
-        job.chunks = _typed(path, dem, "chunks", int, "dem.", "a positive integer")
-        if job.chunks < 1:
-            _fail(path, f"dem.chunks must be a positive integer, got {job.chunks}")
+    given = _checked(path, DEM, {k: v for k, v in dem.items() if k in DEM}, "dem.")
+    job.chunks = given.get("chunks", DEFAULT_CHUNK)
     if "path" in dem:
         p = Path(_typed(path, dem, "path", str, "dem.", "a file path"))
         p = p if p.is_absolute() else (path.parent / p)
         if not p.exists():
             _fail(path, f"dem.path {dem['path']!r} does not exist (resolved to {p})")
         job.dem_path = p
-        if "variable" in dem:
-            job.variable = _typed(path, dem, "variable", str, "dem.", "a string")
-        for key in ("cell_size", "resolution"):
-            if key in dem:
-                setattr(job, key, float(_number(path, dem, key, "dem.", above=0, unit="metres")))
+        job.variable = given.get("variable")
+        job.cell_size = given.get("cell_size")
+        job.resolution = given.get("resolution")
+        cell = job.resolution  # the cell side the maps are built on, when the job says it
     else:
         syn = dem["synthetic"]
         if not isinstance(syn, dict):
@@ -149,18 +160,15 @@ def load_job(path: str | os.PathLike) -> Job:
         _check_keys(path, syn, _SYNTH_KEYS, "dem.synthetic.")
         if "shape" not in syn:
             _fail(path, "dem.synthetic.shape is required, e.g. shape = [2000, 2000]")
-        shape = syn["shape"]
-        if (not isinstance(shape, list) or len(shape) != 2
-                or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2
-                           for v in shape)):
-            _fail(path, f"dem.synthetic.shape must be [rows, cols] of integers >= 2, got {shape!r}")
-        job.synthetic = {"shape": shape, "cell_size": 30.0, "seed": 0, "islands": 2}
-        for key, types, what in (("cell_size", int | float, "a number > 0"),
-                                 ("seed", int, "an integer >= 0"),
-                                 ("islands", int, "an integer from 0 to 10")):
-            if key in syn:
-                job.synthetic[key] = _typed(path, syn, key, types, "dem.synthetic.", what)
-    _load_maps(path, doc, job)
+        try:
+            shape = list(shape2d("shape", syn["shape"], label="dem.synthetic.shape"))
+        except InvalidParameterError as exc:
+            _fail(path, str(exc))
+        job.synthetic = {"shape": shape, **SYNTHETIC.defaults(),
+                         **_checked(path, SYNTHETIC, {k: v for k, v in syn.items()
+                                                      if k != "shape"}, "dem.synthetic.")}
+        cell = job.synthetic["cell_size"]
+    _load_maps(path, doc, job, cell)
     _load_planning(path, doc, job)
     _load_missions(path, doc, job)
     out = doc.get("output", {})
@@ -169,62 +177,35 @@ def load_job(path: str | os.PathLike) -> Job:
     _check_keys(path, out, _OUTPUT_KEYS, "output.")
     if "catalog" in out:
         job.catalog = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
+    # absolute, so that workers in other directories (or on other machines) write the stores
+    # where the client reads them
+    job.catalog = job.catalog.absolute()
     return job
 
 
-def _number(path, table, key, where, *, minimum=None, above=None, integer=False, unit=""):
-    """``table[key]`` if it is a finite number (an integer) >= ``minimum`` / > ``above``."""
-    v = table[key]
-    ok = isinstance(v, int if integer else int | float) and not isinstance(v, bool)
-    if (not ok or (minimum is not None and v < minimum) or (above is not None and v <= above)
-            or (not integer and not math.isfinite(v))):
-        what = ("an integer" if integer else "a number") + (f" of {unit}" if unit else "")
-        bound = (f" >= {minimum}" if minimum is not None else "") + (
-            f" > {above}" if above is not None else "")
-        _fail(path, f"{where}{key} must be {what}{bound}, got {v!r}")
-    return v
+def _load_maps(path, doc, job, cell_size: float | None):
+    from .safety import check_clearance
 
-
-def _load_maps(path, doc, job):
     t = doc.get("maps", {})
     if not isinstance(t, dict):
         _fail(path, "[maps] must be a table")
-    _check_keys(path, t, _MAPS_KEYS, "maps.")
-    if "method" in t and t["method"] not in ("spherical", "horizontal", "vertical"):
-        _fail(path, f"maps.method must be 'spherical', 'horizontal' or 'vertical', got "
-                    f"{t['method']!r}")
-    for k in ("clearance", "horizontal_clearance", "surface_clearance"):
-        if k in t:
-            _number(path, t, k, "maps.", minimum=0)
-    if "sea_level" in t:
-        _number(path, t, "sea_level", "maps.")
-    if "min_accumulation" in t:
-        _number(path, t, "min_accumulation", "maps.", minimum=1, integer=True)
-    job.maps = {"method": "spherical", "clearance": 300.0, **t}
-
-
-def _check_planning(path, t, where):
-    from .planners.grid import PLANNERS
-
-    if "planner" in t and t["planner"] not in PLANNERS:
-        _fail(path, f"{where}planner must be one of {', '.join(map(repr, PLANNERS))}, got "
-                    f"{t['planner']!r}")
-    if "omega" in t:
-        _number(path, t, "omega", where, minimum=1)
-    if "mcpc" in t and not isinstance(t["mcpc"], bool):
-        _fail(path, f"{where}mcpc must be true or false, got {t['mcpc']!r}")
-    for k, lo in (("rho", 1), ("section_size", 2), ("margin", 0)):
-        if k in t:
-            _number(path, t, k, where, minimum=lo, integer=True)
+    _check_keys(path, t, MAPS.names(), "maps.")
+    t = _checked(path, MAPS, t, "maps.")
+    try:  # what the safety map would refuse once the cell side is known
+        for key in ("clearance", "horizontal_clearance"):
+            if t.get(key) is not None:
+                check_clearance(t[key], cell_size, f"maps.{key}", MAPS[key])
+    except InvalidParameterError as exc:
+        _fail(path, str(exc))
+    job.maps = _maps_defaults(t)
 
 
 def _load_planning(path, doc, job):
     t = doc.get("planning", {})
     if not isinstance(t, dict):
         _fail(path, "[planning] must be a table")
-    _check_keys(path, t, _PLANNING_KEYS, "planning.")
-    _check_planning(path, t, "planning.")
-    job.planning = dict(t)
+    _check_keys(path, t, PLANNING.names(), "planning.")
+    job.planning = _checked(path, PLANNING, t, "planning.")
 
 
 def _load_missions(path, doc, job):
@@ -255,11 +236,18 @@ def _load_missions(path, doc, job):
                     for x in v)):
                 what = "[row, col] of integers" if integer else "a pair of numbers"
                 _fail(path, f"{where}{key} must be {what}, got {v!r}")
-            mission[f"{end}_form"] = key[len(end):].lstrip("_") or "cell"
+            form = key[len(end):].lstrip("_") or "cell"
+            if form != "cell":
+                try:
+                    for x, param in zip(v, (_LON, _LAT) if form == "lonlat" else (_COORD,) * 2,
+                                        strict=True):
+                        param.check(x, f"{where}{key}")
+                except InvalidParameterError as exc:
+                    _fail(path, str(exc))
+            mission[f"{end}_form"] = form
             mission[f"{end}_input"] = list(v)
-        plan = {k: m[k] for k in _PLANNING_KEYS if k in m}
-        _check_planning(path, plan, where)
-        mission.update(plan)
+        plan = {k: m[k] for k in PLANNING.names() if k in m}
+        mission.update(_checked(path, PLANNING, plan, where))
         job.missions.append(mission)
 
 
@@ -283,38 +271,9 @@ class JobResult:
         return not self.failed
 
 
-def _cell_of(end: str, mission: dict, maps, crs_wkt: str | None):
-    """The cell of a mission's start or goal given as a cell, map coordinates or lon/lat."""
-    from .exceptions import InvalidParameterError
-
-    form, v = mission[f"{end}_form"], mission[f"{end}_input"]
-    if form == "cell":
-        return int(v[0]), int(v[1])
-    x, y = float(v[0]), float(v[1])
-    if form == "lonlat":
-        if not crs_wkt:
-            raise InvalidParameterError(f"{end}_lonlat {v} given, but the DEM has no coordinate "
-                                        f"reference system; give {end} as a cell or in map "
-                                        f"coordinates ({end}_xy)")
-        from pyproj import CRS, Transformer
-
-        tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(crs_wkt), always_xy=True)
-        x, y = tr.transform(x, y)
-    xs, ys, a = maps.x, maps.y, maps.a
-    col = int(round((x - xs[0]) / (xs[1] - xs[0])))
-    row = int(round((y - ys[0]) / (ys[1] - ys[0])))
-    if not (0 <= row < len(ys) and 0 <= col < len(xs)):
-        from .planners.grid import InvalidEndpointError
-
-        raise InvalidEndpointError(
-            f"{end} {v} ({form}) is off the map: x spans {min(xs[0], xs[-1]) - a / 2:.1f} to "
-            f"{max(xs[0], xs[-1]) + a / 2:.1f}, y {min(ys[0], ys[-1]) - a / 2:.1f} to "
-            f"{max(ys[0], ys[-1]) + a / 2:.1f}")
-    return row, col
-
-
-def run_job(path: str | os.PathLike, scheduler: str | None = None, overwrite: bool = False,
-            dry_run: bool = False) -> JobResult:
+def run_job(path: str | os.PathLike, scheduler=None, overwrite: bool = False,
+            dry_run: bool = False, scheduler_file: str | os.PathLike | None = None
+            ) -> JobResult:
     """Run a job file: DEM store, maps store, every mission, the results catalog.
 
     The stores are ``<catalog>/dem-<hash>.zarr`` and ``<catalog>/maps-<hash>.zarr``, reused
@@ -322,7 +281,9 @@ def run_job(path: str | os.PathLike, scheduler: str | None = None, overwrite: bo
     Item exists) are skipped unless ``overwrite``; each mission is written atomically as it
     finishes, so a killed job loses at most the missions in flight. With no ``scheduler``, a
     LocalCluster of 2 single-threaded workers. A performance report (HTML) is saved as
-    ``<catalog>/performance-report.html``.
+    ``<catalog>/performance-report.html``. ``scheduler`` (an address or a
+    ``distributed.Client``) or ``scheduler_file`` name the cluster to run on
+    (:func:`pipeline.cluster.session`).
 
     Examples
     --------
@@ -341,7 +302,9 @@ def run_job(path: str | os.PathLike, scheduler: str | None = None, overwrite: bo
     job.catalog.mkdir(parents=True, exist_ok=True)
     from distributed import performance_report
 
-    with _scheduler(scheduler) as client:
+    from .cluster import session
+
+    with session(scheduler, scheduler_file) as client:
         res = JobResult(job, dem_store, False, 0.0, maps_store=maps_store,
                         dashboard=client.dashboard_link)
         log.info("dask dashboard: %s", client.dashboard_link)
@@ -406,11 +369,11 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
     import uuid
 
     from .catalog import finished, write_mission
-    from .mcpc import _maps
     from .missions import failed_trajectory, min_clearance, plan_missions
+    from .store import open_store
 
-    maps = _maps(maps_store)
-    crs = maps.ds["elevation"].attrs.get("crs_wkt")
+    maps = open_store(maps_store)
+    crs = maps.crs_wkt
     run_id = uuid.uuid4().hex[:12]
     import shutil
 
@@ -428,12 +391,12 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
     if res.skipped:
         log.info("%d missions finished before: skipped (--overwrite plans them again)",
                  res.skipped)
-    clearance = float(job.maps.get("clearance", 300.0))
+    clearance = float(job.maps["clearance"])
     ready, bad = [], []
     for m in todo:
         try:
-            ready.append({**m, "start": _cell_of("start", m, maps, crs),
-                          "goal": _cell_of("goal", m, maps, crs)})
+            ready.append({**m, "start": maps.cell_of("start", m["start_form"], m["start_input"]),
+                          "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"])})
         except PipelineError as exc:
             bad.append((m, str(exc)))
     count = [0]
@@ -460,39 +423,3 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
         plan_missions(maps, ready, client=client, defaults=job.planning,
                       on_done=lambda i, mission, traj: record(mission, traj))
     return crs
-
-
-class _scheduler:
-    """The dask cluster at ``address`` if given, else a LocalCluster of 2 single-threaded
-    workers (dashboard on port 8787, or a free one); its client is the default meanwhile."""
-
-    def __init__(self, address: str | None):
-        self.address = address
-        self.client = None
-        self.cluster = None
-
-    def __enter__(self):
-        from distributed import Client, LocalCluster
-
-        if self.address:
-            try:
-                self.client = Client(self.address, timeout=30)
-            except OSError as exc:
-                raise PipelineError(f"cannot reach the dask scheduler at {self.address}: "
-                                    f"{exc}; start it (`dask scheduler`) or run without "
-                                    "--scheduler for a local cluster") from None
-        else:
-            import socket
-
-            with socket.socket() as sk:
-                busy = sk.connect_ex(("127.0.0.1", 8787)) == 0
-            self.cluster = LocalCluster(n_workers=2, threads_per_worker=1,
-                                        dashboard_address=":0" if busy else ":8787")
-            self.client = Client(self.cluster)
-        return self.client
-
-    def __exit__(self, *exc):
-        if self.client is not None:
-            self.client.close()
-        if self.cluster is not None:
-            self.cluster.close()

@@ -29,15 +29,15 @@ import zarr
 from numba import njit
 
 from ._io import atomic_path, remove_settled
-from ._validate import chunks2d, positive_int
-from .dem import DEFAULT_CHUNK, cell_size, open_dem, require_valid_cells
-from .exceptions import InvalidParameterError, PipelineError, StoreExistsError
+from .dem import cell_size, open_dem, require_valid_cells
+from .exceptions import StoreExistsError
+from .params import DEFAULT_CHUNK, MAPS, chunks2d
 from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
+from .store import MAPS_VERSION, open_maps
 
 log = logging.getLogger(__name__)
 
-MAPS_VERSION = 1
 
 
 @njit(nogil=True, cache=True)
@@ -81,9 +81,10 @@ def _hex(partials) -> str:
     return f"{total:016x}"
 
 
-def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
-               clearance: float = 300.0, horizontal_clearance: float | None = None,
-               sea_level: float = 0.0, surface_clearance: float | None = None,
+def build_maps(dem, store: str | os.PathLike, *, method: str = MAPS.method.default,
+               clearance: float = MAPS.clearance.default,
+               horizontal_clearance: float | None = None,
+               sea_level: float = MAPS.sea_level.default, surface_clearance: float | None = None,
                min_accumulation: int | None = None, chunks=None,
                overwrite: bool = False) -> xr.Dataset:
     """Build the maps of ``dem`` chunk-wise and write them to the Zarr store ``store``.
@@ -134,7 +135,7 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = "spherical",
     ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
     if min_accumulation is None:
         min_accumulation = default_min_accumulation(a)
-    min_accumulation = positive_int("min_accumulation", min_accumulation)
+    min_accumulation = MAPS.min_accumulation.check(min_accumulation)
     require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
     params = {"method": method, "clearance_m": S.attrs["clearance_m"],
               "horizontal_clearance_m": S.attrs.get("horizontal_clearance_m"),
@@ -186,19 +187,3 @@ def _write(ds: xr.Dataset, path, ch, *, also):
                        encoding={k: {"chunks": ch} for k in ds.data_vars}, compute=False)
     _, value = dask.compute(write, also)
     return value
-
-
-def open_maps(store: str | os.PathLike, chunks="store") -> xr.Dataset:
-    """Open a maps store lazily; ``chunks="store"`` keeps the store's own chunks."""
-    store = Path(store)
-    if not store.exists():
-        raise PipelineError(f"maps store {store} does not exist; build it with "
-                            "pipeline.build_maps or `pipeline build-maps`")
-    ds = xr.open_zarr(store, consolidated=False, chunks={} if chunks == "store" else chunks)
-    if ds.attrs.get("maps_version") != MAPS_VERSION:
-        raise InvalidParameterError(f"{store} is not a maps store of this version "
-                                    f"(maps_version={ds.attrs.get('maps_version')!r}); rebuild it")
-    ds.attrs["store"] = str(store.resolve())  # section tasks reopen it on the workers
-    ds.attrs["parameters"] = json.loads(ds.attrs["parameters"]) \
-        if isinstance(ds.attrs.get("parameters"), str) else ds.attrs.get("parameters")
-    return ds

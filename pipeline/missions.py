@@ -15,23 +15,26 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 
 import numpy as np
 
+from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError
-from .mcpc import _CACHE, _maps, plan, resolve_client
-from .planners.grid import Trajectory
+from .mcpc import plan
+from .params import PLANNING
+from .planners.core import Trajectory
+from .store import open_store
 
 log = logging.getLogger(__name__)
 
-_PLAN_KEYS = {"planner", "omega", "mcpc", "rho", "section_size", "margin", "coarse_planner"}
+_PLAN_KEYS = PLANNING.names()
 
 
 def failed_trajectory(mission: dict, message: str) -> Trajectory:
     """The record of a mission that could not be planned."""
+    omega = mission.get("omega", PLANNING.omega.default)
     return Trajectory(cells=np.zeros((0, 2), dtype=np.int64), points=np.zeros((0, 3)),
                       length_m=math.nan, ridge_length_m=math.nan, ridge_ratio=math.nan,
                       lower_bound_m=math.nan, expansions=0, runtime_s=0.0,
-                      planner=str(mission.get("planner", "ra_star")),
-                      omega=float(mission.get("omega", 2.0)) if isinstance(
-                          mission.get("omega", 2.0), int | float) else math.nan,
+                      planner=str(mission.get("planner", PLANNING.planner.default)),
+                      omega=float(omega) if isinstance(omega, int | float) else math.nan,
                       status="failed", message=message)
 
 
@@ -58,7 +61,7 @@ def plan_missions(maps, missions: Sequence, *, client=None, defaults: dict | Non
 
     Parameters
     ----------
-    maps : path or xarray.Dataset
+    maps : path, xarray.Dataset or MapsStore
         The maps store (:func:`pipeline.build_maps`).
     missions : sequence
         Each a ``(start, goal)`` pair of cells or a dict with ``start``, ``goal`` and any of
@@ -85,8 +88,8 @@ def plan_missions(maps, missions: Sequence, *, client=None, defaults: dict | Non
     ...                                           "planner": "lagrangian", "omega": 1.5}])
     ... # doctest: +SKIP
     """
-    m = _maps(maps)
-    run_on = resolve_client(client)
+    m = open_store(maps)
+    run_on = get_client(client)
     items = [_normalise(x) for x in missions]
     defaults = dict(defaults or {})
     unknown = set(defaults) - _PLAN_KEYS
@@ -127,11 +130,11 @@ def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
     (farther grid points are farther than ``radius_m`` anyway); a point with no grid point that
     close gets ``inf``.
     """
-    m = _maps(maps)
+    m = open_store(maps)
     out = np.full(len(traj.cells), np.inf)
     if len(traj.cells) == 0:
         return out
-    a = m.a
+    a = m.cell_size
     r = int(math.ceil(radius_m / a))
     off = np.arange(-r, r + 1)
     dr, dc = np.meshgrid(off, off, indexing="ij")
@@ -145,7 +148,7 @@ def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
         cc, zz = cells[k:k + 512], z[k:k + 512]
         r0, r1 = max(int(cc[:, 0].min()) - r, 0), min(int(cc[:, 0].max()) + r + 1, rows)
         c0, c1 = max(int(cc[:, 1].min()) - r, 0), min(int(cc[:, 1].max()) + r + 1, cols)
-        elev = _CACHE.window(m.store, "elevation", r0, r1, c0, c1).astype(np.float64)
+        elev = m.window("elevation", r0, r1, c0, c1).astype(np.float64)
         rr = cc[:, 0:1] + dr[None, :]
         cl = cc[:, 1:2] + dc[None, :]
         inside = (rr >= 0) & (rr < rows) & (cl >= 0) & (cl < cols)

@@ -68,13 +68,13 @@ def mission_quicklook(maps, traj, path: str | os.PathLike, *, title: str = "",
     r0, c0 = traj.cells.min(axis=0)
     r1, c1 = traj.cells.max(axis=0) + 1
     pad = max(20, int(0.15 * max(r1 - r0, c1 - c0)))
-    ds = maps.ds
+    ds = maps.dataset
     rows, cols = maps.shape
     r0, c0 = max(int(r0) - pad, 0), max(int(c0) - pad, 0)
     r1, c1 = min(int(r1) + pad, rows), min(int(c1) + pad, cols)
     step = max(1, int(np.ceil(max(r1 - r0, c1 - c0) / max_side)))
     sub = ds["elevation"][r0:r1:step, c0:c1:step].load()
-    sub.attrs["cell_size"] = maps.a
+    sub.attrs["cell_size"] = maps.cell_size
     rdg = ds["ridge"][r0:r1:step, c0:c1:step].values
     fig, ax = plt.subplots(figsize=(7.5, 6.5), dpi=100)
     hillshade_axes(ax, sub, colorbar=False)

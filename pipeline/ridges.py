@@ -41,9 +41,9 @@ from numba import njit
 
 from ._grid8 import DC, DIST, DR
 from ._heap import heap_pop, heap_push
-from ._validate import positive_int
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
+from .params import MAPS
 
 OUTLET = -1
 
@@ -640,7 +640,7 @@ def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
     a = check_dem(dem)
     if min_accumulation is None:
         min_accumulation = default_min_accumulation(a)
-    min_accumulation = positive_int("min_accumulation", min_accumulation)
+    min_accumulation = MAPS.min_accumulation.check(min_accumulation)
     if accumulation is None:
         accumulation = flow_accumulation(dem)
     ridge = accumulation >= min_accumulation

@@ -28,12 +28,9 @@ import numpy as np
 import xarray as xr
 from numba import njit
 
-from ._validate import positive_float
 from .dem import check_dem
 from .exceptions import InvalidParameterError
-
-METHODS = ("vertical", "horizontal", "spherical")
-
+from .params import MAPS
 
 # --------------------------------------------------------------------------- structuring element
 
@@ -191,21 +188,21 @@ def _vertical(z, clearance):
 # --------------------------------------------------------------------------- public API
 
 
-def _check_clearance(name: str, value, a: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
-        raise InvalidParameterError(f"`{name}` must be a number of metres > 0, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value) or value <= 0:
-        raise InvalidParameterError(f"`{name}` must be a finite number of metres > 0, got {value}")
-    if value < a / 2:
+def check_clearance(value, a: float | None, label: str = "`clearance`",
+                    param=MAPS.clearance) -> float:
+    """A clearance in metres (``param``'s bounds), refused when a DEM of cell side ``a`` cannot
+    resolve it (below half a cell); ``a`` None skips that part (cell side not known yet)."""
+    value = param.check(value, label)
+    if a is not None and value < a / 2:
         raise InvalidParameterError(
-            f"`{name}` = {value:g} m is smaller than half a cell ({a / 2:g} m): the clearance "
+            f"{label} = {value:g} m is smaller than half a cell ({a / 2:g} m): the clearance "
             "zone would hold no grid point but the cell itself, so the DEM cannot resolve it; "
             "use a larger clearance or a finer DEM")
     return value
 
 
-def safety_map(dem: xr.DataArray, method: str = "spherical", clearance: float = 300.0,
+def safety_map(dem: xr.DataArray, method: str = MAPS.method.default,
+               clearance: float = MAPS.clearance.default,
                horizontal_clearance: float | None = None) -> xr.DataArray:
     """The safety surface: the lowest height at which the vehicle keeps its clearance.
 
@@ -234,13 +231,12 @@ def safety_map(dem: xr.DataArray, method: str = "spherical", clearance: float = 
     True
     """
     a = check_dem(dem, floating=True)
-    if method not in METHODS:
-        raise InvalidParameterError(
-            f"method must be 'vertical', 'horizontal' or 'spherical', got {method!r}")
-    clearance = _check_clearance("clearance", clearance, a)
+    method = MAPS.method.check(method)
+    clearance = check_clearance(clearance, a)
     if horizontal_clearance is None:
         horizontal_clearance = clearance
-    horizontal_clearance = _check_clearance("horizontal_clearance", horizontal_clearance, a)
+    horizontal_clearance = check_clearance(horizontal_clearance, a, "`horizontal_clearance`",
+                                           MAPS.horizontal_clearance)
 
     if method == "vertical":
         def kernel(block):
@@ -284,7 +280,7 @@ def safety_map(dem: xr.DataArray, method: str = "spherical", clearance: float = 
     return xr.DataArray(data, dims=dem.dims, coords=dem.coords, name="safety", attrs=attrs)
 
 
-def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = 0.0,
+def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = MAPS.sea_level.default,
              surface_clearance: float | None = None) -> xr.DataArray:
     """Cells the vehicle may occupy (SPEC section 2).
 
@@ -302,13 +298,10 @@ def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = 0.0,
         got = safety.shape if isinstance(safety, xr.DataArray) else type(safety).__name__
         raise InvalidParameterError(f"`safety` must be a DataArray of the DEM's shape "
                                     f"{dem.shape}, got {got}; build it with safety_map(dem)")
-    if isinstance(sea_level, bool) or not isinstance(sea_level, int | float | np.number) \
-            or not math.isfinite(sea_level):
-        raise InvalidParameterError(f"`sea_level` must be a finite number of metres, "
-                                    f"got {sea_level!r}")
+    sea_level = MAPS.sea_level.check(sea_level)
     if surface_clearance is None:
         surface_clearance = float(safety.attrs.get("clearance_m", 0.0))
-    surface_clearance = positive_float("surface_clearance", surface_clearance, allow_zero=True)
+    surface_clearance = MAPS.surface_clearance.check(surface_clearance)
     z = dem.data
     s = safety.data
     ok = ((z == z) & (z < sea_level) & (s == s)

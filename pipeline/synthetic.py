@@ -23,8 +23,7 @@ import numpy as np
 import xarray as xr
 from numba import njit
 
-from ._validate import chunks2d, positive_float, positive_int, shape2d
-from .exceptions import InvalidParameterError
+from .params import DEFAULT_CHUNK, SYNTHETIC, chunks2d, shape2d
 
 GENERATOR_VERSION = 1
 _LATTICE = 9  # seamount lattice cells per map side
@@ -264,8 +263,9 @@ def _scene(seed: int, islands: int):
     return seg_v, seg_u, math.cos(theta), math.sin(theta), isl
 
 
-def synthetic_dem(shape, cell_size: float = 30.0, seed: int = 0, chunks=1024,
-                  islands: int = 2) -> xr.DataArray:
+def synthetic_dem(shape, cell_size: float = SYNTHETIC.cell_size.default,
+                  seed: int = SYNTHETIC.seed.default, chunks=DEFAULT_CHUNK,
+                  islands: int = SYNTHETIC.islands.default) -> xr.DataArray:
     """A virtual mid-ocean-ridge DEM, lazily generated (dask) or in memory (``chunks=None``).
 
     Parameters
@@ -288,11 +288,9 @@ def synthetic_dem(shape, cell_size: float = 30.0, seed: int = 0, chunks=1024,
     (('y', 'x'), 'float32', 30.0)
     """
     rows, cols = shape2d("shape", shape)
-    a = positive_float("cell_size", cell_size)
-    seed = positive_int("seed", seed, minimum=0)
-    islands = positive_int("islands", islands, minimum=0)
-    if islands > 10:
-        raise InvalidParameterError(f"`islands` must be between 0 and 10, got {islands}")
+    a = SYNTHETIC.cell_size.check(cell_size)
+    seed = SYNTHETIC.seed.check(seed)
+    islands = SYNTHETIC.islands.check(islands)
     ch = chunks2d(chunks, (rows, cols))
     seg_v, seg_u, cos_t, sin_t, isl = _scene(seed, islands)
     n_norm = float(max(rows, cols))

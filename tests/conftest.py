@@ -1,7 +1,10 @@
-"""Shared fixtures: real bathymetry (matplotlib's topobathy sample) and small synthetic grids."""
+"""Shared fixtures: real bathymetry (matplotlib's topobathy sample), small synthetic grids, one
+LocalCluster for the session, real scheduler and worker processes."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +13,39 @@ import xarray as xr
 
 # chunkings every chunked function is checked with: tiny uneven, power of two, ragged, single
 CHUNKINGS = [(7, 5), (64, 64), (100, 37), None]
+
+_WARM: dict = {}
+
+
+def pytest_sessionstart(session):
+    """pysheds compiles about 80 numba functions when imported (over a minute in a fresh
+    environment, then cached on disk): compile them on the idle core while the first tests run,
+    so that the pysheds comparisons find the cache warm (``pysheds_ready``)."""
+    _WARM["pysheds"] = subprocess.Popen([sys.executable, "-c", "import pysheds.grid"],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+@pytest.fixture(scope="session")
+def pysheds_ready():
+    proc = _WARM.get("pysheds")
+    if proc is not None:
+        proc.wait(timeout=900)
+
+
+@pytest.fixture(scope="session")
+def local_client():
+    """One LocalCluster of 2 single-threaded worker processes for every test that needs a
+    cluster but does not test starting one (jobs take it as their scheduler): its workers
+    import the library and load the compiled kernels once."""
+    from distributed import Client
+
+    from pipeline.cluster import local_cluster
+
+    cluster = local_cluster()
+    client = Client(cluster, set_as_default=False)
+    yield client
+    client.close()
+    cluster.close()
 
 
 @pytest.fixture(scope="session")
@@ -125,9 +161,9 @@ def stop_dask_cluster(sched, procs) -> None:
 @pytest.fixture(scope="module")
 def real_cluster(tmp_path_factory):
     """A real `dask scheduler` and two single-threaded `dask worker` processes on loopback."""
-    import pipeline.mcpc
+    import pipeline.cluster
 
     addr, sched, procs = start_dask_cluster(tmp_path_factory.mktemp("cluster"))
     yield addr
-    pipeline.mcpc.shutdown()  # the clients plan() opened, before their scheduler goes
+    pipeline.cluster.shutdown()  # the clients plan() opened, before their scheduler goes
     stop_dask_cluster(sched, procs)

@@ -36,14 +36,14 @@ def _job(tmp_path, text, name="job.toml"):
     return p
 
 
-def test_run_job_builds_then_reuses_the_dem_store(tmp_path):
+def test_run_job_builds_then_reuses_the_dem_store(tmp_path, local_client):
     job = _job(tmp_path, GOOD.format(catalog=tmp_path / "cat"))
-    first = run_job(job)
+    first = run_job(job, scheduler=local_client)
     assert not first.reused and first.dem_store.parent == tmp_path / "cat"
     dem = pipeline.open_dem(first.dem_store, chunks=None)
     ref = pipeline.synthetic_dem((150, 120), cell_size=50.0, seed=4, chunks=None)
     np.testing.assert_array_equal(dem.values, ref.values)
-    again = run_job(job)  # --overwrite's rebuild is covered by the console-script test
+    again = run_job(job, scheduler=local_client)  # --overwrite: the console-script test
     assert again.reused and again.dem_store == first.dem_store
 
 
@@ -53,12 +53,12 @@ def test_dry_run_computes_nothing(tmp_path):
     assert not res.dem_store.exists() and not (tmp_path / "cat").exists()
 
 
-def test_job_with_a_dem_file(tmp_path, topobathy_tif):
+def test_job_with_a_dem_file(tmp_path, topobathy_tif, local_client):
     job = _job(tmp_path, f'name = "real"\n[dem]\npath = "{topobathy_tif}"\nchunks = 64\n'
                          f'resolution = 1200.0\n'  # the file's cells are 2.4 km
                          f'[maps]\nclearance = 1000.0\n'
                          f'[output]\ncatalog = "{tmp_path / "cat"}"\n')
-    res = run_job(job)
+    res = run_job(job, scheduler=local_client)
     dem = pipeline.open_dem(res.dem_store)
     assert "crs_wkt" in dem.attrs and (dem.values >= 0).any()
     assert pipeline.cell_size(dem) == 1200.0
@@ -69,14 +69,15 @@ def test_job_with_a_dem_file(tmp_path, topobathy_tif):
     ("[dem]\npath = 'a.tif'\n[dem.synthetic]\nshape = [4, 4]\n", "exactly one of"),
     ("[dem]\nsynthetic = { shape = [4, 4] }\ncolour = 'red'\n", "unknown key dem.'colour'"),
     ("[dem.synthetic]\nshape = [4, 4]\nsed = 3\n", r"unknown key dem.synthetic.'sed'"),
-    ("[dem.synthetic]\nshape = [4]\n", r"shape must be \[rows, cols\]"),
+    ("[dem.synthetic]\nshape = [4]\n", r"dem.synthetic.shape must be a pair \(rows, cols\)"),
     ("[dem.synthetic]\nshape = [4, 4]\nseed = 'one'\n", "dem.synthetic.seed must be an integer"),
     ("[dem.synthetic]\ncell_size = 3.0\n", "shape is required"),
-    ("[dem]\nchunks = 0\nsynthetic = { shape = [4, 4] }\n", "dem.chunks must be a positive"),
+    ("[dem]\nchunks = 0\nsynthetic = { shape = [4, 4] }\n", "dem.chunks must be an integer >= 1"),
     ("[dem]\npath = 'missing.tif'\n", r"dem.path 'missing.tif' does not exist"),
     ("[dem]\npath = 3\n", "dem.path must be a file path"),
-    ("[dem]\npath = '.'\nresolution = -1.0\n", r"dem.resolution must be a number of metres > 0"),
-    ("[dem]\npath = '.'\nresolution = 'fine'\n", r"dem.resolution must be a number"),
+    ("[dem]\npath = '.'\nresolution = -1.0\n",
+     r"dem.resolution must be a finite number of metres > 0"),
+    ("[dem]\npath = '.'\nresolution = 'fine'\n", r"dem.resolution must be a finite number"),
     ("planners = 1\n[dem.synthetic]\nshape = [4, 4]\n", "unknown key 'planners'"),
     ("[dem.synthetic\nshape = [4, 4]\n", "not valid TOML"),
     ("name = '../up'\n[dem.synthetic]\nshape = [4, 4]\n", "name must be"),
@@ -146,19 +147,24 @@ def test_cli_bad_file_is_one_clear_line(tmp_path):
     assert "Traceback" not in res.output
 
 
-def test_console_script_runs_a_job(tmp_path):
-    """The installed `pipeline` entry point, as a scheduled job would call it."""
+def test_console_script_runs_a_job(tmp_path, local_client):
+    """The installed `pipeline` entry point, as a scheduled job would call it, on a running
+    cluster given by address (the killed-job test runs it on its own LocalCluster)."""
     job = _job(tmp_path, GOOD.format(catalog=tmp_path / "cat"))
     exe = Path(sys.executable).parent / "pipeline"
     env = dict(os.environ)
-    proc = subprocess.run([str(exe), "run", str(job)], capture_output=True, text=True,
+    on = ["--scheduler", local_client.scheduler.address]
+    proc = subprocess.run([str(exe), "run", str(job), *on], capture_output=True, text=True,
                           timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr
     assert "job small: 0 missions planned" in proc.stdout and "writing the DEM store" in \
         proc.stderr and "dask dashboard: http" in proc.stderr
-    proc = subprocess.run([str(exe), "run", str(job)], capture_output=True, text=True,
+    proc = subprocess.run([str(exe), "run", str(job), *on], capture_output=True, text=True,
                           timeout=300, env=env)
     assert proc.returncode == 0 and "is up to date: reusing it" in proc.stderr
+    proc = subprocess.run([str(exe), "run", str(job), *on, "--overwrite"], capture_output=True,
+                          text=True, timeout=300, env=env)
+    assert proc.returncode == 0 and "writing the DEM store" in proc.stderr
     bad = _job(tmp_path, "[dem]\n", "bad.toml")
     proc = subprocess.run([str(exe), "run", str(bad)], capture_output=True, text=True,
                           timeout=300, env=env)

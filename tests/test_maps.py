@@ -68,7 +68,7 @@ def test_refuses_to_clobber_and_rebuilds_on_request(tmp_path):
 
 def test_bad_parameters_fail_before_any_write(tmp_path):
     dem = pipeline.synthetic_dem((64, 64), chunks=32)
-    with pytest.raises(pipeline.InvalidParameterError, match="method must be"):
+    with pytest.raises(pipeline.InvalidParameterError, match="`method` must be"):
         pipeline.build_maps(dem, tmp_path / "m.zarr", method="cube")
     assert not any(tmp_path.iterdir())
 
@@ -78,12 +78,13 @@ def test_open_maps_missing(tmp_path):
         pipeline.open_maps(tmp_path / "none.zarr")
 
 
-def test_cli_build_maps(tmp_path):
+def test_cli_build_maps(tmp_path, local_client):
     r = CliRunner()
     dem_store = tmp_path / "dem.zarr"
     pipeline.write_dem(pipeline.synthetic_dem((120, 100), chunks=64), dem_store, chunks=64)
     res = r.invoke(main, ["build-maps", str(dem_store), str(tmp_path / "maps.zarr"),
-                          "--method", "horizontal", "--clearance", "200"])
+                          "--method", "horizontal", "--clearance", "200",
+                          "--scheduler", local_client.scheduler.address])
     assert res.exit_code == 0, res.output
     assert "passable" in res.output
     maps = pipeline.open_maps(tmp_path / "maps.zarr")

@@ -13,7 +13,7 @@ from test_planners import check_path, independent_metrics, reference_length
 
 import pipeline
 from pipeline.exceptions import InvalidParameterError
-from pipeline.mcpc import _Maps, plan_sections, remove_loops, restore, segment
+from pipeline.mcpc import Section, plan_sections, remove_loops, restore, segment
 
 A = 30.0
 WALL_ROW, WALL_END = 120, 200  # land wall on row 120 from col 0 to col 199
@@ -124,16 +124,16 @@ def test_one_window_equals_scipy_and_bounds_mcpc(store, arrays):
 
 
 def test_blocked_section_is_retried_then_merged(store, arrays):
-    m = _Maps(store)
+    m = pipeline.open_store(store)
     sections = [  # the first window is cut by the wall; so is it with the margin doubled
-        dict(win=(95, 146, 90, 111), s=(100, 100), g=(140, 100), attempts=1),
-        dict(win=(130, 151, 95, 240), s=(140, 100), g=(140, 230), attempts=1),
+        Section((95, 146, 90, 111), (100, 100), (140, 100)),
+        Section((130, 151, 95, 240), (140, 100), (140, 230)),
     ]
     secs, res = plan_sections("synchronous", m, sections, "astar", 1.5, 6)
     # attempts over the span: section 0 twice (margin doubled), section 1 once, merged once
-    assert len(secs) == 1 and secs[0]["merged"] and secs[0]["attempts"] == 4
-    assert res[0]["status"] == "ok"
-    cells = res[0]["cells"]
+    assert len(secs) == 1 and secs[0].merged and secs[0].attempts == 4
+    assert res[0].status == "ok"
+    cells = res[0].cells
     assert tuple(cells[0]) == (100, 100) and tuple(cells[-1]) == (140, 230)
     assert arrays["passable"][cells[:, 0], cells[:, 1]].all()
     assert cells[:, 1].max() >= WALL_END

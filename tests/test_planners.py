@@ -17,8 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 import pipeline
-from pipeline.exceptions import InvalidParameterError
-from pipeline.planners.grid import InvalidEndpointError, UnreachableGoalError
+from pipeline.exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
 
 MOVES = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
 
@@ -183,10 +182,10 @@ def _small():
     ({"start": (2, 2)}, InvalidEndpointError,
      r"start \(2, 2\) is on land or inside the clearance zone; nearest passable cell"),
     ({"goal": (0, 8)}, UnreachableGoalError, "no path from start"),
-    ({"omega": 0.5}, InvalidParameterError, "`omega` must be >= 1, got 0.5"),
-    ({"omega": float("nan")}, InvalidParameterError, "`omega` must be >= 1"),
+    ({"omega": 0.5}, InvalidParameterError, "`omega` must be a finite number >= 1, got 0.5"),
+    ({"omega": float("nan")}, InvalidParameterError, "`omega` must be a finite number >= 1"),
     ({"cell_size": 0.0}, InvalidParameterError, "`cell_size` must be"),
-    ({"planner": "bfs"}, InvalidParameterError, "planner must be one of"),
+    ({"planner": "bfs"}, InvalidParameterError, "`planner` must be 'dijkstra', 'astar'"),
     ({"start": "a"}, InvalidParameterError, "must be a cell"),
 ])
 def test_errors(kwargs, error, match):

@@ -100,7 +100,7 @@ def _pysheds(z):
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_against_pysheds(seed):
+def test_against_pysheds(seed, pysheds_ready):
     """Filled DEM: exactly pysheds' fill_depressions. Ridge cells at the default threshold:
     intersection over union >= 0.98. The two D8 codes differ only where the rules differ:
     pysheds gives flats no direction and breaks slope ties in its own neighbour order, so a
@@ -118,7 +118,7 @@ def test_against_pysheds(seed):
     assert (A == pa).mean() > 0.999
 
 
-def test_real_bathymetry_against_pysheds(topobathy):
+def test_real_bathymetry_against_pysheds(topobathy, pysheds_ready):
     z = topobathy[0]  # the source grid itself: real bathymetry and land, no no-data
     pf, pa = _pysheds(z)
     F = fill_single(z)

@@ -78,12 +78,12 @@ def write_job(tmp_path, n=300, missions=MISSIONS4, name="t", file="job.toml"):
     return p
 
 
-@pytest.fixture(scope="module")
-def stores(tmp_path_factory):
+@pytest.fixture(scope="session")
+def stores(tmp_path_factory, local_client):
     """The DEM and maps stores of the 300^2 test jobs, built once by a job without missions;
     each test copies them into its own catalog, where its job finds and reuses them."""
     tmp = tmp_path_factory.mktemp("stores")
-    res = run_job(write_job(tmp, missions=""))
+    res = run_job(write_job(tmp, missions=""), scheduler=local_client)
     assert not res.reused and res.planned == 0
     return tmp / "cat"
 
@@ -96,11 +96,11 @@ def with_stores(stores, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def done(tmp_path_factory, stores):
+def done(tmp_path_factory, stores, local_client):
     tmp = tmp_path_factory.mktemp("job")
     with_stores(stores, tmp)
     job = write_job(tmp)
-    return job, run_job(job)
+    return job, run_job(job, scheduler=local_client)
 
 
 def test_catalog_loads_and_items_validate_against_the_stac_schema(done):
@@ -164,12 +164,12 @@ def test_min_clearance_against_brute_force(done):
         np.testing.assert_allclose(per_point, each, atol=1e-6)
 
 
-def test_rerun_skips_finished_missions(done):
+def test_rerun_skips_finished_missions(done, local_client):
     job, res = done
     root = res.catalog.parent
     before = {m: json.loads((root / "missions" / m / f"{m}.json").read_text())
               ["properties"]["auv:run_id"] for m in ("cells", "xy")}
-    again = run_job(job)
+    again = run_job(job, scheduler=local_client)
     assert again.skipped == 4 and again.planned == 0 and again.ok
     after = {m: json.loads((root / "missions" / m / f"{m}.json").read_text())
              ["properties"]["auv:run_id"] for m in ("cells", "xy")}
@@ -181,11 +181,11 @@ def test_rerun_skips_finished_missions(done):
 
 @pytest.mark.parametrize("extra, match", [
     ("[maps]\nmethod = 'round'\n", "maps.method must be"),
-    ("[maps]\nclearance = -5\n", "maps.clearance must be a number >= 0"),
+    ("[maps]\nclearance = -5\n", "maps.clearance must be a finite number of metres > 0"),
     ("[maps]\nmin_accumulation = 2.5\n", "maps.min_accumulation must be an integer"),
     ("[maps]\nradius = 3\n", "unknown key maps.'radius'"),
-    ("[planning]\nomega = 0.5\n", "planning.omega must be a number >= 1"),
-    ("[planning]\nplanner = 'rrt'\n", "planning.planner must be one of"),
+    ("[planning]\nomega = 0.5\n", "planning.omega must be a finite number >= 1"),
+    ("[planning]\nplanner = 'rrt'\n", "planning.planner must be 'dijkstra'"),
     ("[planning]\nmcpc = 'yes'\n", "planning.mcpc must be true or false"),
     ("[planning]\nrho = 0\n", "planning.rho must be an integer >= 1"),
     ("[[missions]]\nstart = [1, 2]\n", r"missions\[0\]. needs exactly one of goal"),
@@ -197,7 +197,7 @@ def test_rerun_skips_finished_missions(done):
     ("[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n"
      "[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n", "used twice"),
     ("[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nomega = 0\n",
-     r"missions\[0\].omega must be a number >= 1"),
+     r"missions\[0\].omega must be a finite number >= 1"),
     ("missions = 3\n", "missions must be an array of tables"),
 ])
 def test_bad_job_files_name_the_key(tmp_path, extra, match):
@@ -210,8 +210,9 @@ def test_bad_job_files_name_the_key(tmp_path, extra, match):
     assert str(p) in str(info.value)
 
 
-def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path):
-    proc = subprocess.run([str(EXE), "run", str(ROOT / "tasks" / "bad-missions.toml")],
+def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path, local_client):
+    proc = subprocess.run([str(EXE), "run", str(ROOT / "tasks" / "bad-missions.toml"),
+                           "--scheduler", local_client.scheduler.address],
                           capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert proc.returncode == 1, proc.stderr[-3000:]
     assert "4 failed" in proc.stdout

@@ -223,10 +223,10 @@ def test_passable_lazy_equals_eager():
     ({"clearance": 0.0}, "`clearance` must be a finite number of metres > 0, got 0.0"),
     ({"clearance": -5.0}, "`clearance` must be a finite number"),
     ({"clearance": float("nan")}, "`clearance` must be a finite number"),
-    ({"clearance": "300"}, "`clearance` must be a number"),
+    ({"clearance": "300"}, "`clearance` must be a finite number of metres > 0, got '300'"),
     ({"clearance": 10.0}, "smaller than half a cell .15 m.*cannot resolve"),
     ({"method": "round"},
-     "method must be 'vertical', 'horizontal' or 'spherical', got 'round'"),
+     "`method` must be 'vertical', 'horizontal' or 'spherical', got 'round'"),
     ({"horizontal_clearance": 0.0}, "`horizontal_clearance` must be a finite"),
 ])
 def test_bad_parameters(kwargs, match):

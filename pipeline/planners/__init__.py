@@ -1,10 +1,14 @@
-"""Planners on one in-memory window (SPEC sections 4, 5): the grid core and the searches.
+"""Planners on one in-memory window (SPEC sections 4, 5).
 
-``dijkstra`` and ``astar`` (optimal), ``wastar`` (weighted A*), ``ra_star`` (the paper's RA*)
-and ``lagrangian`` (LARAC on off-ridge length under the length bound), the last three within
-``length <= omega * L*``.
+``core``: the graph, edge cost, heuristic, search state, A*, tracing, path metrics, endpoint
+checks and ``Trajectory``; one module per planner (``astar``: dijkstra, astar, wastar;
+``ra_star``; ``lagrangian``), each registered in ``registry.PLANNERS``; ``window``:
+``plan_window``, which runs any of them. ``dijkstra`` and ``astar`` are optimal; ``wastar``,
+``ra_star`` and ``lagrangian`` keep ``length <= omega * L*``.
 """
 
-from .grid import PLANNERS, Trajectory, plan_window
+from .core import Trajectory
+from .registry import PLANNERS
+from .window import plan_window
 
 __all__ = ["PLANNERS", "Trajectory", "plan_window"]

@@ -14,7 +14,7 @@ returned, with the dual lower bound on the off-ridge length in ``extra``.
 
 from __future__ import annotations
 
-from .grid import _astar, path_steps, trace_path
+from .core import TIE, Planner, Search, astar_search, path_steps, trace_path
 
 # lambda -> 0 end: off-ridge length first, length only as a tie-break
 _OFF_FIRST = 1e7
@@ -22,7 +22,7 @@ _OFF_FIRST = 1e7
 
 def _measure(cells, surface, ridge, a):
     """(length, off-ridge length) of a path."""
-    step = path_steps(cells, surface, a)
+    step = path_steps(cells, surface[cells[:, 0], cells[:, 1]], a)
     return float(step.sum()), float(step[~ridge[cells[1:, 0], cells[1:, 1]]].sum())
 
 
@@ -33,8 +33,8 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
 
     def search(off_weight):
         nonlocal expansions
-        parent, _, exp, found = _astar(surface, ridge, passable, a, s[0], s[1], t[0], t[1], 1.0,
-                                       off_weight)
+        parent, _, exp, found = astar_search(surface, ridge, passable, a, s[0], s[1], t[0],
+                                             t[1], 1.0, off_weight)
         expansions += exp
         if not found:
             return None
@@ -77,3 +77,13 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
             infeasible = r
     extra["dual_bound_off_ridge_m"] = max(dual, 0.0)
     return feasible[0], expansions, True, extra
+
+
+def _search(surface, ridge, passable, a, s, t, omega) -> Search:
+    state, expansions, found, extra = larac(surface, ridge, passable, a, s, t, float(omega))
+    f_min = extra.get("optimum_m", 0.0)  # its first search is A*: within 1 + TIE of L*
+    return Search(state, expansions, found, lambda length: f_min / (1.0 + TIE), extra)
+
+
+LAGRANGIAN = Planner("lagrangian", _search,
+                     "most ridge under length <= omega * L* (Lagrangian relaxation, LARAC)")

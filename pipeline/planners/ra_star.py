@@ -30,7 +30,7 @@ from numba import njit
 
 from .._grid8 import DC, DR
 from .._heap import heap_grow, heap_pop, heap_push
-from .grid import CLOSED, INWAIT, PARENT, SEEN, edge_cost, relax_successors
+from .core import CLOSED, INWAIT, PARENT, SEEN, Planner, Search, edge_cost, relax_successors
 
 
 @njit(inline="always", cache=True)
@@ -178,3 +178,14 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
             return st_cost, st_nor, expansions, 1, f_min
         ck, ci, cn = relax_successors(surface, ridge, passable, a, u, g, st_cost, ck, ci, cn,
                                       gr, gc, 1.0, 0.0, False)
+
+
+def _search(surface, ridge, passable, a, s, t, omega) -> Search:
+    st_cost, st_nor, expansions, status, f_min = _ra_star(
+        surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega))
+    # status 2: the ridge search reached the goal (length < omega f_min); 1: A* did (optimal)
+    return Search(st_nor if status == 2 else st_cost, expansions, status > 0,
+                  lambda length: min(f_min, length))
+
+
+RA_STAR = Planner("ra_star", _search, "the paper's RA*: most ridge first within omega * f_min")

@@ -1,4 +1,5 @@
-"""The grid graph shared by every planner, A* / Dijkstra / weighted A*, and ``plan_window``.
+"""The grid core shared by every planner: the graph, the edge cost, the heuristic, the search
+state, A*'s relaxation and search, path tracing and metrics, endpoint checks, ``Trajectory``.
 
 Graph (SPEC section 4): 8-connected over passable cells; a diagonal move only when both
 orthogonal cells it passes between are passable (no corner cutting). Edge cost: the 3-D length
@@ -10,7 +11,7 @@ at least as long as its horizontal projection).
 from __future__ import annotations
 
 import math
-import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,18 +19,7 @@ from numba import njit
 
 from .._grid8 import DC, DR
 from .._heap import heap_grow, heap_pop, heap_push
-from ..exceptions import InvalidParameterError, PipelineError
-
-PLANNERS = ("dijkstra", "astar", "wastar", "ra_star", "lagrangian")
-
-
-
-class UnreachableGoalError(PipelineError):
-    """No path joins the start and the goal through passable cells."""
-
-
-class InvalidEndpointError(PipelineError, ValueError):
-    """A start or goal is off the map or not passable."""
+from ..exceptions import InvalidEndpointError, InvalidParameterError
 
 
 @dataclass
@@ -121,7 +111,7 @@ def relax_successors(surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, g
 
 
 @njit(nogil=True, cache=True)
-def _astar(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octile=True):
+def astar_search(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octile=True):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
     No re-expansions: with a consistent heuristic, weighted A* without reopening still
@@ -159,7 +149,7 @@ def _astar(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octi
 # --------------------------------------------------------------------------- validation
 
 
-def _nearest_passable(passable: np.ndarray, cell, origin=(0, 0)) -> tuple[int, int] | None:
+def nearest_passable(passable: np.ndarray, cell, origin=(0, 0)) -> tuple[int, int] | None:
     """The passable cell of ``passable`` nearest ``cell``, or None; ``passable`` may be a window
     whose first cell is ``origin`` (cells in and out are then in map coordinates)."""
     idx = np.argwhere(passable)
@@ -181,7 +171,7 @@ def not_passable_error(name: str, r: int, c: int, near, none_hint: str) -> Inval
                                 f" {hint}")
 
 
-def _check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
+def check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
     try:
         r, c = (int(v) for v in cell)
     except (TypeError, ValueError):
@@ -190,12 +180,12 @@ def _check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
     if not (0 <= r < rows and 0 <= c < cols):
         raise off_map_error(name, r, c, passable.shape)
     if not passable[r, c]:
-        raise not_passable_error(name, r, c, _nearest_passable(passable, (r, c)),
+        raise not_passable_error(name, r, c, nearest_passable(passable, (r, c)),
                                  "no cell of the map is passable")
     return r, c
 
 
-def _check_arrays(surface, ridge, passable):
+def check_arrays(surface, ridge, passable):
     surface = np.asarray(surface)
     if surface.dtype not in (np.float32, np.float64):  # float32 maps stay float32: no copy
         surface = surface.astype(np.float64)
@@ -241,108 +231,44 @@ def trace_path(state: np.ndarray, cols: int, goal) -> np.ndarray:
     return _trace(state, cols, int(goal[0]), int(goal[1]))
 
 
-def path_steps(cells: np.ndarray, surface: np.ndarray, a: float):
-    """The 3-D length of every step of a path (step i ends at ``cells[i + 1]``)."""
-    r, c = cells[:, 0], cells[:, 1]
-    dz = np.diff(surface[r, c].astype(np.float64))
-    return np.sqrt(a * a * (np.diff(r) ** 2 + np.diff(c) ** 2) + dz * dz)
+def path_steps(cells: np.ndarray, z: np.ndarray, a: float) -> np.ndarray:
+    """The 3-D length of every step of a path (step i ends at ``cells[i + 1]``), from its cells
+    and the heights ``z`` of the surface along it: the one place path lengths are computed."""
+    d = np.diff(cells, axis=0)
+    dz = np.diff(np.asarray(z, dtype=np.float64))
+    return np.sqrt(a * a * (d[:, 0] ** 2 + d[:, 1] ** 2) + dz * dz)
 
 
-def path_metrics(cells: np.ndarray, surface: np.ndarray, ridge: np.ndarray, a: float):
-    """length, ridge length (steps whose end cell is a ridge cell), ridge ratio."""
+def path_metrics(cells: np.ndarray, z: np.ndarray, on_ridge: np.ndarray, a: float):
+    """length, ridge length (steps whose end cell is a ridge cell), ridge ratio of a path with
+    heights ``z`` and ridge flags ``on_ridge`` along it."""
     if len(cells) < 2:
         return 0.0, 0.0, 0.0
-    step = path_steps(cells, surface, a)
+    step = path_steps(cells, z, a)
     length = float(step.sum())
-    ridge_len = float(step[ridge[cells[1:, 0], cells[1:, 1]]].sum())
+    ridge_len = float(step[np.asarray(on_ridge, dtype=bool)[1:]].sum())
     return length, ridge_len, ridge_len / length if length > 0 else 0.0
 
 
-def check_planner(planner, omega, name: str = "planner") -> None:
-    """A known planner name and a finite ``omega >= 1``, or one clear error."""
-    if planner not in PLANNERS:
-        raise InvalidParameterError(f"{name} must be one of {', '.join(map(repr, PLANNERS))}, "
-                                    f"got {planner!r}")
-    if isinstance(omega, bool) or not isinstance(omega, int | float) or not omega >= 1.0 \
-            or not math.isfinite(omega):
-        raise InvalidParameterError(f"`omega` must be >= 1, got {omega}")
+# --------------------------------------------------------------------------- the registry's types
 
 
-def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
-                planner: str = "ra_star", omega: float = 2.0, x=None, y=None) -> Trajectory:
-    """Plan on one in-memory window.
+@dataclass(frozen=True)
+class Search:
+    """What a planner's search returns to :func:`pipeline.plan_window`."""
 
-    Parameters
-    ----------
-    surface : 2-D array
-        The safety surface ``S`` (metres) the vehicle flies on.
-    ridge, passable : 2-D bool arrays
-        Ridge cells and passable cells.
-    start, goal : (row, col)
-    cell_size : float
-        Metres.
-    planner : {"dijkstra", "astar", "wastar", "ra_star", "lagrangian"}
-    omega : float
-        Length bound (>= 1) for the bounded planners.
-    x, y : 1-D arrays, optional
-        Map coordinates of the columns and rows for ``points`` (default: ``col * a``,
-        ``row * a``).
+    state: np.ndarray | None  # the search state the path is traced from (``trace_path``)
+    expansions: int
+    found: bool
+    lower_bound: Callable[[float], float]  # a proven lower bound on L*, given the path length
+    extra: dict = field(default_factory=dict)
 
-    Examples
-    --------
-    >>> t = plan_window(S, rdg, ok, (5, 5), (90, 120), cell_size=30.0, planner="astar")
-    ... # doctest: +SKIP
-    """
-    check_planner(planner, omega)
-    if isinstance(cell_size, bool) or not isinstance(cell_size, int | float) \
-            or not cell_size > 0 or not math.isfinite(cell_size):
-        raise InvalidParameterError(f"`cell_size` must be a finite number > 0, got {cell_size}")
-    surface, ridge, passable = _check_arrays(surface, ridge, passable)
-    s = _check_endpoint("start", start, passable)
-    t = _check_endpoint("goal", goal, passable)
-    a = float(cell_size)
-    t0 = time.perf_counter()
-    weight = float(omega) if planner == "wastar" else 1.0
-    extra = {}
-    if planner == "ra_star":
-        from .ra_star import _ra_star
 
-        st_cost, st_nor, expansions, status, f_min = _ra_star(
-            surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega))
-        found = status > 0
-        parent = st_nor if status == 2 else st_cost
-    elif planner == "lagrangian":
-        from .lagrangian import larac
+@dataclass(frozen=True)
+class Planner:
+    """A planner of the registry: ``search(surface, ridge, passable, a, start, goal, omega)``
+    returns a :class:`Search`."""
 
-        parent, expansions, found, extra = larac(surface, ridge, passable, a, s, t,
-                                                 float(omega))
-        f_min = extra.get("optimum_m", 0.0)
-    else:
-        parent, _, expansions, found = _astar(surface, ridge, passable, a, s[0], s[1], t[0],
-                                              t[1], 0.0 if planner == "dijkstra" else weight,
-                                              0.0)
-    runtime = time.perf_counter() - t0
-    if not found:
-        raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
-                                   "cells: they lie in separate regions")
-    cells = trace_path(parent, surface.shape[1], t)
-    length, ridge_len, ratio = path_metrics(cells, surface, ridge, a)
-    # proven lower bounds on L*: A* (tie-broken) is within 1 + TIE of it, weighted A* within
-    # omega (1 + TIE); RA*'s f_min; the Lagrangian's first search is A*; and the octile distance
-    h0 = heuristic(a, s[0], s[1], t[0], t[1], True)
-    if planner in ("astar", "dijkstra"):
-        lower = length / (1.0 + TIE)
-    elif planner == "ra_star":
-        lower = min(f_min, length)
-    elif planner == "lagrangian":
-        lower = f_min / (1.0 + TIE)
-    else:
-        lower = length / (weight * (1.0 + TIE))
-    lower = max(lower, h0)
-    xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
-    ys = np.asarray(y, dtype=np.float64) if y is not None else np.arange(surface.shape[0]) * a
-    points = np.column_stack([xs[cells[:, 1]], ys[cells[:, 0]],
-                              surface[cells[:, 0], cells[:, 1]]])
-    return Trajectory(cells=cells, points=points, length_m=length, ridge_length_m=ridge_len,
-                      ridge_ratio=ratio, lower_bound_m=float(lower), expansions=int(expansions),
-                      runtime_s=runtime, planner=planner, omega=float(omega), extra=extra)
+    name: str
+    search: Callable[..., Search]
+    summary: str

@@ -1,0 +1,158 @@
+"""Where dask work runs: the one place that turns what a user gives (nothing, a scheduler
+address, a scheduler file, a ``distributed.Client``, ``"synchronous"``) into a client.
+
+- :func:`get_client` serves the planning functions: the current default client if there is
+  one, else a LocalCluster of 2 single-threaded workers started once per process (closed at
+  exit, or by :func:`shutdown`); an address is connected once per process.
+- :func:`session` serves jobs and the command line: a client for the duration of a ``with``
+  block, the default client meanwhile, closed (with its LocalCluster) at the end.
+
+Both build a LocalCluster with :func:`local_cluster` and reach a scheduler with
+:func:`connect`, so the errors are the same everywhere.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import socket
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+from .exceptions import InvalidParameterError, SchedulerError
+
+LOCAL_WORKERS = 2
+DASHBOARD_PORT = 8787
+
+
+def local_cluster(dashboard_address: str = ":0"):
+    """A LocalCluster of 2 single-threaded worker processes (the default everywhere)."""
+    from distributed import LocalCluster
+
+    return LocalCluster(n_workers=LOCAL_WORKERS, threads_per_worker=1, processes=True,
+                        dashboard_address=dashboard_address)
+
+
+def connect(address: str, *, timeout: float = 30, set_as_default: bool = False):
+    """A client of the scheduler at ``address``, or one :class:`SchedulerError`."""
+    from distributed import Client
+
+    try:
+        return Client(address, timeout=timeout, set_as_default=set_as_default)
+    except (OSError, ValueError, TypeError) as exc:
+        raise SchedulerError(f"cannot reach the dask scheduler at {address}: {exc}; start it "
+                             "(`dask scheduler`) or give no scheduler to use a local "
+                             "cluster") from None
+
+
+def address_of(scheduler_file) -> str:
+    """The scheduler address written in a dask scheduler file (JSON)."""
+    try:
+        address = json.loads(Path(scheduler_file).read_text())["address"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SchedulerError(f"cannot read the scheduler address from {scheduler_file}: "
+                             f"{exc}; give the file `dask scheduler --scheduler-file` "
+                             "wrote") from None
+    if not isinstance(address, str):
+        raise SchedulerError(f"{scheduler_file} holds no scheduler address; give the file "
+                             "`dask scheduler --scheduler-file` wrote")
+    return address
+
+
+def _free_dashboard_address() -> str:
+    """Port 8787 on loopback when free, else any free port (loopback only: a dashboard is
+    served to the machine it runs on unless asked otherwise)."""
+    with socket.socket() as sk:
+        busy = sk.connect_ex(("127.0.0.1", DASHBOARD_PORT)) == 0
+    return "127.0.0.1:0" if busy else f"127.0.0.1:{DASHBOARD_PORT}"
+
+
+# --------------------------------------------------------------------------- per process
+
+_LOCAL: dict = {}
+_LOCAL_LOCK = threading.Lock()
+
+
+def shutdown() -> None:
+    """Close the clients and the local cluster that :func:`get_client` started in this
+    process (it also runs at exit)."""
+    with _LOCAL_LOCK:
+        items = list(_LOCAL.items())
+        _LOCAL.clear()
+    for _, x in sorted(items, key=lambda kv: kv[0] == "cluster"):  # clients first
+        try:
+            x.close()
+        except Exception:  # noqa: BLE001 - closing: nothing left to report to
+            pass
+
+
+def get_client(client=None):
+    """The cluster to plan on: ``"synchronous"`` (in this process), a ``distributed.Client``,
+    a scheduler address, or None: the current default client if there is one, else a
+    LocalCluster of 2 single-threaded workers started once per process."""
+    if isinstance(client, str) and client == "synchronous":
+        return "synchronous"
+    from distributed import Client
+
+    if isinstance(client, Client):
+        return client
+    if isinstance(client, str):
+        with _LOCAL_LOCK:
+            c = _LOCAL.get(("addr", client))
+            if c is None:
+                c = connect(client, timeout=10)
+                _LOCAL[("addr", client)] = c
+            return c
+    if client is not None:
+        raise InvalidParameterError("`client` must be None, 'synchronous', a scheduler address "
+                                    f"or a distributed.Client, got {type(client).__name__}")
+    try:
+        from distributed import get_client as current
+
+        return current()
+    except ValueError:
+        pass
+    with _LOCAL_LOCK:
+        if "client" not in _LOCAL:
+            cluster = local_cluster()
+            _LOCAL["cluster"] = cluster
+            _LOCAL["client"] = Client(cluster, set_as_default=False)
+            atexit.register(shutdown)
+        return _LOCAL["client"]
+
+
+# --------------------------------------------------------------------------- per job
+
+
+@contextmanager
+def session(scheduler=None, scheduler_file=None):
+    """A client for a job or a command: ``scheduler`` (an address or a ``Client``, used as it
+    is and left open), the scheduler named in ``scheduler_file``, or a new LocalCluster of 2
+    single-threaded workers (dashboard on loopback, port 8787 when free). The client is the
+    default client inside the block, in every thread."""
+    from distributed import Client
+
+    if scheduler is not None and scheduler_file is not None:
+        raise InvalidParameterError("give a scheduler address or a scheduler file, not both")
+    if scheduler_file is not None:
+        scheduler = address_of(scheduler_file)
+    if isinstance(scheduler, Client):
+        import dask
+
+        # the default for dask collections in every thread (missions plan in threads)
+        with scheduler.as_current(), dask.config.set(scheduler=scheduler):
+            yield scheduler
+        return
+    cluster = None
+    if scheduler:
+        client = connect(scheduler, set_as_default=True)
+    else:
+        cluster = local_cluster(_free_dashboard_address())
+        client = Client(cluster)
+    try:
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,244 @@
+"""The parameter schema: every user-facing parameter once, with its default, bounds, unit and
+help text.
+
+The library's argument checks, the job-file loader (so ``--dry-run`` refuses whatever a run
+would refuse, with the same message) and the command line's options and ``--help`` texts all
+read these tables. A check names the parameter as its caller knows it: ``` `clearance` ``` in
+the library, ``maps.clearance`` in a job file.
+
+Planner names are not listed here: the planner registry (:mod:`pipeline.planners.registry`)
+owns them, and :func:`check_planner` asks it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from numbers import Integral, Real
+from typing import Any
+
+from .exceptions import InvalidParameterError
+
+DEFAULT_CHUNK = 1024
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: its kind (``"float"``, ``"int"``, ``"bool"``, ``"choice"``, ``"str"``),
+    default (None: derived from other values, see the help), bounds and unit."""
+
+    name: str
+    kind: str
+    default: Any
+    help: str
+    unit: str = ""
+    minimum: float | None = None  # inclusive
+    above: float | None = None  # exclusive
+    maximum: float | None = None  # inclusive
+    choices: tuple | Callable[[], tuple] = ()  # a callable: asked when needed (registries)
+
+    def options(self) -> tuple:
+        """The valid values of a choice."""
+        return self.choices() if callable(self.choices) else self.choices
+
+    def describe(self) -> str:
+        """What a valid value is, in words (the middle of every error message)."""
+        if self.kind == "bool":
+            return "true or false"
+        if self.kind == "str":
+            return "a string"
+        if self.kind == "choice":
+            names = [repr(c) for c in self.options()]
+            return (", ".join(names[:-1]) + " or " + names[-1]) if len(names) > 1 else names[0]
+        what = "an integer" if self.kind == "int" else "a finite number"
+        if self.unit and self.kind == "float":
+            what += f" of {self.unit}"
+        if self.minimum is not None and self.maximum is not None:
+            return f"{what} from {_fmt(self.minimum)} to {_fmt(self.maximum)}"
+        if self.minimum is not None:
+            what += f" >= {_fmt(self.minimum)}"
+        if self.above is not None:
+            what += f" > {_fmt(self.above)}"
+        if self.maximum is not None:
+            what += f" <= {_fmt(self.maximum)}"
+        return what
+
+    def check(self, value, label: str | None = None):
+        """``value`` normalised (an int, a float, a bool, a str), or one
+        :class:`InvalidParameterError` that names ``label`` (default ``` `name` ```)."""
+        label = label or f"`{self.name}`"
+
+        def bad():
+            return InvalidParameterError(f"{label} must be {self.describe()}, got {value!r}")
+
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise bad()
+            return value
+        if self.kind == "str":
+            if not isinstance(value, str) or not value:
+                raise bad()
+            return value
+        if self.kind == "choice":
+            if not isinstance(value, str) or value not in self.options():
+                raise bad()
+            return value
+        if isinstance(value, bool) or not isinstance(value, Integral if self.kind == "int"
+                                                     else Real):
+            raise bad()
+        v = int(value) if self.kind == "int" else float(value)
+        if self.kind == "float" and not math.isfinite(v):
+            raise bad()
+        if ((self.minimum is not None and v < self.minimum)
+                or (self.above is not None and v <= self.above)
+                or (self.maximum is not None and v > self.maximum)):
+            raise bad()
+        return v
+
+    def check_optional(self, value, label: str | None = None):
+        """As :meth:`check`, with None passed through (a default derived later)."""
+        return None if value is None else self.check(value, label)
+
+    def option_help(self) -> str:
+        """The help text of the command-line option (the unit, then the help)."""
+        return f"{self.help} ({self.unit})" if self.unit else self.help
+
+
+def _fmt(v) -> str:
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+class Schema:
+    """The parameters of one stage, by name (``MAPS.clearance``, ``MAPS["clearance"]``)."""
+
+    def __init__(self, title: str, *params: Param):
+        self.title = title
+        self._params = {p.name: p for p in params}
+
+    def __getattr__(self, name: str) -> Param:
+        try:
+            return self.__dict__["_params"][name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __getitem__(self, name: str) -> Param:
+        return self._params[name]
+
+    def __iter__(self):
+        return iter(self._params.values())
+
+    def __contains__(self, name) -> bool:
+        return name in self._params
+
+    def names(self) -> set[str]:
+        return set(self._params)
+
+    def defaults(self) -> dict:
+        return {p.name: p.default for p in self if p.default is not None}
+
+    def check(self, values: dict, where: str = "") -> dict:
+        """Every value of ``values`` checked (None kept: derived later); ``where`` prefixes the
+        names in messages (``"maps."``)."""
+        out = {}
+        for k, v in values.items():
+            out[k] = self[k].check_optional(v, f"{where}{k}" if where else None)
+        return out
+
+
+METHODS = ("vertical", "horizontal", "spherical")
+
+CELL_SIZE = Param("cell_size", "float", None, "cell side", "metres", above=0)
+
+SYNTHETIC = Schema(
+    "the generated seabed (synthetic_dem, [dem.synthetic])",
+    Param("cell_size", "float", 30.0, "cell side", "metres", above=0),
+    Param("seed", "int", 0, "random seed of the scene", minimum=0),
+    Param("islands", "int", 2, "islands breaking the surface", minimum=0, maximum=10),
+)
+
+DEM = Schema(
+    "DEM input (open_dem, [dem])",
+    Param("chunks", "int", DEFAULT_CHUNK, "chunk side of the Zarr stores", "cells", minimum=1),
+    Param("variable", "str", None, "variable to read from a NetCDF or Zarr file"),
+    Param("cell_size", "float", None, "cell side of a grid without coordinates", "metres",
+          above=0),
+    Param("resolution", "float", None, "resample to square cells of this side", "metres",
+          above=0),
+)
+
+MAPS = Schema(
+    "safety and ridge maps (build_maps, [maps])",
+    Param("method", "choice", "spherical", "how the clearance is measured: 3-D (a sphere), "
+          "horizontally (a disc) or vertically", choices=METHODS),
+    Param("clearance", "float", 300.0, "R, the clearance kept from the terrain", "metres",
+          above=0),
+    Param("horizontal_clearance", "float", None, "R_h of the horizontal method; default R",
+          "metres", above=0),
+    Param("sea_level", "float", 0.0, "the sea surface", "metres"),
+    Param("surface_clearance", "float", None, "depth the safety surface stays below sea level;"
+          " default R", "metres", minimum=0),
+    Param("min_accumulation", "int", None, "ridge threshold: accumulation of at least this "
+          "many cells; default a 1 km^2 area", "cells", minimum=1),
+)
+
+def _planner_names() -> tuple:
+    from .planners.registry import PLANNERS
+
+    return tuple(PLANNERS)
+
+
+PLANNING = Schema(
+    "planning (plan, [planning], per mission)",
+    Param("planner", "choice", "ra_star", "planner of every section", choices=_planner_names),
+    Param("omega", "float", 2.0, "length bound: length <= omega * shortest", minimum=1),
+    Param("mcpc", "bool", True, "coarse to fine (MCPC); false plans the whole map in one "
+          "window"),
+    Param("rho", "int", None, "compression factor; default max(2, ceil(side / 1000))", "cells",
+          minimum=1),
+    Param("section_size", "int", None, "section side; default about 3 km", "cells", minimum=2),
+    Param("margin", "int", None, "window margin round a section; default section_size / 4",
+          "cells", minimum=0),
+    Param("coarse_planner", "choice", "astar", "planner of the coarse path",
+          choices=_planner_names),
+)
+
+
+def check_planner(planner, omega, name: str = "planner") -> tuple[str, float]:
+    """A registered planner name and a finite ``omega >= 1``, or one clear error."""
+    PLANNING.planner.check(planner, f"`{name}`")
+    return planner, PLANNING.omega.check(omega)
+
+
+def shape2d(name: str, value, *, minimum: int = 2, label: str | None = None
+            ) -> tuple[int, int]:
+    """A (rows, cols) pair of integers >= ``minimum`` (a map has at least 2 x 2 cells)."""
+    try:
+        rows, cols = value
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"{label or f'`{name}`'} must be a pair (rows, cols), got "
+                                    f"{value!r}") from None
+    side = Param(name, "int", None, "", minimum=minimum)
+    lab = (lambda i, what: f"{label}[{i}] ({what})") if label else (
+        lambda i, what: f"`{name}[{i}] ({what})`")
+    return side.check(rows, lab(0, "rows")), side.check(cols, lab(1, "cols"))
+
+
+def chunks2d(value, shape: tuple[int, int]) -> tuple[int, int] | None:
+    """Normalise ``chunks`` (None, an int, or a (rows, cols) pair) to a pair of chunk sides."""
+    if value is None:
+        return None
+    if isinstance(value, Integral) and not isinstance(value, bool):
+        pair = (value, value)
+    else:
+        try:
+            pair = tuple(value)
+        except TypeError:
+            pair = ()
+        if len(pair) != 2:
+            raise InvalidParameterError(
+                f"`chunks` must be None, an integer or a (rows, cols) pair, got {value!r}")
+    side = DEM.chunks
+    r = side.check(pair[0], "`chunks[0]`")
+    c = side.check(pair[1], "`chunks[1]`")
+    return min(r, shape[0]), min(c, shape[1])

@@ -1,0 +1,23 @@
+"""Dijkstra, A* and weighted A* (SPEC section 5): the grid core's A* search with weight 0, 1
+and ``omega`` on the octile heuristic, ties broken towards the goal."""
+
+from __future__ import annotations
+
+from .core import TIE, Planner, Search, astar_search
+
+
+def _weighted(weight_of):
+    def search(surface, ridge, passable, a, s, t, omega) -> Search:
+        weight = weight_of(omega)
+        state, _, expansions, found = astar_search(surface, ridge, passable, a, s[0], s[1],
+                                                   t[0], t[1], weight, 0.0)
+        # A* (tie-broken) is within 1 + TIE of L*, weighted A* within omega (1 + TIE)
+        w = max(weight, 1.0)
+        return Search(state, expansions, found, lambda length: length / (w * (1.0 + TIE)))
+
+    return search
+
+
+DIJKSTRA = Planner("dijkstra", _weighted(lambda omega: 0.0), "optimal, no heuristic")
+ASTAR = Planner("astar", _weighted(lambda omega: 1.0), "optimal, octile heuristic")
+WASTAR = Planner("wastar", _weighted(float), "weighted A*: length <= omega * L*")

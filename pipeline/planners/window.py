@@ -1,0 +1,72 @@
+"""``plan_window``: any registered planner on one in-memory window."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..exceptions import UnreachableGoalError
+from ..params import CELL_SIZE, PLANNING, check_planner
+from .core import (
+    Trajectory,
+    check_arrays,
+    check_endpoint,
+    heuristic,
+    path_metrics,
+    trace_path,
+)
+from .registry import PLANNERS
+
+
+def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
+                planner: str = PLANNING.planner.default, omega: float = PLANNING.omega.default,
+                x=None, y=None) -> Trajectory:
+    """Plan on one in-memory window.
+
+    Parameters
+    ----------
+    surface : 2-D array
+        The safety surface ``S`` (metres) the vehicle flies on.
+    ridge, passable : 2-D bool arrays
+        Ridge cells and passable cells.
+    start, goal : (row, col)
+    cell_size : float
+        Metres.
+    planner : str
+        A name of the registry (:data:`pipeline.planners.PLANNERS`): ``"dijkstra"``,
+        ``"astar"``, ``"wastar"``, ``"ra_star"``, ``"lagrangian"``.
+    omega : float
+        Length bound (>= 1) for the bounded planners.
+    x, y : 1-D arrays, optional
+        Map coordinates of the columns and rows for ``points`` (default: ``col * a``,
+        ``row * a``).
+
+    Examples
+    --------
+    >>> t = plan_window(S, rdg, ok, (5, 5), (90, 120), cell_size=30.0, planner="astar")
+    ... # doctest: +SKIP
+    """
+    planner, omega = check_planner(planner, omega)
+    a = CELL_SIZE.check(cell_size)
+    surface, ridge, passable = check_arrays(surface, ridge, passable)
+    s = check_endpoint("start", start, passable)
+    t = check_endpoint("goal", goal, passable)
+    t0 = time.perf_counter()
+    search = PLANNERS[planner].search(surface, ridge, passable, a, s, t, omega)
+    runtime = time.perf_counter() - t0
+    if not search.found:
+        raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
+                                   "cells: they lie in separate regions")
+    cells = trace_path(search.state, surface.shape[1], t)
+    z = surface[cells[:, 0], cells[:, 1]]
+    length, ridge_len, ratio = path_metrics(cells, z, ridge[cells[:, 0], cells[:, 1]], a)
+    # the planner's proven bound, or the octile distance when that is larger
+    lower = max(search.lower_bound(length), heuristic(a, s[0], s[1], t[0], t[1], True))
+    xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
+    ys = np.asarray(y, dtype=np.float64) if y is not None else np.arange(surface.shape[0]) * a
+    points = np.column_stack([xs[cells[:, 1]], ys[cells[:, 0]], z])
+    return Trajectory(cells=cells, points=points, length_m=length, ridge_length_m=ridge_len,
+                      ridge_ratio=ratio, lower_bound_m=float(lower),
+                      expansions=int(search.expansions),
+                      runtime_s=runtime, planner=planner, omega=float(omega), extra=search.extra)

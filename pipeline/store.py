@@ -1,0 +1,265 @@
+"""The maps store as the planners see it: ``MapsStore``, its window reads through a per-process
+chunk cache, its coarse (compressed) maps, and the conversion of map or lon/lat coordinates to
+cells.
+
+A ``MapsStore`` pickles as its path, so a dask task receives it cheaply and reopens it on the
+worker, where :func:`open_store` keeps one per store and process (and the chunks it decoded,
+``AUV_PIPELINE_CHUNK_CACHE_MB``, 1 GiB by default).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import threading
+import uuid
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
+from .params import PLANNING
+
+MAPS_VERSION = 1
+COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine cells are
+
+
+class ChunkCache:
+    """Decoded Zarr chunks of the maps stores this process has read (LRU, bounded in bytes).
+
+    Sections of one mission, and missions on one map, read overlapping windows: each worker
+    decodes a chunk once and keeps it while it fits in the budget."""
+
+    def __init__(self, budget: int):
+        self.budget = budget
+        self.used = 0
+        self.items: OrderedDict = OrderedDict()
+        self.arrays: dict = {}
+        self.lock = threading.Lock()
+
+    def array(self, store: str, var: str):
+        key = (store, var)
+        arr = self.arrays.get(key)
+        if arr is None:
+            import zarr
+
+            arr = zarr.open_array(os.path.join(store, var), mode="r")
+            self.arrays[key] = arr
+        return arr
+
+    def chunk(self, store: str, var: str, ci: int, cj: int) -> np.ndarray:
+        key = (store, var, ci, cj)
+        with self.lock:
+            got = self.items.get(key)
+            if got is not None:
+                self.items.move_to_end(key)
+                return got
+        arr = self.array(store, var)
+        ch, cw = arr.chunks
+        block = arr[ci * ch:(ci + 1) * ch, cj * cw:(cj + 1) * cw]
+        with self.lock:
+            self.items[key] = block
+            self.used += block.nbytes
+            while self.used > self.budget and len(self.items) > 1:
+                _, old = self.items.popitem(last=False)
+                self.used -= old.nbytes
+        return block
+
+    def window(self, store: str, var: str, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        arr = self.array(store, var)
+        ch, cw = arr.chunks
+        out = np.empty((r1 - r0, c1 - c0), dtype=arr.dtype)
+        for ci in range(r0 // ch, (r1 - 1) // ch + 1):
+            for cj in range(c0 // cw, (c1 - 1) // cw + 1):
+                blk = self.chunk(store, var, ci, cj)
+                br0, bc0 = ci * ch, cj * cw
+                a0, a1 = max(r0, br0), min(r1, br0 + blk.shape[0])
+                b0, b1 = max(c0, bc0), min(c1, bc0 + blk.shape[1])
+                out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = blk[a0 - br0:a1 - br0, b0 - bc0:b1 - bc0]
+        return out
+
+    def clear(self) -> None:
+        with self.lock:
+            self.items.clear()
+            self.arrays.clear()
+            self.used = 0
+
+
+CACHE = ChunkCache(int(os.environ.get("AUV_PIPELINE_CHUNK_CACHE_MB", "1024")) * 2**20)
+
+
+class MapsStore:
+    """A maps store (:func:`pipeline.build_maps`): shape, cell size, coordinates, CRS and
+    parameters, windows of its layers, its coarse maps, cells of map or lon/lat coordinates.
+
+    Open it with :func:`open_store` (one per store and process)."""
+
+    def __init__(self, path: str | os.PathLike):
+        import zarr
+
+        path = Path(path)
+        _require_store(path)
+        group = zarr.open_group(path, mode="r")
+        attrs = dict(group.attrs)
+        _require_version(path, attrs)
+        self.path = str(path.resolve())
+        params = attrs.get("parameters")
+        self.parameters = json.loads(params) if isinstance(params, str) else params
+        self.crs_wkt = attrs.get("crs_wkt")
+        self.shape = tuple(int(v) for v in group["safety"].shape)
+        self.cell_size = float(attrs["cell_size"])
+        self.x = np.asarray(group["x"][:], dtype=np.float64)
+        self.y = np.asarray(group["y"][:], dtype=np.float64)
+        self._dataset = None
+        self._coarse: dict = {}
+        self._lock = threading.Lock()
+
+    def __reduce__(self):
+        return open_store, (self.path,)
+
+    def __repr__(self) -> str:
+        return f"MapsStore({self.path!r}, shape={self.shape}, cell_size={self.cell_size:g})"
+
+    @property
+    def dataset(self):
+        """The store as a lazy ``xarray.Dataset`` (:func:`open_maps`)."""
+        if self._dataset is None:
+            self._dataset = open_maps(self.path)
+        return self._dataset
+
+    def window(self, var: str, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Rows ``r0:r1`` and columns ``c0:c1`` of layer ``var``, through the chunk cache."""
+        return CACHE.window(self.path, var, r0, r1, c0, c1)
+
+    def coarse(self, rho: int) -> dict:
+        """The maps compressed by ``rho`` (SPEC section 6 step 1), as numpy arrays.
+
+        ``safety`` is the block mean of the finite fine values, ``ridge`` the fraction of ridge
+        cells, ``passable`` true where at least half the fine cells are passable (and the mean
+        is finite). Blocks at the right and bottom edges may be partial. The result is written
+        once into the store (group ``coarse-rho{rho}``) and read from there afterwards, so that
+        many missions and processes share it.
+        """
+        import xarray as xr
+
+        rho = PLANNING.rho.check(rho)
+        with self._lock:
+            got = self._coarse.get(rho)
+        if got is not None:
+            return got
+        group = Path(self.path) / f"coarse-rho{rho}"
+        if not (group / "zarr.json").exists():
+            ds = self.dataset[["safety", "ridge", "passable"]]
+            cs = ds.astype("float32").coarsen(y=rho, x=rho, boundary="pad").mean()
+            out = xr.Dataset({
+                "safety": cs["safety"].astype("float32"),
+                "ridge": cs["ridge"].astype("float32"),
+                "passable": (cs["passable"] >= 0.5) & np.isfinite(cs["safety"]),
+            }).compute()
+            out.attrs.update(rho=rho, source="block means of the fine maps (SPEC section 6)")
+            tmp = Path(self.path) / f".coarse-rho{rho}.tmp-{uuid.uuid4().hex[:8]}"
+            out.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
+            try:
+                os.rename(tmp, group)
+            except OSError:  # another process wrote it first: keep theirs
+                shutil.rmtree(tmp, ignore_errors=True)
+        ds = xr.open_zarr(self.path, group=f"coarse-rho{rho}", consolidated=False).load()
+        res = {"safety": ds["safety"].values, "ridge": ds["ridge"].values,
+               "passable": ds["passable"].values.astype(bool)}
+        with self._lock:
+            self._coarse[rho] = res
+        return res
+
+    def cell_of(self, name: str, form: str, value) -> tuple[int, int]:
+        """The cell of a point given as a cell (``form="cell"``), map coordinates (``"xy"``) or
+        lon/lat (``"lonlat"``, the DEM needs a CRS); ``name`` (start, goal) goes into errors."""
+        if form == "cell":
+            return int(value[0]), int(value[1])
+        x, y = float(value[0]), float(value[1])
+        if form == "lonlat":
+            if not self.crs_wkt:
+                raise InvalidParameterError(
+                    f"{name}_lonlat {value} given, but the DEM has no coordinate reference "
+                    f"system; give {name} as a cell or in map coordinates ({name}_xy)")
+            from pyproj import CRS, Transformer
+
+            tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(self.crs_wkt), always_xy=True)
+            x, y = tr.transform(x, y)
+        elif form != "xy":
+            raise InvalidParameterError(f"unknown form {form!r} of {name}: 'cell', 'xy' or "
+                                        "'lonlat'")
+        xs, ys, a = self.x, self.y, self.cell_size
+        col = int(round((x - xs[0]) / (xs[1] - xs[0])))
+        row = int(round((y - ys[0]) / (ys[1] - ys[0])))
+        if not (0 <= row < len(ys) and 0 <= col < len(xs)):
+            raise InvalidEndpointError(
+                f"{name} {value} ({form}) is off the map: x spans "
+                f"{min(xs[0], xs[-1]) - a / 2:.1f} to {max(xs[0], xs[-1]) + a / 2:.1f}, y "
+                f"{min(ys[0], ys[-1]) - a / 2:.1f} to {max(ys[0], ys[-1]) + a / 2:.1f}")
+        return row, col
+
+
+def _require_store(path: Path) -> None:
+    if not (path / "zarr.json").is_file():
+        what = "is not a Zarr store" if path.exists() else "does not exist"
+        raise PipelineError(f"maps store {path} {what}; build it with pipeline.build_maps or "
+                            "`pipeline build-maps`")
+
+
+def _require_version(path: Path, attrs) -> None:
+    if attrs.get("maps_version") != MAPS_VERSION:
+        raise InvalidParameterError(f"{path} is not a maps store of this version "
+                                    f"(maps_version={attrs.get('maps_version')!r}); rebuild it")
+
+
+_STORES: dict = {}
+_STORES_LOCK = threading.Lock()
+
+
+def open_store(maps) -> MapsStore:
+    """The :class:`MapsStore` of a path, of a Dataset from :func:`open_maps`, or ``maps``
+    itself; one per store and process while the store is unchanged."""
+    import xarray as xr
+
+    if isinstance(maps, MapsStore):
+        return maps
+    if isinstance(maps, xr.Dataset):
+        path = maps.attrs.get("store")
+        if not path:
+            raise InvalidParameterError("`maps` must be a maps store path, a MapsStore or a "
+                                        "Dataset from pipeline.open_maps (planning reads "
+                                        "windows from the store)")
+        maps = path
+    if not isinstance(maps, str | os.PathLike):
+        raise InvalidParameterError("`maps` must be a maps store path, a MapsStore or a Dataset"
+                                    f" from pipeline.open_maps, got {type(maps).__name__}")
+    p = Path(maps).resolve()
+    try:
+        stamp = (p / "zarr.json").stat().st_mtime_ns
+    except OSError:
+        return MapsStore(maps)  # it says what is wrong
+    with _STORES_LOCK:
+        got = _STORES.get(p)
+    if got is None or got[0] != stamp:
+        got = (stamp, MapsStore(p))
+        with _STORES_LOCK:
+            _STORES[p] = got
+    return got[1]
+
+
+def open_maps(store: str | os.PathLike, chunks="store"):
+    """Open a maps store lazily as an ``xarray.Dataset``; ``chunks="store"`` keeps the store's
+    own chunks. ``attrs["store"]`` holds its path, so :func:`pipeline.plan` accepts the
+    Dataset too."""
+    import xarray as xr
+
+    store = Path(store)
+    _require_store(store)
+    ds = xr.open_zarr(store, consolidated=False, chunks={} if chunks == "store" else chunks)
+    _require_version(store, ds.attrs)
+    ds.attrs["store"] = str(store.resolve())
+    ds.attrs["parameters"] = json.loads(ds.attrs["parameters"]) \
+        if isinstance(ds.attrs.get("parameters"), str) else ds.attrs.get("parameters")
+    return ds

@@ -1,0 +1,53 @@
+"""The code's shape: no module reaches into another module's private names."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+
+
+def _private_uses(source: str, package: tuple):
+    """(line, what) for every private name of another pipeline module that ``source`` (a
+    module of ``package``, e.g. ``("pipeline", "planners")``) uses: ``from pipeline.x import
+    _y`` (or relative), and ``pipeline.x._y``."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = list(package[:len(package) - node.level + 1])
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            if module.split(".")[0] != "pipeline":
+                continue
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__"):
+                    yield node.lineno, f"from {module} import {alias.name}"
+        elif isinstance(node, ast.Attribute) and node.attr.startswith("_") \
+                and not node.attr.startswith("__"):
+            chain = node.value
+            while isinstance(chain, ast.Attribute):
+                chain = chain.value
+            if isinstance(chain, ast.Name) and chain.id == "pipeline":
+                yield node.lineno, ast.unparse(node)
+
+
+FILES = sorted(p for d in ("pipeline", "tests", "benchmarks") for p in (ROOT / d).rglob("*.py"))
+
+
+@pytest.mark.parametrize("path", FILES, ids=[str(p.relative_to(ROOT)) for p in FILES])
+def test_no_private_name_of_another_module(path):
+    uses = list(_private_uses(path.read_text(), path.parent.relative_to(ROOT).parts))
+    assert not uses, f"{path.relative_to(ROOT)} uses private names: {uses}"
+
+
+def test_the_check_sees_private_names():
+    src = ("from ..mcpc import _grow\nfrom .core import _trace, Search\nimport pipeline\n"
+           "pipeline.store._STORES\nfrom numpy import _core\n")
+    assert [w for _, w in _private_uses(src, ("pipeline", "planners"))] == [
+        "from pipeline.mcpc import _grow", "from pipeline.planners.core import _trace",
+        "pipeline.store._STORES"]
