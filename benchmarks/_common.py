@@ -15,9 +15,23 @@ HERE = Path(__file__).resolve().parent
 OUT = HERE / "out"
 
 
-LIBRARIES = ("numpy", "numba", "scipy", "dask", "distributed", "xarray", "zarr", "rasterio",
-             "rioxarray", "pystac", "geopandas", "matplotlib", "pyastar2d", "scikit-image",
-             "pysheds")
+LIBRARIES = (
+    "numpy",
+    "numba",
+    "scipy",
+    "dask",
+    "distributed",
+    "xarray",
+    "zarr",
+    "rasterio",
+    "rioxarray",
+    "pystac",
+    "geopandas",
+    "matplotlib",
+    "pyastar2d",
+    "scikit-image",
+    "pysheds",
+)
 
 
 def machine_info() -> dict:
@@ -37,15 +51,23 @@ def machine_info() -> dict:
             libs[p] = metadata.version(p)
         except metadata.PackageNotFoundError:
             libs[p] = "missing"
-    return dict(cores=os.cpu_count(), cpu=cpu, memory_gib=round(mem), os=platform.platform(),
-                python=platform.python_version(), libs=libs)
+    return dict(
+        cores=os.cpu_count(),
+        cpu=cpu,
+        memory_gib=round(mem),
+        os=platform.platform(),
+        python=platform.python_version(),
+        libs=libs,
+    )
 
 
 def machine() -> str:
     m = machine_info()
     libs = ", ".join(f"{k} {v}" for k, v in m["libs"].items())
-    return (f"{m['cores']} cores ({m['cpu']}), {m['memory_gib']} GiB, Python {m['python']}, "
-            f"{libs}; {time.strftime('%Y-%m-%d')}")
+    return (
+        f"{m['cores']} cores ({m['cpu']}), {m['memory_gib']} GiB, Python {m['python']}, "
+        f"{libs}; {time.strftime('%Y-%m-%d')}"
+    )
 
 
 def run_job_timed(job: Path) -> dict:
@@ -57,15 +79,18 @@ def run_job_timed(job: Path) -> dict:
     from pipeline.jobs import load_job
 
     shutil.rmtree(HERE.parent / load_job(job).catalog, ignore_errors=True)
-    cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "pipeline"), "run",
-           str(job)]
+    cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "pipeline"), "run", str(job)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=HERE.parent)
     wall = time.perf_counter() - t0
     peak = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
-    return dict(exit=proc.returncode, wall_s=wall,
-                client_peak_gib=int(peak.group(1)) / 2**20 if peak else float("nan"),
-                log=proc.stderr, summary=(proc.stdout.strip().splitlines() or ["-"])[-1])
+    return dict(
+        exit=proc.returncode,
+        wall_s=wall,
+        client_peak_gib=int(peak.group(1)) / 2**20 if peak else float("nan"),
+        log=proc.stderr,
+        summary=(proc.stdout.strip().splitlines() or ["-"])[-1],
+    )
 
 
 _WRAP = """
@@ -86,8 +111,13 @@ def run_isolated(code: str, *, timeout: float = 1800) -> dict:
     ``peak_rss_children_gib``, the largest of its child processes (dask workers), as the
     kernel counts them (ru_maxrss).
     """
-    proc = subprocess.run([sys.executable, "-c", _WRAP.format(code=code)], capture_output=True,
-                          text=True, timeout=timeout, cwd=HERE.parent)
+    proc = subprocess.run(
+        [sys.executable, "-c", _WRAP.format(code=code)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=HERE.parent,
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark child failed:\n{proc.stderr[-4000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -132,10 +162,17 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
                         min_accumulation={min_accumulation}, chunks=1024)"""
     # up to 5000^2 dask's threads in one process are quickest (no cluster to start); larger maps
     # are built the way a job builds them, by a LocalCluster of 2 single-threaded workers
-    code = ("import dask, pipeline\nfrom distributed import Client, LocalCluster\n"
-            + ("with dask.config.set(scheduler='threads', num_workers=2):" if n <= 5000 else
-               "with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) "
-               "as cl, Client(cl):") + build + "\nresult = {}\n")
+    code = (
+        "import dask, pipeline\nfrom distributed import Client, LocalCluster\n"
+        + (
+            "with dask.config.set(scheduler='threads', num_workers=2):"
+            if n <= 5000
+            else "with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) "
+            "as cl, Client(cl):"
+        )
+        + build
+        + "\nresult = {}\n"
+    )
     OUT.mkdir(exist_ok=True)
     print(f"building {store.name} (once) ...", flush=True)
     run_isolated(code, timeout=7200)

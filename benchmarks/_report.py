@@ -90,17 +90,25 @@ class Report:
         rel = os.path.relpath(png, HERE)
         self._add(f"![{caption}]({rel})\n\n*{caption}* (`{os.path.relpath(png, ROOT)}`)\n")
 
-    def headline(self, key: str, order: int, what: str, ours: str, paper: str = "",
-                 peer: str = "", target: str = "") -> None:
+    def headline(
+        self,
+        key: str,
+        order: int,
+        what: str,
+        ours: str,
+        paper: str = "",
+        peer: str = "",
+        target: str = "",
+    ) -> None:
         """A row of the headline table at the top of RESULTS.md and in the README."""
-        self.heads[key] = dict(order=order, what=what, ours=ours, paper=paper, peer=peer,
-                               target=target)
+        self.heads[key] = dict(
+            order=order, what=what, ours=ours, paper=paper, peer=peer, target=target
+        )
 
     def save(self) -> Path:
         parts = parts_dir(self.quick)
         parts.mkdir(parents=True, exist_ok=True)
         md = parts / f"{self.order:02d}-{self.name}.md"
         md.write_text("\n".join(self.lines))
-        (parts / f"{self.order:02d}-{self.name}.json").write_text(json.dumps(self.heads,
-                                                                             indent=1))
+        (parts / f"{self.order:02d}-{self.name}.json").write_text(json.dumps(self.heads, indent=1))
         return md

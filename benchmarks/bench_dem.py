@@ -50,28 +50,48 @@ def main() -> None:
     n_synth, n_tif = (2000, 1000) if quick else (10000, 4000)
     OUT.mkdir(exist_ok=True)
     print(f"machine: {machine()}")
-    rep = Report("dem", 1, "DEM ingestion and generation", ".venv/bin/python "
-                 "benchmarks/bench_dem.py", quick)
+    rep = Report(
+        "dem", 1, "DEM ingestion and generation", ".venv/bin/python benchmarks/bench_dem.py", quick
+    )
     store = OUT / "synth.zarr"
     synth = run_isolated(SYNTH.format(n=n_synth, store=store))
     tif, store2 = OUT / "import.tif", OUT / "import.zarr"
     run_isolated(MAKE_TIFF.format(n=n_tif, tif=tif))
     imp = run_isolated(IMPORT.format(tif=tif, store=store2))
-    rep.p("Dask's threaded scheduler with 2 threads, chunks of 1024^2; each case in its own "
-          "process, its peak resident memory beside it. The paper has no such figure (its "
-          "DEMs come from ArcGIS).")
-    rep.table(["case", "wall time (s)", "peak memory (GiB)", "target"], [
-        [f"`synthetic_dem` {n_synth} x {n_synth} (30 m) -> Zarr v3 store", synth["seconds"],
-         synth["peak_rss_gib"], "< 30 s, < 2 GiB at 10000^2"],
-        [f"`open_dem` + `import_dem` of a {n_tif} x {n_tif} GeoTIFF (tiled, DEFLATE) -> Zarr",
-         imp["seconds"], imp["peak_rss_gib"], "measured"]])
+    rep.p(
+        "Dask's threaded scheduler with 2 threads, chunks of 1024^2; each case in its own "
+        "process, its peak resident memory beside it. The paper has no such figure (its "
+        "DEMs come from ArcGIS)."
+    )
+    rep.table(
+        ["case", "wall time (s)", "peak memory (GiB)", "target"],
+        [
+            [
+                f"`synthetic_dem` {n_synth} x {n_synth} (30 m) -> Zarr v3 store",
+                synth["seconds"],
+                synth["peak_rss_gib"],
+                "< 30 s, < 2 GiB at 10000^2",
+            ],
+            [
+                f"`open_dem` + `import_dem` of a {n_tif} x {n_tif} GeoTIFF (tiled, DEFLATE)"
+                " -> Zarr",
+                imp["seconds"],
+                imp["peak_rss_gib"],
+                "measured",
+            ],
+        ],
+    )
     rep.p("""The generator evaluates the map-scaled part of the scene on a global lattice (every
           `max(1, n // 2500)` cells) and interpolates it, adding per-cell roughness; the lattice
           nodes depend only on their global index, so the result is bit-identical for any
           chunking (tested). Memory stays at a few chunks per thread: the map is never held.""")
-    rep.headline("synth", 10, f"`synthetic_dem` {n_synth}^2 -> Zarr",
-                 f"{synth['seconds']:.1f} s, {synth['peak_rss_gib']:.2f} GiB",
-                 target="< 30 s, < 2 GiB (10000^2)")
+    rep.headline(
+        "synth",
+        10,
+        f"`synthetic_dem` {n_synth}^2 -> Zarr",
+        f"{synth['seconds']:.1f} s, {synth['peak_rss_gib']:.2f} GiB",
+        target="< 30 s, < 2 GiB (10000^2)",
+    )
     rep.save()
     print(json.dumps({"synthetic": synth, "import": imp}))
     for p in (store, store2, tif):

@@ -50,8 +50,9 @@ result = dict(missions=len(ts), ok=sum(t.status == "ok" for t in ts), seconds=dt
 
 def demo() -> dict:
     d = run_job_timed(ROOT / "tasks" / "demo.toml")
-    d["stages"] = re.findall(r"INFO pipeline\.\w+: (built maps store .*|wrote DEM store .*)",
-                             d["log"])
+    d["stages"] = re.findall(
+        r"INFO pipeline\.\w+: (built maps store .*|wrote DEM store .*)", d["log"]
+    )
     return d
 
 
@@ -66,29 +67,37 @@ def main() -> None:
     d = demo()
     rep.h("The demo job")
     rep.p(f"""`pipeline run tasks/demo.toml` (the README's `./dev demo`) from an empty catalog,
-          under `/usr/bin/time -v`: exit {d['exit']}, **{d['wall_s']:.1f} s** wall, client
-          process peak RSS **{d['client_peak_gib']:.2f} GiB** (the 2 workers are separate
+          under `/usr/bin/time -v`: exit {d["exit"]}, **{d["wall_s"]:.1f} s** wall, client
+          process peak RSS **{d["client_peak_gib"]:.2f} GiB** (the 2 workers are separate
           processes). It generates the 2000 x 2000 DEM store, builds the maps store, plans eight
           missions (four at a time), writes the catalog and starts and stops its cluster.
-          Its last line: `{d['summary']}`.""")
+          Its last line: `{d["summary"]}`.""")
     for line in d["stages"]:
         rep.p(f"- {line}")
-    rep.headline("demo", 60, "the demo job (`./dev demo`) from an empty catalog",
-                 f"{d['wall_s']:.0f} s, client {d['client_peak_gib']:.2f} GiB, exit {d['exit']}",
-                 target="a few minutes")
+    rep.headline(
+        "demo",
+        60,
+        "the demo job (`./dev demo`) from an empty catalog",
+        f"{d['wall_s']:.0f} s, client {d['client_peak_gib']:.2f} GiB, exit {d['exit']}",
+        target="a few minutes",
+    )
     n, k = (2000, 20) if quick else (4000, 100)
     r = run_isolated(THROUGHPUT.format(store=maps_store(n), k=k))
     rep.h("Many missions at once: `plan_missions`")
-    rep.p(f"""{r['missions']} random missions (start-goal > 0.3 x side, omega 1.5 / 2 / 3,
+    rep.p(f"""{r["missions"]} random missions (start-goal > 0.3 x side, omega 1.5 / 2 / 3,
           ra_star + MCPC) on the {n} x {n} maps store, LocalCluster of 2 single-threaded
-          workers, coarse maps and chunk caches warm: {r['seconds']:.1f} s =
-          **{r['per_s']:.1f} missions/s** ({r['ok']} of {r['missions']} ok; mean ridge ratio
-          {100 * r['ridge']:.0f} %), against {1 / r['sequential_s']:.1f} missions/s one `plan()`
-          at a time. Peak RSS: client {r['peak_rss_gib']} GiB, workers {r['worker_peak_gib']}
+          workers, coarse maps and chunk caches warm: {r["seconds"]:.1f} s =
+          **{r["per_s"]:.1f} missions/s** ({r["ok"]} of {r["missions"]} ok; mean ridge ratio
+          {100 * r["ridge"]:.0f} %), against {1 / r["sequential_s"]:.1f} missions/s one `plan()`
+          at a time. Peak RSS: client {r["peak_rss_gib"]} GiB, workers {r["worker_peak_gib"]}
           GiB.""")
-    rep.headline("throughput", 61, f"`plan_missions`, {k} missions on {n}^2, 2 workers",
-                 f"{r['per_s']:.1f} missions/s",
-                 peer=f"one `plan()` at a time: {1 / r['sequential_s']:.1f} /s")
+    rep.headline(
+        "throughput",
+        61,
+        f"`plan_missions`, {k} missions on {n}^2, 2 workers",
+        f"{r['per_s']:.1f} missions/s",
+        peer=f"one `plan()` at a time: {1 / r['sequential_s']:.1f} /s",
+    )
     rep.save()
 
 

@@ -71,8 +71,9 @@ def table5(client, sides, n_missions):
         warm = time.perf_counter() - t0
         times, ratios, fails, secs = [], [], 0, []
         for s, g in ms[1:]:
-            t, dt, err = timed(pipeline.plan, store, s, g, planner="ra_star", omega=2.0,
-                               client=client)
+            t, dt, err = timed(
+                pipeline.plan, store, s, g, planner="ra_star", omega=2.0, client=client
+            )
             if t is None:
                 fails += 1
                 print(f"  {n}: mission {s}->{g} failed: {err}")
@@ -83,16 +84,23 @@ def table5(client, sides, n_missions):
         opt = []
         if n <= 5000:
             for s, g in ms[1:6]:
-                full, _, _ = timed(pipeline.plan, store, s, g, planner="astar", mcpc=False,
-                                   client=client)
+                full, _, _ = timed(
+                    pipeline.plan, store, s, g, planner="astar", mcpc=False, client=client
+                )
                 mc, _, _ = timed(pipeline.plan, store, s, g, planner="astar", client=client)
                 if full is not None and mc is not None:
                     opt.append(mc.length_m / full.length_m)
-        rows[n] = dict(median=statistics.median(times), p10=float(np.percentile(times, 10)),
-                       p90=float(np.percentile(times, 90)), max=max(times),
-                       ridge=statistics.mean(ratios), sections=statistics.mean(secs),
-                       fails=fails, first_mission_s=warm,
-                       astar_mcpc_over_opt=(statistics.mean(opt), max(opt)) if opt else None)
+        rows[n] = dict(
+            median=statistics.median(times),
+            p10=float(np.percentile(times, 10)),
+            p90=float(np.percentile(times, 90)),
+            max=max(times),
+            ridge=statistics.mean(ratios),
+            sections=statistics.mean(secs),
+            fails=fails,
+            first_mission_s=warm,
+            astar_mcpc_over_opt=(statistics.mean(opt), max(opt)) if opt else None,
+        )
         print(f"{n}: {rows[n]}", flush=True)
     return rows
 
@@ -108,14 +116,26 @@ def plot_scaling(rows, png):
     lo = [rows[n]["median"] - rows[n]["p10"] for n in sides]
     hi = [rows[n]["p90"] - rows[n]["median"] for n in sides]
     fig, ax = plt.subplots(figsize=(7, 4.8), dpi=110)
-    ax.errorbar(sides, med, yerr=[lo, hi], marker="o", capsize=4,
-                label="ours: ra_star + MCPC, 2 workers (median, p10-p90)")
-    ax.plot(sorted(PAPER_T5), [PAPER_T5[n] for n in sorted(PAPER_T5)], "s--", color="grey",
-            label="paper (Table 5), 16 cores, MATLAB")
+    ax.errorbar(
+        sides,
+        med,
+        yerr=[lo, hi],
+        marker="o",
+        capsize=4,
+        label="ours: ra_star + MCPC, 2 workers (median, p10-p90)",
+    )
+    ax.plot(
+        sorted(PAPER_T5),
+        [PAPER_T5[n] for n in sorted(PAPER_T5)],
+        "s--",
+        color="grey",
+        label="paper (Table 5), 16 cores, MATLAB",
+    )
     ax.set_xlabel("map side (cells, 30 m)")
     ax.set_ylabel("planning time per mission (s)")
-    ax.set_title("Planning time against map size, omega 2, maps prebuilt (paper's Figure 13)",
-                 fontsize=10)
+    ax.set_title(
+        "Planning time against map size, omega 2, maps prebuilt (paper's Figure 13)", fontsize=10
+    )
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -123,9 +143,12 @@ def plot_scaling(rows, png):
     plt.close(fig)
 
 
-T4 = (("RA*+MCPC", "ra_star", True, "2.58 s, 66.5 %"), ("A*+MCPC", "astar", True, "2.03 s"),
-      ("RA* without MCPC", "ra_star", False, "20.5 s"),
-      ("A* without MCPC", "astar", False, "15.4 s"))
+T4 = (
+    ("RA*+MCPC", "ra_star", True, "2.58 s, 66.5 %"),
+    ("A*+MCPC", "astar", True, "2.03 s"),
+    ("RA* without MCPC", "ra_star", False, "20.5 s"),
+    ("A* without MCPC", "astar", False, "15.4 s"),
+)
 
 
 def table4(client, n):
@@ -137,8 +160,9 @@ def table4(client, n):
     out = {}
     for name, planner, mcpc, _ in T4:
         pipeline.plan(store, s, g, planner=planner, omega=3.0, mcpc=mcpc, client=client)
-        t, dt, _ = timed(pipeline.plan, store, s, g, planner=planner, omega=3.0, mcpc=mcpc,
-                         client=client)
+        t, dt, _ = timed(
+            pipeline.plan, store, s, g, planner=planner, omega=3.0, mcpc=mcpc, client=client
+        )
         out[name] = (t, dt, max(worker_peaks(client)))
         print(f"{name}: {dt:.2f} s", flush=True)
     return store, (s, g), out
@@ -156,17 +180,25 @@ def plot_table4(store, paths, png):
     ds = pipeline.open_maps(store)
     fig, ax = plt.subplots(figsize=(9, 8.2), dpi=110)
     hillshade_axes(ax, ds["elevation"], max_side=1500, colorbar=False)
-    colours = dict(zip([n for n, *_ in T4], ("#d62728", "#1f77b4", "#ff7f0e", "white"),
-                       strict=True))
+    colours = dict(
+        zip([n for n, *_ in T4], ("#d62728", "#1f77b4", "#ff7f0e", "white"), strict=True)
+    )
     for name, (t, dt, _) in paths.items():
-        ax.plot(t.points[:, 0] / 1e3, t.points[:, 1] / 1e3, color=colours[name],
-                lw=1.4 if "RA" in name else 1.0, ls="-" if "+MCPC" in name else "--",
-                label=f"{name}: {t.length_m / 1e3:.0f} km, {100 * t.ridge_ratio:.0f} % ridge, "
-                      f"{dt:.2f} s")
+        ax.plot(
+            t.points[:, 0] / 1e3,
+            t.points[:, 1] / 1e3,
+            color=colours[name],
+            lw=1.4 if "RA" in name else 1.0,
+            ls="-" if "+MCPC" in name else "--",
+            label=f"{name}: {t.length_m / 1e3:.0f} km, {100 * t.ridge_ratio:.0f} % ridge, "
+            f"{dt:.2f} s",
+        )
     ax.legend(loc="lower right", fontsize=8)
     n = ds.sizes["y"]
-    ax.set_title(f"RA* and A*, with and without MCPC, {n} x {n}, omega 3 "
-                 "(the paper's Figure 12)", fontsize=10)
+    ax.set_title(
+        f"RA* and A*, with and without MCPC, {n} x {n}, omega 3 (the paper's Figure 12)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(png)
     plt.close(fig)
@@ -185,23 +217,25 @@ def table6(client, n):
     rows, ratios = [], []
     for i, (s, g) in enumerate(ms):
         pipeline.plan(store, s, g, planner="ra_star", omega=2.0, client=client)  # warm
-        ra, t_ra, _ = timed(pipeline.plan, store, s, g, planner="ra_star", omega=2.0,
-                            client=client)
-        wa, t_wa, _ = timed(pipeline.plan, store, s, g, planner="wastar", omega=2.0,
-                            mcpc=False, client=client)
+        ra, t_ra, _ = timed(pipeline.plan, store, s, g, planner="ra_star", omega=2.0, client=client)
+        wa, t_wa, _ = timed(
+            pipeline.plan, store, s, g, planner="wastar", omega=2.0, mcpc=False, client=client
+        )
         t0 = time.perf_counter()
         p = pyastar2d.astar_path(w, s, g, allow_diagonal=True)
         t_py = time.perf_counter() - t0
         S = ds["safety"]
         z = np.asarray(S.isel(y=xr_index(p[:, 0]), x=xr_index(p[:, 1])).values, np.float64)
         d = np.diff(p, axis=0)
-        py_len = float(np.sqrt(900.0 * (d ** 2).sum(axis=1) + np.diff(z) ** 2).sum())
+        py_len = float(np.sqrt(900.0 * (d**2).sum(axis=1) + np.diff(z) ** 2).sum())
         rdg = ds["ridge"].isel(y=xr_index(p[:, 0]), x=xr_index(p[:, 1])).values
-        step = np.sqrt(900.0 * (d ** 2).sum(axis=1) + np.diff(z) ** 2)
+        step = np.sqrt(900.0 * (d**2).sum(axis=1) + np.diff(z) ** 2)
         py_ratio = float(step[rdg[1:]].sum() / step.sum())
-        for name, t, dt, paper in (("ra_star + MCPC", ra, t_ra, "RA* 3.12 s"),
-                                   ("wastar, whole map", wa, t_wa, "WA* 25.4 s"),
-                                   ("pyastar2d, whole map", None, t_py, "")):
+        for name, t, dt, paper in (
+            ("ra_star + MCPC", ra, t_ra, "RA* 3.12 s"),
+            ("wastar, whole map", wa, t_wa, "WA* 25.4 s"),
+            ("pyastar2d, whole map", None, t_py, ""),
+        ):
             length = t.length_m / 1e3 if t else py_len / 1e3
             ratio = 100 * (t.ridge_ratio if t else py_ratio)
             rows.append([i, name, dt, length, ratio, paper])
@@ -224,18 +258,24 @@ def quality(client, n_missions):
     ms = missions(ok, n_missions, seed=7)
     rl, rr, ml, mr = [], [], [], []
     for s, g in ms:
-        one, _, _ = timed(pipeline.plan, store, s, g, planner="ra_star", omega=2.0, mcpc=False,
-                          client=client)
-        mc, _, _ = timed(pipeline.plan, store, s, g, planner="ra_star", omega=2.0,
-                         client=client)
+        one, _, _ = timed(
+            pipeline.plan, store, s, g, planner="ra_star", omega=2.0, mcpc=False, client=client
+        )
+        mc, _, _ = timed(pipeline.plan, store, s, g, planner="ra_star", omega=2.0, client=client)
         if one is None or mc is None:
             continue
         rl.append(mc.length_m / one.length_m)
         rr.append(mc.ridge_ratio - one.ridge_ratio)
         ml.append(one.length_m)
         mr.append(one.ridge_ratio)
-    return dict(k=len(rl), mean=float(np.mean(rl)), lo=min(rl), hi=max(rl),
-                ridge_delta=100 * float(np.mean(rr)), ridge_one=100 * float(np.mean(mr)))
+    return dict(
+        k=len(rl),
+        mean=float(np.mean(rl)),
+        lo=min(rl),
+        hi=max(rl),
+        ridge_delta=100 * float(np.mean(rr)),
+        ridge_one=100 * float(np.mean(mr)),
+    )
 
 
 def case_study(client):
@@ -254,10 +294,20 @@ def case_study(client):
     c = clearances(store, t, 1000.0)
     elev = pipeline.open_maps(store)["elevation"].values
     above = t.points[:, 2] - elev[t.cells[:, 0], t.cells[:, 1]]
-    return store, t, dict(s=dt, start=s, goal=g, mean_clearance=float(np.mean(c)),
-                          mean_above=float(np.mean(above)),
-                          min_clearance=float(np.min(c)), length_km=t.length_m / 1e3,
-                          ridge_pct=100 * t.ridge_ratio)
+    return (
+        store,
+        t,
+        dict(
+            s=dt,
+            start=s,
+            goal=g,
+            mean_clearance=float(np.mean(c)),
+            mean_above=float(np.mean(above)),
+            min_clearance=float(np.min(c)),
+            length_km=t.length_m / 1e3,
+            ridge_pct=100 * t.ridge_ratio,
+        ),
+    )
 
 
 def plot_case_study(store, t, res, png):
@@ -276,19 +326,29 @@ def plot_case_study(store, t, res, png):
     fig, axes = plt.subplots(1, 2, figsize=(14, 6.6), dpi=100, layout="constrained")
     hillshade_axes(axes[0], ds["elevation"], max_side=1000)
     rdg = ds["ridge"].values[::2, ::2]
-    axes[1].imshow(rdg, extent=ext, cmap=ListedColormap(["#202020", "#f0e442"]),
-                   interpolation="nearest")
+    axes[1].imshow(
+        rdg, extent=ext, cmap=ListedColormap(["#202020", "#f0e442"]), interpolation="nearest"
+    )
     for ax in axes:
-        ax.plot(t.points[:, 0] / 1e3, t.points[:, 1] / 1e3, color="red" if ax is axes[0]
-                else "#56b4e9", lw=1.2)
+        ax.plot(
+            t.points[:, 0] / 1e3,
+            t.points[:, 1] / 1e3,
+            color="red" if ax is axes[0] else "#56b4e9",
+            lw=1.2,
+        )
         ax.plot(*(t.points[[0, -1], :2].T / 1e3), "o", color="white", mec="k", ms=6)
         ax.set_xlabel("km")
-    axes[0].set_title(f"RA* + MCPC, omega 3: {res['length_km']:.0f} km, {res['s']:.2f} s, "
-                      f"{res['mean_above']:.0f} m above the seabed on average", fontsize=10)
-    axes[1].set_title(f"ridge cells (yellow): {res['ridge_pct']:.0f} % of the path on ridges",
-                      fontsize=10)
-    fig.suptitle("Case study on the 2000 x 2000 map, corner to corner (the paper's Figure 14)",
-                 fontsize=11)
+    axes[0].set_title(
+        f"RA* + MCPC, omega 3: {res['length_km']:.0f} km, {res['s']:.2f} s, "
+        f"{res['mean_above']:.0f} m above the seabed on average",
+        fontsize=10,
+    )
+    axes[1].set_title(
+        f"ridge cells (yellow): {res['ridge_pct']:.0f} % of the path on ridges", fontsize=10
+    )
+    fig.suptitle(
+        "Case study on the 2000 x 2000 map, corner to corner (the paper's Figure 14)", fontsize=11
+    )
     fig.savefig(png)
     plt.close(fig)
 
@@ -310,21 +370,35 @@ def plot_sections(store, t, png):
     a = float(abs(x[1] - x[0]))
     for k, sec in enumerate(t.extra["sections"]):
         r0, r1, c0, c1 = sec["window"]
-        ax.add_patch(mpatches.Rectangle((x[c0] - a / 2, y[r1 - 1] - a / 2), (c1 - c0) * a,
-                                        (r1 - r0) * a, fill=False, lw=0.7,
-                                        ec="yellow" if k % 2 else "orange"))
+        ax.add_patch(
+            mpatches.Rectangle(
+                (x[c0] - a / 2, y[r1 - 1] - a / 2),
+                (c1 - c0) * a,
+                (r1 - r0) * a,
+                fill=False,
+                lw=0.7,
+                ec="yellow" if k % 2 else "orange",
+            )
+        )
     rho = t.extra["rho"]
     cc = np.asarray(t.extra["coarse_cells"]) * rho + rho // 2
     cc = np.clip(cc, 0, len(y) - 1)
     ax.plot(x[cc[:, 1]], y[cc[:, 0]], color="white", lw=0.8, ls="--", label="coarse path (A*)")
-    ax.plot(t.points[:, 0] / 1e3, t.points[:, 1] / 1e3, color="red", lw=1.1,
-            label=f"stitched ra_star: {t.length_m / 1e3:.0f} km, "
-                  f"{100 * t.ridge_ratio:.0f} % ridge")
+    ax.plot(
+        t.points[:, 0] / 1e3,
+        t.points[:, 1] / 1e3,
+        color="red",
+        lw=1.1,
+        label=f"stitched ra_star: {t.length_m / 1e3:.0f} km, {100 * t.ridge_ratio:.0f} % ridge",
+    )
     ax.plot([], [], color="orange", lw=0.8, label=f"{len(t.extra['sections'])} section windows")
     ax.legend(loc="lower right", fontsize=8)
-    ax.set_title(f"MCPC on a {len(y)} x {len(x)} map: rho {rho}, sections "
-                 f"{t.extra['section_size']} cells + margin {t.extra['margin']} "
-                 f"(the paper's Figure 7)", fontsize=10)
+    ax.set_title(
+        f"MCPC on a {len(y)} x {len(x)} map: rho {rho}, sections "
+        f"{t.extra['section_size']} cells + margin {t.extra['margin']} "
+        f"(the paper's Figure 7)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(png)
     plt.close(fig)
@@ -332,11 +406,17 @@ def plot_sections(store, t, png):
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="sides 500-2000, 5 missions each, "
-                    "Tables 4 and 6 on 2000^2")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="sides 500-2000, 5 missions each, Tables 4 and 6 on 2000^2",
+    )
     ap.add_argument("--sides", type=int, nargs="*")
-    ap.add_argument("--only", choices=("t5", "t4", "t6", "quality", "case"),
-                    help="one section (printed; the report part is written by a full run)")
+    ap.add_argument(
+        "--only",
+        choices=("t5", "t4", "t6", "quality", "case"),
+        help="one section (printed; the report part is written by a full run)",
+    )
     args = ap.parse_args()
     quick = args.quick
     sides = args.sides or ([500, 1000, 2000] if quick else [500, 1000, 2000, 3000, 5000, 10000])
@@ -346,8 +426,13 @@ def main() -> None:
     figs = figure_dir(quick)
     for n in sides:
         maps_store(n)
-    rep = Report("mcpc", 5, "MCPC: map compression and parallel sections",
-                 ".venv/bin/python benchmarks/bench_mcpc.py", quick)
+    rep = Report(
+        "mcpc",
+        5,
+        "MCPC: map compression and parallel sections",
+        ".venv/bin/python benchmarks/bench_mcpc.py",
+        quick,
+    )
     rep.p("""Maps stores `benchmarks/out/maps{n}.zarr`: the n x n synthetic DEM (seed 0, 30 m),
           spherical safety 300 m, ridge threshold 20 cells, chunks 1024, built once before
           (not timed here, as the paper's times exclude its maps). One LocalCluster of 2
@@ -356,8 +441,10 @@ def main() -> None:
           unless said. Times are the wall time of `plan()` on the client.""")
     from distributed import Client, LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl, \
-            Client(cl) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl,
+        Client(cl) as client,
+    ):
         if args.only in (None, "t5"):
             t5_part(rep, figs, client, sides, k)
         if args.only in (None, "t4"):
@@ -370,10 +457,10 @@ def main() -> None:
         if args.only in (None, "quality"):
             q = quality(client, 5 if quick else 20)
             rep.h("The quality cost of MCPC")
-            rep.p(f"""{q['k']} random missions on 2000^2, ra_star omega 2, stitched from
+            rep.p(f"""{q["k"]} random missions on 2000^2, ra_star omega 2, stitched from
                   sections against one window over the whole map: length ratio mean
-                  {q['mean']:.2f} (min {q['lo']:.2f}, max {q['hi']:.2f}); ridge ratio
-                  {q['ridge_delta']:+.1f} points (one window: {q['ridge_one']:.1f} %). Each
+                  {q["mean"]:.2f} (min {q["lo"]:.2f}, max {q["hi"]:.2f}); ridge ratio
+                  {q["ridge_delta"]:+.1f} points (one window: {q["ridge_one"]:.1f} %). Each
                   section has its own budget (omega times its own optimum), so MCPC rarely runs
                   out of it the way one large window does. A*'s cost is in the Table 5 part
                   (stitched A* against the full-map optimum).""")
@@ -389,17 +476,44 @@ def t5_part(rep, figs, client, sides, k):
           builds the coarse maps once and the workers decode their first chunks). The last
           column but one: A* stitched from MCPC sections against the full-map A* optimum, 5
           missions per side up to 5000^2.""")
-    rep.table(["side", "median s", "p10 - p90 s", "max s", "sections", "ridge %", "failed",
-               "first mission s", "A*+MCPC / optimum (mean / max)", "paper s"],
-              [[n, r["median"], f"{r['p10']:.3f} - {r['p90']:.3f}", r["max"], r["sections"],
-                100 * r["ridge"], r["fails"], r["first_mission_s"],
-                (f"{r['astar_mcpc_over_opt'][0]:.4f} / {r['astar_mcpc_over_opt'][1]:.4f}"
-                 if r["astar_mcpc_over_opt"] else "-"), PAPER_T5.get(n, "")]
-               for n, r in rows.items()])
+    rep.table(
+        [
+            "side",
+            "median s",
+            "p10 - p90 s",
+            "max s",
+            "sections",
+            "ridge %",
+            "failed",
+            "first mission s",
+            "A*+MCPC / optimum (mean / max)",
+            "paper s",
+        ],
+        [
+            [
+                n,
+                r["median"],
+                f"{r['p10']:.3f} - {r['p90']:.3f}",
+                r["max"],
+                r["sections"],
+                100 * r["ridge"],
+                r["fails"],
+                r["first_mission_s"],
+                (
+                    f"{r['astar_mcpc_over_opt'][0]:.4f} / {r['astar_mcpc_over_opt'][1]:.4f}"
+                    if r["astar_mcpc_over_opt"]
+                    else "-"
+                ),
+                PAPER_T5.get(n, ""),
+            ]
+            for n, r in rows.items()
+        ],
+    )
     big = max(rows)
     small = min(rows)
-    rep.p(f"""From {small}^2 to {big}^2 the median grows {rows[big]['median'] /
-          rows[small]['median']:.1f}x for {big / small:.0f}x the side: about linear in the side,
+    rep.p(f"""From {small}^2 to {big}^2 the median grows {
+        rows[big]["median"] / rows[small]["median"]:.1f}x for {
+        big / small:.0f}x the side: about linear in the side,
           as in the paper, plus a fixed cost of a few tens of ms (scheduling the section tasks).
           The paper: 0.26 s at 500^2 and 3.12 s at 10000^2 on 16 cores. Worker peak RSS after
           all the maps: {worker_peaks(client)} GiB (their chunk caches are bounded at 1 GiB
@@ -408,9 +522,14 @@ def t5_part(rep, figs, client, sides, k):
     plot_scaling(rows, png)
     rep.figure(png, "planning time per mission against map size (the paper's Figure 13)")
     (OUT / "table5.json").write_text(json.dumps({str(n): r for n, r in rows.items()}, indent=1))
-    rep.headline("t5", 50, f"one mission on {big}^2 (ra_star + MCPC, omega 2, maps prebuilt)",
-                 f"median {rows[big]['median']:.2f} s", paper="3.12 s (10000^2)",
-                 target="< 1 s (10000^2)")
+    rep.headline(
+        "t5",
+        50,
+        f"one mission on {big}^2 (ra_star + MCPC, omega 2, maps prebuilt)",
+        f"median {rows[big]['median']:.2f} s",
+        paper="3.12 s (10000^2)",
+        target="< 1 s (10000^2)",
+    )
 
 
 def t4_part(rep, figs, client, n):
@@ -419,11 +538,21 @@ def t4_part(rep, figs, client, n):
     rep.p(f"""Mission {s} -> {g}; each method planned once untimed first, so the workers hold
           the chunks. "Without MCPC" is one task that plans the whole map in one window on one
           worker.""")
-    rep.table(["method", "time s", "length km", "ridge km", "ridge %", "worker peak RSS GiB",
-               "paper (5000^2)"],
-              [[name, dt, t.length_m / 1e3, t.ridge_length_m / 1e3, 100 * t.ridge_ratio, peak,
-                paper] for (name, *_, paper), (t, dt, peak) in zip(T4, out.values(),
-                                                                    strict=True)])
+    rep.table(
+        [
+            "method",
+            "time s",
+            "length km",
+            "ridge km",
+            "ridge %",
+            "worker peak RSS GiB",
+            "paper (5000^2)",
+        ],
+        [
+            [name, dt, t.length_m / 1e3, t.ridge_length_m / 1e3, 100 * t.ridge_ratio, peak, paper]
+            for (name, *_, paper), (t, dt, peak) in zip(T4, out.values(), strict=True)
+        ],
+    )
     ra, ra1 = out["RA*+MCPC"], out["RA* without MCPC"]
     rep.p(f"""The paper's shape: MCPC is what makes RA* fast ({ra1[1] / ra[1]:.0f}x here, 8x in
           the paper), and RA*+MCPC follows ridges for {100 * ra[0].ridge_ratio:.0f} % of its
@@ -435,11 +564,16 @@ def t4_part(rep, figs, client, n):
     rep.figure(png, "the four Table 4 paths (the paper's Figure 12)")
     png = figs / "mcpc-sections.png"
     plot_sections(store, ra[0], png)
-    rep.figure(png, "the RA*+MCPC path with its coarse path and section windows (the paper's "
-                    "Figure 7)")
-    rep.headline("t4", 51, f"Table 4: RA*+MCPC, {n}^2, omega 3",
-                 f"{ra[1]:.2f} s, {100 * ra[0].ridge_ratio:.0f} % ridge; without MCPC "
-                 f"{ra1[1]:.1f} s", paper="2.58 s, 66.5 %; without 20.5 s (5000^2)")
+    rep.figure(
+        png, "the RA*+MCPC path with its coarse path and section windows (the paper's Figure 7)"
+    )
+    rep.headline(
+        "t4",
+        51,
+        f"Table 4: RA*+MCPC, {n}^2, omega 3",
+        f"{ra[1]:.2f} s, {100 * ra[0].ridge_ratio:.0f} % ridge; without MCPC {ra1[1]:.1f} s",
+        paper="2.58 s, 66.5 %; without 20.5 s (5000^2)",
+    )
 
 
 def t6_part(rep, client, n):
@@ -453,38 +587,48 @@ def t6_part(rep, client, n):
     rep.table(["mission", "method", "time s", "length km", "ridge %", "paper (10000^2)"], rows)
     py = [a for a, _ in ratios]
     wa = [b for _, b in ratios]
-    rep.p(f"""Per mission, against pyastar2d: {', '.join(faster(v, 1.0) for v in py)};
-          against wastar: {', '.join(faster(v, 1.0) for v in wa)}. pyastar2d solves an easier
+    rep.p(f"""Per mission, against pyastar2d: {", ".join(faster(v, 1.0) for v in py)};
+          against wastar: {", ".join(faster(v, 1.0) for v in wa)}. pyastar2d solves an easier
           problem: a unit-cost grid (a diagonal costs as much as a straight step) with an exact
           heuristic on open water, and it cuts corners; it does not follow ridges.""")
-    rep.headline("t6", 52, f"Table 6: {n}^2, omega 2, 3 long missions",
-                 f"{min(r[2] for r in rows if r[1].startswith('ra_star')):.2f}-"
-                 f"{max(r[2] for r in rows if r[1].startswith('ra_star')):.2f} s",
-                 paper="RA* 3.12 s; WA* 25.4 s",
-                 peer=f"pyastar2d: {faster_range(py, [1.0] * len(py))}; wastar: "
-                      f"{faster_range(wa, [1.0] * len(wa))}",
-                 target="3x faster than pyastar2d")
+    rep.headline(
+        "t6",
+        52,
+        f"Table 6: {n}^2, omega 2, 3 long missions",
+        f"{min(r[2] for r in rows if r[1].startswith('ra_star')):.2f}-"
+        f"{max(r[2] for r in rows if r[1].startswith('ra_star')):.2f} s",
+        paper="RA* 3.12 s; WA* 25.4 s",
+        peer=f"pyastar2d: {faster_range(py, [1.0] * len(py))}; wastar: "
+        f"{faster_range(wa, [1.0] * len(wa))}",
+        target="3x faster than pyastar2d",
+    )
 
 
 def case_part(rep, figs, store, t, res):
     rep.h("Figure 14 analog: a case study on 2000 x 2000")
     rep.p(f"""The paper: 2000 x 2000, RA*+MCPC omega 3 between opposite corners: 0.94 s, mean
-          safety distance 341 m (R = 300 m). Ours, mission {res['start']} -> {res['goal']}:
-          **{res['s']:.2f} s**, {res['length_km']:.1f} km, {res['ridge_pct']:.0f} % on ridges;
-          height above the seabed directly below, mean **{res['mean_above']:.0f} m**; distance
+          safety distance 341 m (R = 300 m). Ours, mission {res["start"]} -> {res["goal"]}:
+          **{res["s"]:.2f} s**, {res["length_km"]:.1f} km, {res["ridge_pct"]:.0f} % on ridges;
+          height above the seabed directly below, mean **{res["mean_above"]:.0f} m**; distance
           from each point of the path to the nearest DEM grid point (3-D, from the elevation
-          layer, not the safety map): mean {res['mean_clearance']:.1f} m, minimum
-          {res['min_clearance']:.1f} m. The spherical map is the lowest surface at distance R
+          layer, not the safety map): mean {res["mean_clearance"]:.1f} m, minimum
+          {res["min_clearance"]:.1f} m. The spherical map is the lowest surface at distance R
           from the ground, so the path touches the clearance sphere of some grid point almost
           everywhere; the paper's 341 m is most likely the height above the seabed (its
           wording, "average safety distance", does not say).""")
     png = figs / "fig14-case-study.png"
     plot_case_study(store, t, res, png)
-    rep.figure(png, "the case study's path over the hillshade and over the ridge map (the "
-                    "paper's Figure 14)")
-    rep.headline("case", 53, "Figure 14 case: 2000^2, RA*+MCPC omega 3, corner to corner",
-                 f"{res['s']:.2f} s, {res['mean_above']:.0f} m above the seabed on average",
-                 paper="0.94 s, average safety distance 341 m")
+    rep.figure(
+        png,
+        "the case study's path over the hillshade and over the ridge map (the paper's Figure 14)",
+    )
+    rep.headline(
+        "case",
+        53,
+        "Figure 14 case: 2000^2, RA*+MCPC omega 3, corner to corner",
+        f"{res['s']:.2f} s, {res['mean_above']:.0f} m above the seabed on average",
+        paper="0.94 s, average safety distance 341 m",
+    )
 
 
 if __name__ == "__main__":

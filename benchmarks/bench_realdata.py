@@ -25,13 +25,16 @@ CATALOG = ROOT / "catalogs" / "topobathy"
 
 
 def run_job() -> dict:
-    subprocess.run([sys.executable, str(ROOT / "tasks" / "data" / "make_topobathy.py")],
-                   check=True, cwd=ROOT)
+    subprocess.run(
+        [sys.executable, str(ROOT / "tasks" / "data" / "make_topobathy.py")], check=True, cwd=ROOT
+    )
     r = run_job_timed(JOB)
     sys.stderr.write(r["log"][-3000:])
     maps = re.search(r"built maps store \S+ \((.*)\) in ([\d.]+) s", r["log"])
-    r.update(maps_s=float(maps.group(2)) if maps else float("nan"),
-             maps_what=maps.group(1) if maps else "?")
+    r.update(
+        maps_s=float(maps.group(2)) if maps else float("nan"),
+        maps_what=maps.group(1) if maps else "?",
+    )
     return r
 
 
@@ -54,19 +57,30 @@ def read_catalog() -> tuple[list[dict], dict]:
     for it in sorted(items, key=lambda i: i.id):
         p = it.properties
         track = gpd.read_parquet(CATALOG / "missions" / it.id / "track.parquet")
-        rows.append(dict(id=it.id, status=p["auv:status"], planner=p.get("auv:planner"),
-                         omega=p.get("auv:omega"), length_km=p.get("auv:length_m", 0) / 1e3,
-                         ridge_pct=100 * (p.get("auv:ridge_ratio") or 0.0),
-                         min_clearance_m=p.get("auv:min_clearance_m"),
-                         runtime_s=p.get("auv:runtime_s"), points=len(track),
-                         crs=crs_name(track.crs)))
+        rows.append(
+            dict(
+                id=it.id,
+                status=p["auv:status"],
+                planner=p.get("auv:planner"),
+                omega=p.get("auv:omega"),
+                length_km=p.get("auv:length_m", 0) / 1e3,
+                ridge_pct=100 * (p.get("auv:ridge_ratio") or 0.0),
+                min_clearance_m=p.get("auv:min_clearance_m"),
+                runtime_s=p.get("auv:runtime_s"),
+                points=len(track),
+                crs=crs_name(track.crs),
+            )
+        )
     maps = next(CATALOG.glob("maps-*.zarr"))
     ds = pipeline.open_maps(maps)
-    info = dict(shape=tuple(ds.sizes[d] for d in ("y", "x")),
-                cell=float(pipeline.cell_size(ds["elevation"])),
-                land_pct=100 * float((ds["elevation"] > 0).mean()),
-                passable_pct=100 * float(ds["passable"].mean()),
-                ridge_pct=100 * float(ds["ridge"].mean()), maps=maps)
+    info = dict(
+        shape=tuple(ds.sizes[d] for d in ("y", "x")),
+        cell=float(pipeline.cell_size(ds["elevation"])),
+        land_pct=100 * float((ds["elevation"] > 0).mean()),
+        passable_pct=100 * float(ds["passable"].mean()),
+        ridge_pct=100 * float(ds["ridge"].mean()),
+        maps=maps,
+    )
     return rows, info
 
 
@@ -87,18 +101,31 @@ def plot(rows, info, png: Path) -> None:
     hillshade_axes(ax, ds["elevation"], max_side=1000)
     ok = ds["passable"].values[::2, ::2]
     x, y = ds["x"].values / 1e3, ds["y"].values / 1e3
-    ax.imshow(np.ma.masked_where(ok, ok), extent=[x[0], x[-1], y[-1], y[0]],
-              cmap=ListedColormap(["black"]), alpha=0.25, interpolation="nearest")
+    ax.imshow(
+        np.ma.masked_where(ok, ok),
+        extent=[x[0], x[-1], y[-1], y[0]],
+        cmap=ListedColormap(["black"]),
+        alpha=0.25,
+        interpolation="nearest",
+    )
     colours = ["#e41a1c", "#ff7f00", "#ffff33", "#f781bf", "white", "#984ea3"]
     for k, r in enumerate(rows):
         track = gpd.read_parquet(CATALOG / "missions" / r["id"] / "track.parquet")
-        ax.plot(track.geometry.x / 1e3, track.geometry.y / 1e3, color=colours[k % 6], lw=1.8,
-                label=f"{r['id']} ({r['planner']}, omega {r['omega']}): {r['length_km']:.0f} "
-                      f"km, {r['ridge_pct']:.0f} % ridge")
+        ax.plot(
+            track.geometry.x / 1e3,
+            track.geometry.y / 1e3,
+            color=colours[k % 6],
+            lw=1.8,
+            label=f"{r['id']} ({r['planner']}, omega {r['omega']}): {r['length_km']:.0f} "
+            f"km, {r['ridge_pct']:.0f} % ridge",
+        )
     ax.legend(loc="upper right", fontsize=7.5, framealpha=0.9)
-    ax.set_title("Real bathymetry off Vancouver Island (matplotlib's topobathy, 150 m cells): "
-                 "five missions\n(shaded dark: not passable, i.e. land or under 150 m of "
-                 "water once the 100 m clearance is added)", fontsize=10)
+    ax.set_title(
+        "Real bathymetry off Vancouver Island (matplotlib's topobathy, 150 m cells): "
+        "five missions\n(shaded dark: not passable, i.e. land or under 150 m of "
+        "water once the 100 m clearance is added)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(png)
     plt.close(fig)
@@ -110,24 +137,54 @@ def main() -> None:
     args = ap.parse_args()
     quick = args.quick
     print(machine(), flush=True)
-    rep = Report("realdata", 7, "Real data: bathymetry off Vancouver Island",
-                 ".venv/bin/python benchmarks/bench_realdata.py", quick)
+    rep = Report(
+        "realdata",
+        7,
+        "Real data: bathymetry off Vancouver Island",
+        ".venv/bin/python benchmarks/bench_realdata.py",
+        quick,
+    )
     r = run_job()
     rows, info = read_catalog()
     rep.p(f"""matplotlib's sample grid `topobathy.npz` (real topography and bathymetry, 91 x 120
           points at 2 arc-minutes in lon/lat, -1437 to +2205 m) written as a CF NetCDF file by
           `tasks/data/make_topobathy.py`, then `pipeline run tasks/topobathy.toml`: the DEM is
           reprojected to a local azimuthal equidistant grid and resampled to 150 m cells
-          ({info['shape'][0]} x {info['shape'][1]}; {info['land_pct']:.0f} % land), the maps
-          built ({r['maps_what']}; {info['passable_pct']:.1f} % passable, {info['ridge_pct']:.1f}
-          % ridge cells) in {r['maps_s']:.1f} s, five missions planned from lon/lat endpoints on
+          ({info["shape"][0]} x {info["shape"][1]}; {info["land_pct"]:.0f} % land), the maps
+          built ({r["maps_what"]}; {info["passable_pct"]:.1f} % passable, {info["ridge_pct"]:.1f}
+          % ridge cells) in {r["maps_s"]:.1f} s, five missions planned from lon/lat endpoints on
           a LocalCluster of 2 workers, and the catalog written. The whole job: exit
-          {r['exit']}, **{r['wall_s']:.1f} s** wall, client peak {r['client_peak_gib']:.2f}
+          {r["exit"]}, **{r["wall_s"]:.1f} s** wall, client peak {r["client_peak_gib"]:.2f}
           GiB. The catalog read back with pystac and geopandas:""")
-    rep.table(["mission", "status", "planner", "omega", "length km", "ridge %",
-               "min clearance m (3-D, from the DEM)", "planning s", "track points", "track CRS"],
-              [[x["id"], x["status"], x["planner"], x["omega"], x["length_km"], x["ridge_pct"],
-                x["min_clearance_m"], x["runtime_s"], x["points"], x["crs"]] for x in rows])
+    rep.table(
+        [
+            "mission",
+            "status",
+            "planner",
+            "omega",
+            "length km",
+            "ridge %",
+            "min clearance m (3-D, from the DEM)",
+            "planning s",
+            "track points",
+            "track CRS",
+        ],
+        [
+            [
+                x["id"],
+                x["status"],
+                x["planner"],
+                x["omega"],
+                x["length_km"],
+                x["ridge_pct"],
+                x["min_clearance_m"],
+                x["runtime_s"],
+                x["points"],
+                x["crs"],
+            ]
+            for x in rows
+        ],
+    )
     rep.p("""The straits are channels, valleys of the seabed: the ridge network there is
           sparse, on the channel flanks, and much of it is too shallow to pass, so the ridge
           ratios are low; the continental slope, cut by canyons and spurs, has more. The
@@ -138,11 +195,14 @@ def main() -> None:
     plot(rows, info, png)
     rep.figure(png, "the five missions on the real bathymetry")
     ok = sum(x["status"] == "ok" for x in rows)
-    rep.headline("real", 70, "real bathymetry (matplotlib's topobathy, lon/lat, with land): "
-                 "the whole job",
-                 f"{r['wall_s']:.0f} s, {ok} of {len(rows)} missions ok, min clearance "
-                 f"{min(x['min_clearance_m'] for x in rows if x['status'] == 'ok'):.1f} m",
-                 target="import, maps, missions, catalog, plots")
+    rep.headline(
+        "real",
+        70,
+        "real bathymetry (matplotlib's topobathy, lon/lat, with land): the whole job",
+        f"{r['wall_s']:.0f} s, {ok} of {len(rows)} missions ok, min clearance "
+        f"{min(x['min_clearance_m'] for x in rows if x['status'] == 'ok'):.1f} m",
+        target="import, maps, missions, catalog, plots",
+    )
     rep.save()
     print(json.dumps(dict(job=r, missions=rows), default=str))
     if r["exit"] != 0:

@@ -14,7 +14,9 @@ import json
 from _common import CLUSTER_PREAMBLE, OUT, machine, run_isolated
 from _report import Report, faster, figure_dir
 
-RIDGE_ZARR = CLUSTER_PREAMBLE + """
+RIDGE_ZARR = (
+    CLUSTER_PREAMBLE
+    + """
 out = "{out}"
 dem = pipeline.open_dem(src, chunks=1024)
 from pipeline.ridges import ridge_layers_staged, default_min_accumulation
@@ -40,6 +42,7 @@ result = dict(total_s=t4 - t0, flood_and_fill_solve_s=marks[0] - t0,
               flow_summaries_and_solve_s=marks[1] - marks[0], acc_ridge_write_s=t4 - t1,
               ridge_share=share, worker_peak_gib=peaks, build_maps_s=t6 - t5)
 """
+)
 
 OURS_MEM = """
 import time, numpy as np, pipeline
@@ -92,8 +95,12 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--skip-20000", action="store_true")
-    ap.add_argument("--sides", type=int, nargs="*", help="only these map sides, Zarr only "
-                    "(printed, not reported)")
+    ap.add_argument(
+        "--sides",
+        type=int,
+        nargs="*",
+        help="only these map sides, Zarr only (printed, not reported)",
+    )
     args = ap.parse_args()
     quick = args.quick
     OUT.mkdir(exist_ok=True)
@@ -115,21 +122,45 @@ def main() -> None:
           x 1 thread: the path `build_maps` takes (each tile flooded once into a scratch store,
           two small global solves on the client, the fill finished elementwise with one-cell
           halos). The paper builds its ridge map in ArcGIS and reports no time.""")
-    rep.table(["map", "total s", "tiles flooded + fill solve s", "flow summaries + solve s",
-               "accumulation + ridge written s", "ridge cells %", "worker peak RSS GiB",
-               "client peak RSS GiB", "whole `build_maps` (every layer) s"],
-              [[f"{n} x {n}", r["total_s"], r["flood_and_fill_solve_s"],
-                r["flow_summaries_and_solve_s"], r["acc_ridge_write_s"],
-                100 * r["ridge_share"], " / ".join(map(str, r["worker_peak_gib"])),
-                r["peak_rss_gib"], r["build_maps_s"]] for n, r in rows.items()])
+    rep.table(
+        [
+            "map",
+            "total s",
+            "tiles flooded + fill solve s",
+            "flow summaries + solve s",
+            "accumulation + ridge written s",
+            "ridge cells %",
+            "worker peak RSS GiB",
+            "client peak RSS GiB",
+            "whole `build_maps` (every layer) s",
+        ],
+        [
+            [
+                f"{n} x {n}",
+                r["total_s"],
+                r["flood_and_fill_solve_s"],
+                r["flow_summaries_and_solve_s"],
+                r["acc_ridge_write_s"],
+                100 * r["ridge_share"],
+                " / ".join(map(str, r["worker_peak_gib"])),
+                r["peak_rss_gib"],
+                r["build_maps_s"],
+            ]
+            for n, r in rows.items()
+        ],
+    )
     rep.p("""No worker ever holds the map, only a tile (1024^2) with its halo. The limit is the
           client: the two global solves hold every tile's perimeter, which grows with the
           number of tiles times the tile side; for much larger maps, larger tiles cut it.
           Target at 10000^2: < 90 s, < 4 GiB per worker.""")
     for n, r in rows.items():
-        rep.headline(f"zarr{n}", 30 + n // 10000, f"ridge layers {n}^2, Zarr -> Zarr, 2 workers",
-                     f"{r['total_s']:.0f} s, {max(r['worker_peak_gib']):.2f} GiB per worker",
-                     target="< 90 s, < 4 GiB (10000^2)" if n <= 10000 else "completes")
+        rep.headline(
+            f"zarr{n}",
+            30 + n // 10000,
+            f"ridge layers {n}^2, Zarr -> Zarr, 2 workers",
+            f"{r['total_s']:.0f} s, {max(r['worker_peak_gib']):.2f} GiB per worker",
+            target="< 90 s, < 4 GiB (10000^2)" if n <= 10000 else "completes",
+        )
 
     n = 1000 if quick else 4000
     ours = run_isolated(OURS_MEM.format(n=n, out=OUT))
@@ -138,25 +169,43 @@ def main() -> None:
     rep.h("Against pysheds")
     rep.p(f"""{n} x {n} synthetic DEM (seed 1) in memory, each tool in its own process (so each
           peak is its own): fill, D8 on the inverted filled DEM, accumulation, threshold.""")
-    rep.table(["", "time s", "peak RSS GiB"], [
-        ["ours (single-array path: priority-flood fill, D8, accumulation)", ours["seconds"],
-         ours["peak_rss_gib"]],
-        ["pysheds (fill_depressions, flowdir, accumulation)", theirs["seconds"],
-         theirs["peak_rss_gib"]],
-        ["ratio pysheds / ours", f"**{ratio:.1f}x**",
-         f"{theirs['peak_rss_gib'] / ours['peak_rss_gib']:.2f}x"]])
+    rep.table(
+        ["", "time s", "peak RSS GiB"],
+        [
+            [
+                "ours (single-array path: priority-flood fill, D8, accumulation)",
+                ours["seconds"],
+                ours["peak_rss_gib"],
+            ],
+            [
+                "pysheds (fill_depressions, flowdir, accumulation)",
+                theirs["seconds"],
+                theirs["peak_rss_gib"],
+            ],
+            [
+                "ratio pysheds / ours",
+                f"**{ratio:.1f}x**",
+                f"{theirs['peak_rss_gib'] / ours['peak_rss_gib']:.2f}x",
+            ],
+        ],
+    )
     rep.p(f"""Ridge cells at the default threshold: intersection over union with pysheds'
-          **{theirs['iou']:.4f}** (the tests also compare the filled DEMs exactly, on other seeds
+          **{theirs["iou"]:.4f}** (the tests also compare the filled DEMs exactly, on other seeds
           and on real bathymetry).""")
-    rep.headline("pysheds", 32, f"ridge layers {n}^2 in memory",
-                 f"{ours['seconds']:.1f} s, {ours['peak_rss_gib']:.2f} GiB",
-                 peer=f"pysheds {theirs['seconds']:.1f} s, {theirs['peak_rss_gib']:.2f} GiB "
-                      f"(**{faster(theirs['seconds'], ours['seconds'])}**); ridge IoU "
-                      f"{theirs['iou']:.3f}")
+    rep.headline(
+        "pysheds",
+        32,
+        f"ridge layers {n}^2 in memory",
+        f"{ours['seconds']:.1f} s, {ours['peak_rss_gib']:.2f} GiB",
+        peer=f"pysheds {theirs['seconds']:.1f} s, {theirs['peak_rss_gib']:.2f} GiB "
+        f"(**{faster(theirs['seconds'], ours['seconds'])}**); ridge IoU "
+        f"{theirs['iou']:.3f}",
+    )
     png = figure_dir(quick) / "ridge-map.png"
     run_isolated(PNG.format(png=png))
-    rep.figure(png, "ridge cells over the hillshade of the 2000 x 2000 demo DEM (the paper's "
-                    "Figure 8)")
+    rep.figure(
+        png, "ridge cells over the hillshade of the 2000 x 2000 demo DEM (the paper's Figure 8)"
+    )
     rep.save()
     print(json.dumps({"zarr": rows, "ours": ours, "pysheds": theirs}))
 

@@ -50,7 +50,9 @@ result = dict(ours_s=min(ours), scipy64_s=t64, scipy32_s=t32,
               footprint_cells=int(fp.sum()))
 """
 
-BIG = CLUSTER_PREAMBLE + """
+BIG = (
+    CLUSTER_PREAMBLE
+    + """
 dem = pipeline.open_dem(src, chunks=1024)
 t = time.perf_counter()
 S = pipeline.safety_map(dem, "spherical", 300.0)
@@ -59,6 +61,7 @@ result = dict(safety_zarr_s=time.perf_counter() - t, worker_peak_gib=worker_peak
 client.close(); cluster.close()
 shutil.rmtree("{out}/safety.zarr", ignore_errors=True)
 """
+)
 
 PROFILE = """
 import numpy as np, pipeline
@@ -125,18 +128,30 @@ def main() -> None:
     rep = Report("safety", 2, "Safety maps", ".venv/bin/python benchmarks/bench_safety.py", quick)
 
     t1 = run_isolated(TABLE1)
-    paper = {"spherical 300": 338, "horizontal 300": 442, "vertical 300": 300,
-             "spherical 200": 222, "horizontal 200": 342, "vertical 200": 200}
+    paper = {
+        "spherical 300": 338,
+        "horizontal 300": 442,
+        "vertical 300": 300,
+        "spherical 200": 222,
+        "horizontal 200": 342,
+        "vertical 200": 200,
+    }
     rep.h("Table 1 analog: mean raise of the three safety maps")
     rep.p("""A 200 x 200 synthetic ridge DEM (seed 0, no islands) with the paper's 100 m cells;
           the mean raise `mean(S - z)` in metres, beside the paper's Table 1:""")
-    rep.table(["R (m)", "method", "ours", "paper"],
-              [[k.split()[1], k.split()[0], f"+{v:.0f}", f"+{paper[k]}"]
-               for k, v in t1.items() if not k.startswith("peak")])
-    order = all(t1[f"vertical {R}"] < t1[f"spherical {R}"] < t1[f"horizontal {R}"]
-                for R in (300, 200))
+    rep.table(
+        ["R (m)", "method", "ours", "paper"],
+        [
+            [k.split()[1], k.split()[0], f"+{v:.0f}", f"+{paper[k]}"]
+            for k, v in t1.items()
+            if not k.startswith("peak")
+        ],
+    )
+    order = all(
+        t1[f"vertical {R}"] < t1[f"spherical {R}"] < t1[f"horizontal {R}"] for R in (300, 200)
+    )
     rep.p(f"""The paper's ordering (vertical, exactly R < spherical < horizontal)
-          {'holds' if order else '**does not hold**'}. The values differ because the terrain
+          {"holds" if order else "**does not hold**"}. The values differ because the terrain
           differs: the raise above `z + R` grows with the relief within the clearance radius,
           and our 20 km scene holds a whole ridge system with seamounts.""")
 
@@ -147,54 +162,79 @@ def main() -> None:
     rep.p(f"""The paper: "any distance between two points in the safety map and the ground [is]
           higher than 300 m". Measured here by brute force over every pair of a surface point
           and a grid point within 3 cells: the smallest 3-D distance is
-          **{f9['min_distance_m']:.2f} m** (a grid point touches the sphere: the map is the
-          lowest safe surface, not just a safe one); mean raise {f9['mean_raise_m']:.0f} m
+          **{f9["min_distance_m"]:.2f} m** (a grid point touches the sphere: the map is the
+          lowest safe surface, not just a safe one); mean raise {f9["mean_raise_m"]:.0f} m
           (the paper: 338 m).""")
 
     n = 1000 if quick else 2000
     s = run_isolated(SCIPY.format(n=n))
     ratio = s["scipy64_s"] / s["ours_s"]
     rep.h("Speed against scipy.ndimage")
-    rep.p(f"""{n} x {n} synthetic DEM, R = 300 m, 30 m cells (a {s['footprint_cells']}-cell
+    rep.p(f"""{n} x {n} synthetic DEM, R = 300 m, 30 m cells (a {s["footprint_cells"]}-cell
           spherical element), in memory, best of 3 for ours; scipy's `grey_dilation` with the
           same non-flat structuring element, once, same process:""")
-    rep.table(["", "time (s)", "ratio to ours", "result"], [
-        ["ours (`safety_map`, numba)", s["ours_s"], "1", "float32"],
-        ["scipy `grey_dilation`, float64 input", s["scipy64_s"], f"**{ratio:.1f}x**",
-         "ours equals it rounded once to float32" if s["identical_to_scipy64_rounded"]
-         else "**ours differs from it rounded once**"],
-        ["scipy `grey_dilation`, float32 input", s["scipy32_s"],
-         f"{s['scipy32_s'] / s['ours_s']:.1f}x",
-         f"max difference {s['max_abs_diff_scipy32']:.1e} m (it rounds twice)"]])
+    rep.table(
+        ["", "time (s)", "ratio to ours", "result"],
+        [
+            ["ours (`safety_map`, numba)", s["ours_s"], "1", "float32"],
+            [
+                "scipy `grey_dilation`, float64 input",
+                s["scipy64_s"],
+                f"**{ratio:.1f}x**",
+                "ours equals it rounded once to float32"
+                if s["identical_to_scipy64_rounded"]
+                else "**ours differs from it rounded once**",
+            ],
+            [
+                "scipy `grey_dilation`, float32 input",
+                s["scipy32_s"],
+                f"{s['scipy32_s'] / s['ours_s']:.1f}x",
+                f"max difference {s['max_abs_diff_scipy32']:.1e} m (it rounds twice)",
+            ],
+        ],
+    )
     rep.p("""The kernel splits the disc by row offset: each input row is dilated once per offset
           by the 1-D cap of that offset in contiguous loops that LLVM vectorises, and the disc
           is assembled from a ring buffer of 2r + 1 rows (for r = 10: 169 + 21 vectorised
           max-adds per cell instead of 317 scalar visits). A bound-pruning variant was tried
           first and was only 1.4x faster than scipy on this terrain.""")
-    rep.headline("scipy", 20, f"spherical safety map {n}^2 in memory",
-                 f"{s['ours_s']:.3f} s, bit-identical to scipy (float64 rounded)",
-                 peer=f"scipy `grey_dilation` {s['scipy64_s']:.2f} s "
-                      f"(**{faster(s['scipy64_s'], s['ours_s'])}**)",
-                 target=">= 10x scipy")
+    rep.headline(
+        "scipy",
+        20,
+        f"spherical safety map {n}^2 in memory",
+        f"{s['ours_s']:.3f} s, bit-identical to scipy (float64 rounded)",
+        peer=f"scipy `grey_dilation` {s['scipy64_s']:.2f} s "
+        f"(**{faster(s['scipy64_s'], s['ours_s'])}**)",
+        target=">= 10x scipy",
+    )
 
     nb = 3000 if quick else 10000
     b = run_isolated(BIG.format(n=nb, src=OUT / f"dem{nb}.zarr", out=OUT), timeout=3600)
     rep.h(f"{nb} x {nb} from Zarr to Zarr")
     rep.p(f"""Spherical, R = 300 m, 30 m cells, chunks of 1024^2, read from the DEM's Zarr store
           and written to a Zarr store by a LocalCluster of 2 workers x 1 thread (dask
-          `map_overlap` with a halo of R / a cells): **{b['safety_zarr_s']:.1f} s**; worker peak
-          RSS {b['worker_peak_gib']} GiB; client {b['peak_rss_gib']} GiB (target at 10000^2:
+          `map_overlap` with a halo of R / a cells): **{b["safety_zarr_s"]:.1f} s**; worker peak
+          RSS {b["worker_peak_gib"]} GiB; client {b["peak_rss_gib"]} GiB (target at 10000^2:
           < 20 s, < 3 GiB per worker).""")
-    rep.headline("big", 21, f"spherical safety map {nb}^2, Zarr -> Zarr, 2 workers",
-                 f"{b['safety_zarr_s']:.1f} s, {max(b['worker_peak_gib']):.2f} GiB per worker",
-                 target="< 20 s, < 3 GiB (10000^2)")
+    rep.headline(
+        "big",
+        21,
+        f"spherical safety map {nb}^2, Zarr -> Zarr, 2 workers",
+        f"{b['safety_zarr_s']:.1f} s, {max(b['worker_peak_gib']):.2f} GiB per worker",
+        target="< 20 s, < 3 GiB (10000^2)",
+    )
 
     png = figs / "safety-profile.png"
     run_isolated(PROFILE.format(png=png))
     rep.figure(png, "the three safety surfaces on one profile (the paper's Figures 2 and 4)")
-    rep.headline("table1", 22, "Table 1: mean raise, spherical R = 300 / 200 m",
-                 f"+{t1['spherical 300']:.0f} / +{t1['spherical 200']:.0f} m",
-                 paper="+338 / +222 m", target="vertical < spherical < horizontal")
+    rep.headline(
+        "table1",
+        22,
+        "Table 1: mean raise, spherical R = 300 / 200 m",
+        f"+{t1['spherical 300']:.0f} / +{t1['spherical 200']:.0f} m",
+        paper="+338 / +222 m",
+        target="vertical < spherical < horizontal",
+    )
     rep.save()
     print(json.dumps({"table1": t1, "fig9": f9, "scipy": s, "big": b}))
 

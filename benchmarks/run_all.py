@@ -37,34 +37,71 @@ LOGS = OUT / "logs"
 SCRIPTS = ["dem", "safety", "ridges", "planners", "mcpc", "jobs", "realdata"]
 
 PAPER_INDEX = [
-    ("Table 1", "mean raise of the three safety maps, R = 200 / 300 m", "safety",
-     "our 200 x 200 map is a synthetic ridge scene, theirs a survey; same 100 m cells"),
+    (
+        "Table 1",
+        "mean raise of the three safety maps, R = 200 / 300 m",
+        "safety",
+        "our 200 x 200 map is a synthetic ridge scene, theirs a survey; same 100 m cells",
+    ),
     ("Figure 9", "a DEM and its spherical safety map", "safety", "same scale and R"),
-    ("Table 2", "RA* without a safety map, omega 2.5 / 2.0 / 1.8 / 1.0", "planners",
-     "a 200 x 200 window of our synthetic DEM at 30 m; the Lagrangian planner beside RA*"),
+    (
+        "Table 2",
+        "RA* without a safety map, omega 2.5 / 2.0 / 1.8 / 1.0",
+        "planners",
+        "a 200 x 200 window of our synthetic DEM at 30 m; the Lagrangian planner beside RA*",
+    ),
     ("Table 3", "the same with the spherical safety map", "planners", "as Table 2"),
-    ("Figures 10, 11", "RA*'s paths for the four omega values", "planners",
-     "top views; both planners"),
-    ("Table 4", "RA*/A* with and without MCPC, 5000^2, omega 3", "mcpc",
-     "our synthetic 5000^2 map; 2 cores, not 16"),
+    (
+        "Figures 10, 11",
+        "RA*'s paths for the four omega values",
+        "planners",
+        "top views; both planners",
+    ),
+    (
+        "Table 4",
+        "RA*/A* with and without MCPC, 5000^2, omega 3",
+        "mcpc",
+        "our synthetic 5000^2 map; 2 cores, not 16",
+    ),
     ("Figure 12", "the four Table 4 paths", "mcpc", "top view over the hillshade"),
-    ("Table 5", "time per mission against map size, 500^2 to 10000^2, omega 2", "mcpc",
-     "6 sizes, not 20; the maps are prebuilt (the paper's times exclude them too)"),
+    (
+        "Table 5",
+        "time per mission against map size, 500^2 to 10000^2, omega 2",
+        "mcpc",
+        "6 sizes, not 20; the maps are prebuilt (the paper's times exclude them too)",
+    ),
     ("Figure 13", "time against map size", "mcpc", "with the p10-p90 spread"),
-    ("Table 6", "RA* against MRA*, RRT*, WA* on 10000^2", "mcpc",
-     "MRA* and RRT* are not available to run; WA* (ours) and pyastar2d are"),
-    ("Figure 14", "case study: 2000^2, RA*+MCPC omega 3, corner to corner", "mcpc",
-     "their \"average safety distance\" is not defined: we give the height above the seabed "
-     "and the 3-D distance to the ground"),
+    (
+        "Table 6",
+        "RA* against MRA*, RRT*, WA* on 10000^2",
+        "mcpc",
+        "MRA* and RRT* are not available to run; WA* (ours) and pyastar2d are",
+    ),
+    (
+        "Figure 14",
+        "case study: 2000^2, RA*+MCPC omega 3, corner to corner",
+        "mcpc",
+        'their "average safety distance" is not defined: we give the height above the seabed '
+        "and the 3-D distance to the ground",
+    ),
 ]
 
 
 def git_commit() -> str:
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                             text=True, cwd=ROOT, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, cwd=ROOT).stdout.strip()
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        ).stdout.strip()
         return out + (" (with uncommitted changes)" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
@@ -76,8 +113,9 @@ def run_script(name: str, quick: bool) -> tuple[int, float]:
     cmd = [sys.executable, "-u", str(HERE / f"bench_{name}.py")] + (["--quick"] if quick else [])
     t0 = time.perf_counter()
     with open(LOGS / f"{name}.log", "w") as log:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True)
+        proc = subprocess.Popen(
+            cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         for line in proc.stdout:
             sys.stdout.write(line)
             log.write(line)
@@ -93,18 +131,27 @@ def headline_rows(quick: bool) -> list[dict]:
 
 
 def headline_table(rows: list[dict]) -> str:
-    out = ["| what | ours (2 cores, Python) | the paper (16 cores, MATLAB) | peer, same run | "
-           "target |", "|---|---|---|---|---|"]
-    out += [f"| {r['what']} | {r['ours']} | {r['paper'] or '-'} | {r['peer'] or '-'} | "
-            f"{r['target'] or '-'} |" for r in rows]
+    out = [
+        "| what | ours (2 cores, Python) | the paper (16 cores, MATLAB) | peer, same run | "
+        "target |",
+        "|---|---|---|---|---|",
+    ]
+    out += [
+        f"| {r['what']} | {r['ours']} | {r['paper'] or '-'} | {r['peer'] or '-'} | "
+        f"{r['target'] or '-'} |"
+        for r in rows
+    ]
     return "\n".join(out)
 
 
 def assemble(quick: bool, times: dict, failed: list[str], total_s: float, commit: str) -> str:
     m = machine()
     libs = ", ".join(f"{k} {v}" for k, v in m["libs"].items())
-    mode = ("quick mode: smaller cases, a check that everything runs (the sizes are in every "
-            "table)" if quick else "full mode")
+    mode = (
+        "quick mode: smaller cases, a check that everything runs (the sizes are in every table)"
+        if quick
+        else "full mode"
+    )
     parts = sorted(parts_dir(quick).glob("*.md"))
     by_name = {p.stem.split("-", 1)[1]: p for p in parts}
     lines = [
@@ -113,7 +160,8 @@ def assemble(quick: bool, times: dict, failed: list[str], total_s: float, commit
         "Regenerated as a whole by `./dev bench" + (" --quick" if quick else "") + "` "
         f"(`benchmarks/run_all.py`) on {time.strftime('%Y-%m-%d')}, {mode}; measured at commit "
         f"{commit}; the run took {total_s / 60:.1f} min ("
-        + ", ".join(f"{k} {v / 60:.1f}" for k, v in times.items()) + " min). Do not edit by "
+        + ", ".join(f"{k} {v / 60:.1f}" for k, v in times.items())
+        + " min). Do not edit by "
         "hand: the scripts write every number and sentence below.",
         "",
         f"**Machine**: {m['cores']} cores ({m['cpu']}), {m['memory_gib']} GiB, {m['os']}, "
@@ -130,11 +178,21 @@ def assemble(quick: bool, times: dict, failed: list[str], total_s: float, commit
         "",
     ]
     if failed:
-        lines += [f"**FAILED**: {', '.join(failed)} (exit code non-zero; their logs are in "
-                  "benchmarks/out/logs/). Their parts below may be from an earlier run.", ""]
-    lines += ["## Headline", "", headline_table(headline_rows(quick)), "",
-              "## The paper's tables and figures, and where their analogs are", "",
-              "| paper | what | analog in | what differs |", "|---|---|---|---|"]
+        lines += [
+            f"**FAILED**: {', '.join(failed)} (exit code non-zero; their logs are in "
+            "benchmarks/out/logs/). Their parts below may be from an earlier run.",
+            "",
+        ]
+    lines += [
+        "## Headline",
+        "",
+        headline_table(headline_rows(quick)),
+        "",
+        "## The paper's tables and figures, and where their analogs are",
+        "",
+        "| paper | what | analog in | what differs |",
+        "|---|---|---|---|",
+    ]
     for item, what, where, differs in PAPER_INDEX:
         lines.append(f"| {item} | {what} | [{where}](#{anchor(by_name, where)}) | {differs} |")
     lines.append("")
@@ -161,22 +219,24 @@ def update_readme() -> None:
     if README_START not in text or README_END not in text:
         print("README.md has no results markers; not updated")
         return
-    block = "\n".join([
-        README_START,
-        "",
-        f"Measured on a {machine()['cores']}-core machine by `./dev bench` on "
-        f"{time.strftime('%Y-%m-%d')}; every figure, how it was measured, the machine and the "
-        "analog of each of the paper's tables and figures are in "
-        "[benchmarks/RESULTS.md](benchmarks/RESULTS.md).",
-        "",
-        headline_table(headline_rows(False)),
-        "",
-        "![planning time against map size](docs/mcpc-scaling.png)",
-        "",
-        "![a planned trajectory on real bathymetry](docs/topobathy-missions.png)",
-        "",
-        README_END,
-    ])
+    block = "\n".join(
+        [
+            README_START,
+            "",
+            f"Measured on a {machine()['cores']}-core machine by `./dev bench` on "
+            f"{time.strftime('%Y-%m-%d')}; every figure, how it was measured, the machine and the "
+            "analog of each of the paper's tables and figures are in "
+            "[benchmarks/RESULTS.md](benchmarks/RESULTS.md).",
+            "",
+            headline_table(headline_rows(False)),
+            "",
+            "![planning time against map size](docs/mcpc-scaling.png)",
+            "",
+            "![a planned trajectory on real bathymetry](docs/topobathy-missions.png)",
+            "",
+            README_END,
+        ]
+    )
     head, rest = text.split(README_START, 1)
     tail = rest.split(README_END, 1)[1]
     readme.write_text(head + block + tail)
@@ -186,8 +246,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller cases, under 10 minutes")
     ap.add_argument("--only", nargs="+", choices=SCRIPTS, help="run these scripts only")
-    ap.add_argument("--assemble", action="store_true",
-                    help="run nothing: rebuild the report from the parts of the last run")
+    ap.add_argument(
+        "--assemble",
+        action="store_true",
+        help="run nothing: rebuild the report from the parts of the last run",
+    )
     args = ap.parse_args()
     run_file = parts_dir(args.quick) / "_run.json"
     if args.assemble:
@@ -209,7 +272,7 @@ def main() -> int:
     if args.only and run_file.exists():  # the other parts are from the last run: keep its times
         last = json.loads(run_file.read_text())
         times = {**last["times"], **times}
-        failed = [f for f in last["failed"] if f[len("bench_"):-3] not in names] + failed
+        failed = [f for f in last["failed"] if f[len("bench_") : -3] not in names] + failed
         total = sum(times.values())
     commit = git_commit()  # the code that measured (--assemble later keeps it)
     run_file.write_text(json.dumps(dict(times=times, failed=failed, total=total, commit=commit)))

@@ -22,8 +22,9 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
     """
     path = Path(path)
     if path.exists() and not overwrite:
-        raise StoreExistsError(f"{path} exists already; pass overwrite=True (--overwrite) "
-                               "to replace it")
+        raise StoreExistsError(
+            f"{path} exists already; pass overwrite=True (--overwrite) to replace it"
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     tag = uuid.uuid4().hex[:8]
     tmp = path.with_name(f".{path.name}.tmp-{tag}")

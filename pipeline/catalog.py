@@ -61,8 +61,18 @@ def finished(root: Path, mission_id: str) -> dict | None:
         return None
 
 
-def write_mission(root: Path, mission_id: str, mission: dict, traj, *, maps, crs_wkt,
-                  min_clearance_m: float, run_id: str, quicklook: bool = True) -> dict:
+def write_mission(
+    root: Path,
+    mission_id: str,
+    mission: dict,
+    traj,
+    *,
+    maps,
+    crs_wkt,
+    min_clearance_m: float,
+    run_id: str,
+    quicklook: bool = True,
+) -> dict:
     """Write one mission's Item and assets atomically; returns the Item as a dict."""
     import pystac
 
@@ -76,40 +86,62 @@ def write_mission(root: Path, mission_id: str, mission: dict, traj, *, maps, crs
         if ok:
             ll = _lonlat(traj.points[:, :2], crs_wkt)
             geom = {"type": "LineString", "coordinates": ll.tolist()}
-            bbox = [float(ll[:, 0].min()), float(ll[:, 1].min()), float(ll[:, 0].max()),
-                    float(ll[:, 1].max())]
+            bbox = [
+                float(ll[:, 0].min()),
+                float(ll[:, 1].min()),
+                float(ll[:, 0].max()),
+                float(ll[:, 1].max()),
+            ]
             _track_parquet(tmp / "track.parquet", traj, crs_wkt)
-            assets["track"] = pystac.Asset("./track.parquet", title="trajectory points x, y, z",
-                                           media_type="application/vnd.apache.parquet",
-                                           roles=["data"])
+            assets["track"] = pystac.Asset(
+                "./track.parquet",
+                title="trajectory points x, y, z",
+                media_type="application/vnd.apache.parquet",
+                roles=["data"],
+            )
             if quicklook:
                 from .plots import mission_quicklook
 
                 mission_quicklook(maps, traj, tmp / "quicklook.png", title=mission_id)
-                assets["quicklook"] = pystac.Asset("./quicklook.png", title="quick look",
-                                                   media_type=pystac.MediaType.PNG,
-                                                   roles=["overview"])
-        props = {f"auv:{k}": _num(v) for k, v in (
-            ("length_m", traj.length_m), ("ridge_length_m", traj.ridge_length_m),
-            ("ridge_ratio", traj.ridge_ratio), ("omega", traj.omega),
-            ("lower_bound_m", traj.lower_bound_m), ("min_clearance_m", min_clearance_m),
-            ("runtime_s", traj.runtime_s))}
-        props.update({"auv:planner": traj.planner, "auv:status": traj.status,
-                      "auv:message": traj.message, "auv:run_id": run_id,
-                      "auv:start": [_num(v) for v in mission.get("start_input",
-                                                                   mission.get("start", []))],
-                      "auv:goal": [_num(v) for v in mission.get("goal_input",
-                                                                  mission.get("goal", []))],
-                      "auv:sections": len(traj.extra.get("sections", [])) if ok else 0,
-                      "auv:expansions": int(traj.expansions)})
-        item = pystac.Item(mission_id, geom, bbox, _dt.datetime.now(_dt.UTC), props,
-                           assets=assets)
+                assets["quicklook"] = pystac.Asset(
+                    "./quicklook.png",
+                    title="quick look",
+                    media_type=pystac.MediaType.PNG,
+                    roles=["overview"],
+                )
+        props = {
+            f"auv:{k}": _num(v)
+            for k, v in (
+                ("length_m", traj.length_m),
+                ("ridge_length_m", traj.ridge_length_m),
+                ("ridge_ratio", traj.ridge_ratio),
+                ("omega", traj.omega),
+                ("lower_bound_m", traj.lower_bound_m),
+                ("min_clearance_m", min_clearance_m),
+                ("runtime_s", traj.runtime_s),
+            )
+        }
+        props.update(
+            {
+                "auv:planner": traj.planner,
+                "auv:status": traj.status,
+                "auv:message": traj.message,
+                "auv:run_id": run_id,
+                "auv:start": [
+                    _num(v) for v in mission.get("start_input", mission.get("start", []))
+                ],
+                "auv:goal": [_num(v) for v in mission.get("goal_input", mission.get("goal", []))],
+                "auv:sections": len(traj.extra.get("sections", [])) if ok else 0,
+                "auv:expansions": int(traj.expansions),
+            }
+        )
+        item = pystac.Item(mission_id, geom, bbox, _dt.datetime.now(_dt.UTC), props, assets=assets)
         d = item.to_dict(include_self_link=False, transform_hrefs=False)
-        d["links"] = [{"rel": "root", "href": "../../catalog.json", "type": "application/json"},
-                      {"rel": "parent", "href": "../collection.json",
-                       "type": "application/json"},
-                      {"rel": "collection", "href": "../collection.json",
-                       "type": "application/json"}]
+        d["links"] = [
+            {"rel": "root", "href": "../../catalog.json", "type": "application/json"},
+            {"rel": "parent", "href": "../collection.json", "type": "application/json"},
+            {"rel": "collection", "href": "../collection.json", "type": "application/json"},
+        ]
         d["collection"] = COLLECTION
         (tmp / f"{mission_id}.json").write_text(json.dumps(d, indent=1))
         if final.exists():
@@ -136,12 +168,14 @@ def _track_parquet(path: Path, traj, crs_wkt: str | None) -> None:
     gdf = gpd.GeoDataFrame(
         {"row": traj.cells[:, 0], "col": traj.cells[:, 1], "z": traj.points[:, 2]},
         geometry=points(traj.points[:, 0], traj.points[:, 1], traj.points[:, 2]),
-        crs=crs_wkt or None)
+        crs=crs_wkt or None,
+    )
     gdf.to_parquet(path)
 
 
-def write_catalog(root: Path, name: str, mission_ids: list[str], *, description: str,
-                  lonlat: bool) -> Path:
+def write_catalog(
+    root: Path, name: str, mission_ids: list[str], *, description: str, lonlat: bool
+) -> Path:
     """The root catalog, the Collection and the missions GeoParquet, from the Items on disk."""
     import geopandas as gpd
     import pystac
@@ -153,8 +187,13 @@ def write_catalog(root: Path, name: str, mission_ids: list[str], *, description:
     rows, geoms = [], []
     for it in items:
         row = {"id": it["id"], "datetime": it["properties"]["datetime"]}
-        row.update({k.split(":", 1)[1]: (json.dumps(v) if isinstance(v, list) else v)
-                    for k, v in it["properties"].items() if k.startswith("auv:")})
+        row.update(
+            {
+                k.split(":", 1)[1]: (json.dumps(v) if isinstance(v, list) else v)
+                for k, v in it["properties"].items()
+                if k.startswith("auv:")
+            }
+        )
         rows.append(row)
         geoms.append(shape(it["geometry"]) if it.get("geometry") else None)
     gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs="EPSG:4326" if lonlat else None)
@@ -165,28 +204,48 @@ def write_catalog(root: Path, name: str, mission_ids: list[str], *, description:
     os.replace(tmp, coll_dir / "missions.parquet")
 
     boxes = [it["bbox"] for it in items if it.get("bbox")]
-    bbox = ([min(b[0] for b in boxes), min(b[1] for b in boxes), max(b[2] for b in boxes),
-             max(b[3] for b in boxes)] if boxes else [0.0, 0.0, 0.0, 0.0])
+    bbox = (
+        [
+            min(b[0] for b in boxes),
+            min(b[1] for b in boxes),
+            max(b[2] for b in boxes),
+            max(b[3] for b in boxes),
+        ]
+        if boxes
+        else [0.0, 0.0, 0.0, 0.0]
+    )
     times = sorted(it["properties"]["datetime"] for it in items)
     t0 = _dt.datetime.fromisoformat(times[0]) if times else _dt.datetime.now(_dt.UTC)
     t1 = _dt.datetime.fromisoformat(times[-1]) if times else t0
-    coll = pystac.Collection(COLLECTION, description,
-                             pystac.Extent(pystac.SpatialExtent([bbox]),
-                                           pystac.TemporalExtent([[t0, t1]])),
-                             title=f"{name}: planned missions")
-    coll.add_asset("missions", pystac.Asset("./missions.parquet", title="all missions",
-                                            media_type="application/vnd.apache.parquet",
-                                            roles=["data"]))
+    coll = pystac.Collection(
+        COLLECTION,
+        description,
+        pystac.Extent(pystac.SpatialExtent([bbox]), pystac.TemporalExtent([[t0, t1]])),
+        title=f"{name}: planned missions",
+    )
+    coll.add_asset(
+        "missions",
+        pystac.Asset(
+            "./missions.parquet",
+            title="all missions",
+            media_type="application/vnd.apache.parquet",
+            roles=["data"],
+        ),
+    )
     cd = coll.to_dict(include_self_link=False, transform_hrefs=False)
-    cd["links"] = ([{"rel": "root", "href": "../catalog.json", "type": "application/json"},
-                    {"rel": "parent", "href": "../catalog.json", "type": "application/json"}]
-                   + [{"rel": "item", "href": f"./{it['id']}/{it['id']}.json",
-                       "type": "application/geo+json"} for it in items])
+    cd["links"] = [
+        {"rel": "root", "href": "../catalog.json", "type": "application/json"},
+        {"rel": "parent", "href": "../catalog.json", "type": "application/json"},
+    ] + [
+        {"rel": "item", "href": f"./{it['id']}/{it['id']}.json", "type": "application/geo+json"}
+        for it in items
+    ]
     cat = pystac.Catalog(name, description, title=name)
     kd = cat.to_dict(include_self_link=False, transform_hrefs=False)
-    kd["links"] = [{"rel": "root", "href": "./catalog.json", "type": "application/json"},
-                   {"rel": "child", "href": f"./{COLLECTION}/collection.json",
-                    "type": "application/json"}]
+    kd["links"] = [
+        {"rel": "root", "href": "./catalog.json", "type": "application/json"},
+        {"rel": "child", "href": f"./{COLLECTION}/collection.json", "type": "application/json"},
+    ]
     _atomic_json(coll_dir / "collection.json", cd)
     _atomic_json(root / "catalog.json", kd)
     return root / "catalog.json"

@@ -19,8 +19,14 @@ def _option(param: Param, *, flag: str | None = None):
     else:
         kind = {"float": float, "int": int, "str": str}[param.kind]
     flag = flag or "--" + param.name.replace("_", "-")
-    return click.option(flag, param.name, type=kind, default=param.default,
-                        show_default=param.default is not None, help=param.option_help())
+    return click.option(
+        flag,
+        param.name,
+        type=kind,
+        default=param.default,
+        show_default=param.default is not None,
+        help=param.option_help(),
+    )
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -28,8 +34,11 @@ def _setup_logging(verbose: bool) -> None:
 
     # distributed installs its own INFO handler when imported: keep it to warnings
     dask.config.set({"logging.distributed": "debug" if verbose else "warning"})
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
     for noisy in ("distributed", "numba", "rasterio", "fsspec", "asyncio"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
 
@@ -56,8 +65,9 @@ def dem() -> None:
 
 @dem.command("synth")
 @click.argument("out", type=click.Path())
-@click.option("--shape", nargs=2, type=int, default=(2000, 2000), show_default=True,
-              help="Rows and columns.")
+@click.option(
+    "--shape", nargs=2, type=int, default=(2000, 2000), show_default=True, help="Rows and columns."
+)
 @_option(SYNTHETIC.cell_size)
 @_option(SYNTHETIC.seed)
 @_option(SYNTHETIC.islands)
@@ -90,8 +100,9 @@ def dem_import(source, out, chunks, variable, cell_size, resolution, overwrite):
 
     with _errors():
         t0 = time.perf_counter()
-        d = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size,
-                     resolution=resolution)
+        d = open_dem(
+            source, chunks=chunks, variable=variable, cell_size=cell_size, resolution=resolution
+        )
         with _progress(f"importing {source} ({d.shape[0]} x {d.shape[1]} cells) into {out}"):
             write_dem(d, out, chunks=chunks, overwrite=overwrite)
         click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
@@ -105,8 +116,10 @@ def dem_info(path):
 
     with _errors():
         d = open_dem(path, chunks=DEM.chunks.default)
-        click.echo(f"{path}: {d.shape[0]} x {d.shape[1]} cells of {d.attrs['cell_size']:g} m, "
-                   f"chunks {d.data.chunksize}")
+        click.echo(
+            f"{path}: {d.shape[0]} x {d.shape[1]} cells of {d.attrs['cell_size']:g} m, "
+            f"chunks {d.data.chunksize}"
+        )
         click.echo(f"crs: {'set' if 'crs_wkt' in d.attrs else 'none (local metric grid)'}")
         lo, hi = float(d.min().compute()), float(d.max().compute())
         click.echo(f"elevation: {lo:.1f} .. {hi:.1f} m")
@@ -123,8 +136,12 @@ def dem_info(path):
 @_option(MAPS.min_accumulation)
 @click.option("--chunks", type=int, default=None, help="Chunk side; default the DEM's.")
 @click.option("--scheduler", default=None, help="Address of a dask scheduler.")
-@click.option("--scheduler-file", default=None, type=click.Path(),
-              help="A dask scheduler file (JSON) instead of an address.")
+@click.option(
+    "--scheduler-file",
+    default=None,
+    type=click.Path(),
+    help="A dask scheduler file (JSON) instead of an address.",
+)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, **params):
     """Build the maps store OUT (elevation, safety, passable, accumulation, ridge) from the
@@ -136,19 +153,27 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     with _errors():
         t0 = time.perf_counter()
         dem = open_dem(dem_path, chunks=chunks or DEM.chunks.default)
-        with session(scheduler, scheduler_file), \
-                _progress(f"building {params['method']} maps of {dem_path} into {out}"):
+        with (
+            session(scheduler, scheduler_file),
+            _progress(f"building {params['method']} maps of {dem_path} into {out}"),
+        ):
             maps = build_maps(dem, out, chunks=chunks, overwrite=overwrite, **params)
         share = float(maps["passable"].mean().compute())
-        click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s; "
-                   f"{100 * share:.1f} % of cells passable")
+        click.echo(
+            f"wrote {out} in {time.perf_counter() - t0:.1f} s; "
+            f"{100 * share:.1f} % of cells passable"
+        )
 
 
 @main.command("run")
 @click.argument("job", type=click.Path())
 @click.option("--scheduler", default=None, help="Address of a dask scheduler (tcp://host:port).")
-@click.option("--scheduler-file", default=None, type=click.Path(),
-              help="A dask scheduler file (JSON) instead of an address.")
+@click.option(
+    "--scheduler-file",
+    default=None,
+    type=click.Path(),
+    help="A dask scheduler file (JSON) instead of an address.",
+)
 @click.option("--dry-run", is_flag=True, help="Validate the job file and stop.")
 @click.option("--overwrite", is_flag=True, help="Recompute what exists already.")
 def run(job, scheduler, scheduler_file, dry_run, overwrite):
@@ -161,18 +186,29 @@ def run(job, scheduler, scheduler_file, dry_run, overwrite):
     if scheduler and scheduler_file:
         raise click.UsageError("give --scheduler or --scheduler-file, not both")
     with _errors():
-        res = run_job(job, scheduler=scheduler, scheduler_file=scheduler_file,
-                      overwrite=overwrite, dry_run=dry_run)
+        res = run_job(
+            job,
+            scheduler=scheduler,
+            scheduler_file=scheduler_file,
+            overwrite=overwrite,
+            dry_run=dry_run,
+        )
         if dry_run:
-            click.echo(f"job {res.job.name} is valid: {len(res.job.missions)} missions; would "
-                       f"write {res.job.catalog}")
+            click.echo(
+                f"job {res.job.name} is valid: {len(res.job.missions)} missions; would "
+                f"write {res.job.catalog}"
+            )
             return
-        click.echo(f"job {res.job.name}: {res.planned} missions planned, {res.skipped} "
-                   f"skipped (finished before), {len(res.failed)} failed; catalog "
-                   f"{res.catalog} ({res.seconds:.1f} s)")
+        click.echo(
+            f"job {res.job.name}: {res.planned} missions planned, {res.skipped} "
+            f"skipped (finished before), {len(res.failed)} failed; catalog "
+            f"{res.catalog} ({res.seconds:.1f} s)"
+        )
         if res.failed:
-            click.echo(f"failed missions: {', '.join(res.failed)} (reasons in their Items, "
-                       "auv:message)", err=True)
+            click.echo(
+                f"failed missions: {', '.join(res.failed)} (reasons in their Items, auv:message)",
+                err=True,
+            )
             sys.exit(1)
 
 

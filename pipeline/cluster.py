@@ -30,8 +30,12 @@ def local_cluster(dashboard_address: str = ":0"):
     """A LocalCluster of 2 single-threaded worker processes (the default everywhere)."""
     from distributed import LocalCluster
 
-    return LocalCluster(n_workers=LOCAL_WORKERS, threads_per_worker=1, processes=True,
-                        dashboard_address=dashboard_address)
+    return LocalCluster(
+        n_workers=LOCAL_WORKERS,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=dashboard_address,
+    )
 
 
 def connect(address: str, *, timeout: float = 30, set_as_default: bool = False):
@@ -41,9 +45,11 @@ def connect(address: str, *, timeout: float = 30, set_as_default: bool = False):
     try:
         return Client(address, timeout=timeout, set_as_default=set_as_default)
     except (OSError, ValueError, TypeError) as exc:
-        raise SchedulerError(f"cannot reach the dask scheduler at {address}: {exc}; start it "
-                             "(`dask scheduler`) or give no scheduler to use a local "
-                             "cluster") from None
+        raise SchedulerError(
+            f"cannot reach the dask scheduler at {address}: {exc}; start it "
+            "(`dask scheduler`) or give no scheduler to use a local "
+            "cluster"
+        ) from None
 
 
 def address_of(scheduler_file) -> str:
@@ -51,12 +57,16 @@ def address_of(scheduler_file) -> str:
     try:
         address = json.loads(Path(scheduler_file).read_text())["address"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SchedulerError(f"cannot read the scheduler address from {scheduler_file}: "
-                             f"{exc}; give the file `dask scheduler --scheduler-file` "
-                             "wrote") from None
+        raise SchedulerError(
+            f"cannot read the scheduler address from {scheduler_file}: "
+            f"{exc}; give the file `dask scheduler --scheduler-file` "
+            "wrote"
+        ) from None
     if not isinstance(address, str):
-        raise SchedulerError(f"{scheduler_file} holds no scheduler address; give the file "
-                             "`dask scheduler --scheduler-file` wrote")
+        raise SchedulerError(
+            f"{scheduler_file} holds no scheduler address; give the file "
+            "`dask scheduler --scheduler-file` wrote"
+        )
     return address
 
 
@@ -105,8 +115,10 @@ def get_client(client=None):
                 _LOCAL[("addr", client)] = c
             return c
     if client is not None:
-        raise InvalidParameterError("`client` must be None, 'synchronous', a scheduler address "
-                                    f"or a distributed.Client, got {type(client).__name__}")
+        raise InvalidParameterError(
+            "`client` must be None, 'synchronous', a scheduler address "
+            f"or a distributed.Client, got {type(client).__name__}"
+        )
     try:
         from distributed import get_client as current
 

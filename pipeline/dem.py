@@ -29,8 +29,18 @@ CANONICAL_VERSION = 1
 
 _X_NAMES = ("x", "lon", "longitude", "easting", "east", "xc")
 _Y_NAMES = ("y", "lat", "latitude", "northing", "north", "yc")
-_ELEVATION_NAMES = ("elevation", "z", "band_data", "Band1", "topo", "bathymetry", "height",
-                    "depth", "altitude", "elev")
+_ELEVATION_NAMES = (
+    "elevation",
+    "z",
+    "band_data",
+    "Band1",
+    "topo",
+    "bathymetry",
+    "height",
+    "depth",
+    "altitude",
+    "elev",
+)
 _NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".grd", ".netcdf")
 _TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff")
 
@@ -52,14 +62,22 @@ def cell_size(dem: xr.DataArray) -> float:
         return float(dem.attrs["cell_size"])
     dx, dy = _spacing(dem, "x"), _spacing(dem, "y")
     if not math.isclose(abs(dx), abs(dy), rel_tol=1e-6):
-        raise InvalidDEMError(f"cells are not square (dx={abs(dx)}, dy={abs(dy)}); "
-                              "open the DEM with pipeline.open_dem to resample it")
+        raise InvalidDEMError(
+            f"cells are not square (dx={abs(dx)}, dy={abs(dy)}); "
+            "open the DEM with pipeline.open_dem to resample it"
+        )
     return abs(dx)
 
 
-def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | None = None,
-             cell_size: float | None = None, resolution: float | None = None,
-             validate: bool = True) -> xr.DataArray:
+def open_dem(
+    path: str | os.PathLike,
+    chunks=DEFAULT_CHUNK,
+    *,
+    variable: str | None = None,
+    cell_size: float | None = None,
+    resolution: float | None = None,
+    validate: bool = True,
+) -> xr.DataArray:
     """Open a DEM file as the canonical elevation DataArray.
 
     Parameters
@@ -106,13 +124,17 @@ def open_dem(path: str | os.PathLike, chunks=DEFAULT_CHUNK, *, variable: str | N
         return dem
     dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution)
     if validate:
-        require_valid_cells(dem, f"DEM file {path} holds no valid elevation: every cell is "
-                                 "no-data (NaN or the file's nodata value)")
+        require_valid_cells(
+            dem,
+            f"DEM file {path} holds no valid elevation: every cell is "
+            "no-data (NaN or the file's nodata value)",
+        )
     return dem
 
 
-def write_dem(dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK,
-              overwrite: bool = False) -> Path:
+def write_dem(
+    dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK, overwrite: bool = False
+) -> Path:
     """Write ``dem`` as the canonical chunked Zarr (v3) store, atomically.
 
     The store is written beside ``store`` and moved into place only when complete. Chunk sides
@@ -123,8 +145,9 @@ def write_dem(dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHU
     ch = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, dem.shape)
     for side in ch:
         if side % 64 and side not in dem.shape:
-            log.warning("chunk side %d is not a multiple of 64: coarsening may need a rechunk",
-                        side)
+            log.warning(
+                "chunk side %d is not a multiple of 64: coarsening may need a rechunk", side
+            )
     data = dem.data if isinstance(dem.data, da.Array) else da.from_array(dem.data, chunks=ch)
     data = data.astype(np.float32).rechunk(ch)
     out = dem.copy(data=data)
@@ -135,18 +158,30 @@ def write_dem(dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHU
     encoding = {"elevation": {"chunks": ch}}
     with atomic_path(store, overwrite=overwrite) as tmp:
         ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
-    log.info("wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)", store, *dem.shape,
-             dem.attrs["cell_size"], ch)
+    log.info(
+        "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
+        store,
+        *dem.shape,
+        dem.attrs["cell_size"],
+        ch,
+    )
     return Path(store)
 
 
-def import_dem(source: str | os.PathLike, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK,
-               variable: str | None = None, cell_size: float | None = None,
-               resolution: float | None = None,
-               overwrite: bool = False) -> Path:
+def import_dem(
+    source: str | os.PathLike,
+    store: str | os.PathLike,
+    *,
+    chunks=DEFAULT_CHUNK,
+    variable: str | None = None,
+    cell_size: float | None = None,
+    resolution: float | None = None,
+    overwrite: bool = False,
+) -> Path:
     """Open ``source`` with :func:`open_dem` and write it as the canonical Zarr store."""
-    dem = open_dem(source, chunks=chunks, variable=variable, cell_size=cell_size,
-                   resolution=resolution)
+    dem = open_dem(
+        source, chunks=chunks, variable=variable, cell_size=cell_size, resolution=resolution
+    )
     return write_dem(dem, store, chunks=chunks, overwrite=overwrite)
 
 
@@ -158,8 +193,9 @@ def _kind_of(path: Path) -> str:
     if path.is_dir():
         if (path / "zarr.json").exists() or (path / ".zgroup").exists() or suffix == ".zarr":
             return "zarr"
-        raise InvalidDEMError(f"DEM path {path} is a directory but not a Zarr store "
-                              "(no zarr.json or .zgroup inside)")
+        raise InvalidDEMError(
+            f"DEM path {path} is a directory but not a Zarr store (no zarr.json or .zgroup inside)"
+        )
     if suffix in _TIFF_SUFFIXES:
         return "tiff"
     if suffix in _NETCDF_SUFFIXES:
@@ -170,8 +206,10 @@ def _kind_of(path: Path) -> str:
         return "tiff"
     if magic[:3] == b"CDF" or magic == b"\x89HDF":
         return "netcdf"
-    raise InvalidDEMError(f"DEM file {path}: unknown format (suffix {suffix!r}); use a GeoTIFF "
-                          "(.tif), a NetCDF or GMT grid (.nc, .grd) or a Zarr store")
+    raise InvalidDEMError(
+        f"DEM file {path}: unknown format (suffix {suffix!r}); use a GeoTIFF "
+        "(.tif), a NetCDF or GMT grid (.nc, .grd) or a Zarr store"
+    )
 
 
 def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
@@ -182,8 +220,10 @@ def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
 
             arr = rioxarray.open_rasterio(path, masked=True, chunks=dask_chunks)
             if isinstance(arr, list | xr.Dataset):
-                raise InvalidDEMError(f"DEM file {path} holds several subdatasets; "
-                                      "export the elevation band to its own GeoTIFF")
+                raise InvalidDEMError(
+                    f"DEM file {path} holds several subdatasets; "
+                    "export the elevation band to its own GeoTIFF"
+                )
             return arr
         if kind == "netcdf":
             ds = xr.open_dataset(path, chunks=dask_chunks)
@@ -201,20 +241,26 @@ def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
 def _pick_variable(ds: xr.Dataset, path: Path, variable: str | None) -> xr.DataArray:
     if variable is not None:
         if variable not in ds.data_vars:
-            raise InvalidDEMError(f"DEM file {path} has no variable {variable!r}; "
-                                  f"it has {sorted(map(str, ds.data_vars))}")
+            raise InvalidDEMError(
+                f"DEM file {path} has no variable {variable!r}; "
+                f"it has {sorted(map(str, ds.data_vars))}"
+            )
         return ds[variable]
     gridded = [k for k, v in ds.data_vars.items() if v.ndim >= 2]
     if not gridded:
-        raise InvalidDEMError(f"DEM file {path} has no 2-D variable "
-                              f"(variables: {sorted(map(str, ds.data_vars)) or 'none'})")
+        raise InvalidDEMError(
+            f"DEM file {path} has no 2-D variable "
+            f"(variables: {sorted(map(str, ds.data_vars)) or 'none'})"
+        )
     if len(gridded) == 1:
         return ds[gridded[0]]
     for name in _ELEVATION_NAMES:
         if name in gridded:
             return ds[name]
-    raise InvalidDEMError(f"DEM file {path} has several 2-D variables {sorted(map(str, gridded))}; "
-                          "name the elevation with variable=... (--variable)")
+    raise InvalidDEMError(
+        f"DEM file {path} has several 2-D variables {sorted(map(str, gridded))}; "
+        "name the elevation with variable=... (--variable)"
+    )
 
 
 def _is_old_gmt(ds: xr.Dataset) -> bool:
@@ -236,8 +282,9 @@ def _from_old_gmt(ds: xr.Dataset, path: Path) -> xr.DataArray:
     else:  # gridline registration: ranges are the outer nodes
         x = np.linspace(x0, x1, nx)
         y = np.linspace(y1, y0, ny)
-    arr = xr.DataArray(z.reshape(ny, nx), dims=("y", "x"), coords={"x": x, "y": y},
-                       attrs=dict(ds["z"].attrs))
+    arr = xr.DataArray(
+        z.reshape(ny, nx), dims=("y", "x"), coords={"x": x, "y": y}, attrs=dict(ds["z"].attrs)
+    )
     xunits = str(ds["x_range"].attrs.get("units", "")).lower()
     if "deg" in xunits:
         arr = arr.rename(y="lat", x="lon")
@@ -247,8 +294,14 @@ def _from_old_gmt(ds: xr.Dataset, path: Path) -> xr.DataArray:
 # --------------------------------------------------------------------------- canonical form
 
 
-def _canonicalise(arr: xr.DataArray, path: Path, *, chunks,
-                  cell_size: float | None, resolution: float | None = None) -> xr.DataArray:
+def _canonicalise(
+    arr: xr.DataArray,
+    path: Path,
+    *,
+    chunks,
+    cell_size: float | None,
+    resolution: float | None = None,
+) -> xr.DataArray:
     if arr.dtype.kind not in "iuf":
         raise InvalidDEMError(f"DEM file {path}: values are of type {arr.dtype}, not numbers")
     arr = _squeeze_to_2d(arr, path)
@@ -257,8 +310,9 @@ def _canonicalise(arr: xr.DataArray, path: Path, *, chunks,
     arr = arr.transpose(ydim, xdim).rename({ydim: "y", xdim: "x"})
     arr = arr.drop_vars([c for c in arr.coords if c not in ("x", "y")])
     if min(arr.shape) < 2:
-        raise InvalidDEMError(f"DEM file {path} is {arr.shape[0]} x {arr.shape[1]} cells; "
-                              "at least 2 x 2 are needed")
+        raise InvalidDEMError(
+            f"DEM file {path} is {arr.shape[0]} x {arr.shape[1]} cells; at least 2 x 2 are needed"
+        )
     if "x" not in arr.coords or "y" not in arr.coords:
         arr = _synthesise_coords(arr, path, cell_size)
     geographic = _is_geographic(arr, crs, xdim, ydim)
@@ -271,7 +325,8 @@ def _canonicalise(arr: xr.DataArray, path: Path, *, chunks,
     else:
         dx, dy = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
         if not math.isclose(dx, dy, rel_tol=1e-4) or (
-                resolution is not None and not math.isclose(dx, resolution, rel_tol=1e-4)):
+            resolution is not None and not math.isclose(dx, resolution, rel_tol=1e-4)
+        ):
             values = _resample_square(values, path, dx, dy, crs, resolution)
     a = abs(_spacing(values, "x", path))
     attrs.update(cell_size=float(a), units="m", positive="up", source=str(path))
@@ -292,8 +347,10 @@ def _squeeze_to_2d(arr: xr.DataArray, path: Path) -> xr.DataArray:
         arr = arr.isel({d: 0 for d in extra}, drop=True)
     if arr.ndim != 2:
         shape = " x ".join(f"{d}={n}" for d, n in arr.sizes.items())
-        raise InvalidDEMError(f"DEM file {path} is {arr.ndim}-D ({shape}); a DEM is one 2-D "
-                              "grid: select one band or time step and save that")
+        raise InvalidDEMError(
+            f"DEM file {path} is {arr.ndim}-D ({shape}); a DEM is one 2-D "
+            "grid: select one band or time step and save that"
+        )
     return arr
 
 
@@ -320,8 +377,10 @@ def _synthesise_coords(arr: xr.DataArray, path: Path, cell_size: float | None) -
                     a = None
                 break
     if a is None:
-        raise InvalidDEMError(f"DEM file {path} has no coordinates and no cell size; pass "
-                              "cell_size=... (--cell-size) in metres")
+        raise InvalidDEMError(
+            f"DEM file {path} has no coordinates and no cell size; pass "
+            "cell_size=... (--cell-size) in metres"
+        )
     rows, cols = arr.shape
     log.info("DEM %s has no coordinates: using cells of %g m from (0, 0)", path, a)
     return arr.assign_coords(x=(np.arange(cols) + 0.5) * a, y=(rows - np.arange(rows) - 0.5) * a)
@@ -331,8 +390,10 @@ def _spacing(arr: xr.DataArray, dim: str, path: Path | str = "DEM") -> float:
     """The (signed) step of an evenly spaced coordinate; refuse an uneven one."""
     step, even = _step(arr, dim, path)
     if not even:
-        raise InvalidDEMError(f"{path}: {dim} coordinates are not evenly spaced; "
-                              "open the DEM with pipeline.open_dem to resample it")
+        raise InvalidDEMError(
+            f"{path}: {dim} coordinates are not evenly spaced; "
+            "open the DEM with pipeline.open_dem to resample it"
+        )
     return step
 
 
@@ -344,9 +405,11 @@ def _step(arr: xr.DataArray, dim: str, path: Path | str) -> tuple[float, bool]:
         raise InvalidDEMError(f"{path}: dimension {dim} has fewer than 2 coordinates")
     d = np.diff(c)
     if not (np.all(d > 0) or np.all(d < 0)):
-        raise InvalidDEMError(f"{path}: {dim} coordinates are not strictly increasing or "
-                              "decreasing (repeated or unordered values); fix the grid's "
-                              "coordinates")
+        raise InvalidDEMError(
+            f"{path}: {dim} coordinates are not strictly increasing or "
+            "decreasing (repeated or unordered values); fix the grid's "
+            "coordinates"
+        )
     step = (c[-1] - c[0]) / (c.size - 1)
     eps = np.finfo(raw.dtype).eps if raw.dtype.kind == "f" else 0.0
     tol = max(1e-6 * abs(step), 4.0 * eps * float(np.abs(c).max()))
@@ -362,8 +425,14 @@ def _regularise(values: xr.DataArray, path: Path) -> xr.DataArray:
             values = values.assign_coords({dim: c[0] + step * np.arange(c.size)})
             continue
         d = np.diff(c)
-        log.warning("DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
-                    "resampling linearly onto an even grid", path, dim, d.min(), d.max())
+        log.warning(
+            "DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
+            "resampling linearly onto an even grid",
+            path,
+            dim,
+            d.min(),
+            d.max(),
+        )
         values = values.load().interp({dim: c[0] + step * np.arange(c.size)}, method="linear")
     return values
 
@@ -421,9 +490,14 @@ def _reproject_geographic(values: xr.DataArray, path: Path, crs, resolution: flo
     dy_m = dlat * metres_per_degree
     a = resolution or float(f"{math.sqrt(dx_m * dy_m):.3g}")
     dst = CRS.from_proj4(f"+proj=aeqd +lat_0={lat0:.6f} +lon_0={lon0:.6f} +datum=WGS84 +units=m")
-    log.warning("DEM %s is in geographic coordinates: reprojecting to a local azimuthal "
-                "equidistant projection centred at (%.4f E, %.4f N) with %.3g m cells",
-                path, lon0, lat0, a)
+    log.warning(
+        "DEM %s is in geographic coordinates: reprojecting to a local azimuthal "
+        "equidistant projection centred at (%.4f E, %.4f N) with %.3g m cells",
+        path,
+        lon0,
+        lat0,
+        a,
+    )
     src = values.load().rio.set_spatial_dims(x_dim="x", y_dim="y").rio.write_crs(src_crs)
     src = src.rio.write_nodata(np.nan, encoded=False)
     out = src.rio.reproject(dst, resolution=a, resampling=Resampling.bilinear, nodata=np.nan)
@@ -431,8 +505,9 @@ def _reproject_geographic(values: xr.DataArray, path: Path, crs, resolution: flo
     return out, dst
 
 
-def _resample_square(values: xr.DataArray, path: Path, dx: float, dy: float, crs,
-                     resolution: float | None = None):
+def _resample_square(
+    values: xr.DataArray, path: Path, dx: float, dy: float, crs, resolution: float | None = None
+):
     """Bilinear resample onto square cells (of ``resolution``, by default of the geometric-mean
     size), keeping the extent."""
     a = resolution or float(f"{math.sqrt(dx * dy):.4g}")
@@ -446,19 +521,22 @@ def _resample_square(values: xr.DataArray, path: Path, dx: float, dy: float, crs
     new_y = y1 - (np.arange(ny) + 0.5) * a
     if y[0] < y[-1]:
         new_y = new_y[::-1]
-    out = values.load().interp(x=new_x, y=new_y, method="linear",
-                               kwargs={"fill_value": None})
+    out = values.load().interp(x=new_x, y=new_y, method="linear", kwargs={"fill_value": None})
     return out
 
 
 def check_dem(dem, *, floating: bool = False) -> float:
     """Validate a canonical DEM argument (before any graph is built); return its cell size."""
     if not isinstance(dem, xr.DataArray):
-        raise InvalidParameterError(f"`dem` must be an xarray.DataArray, got {type(dem).__name__}; "
-                                    "open it with pipeline.open_dem")
+        raise InvalidParameterError(
+            f"`dem` must be an xarray.DataArray, got {type(dem).__name__}; "
+            "open it with pipeline.open_dem"
+        )
     if dem.ndim != 2 or dem.dims != ("y", "x"):
-        raise InvalidDEMError(f"`dem` must be 2-D with dims ('y', 'x'), got dims {dem.dims}; "
-                              "open it with pipeline.open_dem")
+        raise InvalidDEMError(
+            f"`dem` must be 2-D with dims ('y', 'x'), got dims {dem.dims}; "
+            "open it with pipeline.open_dem"
+        )
     if floating and dem.dtype.kind != "f":
         raise InvalidDEMError(f"`dem` must hold floating-point elevations, got {dem.dtype}")
     return cell_size(dem)
@@ -476,5 +554,7 @@ def require_valid_cells(dem: xr.DataArray, message: str) -> None:
 def _check_canonical(dem) -> None:
     check_dem(dem)
     if "cell_size" not in dem.attrs:
-        raise InvalidDEMError("`dem` has no 'cell_size' attribute; open it with pipeline.open_dem "
-                              "or pipeline.synthetic_dem")
+        raise InvalidDEMError(
+            "`dem` has no 'cell_size' attribute; open it with pipeline.open_dem "
+            "or pipeline.synthetic_dem"
+        )

@@ -76,9 +76,13 @@ class Job:
         """A hash of what defines the DEM: re-running with the same inputs reuses the store."""
         if self.dem_path is not None:
             st = self.dem_path.stat()
-            what = {"path": str(self.dem_path.resolve()), "size": st.st_size,
-                    "mtime_ns": st.st_mtime_ns, "variable": self.variable,
-                    "cell_size": self.cell_size}
+            what = {
+                "path": str(self.dem_path.resolve()),
+                "size": st.st_size,
+                "mtime_ns": st.st_mtime_ns,
+                "variable": self.variable,
+                "cell_size": self.cell_size,
+            }
             if self.resolution is not None:
                 what["resolution"] = self.resolution
         else:
@@ -164,9 +168,13 @@ def load_job(path: str | os.PathLike) -> Job:
             shape = list(shape2d("shape", syn["shape"], label="dem.synthetic.shape"))
         except InvalidParameterError as exc:
             _fail(path, str(exc))
-        job.synthetic = {"shape": shape, **SYNTHETIC.defaults(),
-                         **_checked(path, SYNTHETIC, {k: v for k, v in syn.items()
-                                                      if k != "shape"}, "dem.synthetic.")}
+        job.synthetic = {
+            "shape": shape,
+            **SYNTHETIC.defaults(),
+            **_checked(
+                path, SYNTHETIC, {k: v for k, v in syn.items() if k != "shape"}, "dem.synthetic."
+            ),
+        }
         cell = job.synthetic["cell_size"]
     _load_maps(path, doc, job, cell)
     _load_planning(path, doc, job)
@@ -226,21 +234,30 @@ def _load_missions(path, doc, job):
         for end in ("start", "goal"):
             forms = [k for k in (end, f"{end}_xy", f"{end}_lonlat") if k in m]
             if len(forms) != 1:
-                _fail(path, f"{where} needs exactly one of {end} = [row, col], {end}_xy = [x, y] "
-                            f"or {end}_lonlat = [lon, lat]; got {forms or 'none'}")
+                _fail(
+                    path,
+                    f"{where} needs exactly one of {end} = [row, col], {end}_xy = [x, y] "
+                    f"or {end}_lonlat = [lon, lat]; got {forms or 'none'}",
+                )
             key = forms[0]
             v = m[key]
             integer = key == end
-            if (not isinstance(v, list) or len(v) != 2 or not all(
+            if (
+                not isinstance(v, list)
+                or len(v) != 2
+                or not all(
                     isinstance(x, int if integer else int | float) and not isinstance(x, bool)
-                    for x in v)):
+                    for x in v
+                )
+            ):
                 what = "[row, col] of integers" if integer else "a pair of numbers"
                 _fail(path, f"{where}{key} must be {what}, got {v!r}")
-            form = key[len(end):].lstrip("_") or "cell"
+            form = key[len(end) :].lstrip("_") or "cell"
             if form != "cell":
                 try:
-                    for x, param in zip(v, (_LON, _LAT) if form == "lonlat" else (_COORD,) * 2,
-                                        strict=True):
+                    for x, param in zip(
+                        v, (_LON, _LAT) if form == "lonlat" else (_COORD,) * 2, strict=True
+                    ):
                         param.check(x, f"{where}{key}")
                 except InvalidParameterError as exc:
                     _fail(path, str(exc))
@@ -271,9 +288,13 @@ class JobResult:
         return not self.failed
 
 
-def run_job(path: str | os.PathLike, scheduler=None, overwrite: bool = False,
-            dry_run: bool = False, scheduler_file: str | os.PathLike | None = None
-            ) -> JobResult:
+def run_job(
+    path: str | os.PathLike,
+    scheduler=None,
+    overwrite: bool = False,
+    dry_run: bool = False,
+    scheduler_file: str | os.PathLike | None = None,
+) -> JobResult:
     """Run a job file: DEM store, maps store, every mission, the results catalog.
 
     The stores are ``<catalog>/dem-<hash>.zarr`` and ``<catalog>/maps-<hash>.zarr``, reused
@@ -296,8 +317,14 @@ def run_job(path: str | os.PathLike, scheduler=None, overwrite: bool = False,
     maps_store = job.catalog / f"maps-{job.maps_fingerprint()}.zarr"
     t0 = time.perf_counter()
     if dry_run:
-        log.info("dry run: job %s is valid: %d missions; DEM store %s, maps store %s, catalog "
-                 "%s", job.name, len(job.missions), dem_store, maps_store, job.catalog)
+        log.info(
+            "dry run: job %s is valid: %d missions; DEM store %s, maps store %s, catalog %s",
+            job.name,
+            len(job.missions),
+            dem_store,
+            maps_store,
+            job.catalog,
+        )
         return JobResult(job, dem_store, dem_store.exists(), 0.0, maps_store=maps_store)
     job.catalog.mkdir(parents=True, exist_ok=True)
     from distributed import performance_report
@@ -305,8 +332,9 @@ def run_job(path: str | os.PathLike, scheduler=None, overwrite: bool = False,
     from .cluster import session
 
     with session(scheduler, scheduler_file) as client:
-        res = JobResult(job, dem_store, False, 0.0, maps_store=maps_store,
-                        dashboard=client.dashboard_link)
+        res = JobResult(
+            job, dem_store, False, 0.0, maps_store=maps_store, dashboard=client.dashboard_link
+        )
         log.info("dask dashboard: %s", client.dashboard_link)
         report = job.catalog / "performance-report.html"
         tmp_report = job.catalog / f".performance-report.tmp-{os.getpid()}.html"
@@ -317,13 +345,23 @@ def run_job(path: str | os.PathLike, scheduler=None, overwrite: bool = False,
         os.replace(tmp_report, report)
     from .catalog import write_catalog
 
-    res.catalog = write_catalog(job.catalog, job.name, [m["name"] for m in job.missions],
-                                description=f"Missions of job {job.name} ({job.path})",
-                                lonlat=bool(crs))
+    res.catalog = write_catalog(
+        job.catalog,
+        job.name,
+        [m["name"] for m in job.missions],
+        description=f"Missions of job {job.name} ({job.path})",
+        lonlat=bool(crs),
+    )
     res.seconds = time.perf_counter() - t0
-    log.info("job %s: %d planned, %d skipped (finished before), %d failed; catalog %s "
-             "(%.1f s)", job.name, res.planned, res.skipped, len(res.failed), res.catalog,
-             res.seconds)
+    log.info(
+        "job %s: %d planned, %d skipped (finished before), %d failed; catalog %s (%.1f s)",
+        job.name,
+        res.planned,
+        res.skipped,
+        len(res.failed),
+        res.catalog,
+        res.seconds,
+    )
     return res
 
 
@@ -336,8 +374,13 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
         return True
     try:
         if job.dem_path is not None:
-            dem = open_dem(job.dem_path, chunks=job.chunks, variable=job.variable,
-                           cell_size=job.cell_size, resolution=job.resolution)
+            dem = open_dem(
+                job.dem_path,
+                chunks=job.chunks,
+                variable=job.variable,
+                cell_size=job.cell_size,
+                resolution=job.resolution,
+            )
         else:
             dem = synthetic_dem(chunks=job.chunks, **job.synthetic)
     except PipelineError as exc:
@@ -356,8 +399,13 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
         return
     log.info("building the maps store %s (%s)", store, job.maps)
     try:
-        build_maps(open_dem(dem_store, chunks=job.chunks), store, overwrite=True,
-                   chunks=job.chunks, **job.maps)
+        build_maps(
+            open_dem(dem_store, chunks=job.chunks),
+            store,
+            overwrite=True,
+            chunks=job.chunks,
+            **job.maps,
+        )
     except PipelineError as exc:
         if isinstance(exc, JobFileError):
             raise
@@ -389,14 +437,18 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
             if done["properties"].get("auv:status") != "ok":
                 res.failed.append(m["name"])
     if res.skipped:
-        log.info("%d missions finished before: skipped (--overwrite plans them again)",
-                 res.skipped)
+        log.info("%d missions finished before: skipped (--overwrite plans them again)", res.skipped)
     clearance = float(job.maps["clearance"])
     ready, bad = [], []
     for m in todo:
         try:
-            ready.append({**m, "start": maps.cell_of("start", m["start_form"], m["start_input"]),
-                          "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"])})
+            ready.append(
+                {
+                    **m,
+                    "start": maps.cell_of("start", m["start_form"], m["start_input"]),
+                    "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"]),
+                }
+            )
         except PipelineError as exc:
             bad.append((m, str(exc)))
     count = [0]
@@ -405,21 +457,40 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
     def record(mission, traj):
         count[0] += 1
         clr = min_clearance(maps, traj, clearance) if traj.status == "ok" else float("nan")
-        write_mission(job.catalog, mission["name"], mission, traj, maps=maps, crs_wkt=crs,
-                      min_clearance_m=clr, run_id=run_id)
+        write_mission(
+            job.catalog,
+            mission["name"],
+            mission,
+            traj,
+            maps=maps,
+            crs_wkt=crs,
+            min_clearance_m=clr,
+            run_id=run_id,
+        )
         res.planned += 1
         if traj.status == "ok":
-            log.info("[%d/%d] %s: ok, %.1f km, %.0f %% ridge, min clearance %.0f m (%.2f s)",
-                     count[0], total, mission["name"], traj.length_m / 1e3,
-                     100 * traj.ridge_ratio, clr, traj.runtime_s)
+            log.info(
+                "[%d/%d] %s: ok, %.1f km, %.0f %% ridge, min clearance %.0f m (%.2f s)",
+                count[0],
+                total,
+                mission["name"],
+                traj.length_m / 1e3,
+                100 * traj.ridge_ratio,
+                clr,
+                traj.runtime_s,
+            )
         else:
             res.failed.append(mission["name"])
-            log.warning("[%d/%d] %s: FAILED: %s", count[0], total, mission["name"],
-                        traj.message)
+            log.warning("[%d/%d] %s: FAILED: %s", count[0], total, mission["name"], traj.message)
 
     for m, msg in bad:
         record(m, failed_trajectory({**job.planning, **m}, msg))
     if ready:
-        plan_missions(maps, ready, client=client, defaults=job.planning,
-                      on_done=lambda i, mission, traj: record(mission, traj))
+        plan_missions(
+            maps,
+            ready,
+            client=client,
+            defaults=job.planning,
+            on_done=lambda i, mission, traj: record(mission, traj),
+        )
     return crs

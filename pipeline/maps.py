@@ -39,7 +39,6 @@ from .store import MAPS_VERSION, open_maps
 log = logging.getLogger(__name__)
 
 
-
 @njit(nogil=True, cache=True)
 def _mix64(x):
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -67,8 +66,9 @@ def dem_hash(dem: xr.DataArray):
 
     def part(block, block_info=None):
         (r0, _), (c0, _) = block_info[0]["array-location"]
-        b = np.ascontiguousarray(np.where(np.isnan(block), np.float32(np.nan), block),
-                                 dtype=np.float32)
+        b = np.ascontiguousarray(
+            np.where(np.isnan(block), np.float32(np.nan), block), dtype=np.float32
+        )
         return np.array([[_block_hash(b, r0, c0, ncols)]], dtype=np.uint64)
 
     if isinstance(z, da.Array):
@@ -81,12 +81,19 @@ def _hex(partials) -> str:
     return f"{total:016x}"
 
 
-def build_maps(dem, store: str | os.PathLike, *, method: str = MAPS.method.default,
-               clearance: float = MAPS.clearance.default,
-               horizontal_clearance: float | None = None,
-               sea_level: float = MAPS.sea_level.default, surface_clearance: float | None = None,
-               min_accumulation: int | None = None, chunks=None,
-               overwrite: bool = False) -> xr.Dataset:
+def build_maps(
+    dem,
+    store: str | os.PathLike,
+    *,
+    method: str = MAPS.method.default,
+    clearance: float = MAPS.clearance.default,
+    horizontal_clearance: float | None = None,
+    sea_level: float = MAPS.sea_level.default,
+    surface_clearance: float | None = None,
+    min_accumulation: int | None = None,
+    chunks=None,
+    overwrite: bool = False,
+) -> xr.Dataset:
     """Build the maps of ``dem`` chunk-wise and write them to the Zarr store ``store``.
 
     Parameters
@@ -122,27 +129,33 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = MAPS.method.defau
         dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = Path(store)
     if store.exists() and not overwrite:
-        raise StoreExistsError(f"maps store {store} exists already; pass overwrite=True "
-                               "(--overwrite) to rebuild it")
+        raise StoreExistsError(
+            f"maps store {store} exists already; pass overwrite=True (--overwrite) to rebuild it"
+        )
     if chunks is None:
         chunks = dem.data.chunksize if isinstance(dem.data, da.Array) else DEFAULT_CHUNK
     ch = chunks2d(chunks, dem.shape)
     dem = dem.chunk(dict(zip(("y", "x"), ch, strict=True))).astype(np.float32)
     a = cell_size(dem)  # checks the cells are square
     # validate every parameter before any compute
-    S = safety_map(dem, method=method, clearance=clearance,
-                   horizontal_clearance=horizontal_clearance)
+    S = safety_map(
+        dem, method=method, clearance=clearance, horizontal_clearance=horizontal_clearance
+    )
     ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
     if min_accumulation is None:
         min_accumulation = default_min_accumulation(a)
     min_accumulation = MAPS.min_accumulation.check(min_accumulation)
     require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
-    params = {"method": method, "clearance_m": S.attrs["clearance_m"],
-              "horizontal_clearance_m": S.attrs.get("horizontal_clearance_m"),
-              "sea_level_m": ok.attrs["sea_level_m"],
-              "surface_clearance_m": ok.attrs["surface_clearance_m"],
-              "min_accumulation": min_accumulation,
-              "cell_size": a, "chunks": list(ch)}
+    params = {
+        "method": method,
+        "clearance_m": S.attrs["clearance_m"],
+        "horizontal_clearance_m": S.attrs.get("horizontal_clearance_m"),
+        "sea_level_m": ok.attrs["sea_level_m"],
+        "surface_clearance_m": ok.attrs["surface_clearance_m"],
+        "min_accumulation": min_accumulation,
+        "cell_size": a,
+        "chunks": list(ch),
+    }
     elev = dem.copy()
     elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
     t0 = time.perf_counter()
@@ -150,31 +163,58 @@ def build_maps(dem, store: str | os.PathLike, *, method: str = MAPS.method.defau
         scratch = tmp.with_name(tmp.name + "-scratch")
         try:
             # passes 1-2: tiles flooded once, fill and flow summaries solved globally
-            _, acc, ridge = ridge_layers_staged(dem.data, scratch, min_accumulation,
-                                                log=lambda msg, *a: log.info(
-                                                    f"maps {store}: " + msg, *a))
+            _, acc, ridge = ridge_layers_staged(
+                dem.data,
+                scratch,
+                min_accumulation,
+                log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a),
+            )
             # pass 3: every layer written in one streaming computation (+ the DEM hash)
-            ds = xr.Dataset({
-                "elevation": elev, "safety": S, "passable": ok,
-                "accumulation": (("y", "x"), acc, {
-                    "long_name": "flow accumulation of the inverted filled DEM",
-                    "units": "cells"}),
-                "ridge": (("y", "x"), ridge, {"long_name": "ridge cells",
-                                              "min_accumulation": min_accumulation})})
+            ds = xr.Dataset(
+                {
+                    "elevation": elev,
+                    "safety": S,
+                    "passable": ok,
+                    "accumulation": (
+                        ("y", "x"),
+                        acc,
+                        {
+                            "long_name": "flow accumulation of the inverted filled DEM",
+                            "units": "cells",
+                        },
+                    ),
+                    "ridge": (
+                        ("y", "x"),
+                        ridge,
+                        {"long_name": "ridge cells", "min_accumulation": min_accumulation},
+                    ),
+                }
+            )
             partials = _write(ds, tmp, ch, also=dem_hash(dem))
         except BaseException:
             remove_settled(scratch)  # tasks still running may write into it after a failure
             raise
         shutil.rmtree(scratch, ignore_errors=True)
         group = zarr.open_group(tmp, mode="r+")
-        group.attrs.update({"title": "pipeline maps store", "maps_version": MAPS_VERSION,
-                            "parameters": json.dumps(params),
-                            "cell_size": a,
-                            "dem_hash": _hex(partials)})
+        group.attrs.update(
+            {
+                "title": "pipeline maps store",
+                "maps_version": MAPS_VERSION,
+                "parameters": json.dumps(params),
+                "cell_size": a,
+                "dem_hash": _hex(partials),
+            }
+        )
         if "crs_wkt" in dem.attrs:
             group.attrs["crs_wkt"] = dem.attrs["crs_wkt"]
-    log.info("built maps store %s (%s, R = %g m, ridge >= %d cells) in %.1f s", store, method,
-             params["clearance_m"], min_accumulation, time.perf_counter() - t0)
+    log.info(
+        "built maps store %s (%s, R = %g m, ridge >= %d cells) in %.1f s",
+        store,
+        method,
+        params["clearance_m"],
+        min_accumulation,
+        time.perf_counter() - t0,
+    )
     return open_maps(store)
 
 
@@ -183,7 +223,13 @@ def _write(ds: xr.Dataset, path, ch, *, also):
     ``also`` (a dask collection sharing its inputs) is computed in the same pass and returned."""
     for v in ds.data_vars.values():
         v.encoding = {}
-    write = ds.to_zarr(path, mode="w", zarr_format=3, consolidated=False,
-                       encoding={k: {"chunks": ch} for k in ds.data_vars}, compute=False)
+    write = ds.to_zarr(
+        path,
+        mode="w",
+        zarr_format=3,
+        consolidated=False,
+        encoding={k: {"chunks": ch} for k in ds.data_vars},
+        compute=False,
+    )
     _, value = dask.compute(write, also)
     return value

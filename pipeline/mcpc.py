@@ -44,8 +44,17 @@ from .planners.core import (
 from .planners.window import plan_window
 from .store import COARSE_RIDGE_FRACTION, MapsStore, open_store
 
-__all__ = ["Section", "SectionResult", "default_parameters", "plan", "plan_section",
-           "plan_sections", "remove_loops", "restore", "segment"]
+__all__ = [
+    "Section",
+    "SectionResult",
+    "default_parameters",
+    "plan",
+    "plan_section",
+    "plan_sections",
+    "remove_loops",
+    "restore",
+    "segment",
+]
 
 
 def default_parameters(shape, a: float) -> dict:
@@ -190,8 +199,7 @@ class SectionResult:
         return self.status == "ok"
 
 
-def plan_section(store: MapsStore, section: Section, planner: str,
-                 omega: float) -> SectionResult:
+def plan_section(store: MapsStore, section: Section, planner: str, omega: float) -> SectionResult:
     """Plan one section on its window, read from the store by this process (a dask task)."""
     r0, r1, c0, c1 = (int(v) for v in section.window)
     t0 = time.perf_counter()
@@ -202,14 +210,23 @@ def plan_section(store: MapsStore, section: Section, planner: str,
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
-        t = plan_window(surface, ridge, ok, s, g, cell_size=store.cell_size, planner=planner,
-                        omega=omega)
+        t = plan_window(
+            surface, ridge, ok, s, g, cell_size=store.cell_size, planner=planner, omega=omega
+        )
     except PipelineError as e:
         return SectionResult("failed", section.window, message=str(e), read_s=read_s)
-    return SectionResult("ok", section.window, cells=t.cells + np.array([r0, c0]),
-                         z=t.points[:, 2], ridge=ridge[t.cells[:, 0], t.cells[:, 1]],
-                         length_m=t.length_m, lower_bound_m=t.lower_bound_m,
-                         expansions=t.expansions, runtime_s=t.runtime_s, read_s=read_s)
+    return SectionResult(
+        "ok",
+        section.window,
+        cells=t.cells + np.array([r0, c0]),
+        z=t.points[:, 2],
+        ridge=ridge[t.cells[:, 0], t.cells[:, 1]],
+        length_m=t.length_m,
+        lower_bound_m=t.lower_bound_m,
+        expansions=t.expansions,
+        runtime_s=t.runtime_s,
+        read_s=read_s,
+    )
 
 
 def _section_batch(store: MapsStore, sections: list, planner: str, omega: float) -> list:
@@ -226,9 +243,10 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
     slots = max(1, sum(client.nthreads().values()))
     k = min(len(sections), 2 * slots)
     bounds = np.linspace(0, len(sections), k + 1).round().astype(int)
-    batches = [sections[bounds[i]:bounds[i + 1]] for i in range(k)]
-    futures = client.map(_section_batch, [store] * k, batches, [planner] * k, [omega] * k,
-                         pure=False)
+    batches = [sections[bounds[i] : bounds[i + 1]] for i in range(k)]
+    futures = client.map(
+        _section_batch, [store] * k, batches, [planner] * k, [omega] * k, pure=False
+    )
     return [r for part in client.gather(futures) for r in part]
 
 
@@ -240,14 +258,17 @@ def _check_args(planner, omega, m: MapsStore, rho, section_size, margin):
     d = default_parameters(m.shape, m.cell_size)
     rho = d["rho"] if rho is None else PLANNING.rho.check(rho)
     if rho > min(m.shape):
-        raise InvalidParameterError(f"`rho` ({rho}) must not exceed the map's shorter side "
-                                    f"({min(m.shape)} cells)")
+        raise InvalidParameterError(
+            f"`rho` ({rho}) must not exceed the map's shorter side ({min(m.shape)} cells)"
+        )
     if section_size is None:
         section_size = max(4 * rho, d["section_size"])
     section_size = PLANNING.section_size.check(section_size)
     if section_size < 2 * rho:
-        raise InvalidParameterError(f"`section_size` ({section_size}) must be at least 2 * rho "
-                                    f"({2 * rho}): a section spans at least two coarse cells")
+        raise InvalidParameterError(
+            f"`section_size` ({section_size}) must be at least 2 * rho "
+            f"({2 * rho}): a section spans at least two coarse cells"
+        )
     if margin is None:
         margin = max(rho, section_size // 4)
     margin = PLANNING.margin.check(margin)
@@ -260,8 +281,9 @@ def _cell(name, value) -> tuple[int, int]:
         if not all(isinstance(v, Integral) and not isinstance(v, bool) for v in (r, c)):
             raise TypeError
     except (TypeError, ValueError):
-        raise InvalidParameterError(f"`{name}` must be a cell (row, col) of integers, got "
-                                    f"{value!r}") from None
+        raise InvalidParameterError(
+            f"`{name}` must be a cell (row, col) of integers, got {value!r}"
+        ) from None
     return int(r), int(c)
 
 
@@ -276,14 +298,20 @@ def _check_endpoints(m: MapsStore, start, goal):
         r0, r1, c0, c1 = max(r - h, 0), min(r + h + 1, rows), max(c - h, 0), min(c + h + 1, cols)
         ok = m.window("passable", r0, r1, c0, c1)
         if not ok[r - r0, c - c0]:
-            raise not_passable_error(name, r, c, nearest_passable(ok, (r, c), (r0, c0)),
-                                     f"no passable cell within {h} cells")
+            raise not_passable_error(
+                name,
+                r,
+                c,
+                nearest_passable(ok, (r, c), (r0, c0)),
+                f"no passable cell within {h} cells",
+            )
         out.append((r, c))
     return out
 
 
-def _finish(m: MapsStore, results: list, planner, omega, start, goal, expansions, t0, extra,
-            lower=None) -> Trajectory:
+def _finish(
+    m: MapsStore, results: list, planner, omega, start, goal, expansions, t0, extra, lower=None
+) -> Trajectory:
     """Stitch section results (dropping the duplicated joints), cut any loops, measure."""
     cells = np.vstack([r.cells if k == 0 else r.cells[1:] for k, r in enumerate(results)])
     z = np.concatenate([r.z if k == 0 else r.z[1:] for k, r in enumerate(results)])
@@ -295,16 +323,35 @@ def _finish(m: MapsStore, results: list, planner, omega, start, goal, expansions
     a = m.cell_size
     h0 = heuristic(a, start[0], start[1], goal[0], goal[1], True)
     points = np.column_stack([m.x[cells[:, 1]], m.y[cells[:, 0]], z])
-    return Trajectory(cells=cells, points=points, length_m=length, ridge_length_m=ridge_len,
-                      ridge_ratio=ratio, lower_bound_m=float(max(h0, lower or 0.0)),
-                      expansions=int(expansions), runtime_s=time.perf_counter() - t0,
-                      planner=planner, omega=float(omega), extra=extra)
+    return Trajectory(
+        cells=cells,
+        points=points,
+        length_m=length,
+        ridge_length_m=ridge_len,
+        ridge_ratio=ratio,
+        lower_bound_m=float(max(h0, lower or 0.0)),
+        expansions=int(expansions),
+        runtime_s=time.perf_counter() - t0,
+        planner=planner,
+        omega=float(omega),
+        extra=extra,
+    )
 
 
-def plan(maps, start, goal, *, planner: str = PLANNING.planner.default,
-         omega: float = PLANNING.omega.default, mcpc: bool = PLANNING.mcpc.default,
-         rho: int | None = None, section_size: int | None = None, margin: int | None = None,
-         coarse_planner: str = PLANNING.coarse_planner.default, client=None) -> Trajectory:
+def plan(
+    maps,
+    start,
+    goal,
+    *,
+    planner: str = PLANNING.planner.default,
+    omega: float = PLANNING.omega.default,
+    mcpc: bool = PLANNING.mcpc.default,
+    rho: int | None = None,
+    section_size: int | None = None,
+    margin: int | None = None,
+    coarse_planner: str = PLANNING.coarse_planner.default,
+    client=None,
+) -> Trajectory:
     """Plan a mission on a maps store, coarse to fine (MCPC) or in one window.
 
     Parameters
@@ -342,22 +389,38 @@ def plan(maps, start, goal, *, planner: str = PLANNING.planner.default,
     """
     t0 = time.perf_counter()
     m = open_store(maps)
-    planner, omega, rho, section_size, margin = _check_args(planner, omega, m, rho,
-                                                            section_size, margin)
+    planner, omega, rho, section_size, margin = _check_args(
+        planner, omega, m, rho, section_size, margin
+    )
     check_planner(coarse_planner, omega, "coarse_planner")
     mcpc = PLANNING.mcpc.check(mcpc)
     start, goal = _check_endpoints(m, start, goal)
     run_on = get_client(client)
-    extra: dict = {"mcpc": bool(mcpc), "rho": rho, "section_size": section_size,
-                   "margin": margin, "coarse_planner": coarse_planner}
+    extra: dict = {
+        "mcpc": bool(mcpc),
+        "rho": rho,
+        "section_size": section_size,
+        "margin": margin,
+        "coarse_planner": coarse_planner,
+    }
     if not mcpc:
         whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal)
         res = _run(run_on, m, [whole], planner, omega)[0]
         if not res.ok:
             raise UnreachableGoalError(f"no path on the whole map: {res.message}")
         extra["sections"] = [_section_summary(res, whole)]
-        return _finish(m, [res], planner, omega, start, goal, res.expansions, t0, extra,
-                       lower=res.lower_bound_m)
+        return _finish(
+            m,
+            [res],
+            planner,
+            omega,
+            start,
+            goal,
+            res.expansions,
+            t0,
+            extra,
+            lower=res.lower_bound_m,
+        )
 
     # 1-2: compression (cached) and the coarse path
     tc = time.perf_counter()
@@ -366,16 +429,27 @@ def plan(maps, start, goal, *, planner: str = PLANNING.planner.default,
     cg = _coarse_endpoint(co["passable"], (goal[0] // rho, goal[1] // rho))
     if cs is None or cg is None:
         which = "start" if cs is None else "goal"
-        raise UnreachableGoalError(f"no passable coarse cell near the {which} at rho={rho}; "
-                                   "try a smaller rho or mcpc=False")
+        raise UnreachableGoalError(
+            f"no passable coarse cell near the {which} at rho={rho}; "
+            "try a smaller rho or mcpc=False"
+        )
     try:
-        ct = plan_window(co["safety"], co["ridge"] >= COARSE_RIDGE_FRACTION, co["passable"], cs,
-                         cg, cell_size=m.cell_size * rho, planner=coarse_planner, omega=omega)
+        ct = plan_window(
+            co["safety"],
+            co["ridge"] >= COARSE_RIDGE_FRACTION,
+            co["passable"],
+            cs,
+            cg,
+            cell_size=m.cell_size * rho,
+            planner=coarse_planner,
+            omega=omega,
+        )
     except UnreachableGoalError:
         raise UnreachableGoalError(
             f"no coarse path from {start} to {goal} at rho={rho}: the goal is unreachable, or "
             "reachable only through passages narrower than rho cells; try a smaller rho or "
-            "mcpc=False") from None
+            "mcpc=False"
+        ) from None
     extra["coarse_cells"] = ct.cells.tolist()
     extra["coarse_s"] = time.perf_counter() - tc
 
@@ -391,8 +465,10 @@ def plan(maps, start, goal, *, planner: str = PLANNING.planner.default,
             if snapped is not None:
                 break
         if snapped is None:
-            raise UnreachableGoalError(f"no passable cell near the joint {joints[k]} between "
-                                       f"sections {k - 1} and {k}; try mcpc=False")
+            raise UnreachableGoalError(
+                f"no passable cell near the joint {joints[k]} between "
+                f"sections {k - 1} and {k}; try mcpc=False"
+            )
         joints[k] = snapped
     sections = [Section(w, joints[k], joints[k + 1]) for k, (_, _, w) in enumerate(secs)]
 
@@ -402,15 +478,15 @@ def plan(maps, start, goal, *, planner: str = PLANNING.planner.default,
     extra["sections_s"] = time.perf_counter() - tp
 
     # 7: stitch, then cut any loops
-    extra["sections"] = [_section_summary(r, sec) for r, sec in zip(results, sections,
-                                                                    strict=True)]
+    extra["sections"] = [_section_summary(r, sec) for r, sec in zip(results, sections, strict=True)]
     extra["section_bound_m"] = float(sum(r.lower_bound_m for r in results))
     expansions = ct.expansions + sum(r.expansions for r in results)
     return _finish(m, results, planner, omega, start, goal, expansions, t0, extra)
 
 
-def plan_sections(run_on, m: MapsStore, sections: list, planner: str, omega: float,
-                  margin: int) -> tuple[list, list]:
+def plan_sections(
+    run_on, m: MapsStore, sections: list, planner: str, omega: float, margin: int
+) -> tuple[list, list]:
     """Plan ``sections`` (:class:`Section`) as tasks on ``run_on`` (SPEC section 6 steps 6-7):
     a section with no path is retried once with its window grown by ``margin`` more cells on
     each side (the margin doubled), then merged with a neighbour into one section over the
@@ -422,8 +498,11 @@ def plan_sections(run_on, m: MapsStore, sections: list, planner: str, omega: flo
     failed = [k for k, r in enumerate(results) if not r.ok]
     if failed:
         for k in failed:
-            sections[k] = replace(sections[k], window=_grow(sections[k].window, margin, m.shape),
-                                  attempts=sections[k].attempts + 1)
+            sections[k] = replace(
+                sections[k],
+                window=_grow(sections[k].window, margin, m.shape),
+                attempts=sections[k].attempts + 1,
+            )
         again = _run(run_on, m, [sections[k] for k in failed], planner, omega)
         for k, r in zip(failed, again, strict=True):
             results[k] = r
@@ -433,32 +512,49 @@ def plan_sections(run_on, m: MapsStore, sections: list, planner: str, omega: flo
             break
         k = failed[0]
         if len(sections) == 1:
-            raise UnreachableGoalError(f"section {k} from {sections[k].start} to "
-                                       f"{sections[k].goal} has no path: {results[k].message}")
+            raise UnreachableGoalError(
+                f"section {k} from {sections[k].start} to "
+                f"{sections[k].goal} has no path: {results[k].message}"
+            )
         j = k + 1 if k + 1 < len(sections) else k - 1
         lo, hi = min(k, j), max(k, j)
         if sections[lo].merged or sections[hi].merged:
             raise UnreachableGoalError(
                 f"sections {lo}-{hi} from {sections[lo].start} to {sections[hi].goal} have no "
                 f"path even merged with a neighbour: {results[k].message}; the goal may be "
-                "unreachable (try mcpc=False to plan the whole map)")
+                "unreachable (try mcpc=False to plan the whole map)"
+            )
         w1, w2 = sections[lo].window, sections[hi].window
-        win = _grow((min(w1[0], w2[0]), max(w1[1], w2[1]), min(w1[2], w2[2]),
-                     max(w1[3], w2[3])), margin, m.shape)
-        merged = Section(win, sections[lo].start, sections[hi].goal,
-                         attempts=sections[lo].attempts + sections[hi].attempts + 1,
-                         merged=True)
+        win = _grow(
+            (min(w1[0], w2[0]), max(w1[1], w2[1]), min(w1[2], w2[2]), max(w1[3], w2[3])),
+            margin,
+            m.shape,
+        )
+        merged = Section(
+            win,
+            sections[lo].start,
+            sections[hi].goal,
+            attempts=sections[lo].attempts + sections[hi].attempts + 1,
+            merged=True,
+        )
         res = _run(run_on, m, [merged], planner, omega)[0]
-        sections[lo:hi + 1] = [merged]
-        results[lo:hi + 1] = [res]
+        sections[lo : hi + 1] = [merged]
+        results[lo : hi + 1] = [res]
     return sections, results
 
 
 def _section_summary(r: SectionResult, sec: Section) -> dict:
-    return {"window": [int(v) for v in r.window], "start": [int(v) for v in sec.start],
-            "goal": [int(v) for v in sec.goal], "status": r.status,
-            "attempts": sec.attempts, "merged": sec.merged, "length_m": r.length_m,
-            "runtime_s": r.runtime_s, "read_s": r.read_s}
+    return {
+        "window": [int(v) for v in r.window],
+        "start": [int(v) for v in sec.start],
+        "goal": [int(v) for v in sec.goal],
+        "status": r.status,
+        "attempts": sec.attempts,
+        "merged": sec.merged,
+        "length_m": r.length_m,
+        "runtime_s": r.runtime_s,
+        "read_s": r.read_s,
+    }
 
 
 def _grow(win, by: int, shape):
@@ -474,8 +570,9 @@ def _coarse_endpoint(passable: np.ndarray, cell):
         return r, c
     for radius in (1, 2, 4):
         r0, c0 = max(r - radius, 0), max(c - radius, 0)
-        near = nearest_passable(passable[r0:r + radius + 1, c0:c + radius + 1], (r, c),
-                                (r0, c0))
+        near = nearest_passable(
+            passable[r0 : r + radius + 1, c0 : c + radius + 1], (r, c), (r0, c0)
+        )
         if near is not None:
             return near
     return None

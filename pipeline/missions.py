@@ -30,12 +30,20 @@ _PLAN_KEYS = PLANNING.names()
 def failed_trajectory(mission: dict, message: str) -> Trajectory:
     """The record of a mission that could not be planned."""
     omega = mission.get("omega", PLANNING.omega.default)
-    return Trajectory(cells=np.zeros((0, 2), dtype=np.int64), points=np.zeros((0, 3)),
-                      length_m=math.nan, ridge_length_m=math.nan, ridge_ratio=math.nan,
-                      lower_bound_m=math.nan, expansions=0, runtime_s=0.0,
-                      planner=str(mission.get("planner", PLANNING.planner.default)),
-                      omega=float(omega) if isinstance(omega, int | float) else math.nan,
-                      status="failed", message=message)
+    return Trajectory(
+        cells=np.zeros((0, 2), dtype=np.int64),
+        points=np.zeros((0, 3)),
+        length_m=math.nan,
+        ridge_length_m=math.nan,
+        ridge_ratio=math.nan,
+        lower_bound_m=math.nan,
+        expansions=0,
+        runtime_s=0.0,
+        planner=str(mission.get("planner", PLANNING.planner.default)),
+        omega=float(omega) if isinstance(omega, int | float) else math.nan,
+        status="failed",
+        message=message,
+    )
 
 
 def _normalise(m) -> dict:
@@ -45,18 +53,24 @@ def _normalise(m) -> dict:
         try:
             start, goal = m
         except (TypeError, ValueError):
-            raise InvalidParameterError("a mission must be a dict with start and goal, or a "
-                                        f"(start, goal) pair, got {m!r}") from None
+            raise InvalidParameterError(
+                f"a mission must be a dict with start and goal, or a (start, goal) pair, got {m!r}"
+            ) from None
         mission = {"start": start, "goal": goal}
     if "start" not in mission or "goal" not in mission:
         raise InvalidParameterError(f"a mission needs start and goal cells, got {mission!r}")
     return mission
 
 
-def plan_missions(maps, missions: Sequence, *, client=None, defaults: dict | None = None,
-                  max_concurrent: int = 4,
-                  on_done: Callable[[int, dict, Trajectory], None] | None = None
-                  ) -> list[Trajectory]:
+def plan_missions(
+    maps,
+    missions: Sequence,
+    *,
+    client=None,
+    defaults: dict | None = None,
+    max_concurrent: int = 4,
+    on_done: Callable[[int, dict, Trajectory], None] | None = None,
+) -> list[Trajectory]:
     """Plan many missions on one maps store; trajectories come back in mission order.
 
     Parameters
@@ -94,8 +108,9 @@ def plan_missions(maps, missions: Sequence, *, client=None, defaults: dict | Non
     defaults = dict(defaults or {})
     unknown = set(defaults) - _PLAN_KEYS
     if unknown:
-        raise InvalidParameterError(f"unknown planning option {sorted(unknown)[0]!r}; "
-                                    f"allowed: {sorted(_PLAN_KEYS)}")
+        raise InvalidParameterError(
+            f"unknown planning option {sorted(unknown)[0]!r}; allowed: {sorted(_PLAN_KEYS)}"
+        )
 
     def one(i: int) -> Trajectory:
         mission = items[i]
@@ -138,14 +153,14 @@ def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
     r = int(math.ceil(radius_m / a))
     off = np.arange(-r, r + 1)
     dr, dc = np.meshgrid(off, off, indexing="ij")
-    h2 = (a * a) * (dr ** 2 + dc ** 2).ravel()
+    h2 = (a * a) * (dr**2 + dc**2).ravel()
     keep = h2 <= radius_m * radius_m
     dr, dc, h2 = dr.ravel()[keep], dc.ravel()[keep], h2[keep]
     rows, cols = m.shape
     cells = traj.cells
     z = traj.points[:, 2].astype(np.float64)
     for k in range(0, len(cells), 512):
-        cc, zz = cells[k:k + 512], z[k:k + 512]
+        cc, zz = cells[k : k + 512], z[k : k + 512]
         r0, r1 = max(int(cc[:, 0].min()) - r, 0), min(int(cc[:, 0].max()) + r + 1, rows)
         c0, c1 = max(int(cc[:, 1].min()) - r, 0), min(int(cc[:, 1].max()) + r + 1, cols)
         elev = m.window("elevation", r0, r1, c0, c1).astype(np.float64)
@@ -156,7 +171,7 @@ def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
         ze[inside] = elev[rr[inside] - r0, cl[inside] - c0]
         d2 = h2[None, :] + (zz[:, None] - ze) ** 2
         d2 = np.where(np.isfinite(d2), d2, np.inf)
-        out[k:k + 512] = np.sqrt(d2.min(axis=1))
+        out[k : k + 512] = np.sqrt(d2.min(axis=1))
     return out
 
 

@@ -84,15 +84,18 @@ class Param:
             if not isinstance(value, str) or value not in self.options():
                 raise bad()
             return value
-        if isinstance(value, bool) or not isinstance(value, Integral if self.kind == "int"
-                                                     else Real):
+        if isinstance(value, bool) or not isinstance(
+            value, Integral if self.kind == "int" else Real
+        ):
             raise bad()
         v = int(value) if self.kind == "int" else float(value)
         if self.kind == "float" and not math.isfinite(v):
             raise bad()
-        if ((self.minimum is not None and v < self.minimum)
-                or (self.above is not None and v <= self.above)
-                or (self.maximum is not None and v > self.maximum)):
+        if (
+            (self.minimum is not None and v < self.minimum)
+            or (self.above is not None and v <= self.above)
+            or (self.maximum is not None and v > self.maximum)
+        ):
             raise bad()
         return v
 
@@ -161,26 +164,47 @@ DEM = Schema(
     "DEM input (open_dem, [dem])",
     Param("chunks", "int", DEFAULT_CHUNK, "chunk side of the Zarr stores", "cells", minimum=1),
     Param("variable", "str", None, "variable to read from a NetCDF or Zarr file"),
-    Param("cell_size", "float", None, "cell side of a grid without coordinates", "metres",
-          above=0),
-    Param("resolution", "float", None, "resample to square cells of this side", "metres",
-          above=0),
+    Param("cell_size", "float", None, "cell side of a grid without coordinates", "metres", above=0),
+    Param("resolution", "float", None, "resample to square cells of this side", "metres", above=0),
 )
 
 MAPS = Schema(
     "safety and ridge maps (build_maps, [maps])",
-    Param("method", "choice", "spherical", "how the clearance is measured: 3-D (a sphere), "
-          "horizontally (a disc) or vertically", choices=METHODS),
-    Param("clearance", "float", 300.0, "R, the clearance kept from the terrain", "metres",
-          above=0),
-    Param("horizontal_clearance", "float", None, "R_h of the horizontal method; default R",
-          "metres", above=0),
+    Param(
+        "method",
+        "choice",
+        "spherical",
+        "how the clearance is measured: 3-D (a sphere), horizontally (a disc) or vertically",
+        choices=METHODS,
+    ),
+    Param("clearance", "float", 300.0, "R, the clearance kept from the terrain", "metres", above=0),
+    Param(
+        "horizontal_clearance",
+        "float",
+        None,
+        "R_h of the horizontal method; default R",
+        "metres",
+        above=0,
+    ),
     Param("sea_level", "float", 0.0, "the sea surface", "metres"),
-    Param("surface_clearance", "float", None, "depth the safety surface stays below sea level;"
-          " default R", "metres", minimum=0),
-    Param("min_accumulation", "int", None, "ridge threshold: accumulation of at least this "
-          "many cells; default a 1 km^2 area", "cells", minimum=1),
+    Param(
+        "surface_clearance",
+        "float",
+        None,
+        "depth the safety surface stays below sea level; default R",
+        "metres",
+        minimum=0,
+    ),
+    Param(
+        "min_accumulation",
+        "int",
+        None,
+        "ridge threshold: accumulation of at least this many cells; default a 1 km^2 area",
+        "cells",
+        minimum=1,
+    ),
 )
+
 
 def _planner_names() -> tuple:
     from .planners.registry import PLANNERS
@@ -192,15 +216,27 @@ PLANNING = Schema(
     "planning (plan, [planning], per mission)",
     Param("planner", "choice", "ra_star", "planner of every section", choices=_planner_names),
     Param("omega", "float", 2.0, "length bound: length <= omega * shortest", minimum=1),
-    Param("mcpc", "bool", True, "coarse to fine (MCPC); false plans the whole map in one "
-          "window"),
-    Param("rho", "int", None, "compression factor; default max(2, ceil(side / 1000))", "cells",
-          minimum=1),
+    Param("mcpc", "bool", True, "coarse to fine (MCPC); false plans the whole map in one window"),
+    Param(
+        "rho",
+        "int",
+        None,
+        "compression factor; default max(2, ceil(side / 1000))",
+        "cells",
+        minimum=1,
+    ),
     Param("section_size", "int", None, "section side; default about 3 km", "cells", minimum=2),
-    Param("margin", "int", None, "window margin round a section; default section_size / 4",
-          "cells", minimum=0),
-    Param("coarse_planner", "choice", "astar", "planner of the coarse path",
-          choices=_planner_names),
+    Param(
+        "margin",
+        "int",
+        None,
+        "window margin round a section; default section_size / 4",
+        "cells",
+        minimum=0,
+    ),
+    Param(
+        "coarse_planner", "choice", "astar", "planner of the coarse path", choices=_planner_names
+    ),
 )
 
 
@@ -210,17 +246,20 @@ def check_planner(planner, omega, name: str = "planner") -> tuple[str, float]:
     return planner, PLANNING.omega.check(omega)
 
 
-def shape2d(name: str, value, *, minimum: int = 2, label: str | None = None
-            ) -> tuple[int, int]:
+def shape2d(name: str, value, *, minimum: int = 2, label: str | None = None) -> tuple[int, int]:
     """A (rows, cols) pair of integers >= ``minimum`` (a map has at least 2 x 2 cells)."""
     try:
         rows, cols = value
     except (TypeError, ValueError):
-        raise InvalidParameterError(f"{label or f'`{name}`'} must be a pair (rows, cols), got "
-                                    f"{value!r}") from None
+        raise InvalidParameterError(
+            f"{label or f'`{name}`'} must be a pair (rows, cols), got {value!r}"
+        ) from None
     side = Param(name, "int", None, "", minimum=minimum)
-    lab = (lambda i, what: f"{label}[{i}] ({what})") if label else (
-        lambda i, what: f"`{name}[{i}] ({what})`")
+    lab = (
+        (lambda i, what: f"{label}[{i}] ({what})")
+        if label
+        else (lambda i, what: f"`{name}[{i}] ({what})`")
+    )
     return side.check(rows, lab(0, "rows")), side.check(cols, lab(1, "cols"))
 
 
@@ -237,7 +276,8 @@ def chunks2d(value, shape: tuple[int, int]) -> tuple[int, int] | None:
             pair = ()
         if len(pair) != 2:
             raise InvalidParameterError(
-                f"`chunks` must be None, an integer or a (rows, cols) pair, got {value!r}")
+                f"`chunks` must be None, an integer or a (rows, cols) pair, got {value!r}"
+            )
     side = DEM.chunks
     r = side.check(pair[0], "`chunks[0]`")
     c = side.check(pair[1], "`chunks[1]`")

@@ -16,8 +16,12 @@ def _extent_km(dem):
     x = np.asarray(dem["x"].values)
     y = np.asarray(dem["y"].values)
     a = float(dem.attrs.get("cell_size", abs(x[1] - x[0])))
-    return [(x.min() - a / 2) / 1e3, (x.max() + a / 2) / 1e3,
-            (y.min() - a / 2) / 1e3, (y.max() + a / 2) / 1e3]
+    return [
+        (x.min() - a / 2) / 1e3,
+        (x.max() + a / 2) / 1e3,
+        (y.min() - a / 2) / 1e3,
+        (y.max() + a / 2) / 1e3,
+    ]
 
 
 def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, colorbar=True):
@@ -33,8 +37,9 @@ def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, col
     zf = np.where(np.isfinite(z), z, np.nanmin(z))
     vmin, vmax = float(np.nanpercentile(z, 0.5)), float(max(np.nanpercentile(z, 99.5), 0.0))
     cmap = plt.get_cmap("gist_earth")
-    rgb = ls.shade(zf, cmap=cmap, blend_mode="soft", vert_exag=vert_exag, dx=a, dy=a,
-                   vmin=vmin, vmax=vmax)
+    rgb = ls.shade(
+        zf, cmap=cmap, blend_mode="soft", vert_exag=vert_exag, dx=a, dy=a, vmin=vmin, vmax=vmax
+    )
     rgb[~np.isfinite(z)] = (0.85, 0.85, 0.85, 1.0)
     ax.imshow(rgb, extent=_extent_km(dem), origin="upper", interpolation="nearest")
     if colorbar:
@@ -42,8 +47,14 @@ def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, col
         plt.colorbar(sm, ax=ax, shrink=0.8, label="elevation (m)")
     land = np.where(np.isfinite(z), z >= 0, False)
     if land.any():
-        ax.contour(land.astype(float), levels=[0.5], colors="k", linewidths=0.6,
-                   extent=_extent_km(dem), origin="upper")
+        ax.contour(
+            land.astype(float),
+            levels=[0.5],
+            colors="k",
+            linewidths=0.6,
+            extent=_extent_km(dem),
+            origin="upper",
+        )
     ax.set_xlabel("x (km)")
     ax.set_ylabel("y (km)")
     return ax
@@ -61,8 +72,9 @@ def hillshade_png(dem, path: str | os.PathLike, *, title: str | None = None) -> 
     return str(path)
 
 
-def mission_quicklook(maps, traj, path: str | os.PathLike, *, title: str = "",
-                      max_side: int = 800) -> str:
+def mission_quicklook(
+    maps, traj, path: str | os.PathLike, *, title: str = "", max_side: int = 800
+) -> str:
     """A mission's quick look: hillshade of the region around the track, ridge cells, the track
     coloured by its height above the seabed, start and goal."""
     r0, c0 = traj.cells.min(axis=0)
@@ -83,8 +95,13 @@ def mission_quicklook(maps, traj, path: str | os.PathLike, *, title: str = "",
     ax.scatter(xs[cc], ys[rr], s=0.6, c="white", alpha=0.5, linewidths=0)
     import xarray as xr
 
-    elev = ds["elevation"].isel(y=xr.DataArray(traj.cells[:, 0], dims="p"),
-                                x=xr.DataArray(traj.cells[:, 1], dims="p")).values
+    elev = (
+        ds["elevation"]
+        .isel(
+            y=xr.DataArray(traj.cells[:, 0], dims="p"), x=xr.DataArray(traj.cells[:, 1], dims="p")
+        )
+        .values
+    )
     above = traj.points[:, 2] - elev
     x, y = traj.points[:, 0] / 1e3, traj.points[:, 1] / 1e3
     sc = ax.scatter(x, y, c=above, s=3, cmap="plasma", zorder=3)
@@ -92,8 +109,11 @@ def mission_quicklook(maps, traj, path: str | os.PathLike, *, title: str = "",
     ax.plot(x[0], y[0], "o", color="lime", ms=8, mec="k", zorder=4, label="start")
     ax.plot(x[-1], y[-1], "*", color="red", ms=12, mec="k", zorder=4, label="goal")
     ax.legend(loc="lower right", fontsize=8)
-    ax.set_title(f"{title}: {traj.planner}, omega {traj.omega:g}, {traj.length_m / 1e3:.1f} km, "
-                 f"{100 * traj.ridge_ratio:.0f} % ridge", fontsize=10)
+    ax.set_title(
+        f"{title}: {traj.planner}, omega {traj.omega:g}, {traj.length_m / 1e3:.1f} km, "
+        f"{100 * traj.ridge_ratio:.0f} % ridge",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

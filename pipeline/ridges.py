@@ -140,8 +140,12 @@ def _outlets(z, top, left, bottom, right, at_top, at_left, at_bottom, at_right):
         for j in range(cols):
             if z[i, j] != z[i, j]:
                 continue
-            if (at_top and i == 0) or (at_bottom and i == rows - 1) or \
-                    (at_left and j == 0) or (at_right and j == cols - 1):
+            if (
+                (at_top and i == 0)
+                or (at_bottom and i == rows - 1)
+                or (at_left and j == 0)
+                or (at_right and j == cols - 1)
+            ):
                 out[i, j] = True
                 continue
             for k in range(8):
@@ -163,8 +167,12 @@ def fill_single(z: np.ndarray) -> np.ndarray:
 
 
 def _halo(bi, bj, nbr, nbc, depth):
-    return (depth if bi > 0 else 0, depth if bj > 0 else 0,
-            depth if bi < nbr - 1 else 0, depth if bj < nbc - 1 else 0)
+    return (
+        depth if bi > 0 else 0,
+        depth if bj > 0 else 0,
+        depth if bi < nbr - 1 else 0,
+        depth if bj < nbc - 1 else 0,
+    )
 
 
 def _perimeter_glabels(r0, c0, rows, cols, ncols):
@@ -191,12 +199,11 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
     """
     top, left, bottom, right = halo
     zh = np.ascontiguousarray(zh, dtype=np.float32)
-    outlet_h = _outlets(zh, top, left, bottom, right, top == 0, left == 0, bottom == 0,
-                        right == 0)
+    outlet_h = _outlets(zh, top, left, bottom, right, top == 0, left == 0, bottom == 0, right == 0)
     rows = zh.shape[0] - top - bottom
     cols = zh.shape[1] - left - right
-    z = np.ascontiguousarray(zh[top: top + rows, left: left + cols])
-    outlet = outlet_h[top: top + rows, left: left + cols]
+    z = np.ascontiguousarray(zh[top : top + rows, left : left + cols])
+    outlet = outlet_h[top : top + rows, left : left + cols]
     pi, pj, glabels = _perimeter_glabels(r0, c0, rows, cols, ncols)
     seed_label = np.full((rows, cols), -2, dtype=np.int32)
     seed_label[pi, pj] = np.arange(pi.size, dtype=np.int32)
@@ -219,14 +226,16 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
         ci, cj, ni, nj = qi[ok], qj[ok], ni[ok], nj[ok]
         ok = np.isfinite(zh[ni, nj])
         ci, cj, ni, nj = ci[ok], cj[ok], ni[ok], nj[ok]
-        nlabel = np.where(outlet_h[ni, nj], OUTLET,
-                          (r0 + ni - top) * ncols + (c0 + nj - left))
+        nlabel = np.where(outlet_h[ni, nj], OUTLET, (r0 + ni - top) * ncols + (c0 + nj - left))
         a_list.append(_to_global(label[ci, cj], glabels))
         b_list.append(nlabel.astype(np.int64))
         w_list.append(np.maximum(zh[ci + top, cj + left], zh[ni, nj]).astype(np.float64))
-    return filled, label, glabels, _lowest_edges(np.concatenate(a_list),
-                                                 np.concatenate(b_list),
-                                                 np.concatenate(w_list))
+    return (
+        filled,
+        label,
+        glabels,
+        _lowest_edges(np.concatenate(a_list), np.concatenate(b_list), np.concatenate(w_list)),
+    )
 
 
 def _tile_fill_summary(zh, r0, c0, ncols, halo):
@@ -279,7 +288,7 @@ def _solve_fill(*summaries):
     b = np.concatenate([s[1] for s in summaries] + [np.array([OUTLET])])
     w = np.concatenate([s[2] for s in summaries] + [np.array([-np.inf])])
     ids, inv = np.unique(np.concatenate([a, b]), return_inverse=True)
-    ia, ib = inv[: a.size], inv[a.size:]
+    ia, ib = inv[: a.size], inv[a.size :]
     start = int(np.searchsorted(ids, OUTLET))
     src = np.concatenate([ia, ib]).astype(np.int64)
     dst = np.concatenate([ib, ia]).astype(np.int64)
@@ -294,8 +303,7 @@ def _fill_finish(zh, solution, block_info=None):
     nbr, nbc = block_info[0]["num-chunks"]
     (r0, _), (c0, _) = block_info[None]["array-location"]
     ncols = block_info[None]["shape"][1]
-    filled, local, glabels, _ = _tile_flood(zh, r0, c0, ncols, _halo(bi, bj, nbr, nbc, 2),
-                                            False)
+    filled, local, glabels, _ = _tile_flood(zh, r0, c0, ncols, _halo(bi, bj, nbr, nbc, 2), False)
     label = _to_global(local, glabels)
     pos = np.clip(np.searchsorted(ids, label), 0, ids.size - 1)
     lev = np.where(ids[pos] == label, spill[pos], -np.inf).astype(np.float32)
@@ -310,8 +318,11 @@ def _tiles(z: da.Array, depth: int):
     r_off = np.concatenate([[0], np.cumsum(z.chunks[0])])
     c_off = np.concatenate([[0], np.cumsum(z.chunks[1])])
     nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
-    tiles = [(blocks[bi, bj], int(r_off[bi]), int(c_off[bj]), _halo(bi, bj, nbr, nbc, depth))
-             for bi in range(nbr) for bj in range(nbc)]
+    tiles = [
+        (blocks[bi, bj], int(r_off[bi]), int(c_off[bj]), _halo(bi, bj, nbr, nbc, depth))
+        for bi in range(nbr)
+        for bj in range(nbc)
+    ]
     return z, zo, tiles
 
 
@@ -334,13 +345,21 @@ def _min_chunks(chunks, depth):
 def _fill_dask(z: da.Array, *, eager_solve: bool) -> da.Array:
     ncols = z.shape[1]
     z, zo, tiles = _tiles(z.astype(np.float32), 2)
-    summaries = [dask.delayed(_tile_fill_summary, pure=True)(blk, r0, c0, ncols, halo)
-                 for blk, r0, c0, halo in tiles]
+    summaries = [
+        dask.delayed(_tile_fill_summary, pure=True)(blk, r0, c0, ncols, halo)
+        for blk, r0, c0, halo in tiles
+    ]
     solution = dask.delayed(_solve_fill, pure=True)(*summaries)
     if eager_solve:
         solution = solution.compute()
-    return da.map_blocks(_fill_finish, zo, solution, chunks=z.chunks, dtype=np.float32,
-                         meta=np.empty((0, 0), np.float32))
+    return da.map_blocks(
+        _fill_finish,
+        zo,
+        solution,
+        chunks=z.chunks,
+        dtype=np.float32,
+        meta=np.empty((0, 0), np.float32),
+    )
 
 
 # --------------------------------------------------------------------------- D8 + accumulation
@@ -434,7 +453,7 @@ def _tile_dirs(fh, halo):
     rows = fh.shape[0] - top - bottom
     cols = fh.shape[1] - left - right
     w = -np.ascontiguousarray(fh, dtype=np.float32)
-    return _d8(w, top, left, rows, cols), np.isnan(w[top: top + rows, left: left + cols])
+    return _d8(w, top, left, rows, cols), np.isnan(w[top : top + rows, left : left + cols])
 
 
 def _tile_flow_summary(fh, r0, c0, ncols, halo):
@@ -558,13 +577,16 @@ def _flow_finish(fh, solution, block_info=None):
 def _accumulation_dask(filled: da.Array, *, eager_solve: bool) -> da.Array:
     ncols = filled.shape[1]
     f, fo, tiles = _tiles(filled, 1)
-    summaries = [dask.delayed(_tile_flow_summary, pure=True)(blk, r0, c0, ncols, halo)
-                 for blk, r0, c0, halo in tiles]
+    summaries = [
+        dask.delayed(_tile_flow_summary, pure=True)(blk, r0, c0, ncols, halo)
+        for blk, r0, c0, halo in tiles
+    ]
     solution = dask.delayed(_solve_flow, pure=True)(*summaries)
     if eager_solve:
         solution = solution.compute()
-    return da.map_blocks(_flow_finish, fo, solution, chunks=f.chunks, dtype=np.int64,
-                         meta=np.empty((0, 0), np.int64))
+    return da.map_blocks(
+        _flow_finish, fo, solution, chunks=f.chunks, dtype=np.int64, meta=np.empty((0, 0), np.int64)
+    )
 
 
 # --------------------------------------------------------------------------- public API
@@ -581,8 +603,9 @@ def fill_depressions(dem: xr.DataArray, *, eager_solve: bool = False) -> xr.Data
     or computed at once with ``eager_solve=True`` so that the graph left holds no summaries).
     """
     check_dem(dem)
-    require_valid_cells(dem, "the DEM is entirely no-data (NaN): there is no terrain to "
-                             "derive ridges from")
+    require_valid_cells(
+        dem, "the DEM is entirely no-data (NaN): there is no terrain to derive ridges from"
+    )
     z = dem.data
     if isinstance(z, da.Array):
         data = _fill_dask(z, eager_solve=eager_solve)
@@ -591,8 +614,9 @@ def fill_depressions(dem: xr.DataArray, *, eager_solve: bool = False) -> xr.Data
     return _wrap(data, dem, "filled", {"long_name": "depression-filled elevation", "units": "m"})
 
 
-def flow_accumulation(dem: xr.DataArray, *, filled: xr.DataArray | None = None,
-                      eager_solve: bool = False) -> xr.DataArray:
+def flow_accumulation(
+    dem: xr.DataArray, *, filled: xr.DataArray | None = None, eager_solve: bool = False
+) -> xr.DataArray:
     """Cells draining through each cell (itself included) on the inverted filled DEM.
 
     This is the ridge network of SPEC section 3: high accumulation of ``-filled`` marks ridge
@@ -612,9 +636,16 @@ def flow_accumulation(dem: xr.DataArray, *, filled: xr.DataArray | None = None,
         data = _accumulation_dask(f.astype(np.float32), eager_solve=eager_solve)
     else:
         data = accumulation_single(np.asarray(f))
-    return _wrap(data, dem, "accumulation",
-                 {"long_name": "flow accumulation of the inverted filled DEM (cells)",
-                  "units": "cells", "cell_size": _cell_size(dem)})
+    return _wrap(
+        data,
+        dem,
+        "accumulation",
+        {
+            "long_name": "flow accumulation of the inverted filled DEM (cells)",
+            "units": "cells",
+            "cell_size": _cell_size(dem),
+        },
+    )
 
 
 def flow_directions(filled: np.ndarray) -> np.ndarray:
@@ -629,8 +660,12 @@ def default_min_accumulation(a: float) -> int:
     return max(8, int(math.ceil(1e6 / (a * a))))
 
 
-def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
-              accumulation: xr.DataArray | None = None) -> xr.DataArray:
+def ridge_map(
+    dem: xr.DataArray,
+    min_accumulation: int | None = None,
+    *,
+    accumulation: xr.DataArray | None = None,
+) -> xr.DataArray:
     """Ridge cells: ``accumulation >= min_accumulation`` (default: a 1 km^2 area, >= 8 cells).
 
     Examples
@@ -645,8 +680,11 @@ def ridge_map(dem: xr.DataArray, min_accumulation: int | None = None, *,
         accumulation = flow_accumulation(dem)
     ridge = accumulation >= min_accumulation
     ridge.name = "ridge"
-    ridge.attrs = {"long_name": "ridge cells", "min_accumulation": int(min_accumulation),
-                   "cell_size": a}
+    ridge.attrs = {
+        "long_name": "ridge cells",
+        "min_accumulation": int(min_accumulation),
+        "cell_size": a,
+    }
     return ridge
 
 
@@ -662,8 +700,8 @@ def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     rows, cols = filled.shape
     g = zarr.open_group(scratch, mode="r+")
-    g["floc"][r0: r0 + rows, c0: c0 + cols] = filled
-    g["plab"][r0: r0 + rows, c0: c0 + cols] = label
+    g["floc"][r0 : r0 + rows, c0 : c0 + cols] = filled
+    g["plab"][r0 : r0 + rows, c0 : c0 + cols] = label
     return edges
 
 
@@ -709,9 +747,12 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     # written once, read twice: uncompressed is faster than any codec here
     g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32", compressors=None)
     g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32", compressors=None)
-    edges = dask.compute(*[dask.delayed(_scratch_flood, pure=False)(blk, r0, c0, ncols, halo,
-                                                                      str(scratch))
-                           for blk, r0, c0, halo in tiles])
+    edges = dask.compute(
+        *[
+            dask.delayed(_scratch_flood, pure=False)(blk, r0, c0, ncols, halo, str(scratch))
+            for blk, r0, c0, halo in tiles
+        ]
+    )
     ids, spill = _solve_fill(*edges)
     r_off = np.concatenate([[0], np.cumsum(z.chunks[0])]).astype(np.int64)
     c_off = np.concatenate([[0], np.cumsum(z.chunks[1])]).astype(np.int64)
@@ -726,30 +767,50 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     # large constants travel as single graph keys (sent once to each worker), not in closures
     geometry = dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
     fd, pd = fo.to_delayed(), po.to_delayed()
-    flow = dask.compute(*[dask.delayed(_scratch_flow_summary, pure=True)(
-        fd[bi, bj], pd[bi, bj], bi, bj, geometry) for bi in range(nbr) for bj in range(nbc)])
+    flow = dask.compute(
+        *[
+            dask.delayed(_scratch_flow_summary, pure=True)(fd[bi, bj], pd[bi, bj], bi, bj, geometry)
+            for bi in range(nbr)
+            for bj in range(nbc)
+        ]
+    )
     solution = dask.delayed(_solve_flow(*flow), pure=True)
     if log:
         log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
-    acc = da.map_blocks(_scratch_accumulate, fo, po, geometry, solution, chunks=z.chunks,
-                        dtype=np.int32, meta=np.empty((0, 0), np.int32))
-    filled = da.map_blocks(_scratch_inner_fill, fo, po, geometry, chunks=z.chunks,
-                           dtype=np.float32, meta=np.empty((0, 0), np.float32))
+    acc = da.map_blocks(
+        _scratch_accumulate,
+        fo,
+        po,
+        geometry,
+        solution,
+        chunks=z.chunks,
+        dtype=np.int32,
+        meta=np.empty((0, 0), np.int32),
+    )
+    filled = da.map_blocks(
+        _scratch_inner_fill,
+        fo,
+        po,
+        geometry,
+        chunks=z.chunks,
+        dtype=np.float32,
+        meta=np.empty((0, 0), np.float32),
+    )
     return filled, acc, acc >= min_accumulation
 
 
 def _scratch_finished(fblk, pblk, bi, bj, geometry):
     tables, bases, r_off, c_off, nbr, nbc, _ = geometry
     top, left, _, _ = _halo(bi, bj, nbr, nbc, 1)
-    return _finish_from_scratch(fblk, pblk, tables, bases, r_off, c_off,
-                                r_off[bi] - top, c_off[bj] - left)
+    return _finish_from_scratch(
+        fblk, pblk, tables, bases, r_off, c_off, r_off[bi] - top, c_off[bj] - left
+    )
 
 
 def _scratch_flow_summary(fblk, pblk, bi, bj, geometry):
     _, _, r_off, c_off, nbr, nbc, ncols = geometry
     fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
-    return _tile_flow_summary(fh, int(r_off[bi]), int(c_off[bj]), ncols,
-                              _halo(bi, bj, nbr, nbc, 1))
+    return _tile_flow_summary(fh, int(r_off[bi]), int(c_off[bj]), ncols, _halo(bi, bj, nbr, nbc, 1))
 
 
 def _scratch_accumulate(fblk, pblk, geometry, solution, block_info=None):
@@ -763,4 +824,4 @@ def _scratch_inner_fill(fblk, pblk, geometry, block_info=None):
     nbr, nbc = geometry[4], geometry[5]
     top, left, _, _ = _halo(bi, bj, nbr, nbc, 1)
     rows, cols = block_info[None]["chunk-shape"]
-    return _scratch_finished(fblk, pblk, bi, bj, geometry)[top: top + rows, left: left + cols]
+    return _scratch_finished(fblk, pblk, bi, bj, geometry)[top : top + rows, left : left + cols]

@@ -63,8 +63,9 @@ def sphere_heights(radius_m: float, a: float, widths: np.ndarray) -> np.ndarray:
     b = np.full((r + 1, r + 1), -np.inf)
     for d in range(r + 1):
         k = np.arange(widths[d] + 1)
-        b[d, : widths[d] + 1] = np.sqrt(np.maximum(radius_m * radius_m
-                                                   - a * a * (d * d + k * k), 0.0))
+        b[d, : widths[d] + 1] = np.sqrt(
+            np.maximum(radius_m * radius_m - a * a * (d * d + k * k), 0.0)
+        )
     return b
 
 
@@ -188,8 +189,9 @@ def _vertical(z, clearance):
 # --------------------------------------------------------------------------- public API
 
 
-def check_clearance(value, a: float | None, label: str = "`clearance`",
-                    param=MAPS.clearance) -> float:
+def check_clearance(
+    value, a: float | None, label: str = "`clearance`", param=MAPS.clearance
+) -> float:
     """A clearance in metres (``param``'s bounds), refused when a DEM of cell side ``a`` cannot
     resolve it (below half a cell); ``a`` None skips that part (cell side not known yet)."""
     value = param.check(value, label)
@@ -197,13 +199,17 @@ def check_clearance(value, a: float | None, label: str = "`clearance`",
         raise InvalidParameterError(
             f"{label} = {value:g} m is smaller than half a cell ({a / 2:g} m): the clearance "
             "zone would hold no grid point but the cell itself, so the DEM cannot resolve it; "
-            "use a larger clearance or a finer DEM")
+            "use a larger clearance or a finer DEM"
+        )
     return value
 
 
-def safety_map(dem: xr.DataArray, method: str = MAPS.method.default,
-               clearance: float = MAPS.clearance.default,
-               horizontal_clearance: float | None = None) -> xr.DataArray:
+def safety_map(
+    dem: xr.DataArray,
+    method: str = MAPS.method.default,
+    clearance: float = MAPS.clearance.default,
+    horizontal_clearance: float | None = None,
+) -> xr.DataArray:
     """The safety surface: the lowest height at which the vehicle keeps its clearance.
 
     Parameters
@@ -235,18 +241,22 @@ def safety_map(dem: xr.DataArray, method: str = MAPS.method.default,
     clearance = check_clearance(clearance, a)
     if horizontal_clearance is None:
         horizontal_clearance = clearance
-    horizontal_clearance = check_clearance(horizontal_clearance, a, "`horizontal_clearance`",
-                                           MAPS.horizontal_clearance)
+    horizontal_clearance = check_clearance(
+        horizontal_clearance, a, "`horizontal_clearance`", MAPS.horizontal_clearance
+    )
 
     if method == "vertical":
+
         def kernel(block):
             return _vertical(block, clearance)
+
         depth = 0
     elif method == "horizontal":
         widths = disc_widths(horizontal_clearance, a)
 
         def kernel(block):
             return _horizontal(block, widths, clearance)
+
         depth = widths.size - 1
     else:
         widths = disc_widths(clearance, a)
@@ -254,6 +264,7 @@ def safety_map(dem: xr.DataArray, method: str = MAPS.method.default,
 
         def kernel(block):
             return _dilate(block, widths, b)
+
         depth = widths.size - 1
 
     z = dem.data
@@ -263,13 +274,17 @@ def safety_map(dem: xr.DataArray, method: str = MAPS.method.default,
         if depth == 0:
             data = z.map_blocks(kernel, dtype=np.float32, meta=meta)
         else:
-            data = z.map_overlap(kernel, depth={0: depth, 1: depth}, boundary="none",
-                                 dtype=np.float32, meta=meta)
+            data = z.map_overlap(
+                kernel, depth={0: depth, 1: depth}, boundary="none", dtype=np.float32, meta=meta
+            )
     else:
         data = kernel(np.ascontiguousarray(z, dtype=np.float32))
     attrs = {
-        "long_name": f"{method} safety surface", "units": "m", "method": method,
-        "clearance_m": clearance, "cell_size": a,
+        "long_name": f"{method} safety surface",
+        "units": "m",
+        "method": method,
+        "clearance_m": clearance,
+        "cell_size": a,
         "element_radius_cells": int(depth),
     }
     if method == "horizontal":
@@ -280,8 +295,12 @@ def safety_map(dem: xr.DataArray, method: str = MAPS.method.default,
     return xr.DataArray(data, dims=dem.dims, coords=dem.coords, name="safety", attrs=attrs)
 
 
-def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = MAPS.sea_level.default,
-             surface_clearance: float | None = None) -> xr.DataArray:
+def passable(
+    dem: xr.DataArray,
+    safety: xr.DataArray,
+    sea_level: float = MAPS.sea_level.default,
+    surface_clearance: float | None = None,
+) -> xr.DataArray:
     """Cells the vehicle may occupy (SPEC section 2).
 
     A cell is passable when its elevation is known and below ``sea_level`` (not land), no
@@ -296,18 +315,27 @@ def passable(dem: xr.DataArray, safety: xr.DataArray, sea_level: float = MAPS.se
     check_dem(dem, floating=True)
     if not isinstance(safety, xr.DataArray) or safety.shape != dem.shape:
         got = safety.shape if isinstance(safety, xr.DataArray) else type(safety).__name__
-        raise InvalidParameterError(f"`safety` must be a DataArray of the DEM's shape "
-                                    f"{dem.shape}, got {got}; build it with safety_map(dem)")
+        raise InvalidParameterError(
+            f"`safety` must be a DataArray of the DEM's shape "
+            f"{dem.shape}, got {got}; build it with safety_map(dem)"
+        )
     sea_level = MAPS.sea_level.check(sea_level)
     if surface_clearance is None:
         surface_clearance = float(safety.attrs.get("clearance_m", 0.0))
     surface_clearance = MAPS.surface_clearance.check(surface_clearance)
     z = dem.data
     s = safety.data
-    ok = ((z == z) & (z < sea_level) & (s == s)
-          & (s <= np.float32(sea_level - surface_clearance)))
-    return xr.DataArray(ok, dims=dem.dims, coords=dem.coords, name="passable",
-                        attrs={"long_name": "passable cells", "sea_level_m": float(sea_level),
-                               "surface_clearance_m": surface_clearance,
-                               "safety_method": safety.attrs.get("method", "unknown"),
-                               "clearance_m": safety.attrs.get("clearance_m", float("nan"))})
+    ok = (z == z) & (z < sea_level) & (s == s) & (s <= np.float32(sea_level - surface_clearance))
+    return xr.DataArray(
+        ok,
+        dims=dem.dims,
+        coords=dem.coords,
+        name="passable",
+        attrs={
+            "long_name": "passable cells",
+            "sea_level_m": float(sea_level),
+            "surface_clearance_m": surface_clearance,
+            "safety_method": safety.attrs.get("method", "unknown"),
+            "clearance_m": safety.attrs.get("clearance_m", float("nan")),
+        },
+    )

@@ -58,7 +58,7 @@ class ChunkCache:
                 return got
         arr = self.array(store, var)
         ch, cw = arr.chunks
-        block = arr[ci * ch:(ci + 1) * ch, cj * cw:(cj + 1) * cw]
+        block = arr[ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
         with self.lock:
             self.items[key] = block
             self.used += block.nbytes
@@ -77,7 +77,9 @@ class ChunkCache:
                 br0, bc0 = ci * ch, cj * cw
                 a0, a1 = max(r0, br0), min(r1, br0 + blk.shape[0])
                 b0, b1 = max(c0, bc0), min(c1, bc0 + blk.shape[1])
-                out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = blk[a0 - br0:a1 - br0, b0 - bc0:b1 - bc0]
+                out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = blk[
+                    a0 - br0 : a1 - br0, b0 - bc0 : b1 - bc0
+                ]
         return out
 
     def clear(self) -> None:
@@ -153,11 +155,13 @@ class MapsStore:
         if not (group / "zarr.json").exists():
             ds = self.dataset[["safety", "ridge", "passable"]]
             cs = ds.astype("float32").coarsen(y=rho, x=rho, boundary="pad").mean()
-            out = xr.Dataset({
-                "safety": cs["safety"].astype("float32"),
-                "ridge": cs["ridge"].astype("float32"),
-                "passable": (cs["passable"] >= 0.5) & np.isfinite(cs["safety"]),
-            }).compute()
+            out = xr.Dataset(
+                {
+                    "safety": cs["safety"].astype("float32"),
+                    "ridge": cs["ridge"].astype("float32"),
+                    "passable": (cs["passable"] >= 0.5) & np.isfinite(cs["safety"]),
+                }
+            ).compute()
             out.attrs.update(rho=rho, source="block means of the fine maps (SPEC section 6)")
             tmp = Path(self.path) / f".coarse-rho{rho}.tmp-{uuid.uuid4().hex[:8]}"
             out.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
@@ -166,8 +170,11 @@ class MapsStore:
             except OSError:  # another process wrote it first: keep theirs
                 shutil.rmtree(tmp, ignore_errors=True)
         ds = xr.open_zarr(self.path, group=f"coarse-rho{rho}", consolidated=False).load()
-        res = {"safety": ds["safety"].values, "ridge": ds["ridge"].values,
-               "passable": ds["passable"].values.astype(bool)}
+        res = {
+            "safety": ds["safety"].values,
+            "ridge": ds["ridge"].values,
+            "passable": ds["passable"].values.astype(bool),
+        }
         with self._lock:
             self._coarse[rho] = res
         return res
@@ -182,14 +189,16 @@ class MapsStore:
             if not self.crs_wkt:
                 raise InvalidParameterError(
                     f"{name}_lonlat {value} given, but the DEM has no coordinate reference "
-                    f"system; give {name} as a cell or in map coordinates ({name}_xy)")
+                    f"system; give {name} as a cell or in map coordinates ({name}_xy)"
+                )
             from pyproj import CRS, Transformer
 
             tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(self.crs_wkt), always_xy=True)
             x, y = tr.transform(x, y)
         elif form != "xy":
-            raise InvalidParameterError(f"unknown form {form!r} of {name}: 'cell', 'xy' or "
-                                        "'lonlat'")
+            raise InvalidParameterError(
+                f"unknown form {form!r} of {name}: 'cell', 'xy' or 'lonlat'"
+            )
         xs, ys, a = self.x, self.y, self.cell_size
         col = int(round((x - xs[0]) / (xs[1] - xs[0])))
         row = int(round((y - ys[0]) / (ys[1] - ys[0])))
@@ -197,21 +206,25 @@ class MapsStore:
             raise InvalidEndpointError(
                 f"{name} {value} ({form}) is off the map: x spans "
                 f"{min(xs[0], xs[-1]) - a / 2:.1f} to {max(xs[0], xs[-1]) + a / 2:.1f}, y "
-                f"{min(ys[0], ys[-1]) - a / 2:.1f} to {max(ys[0], ys[-1]) + a / 2:.1f}")
+                f"{min(ys[0], ys[-1]) - a / 2:.1f} to {max(ys[0], ys[-1]) + a / 2:.1f}"
+            )
         return row, col
 
 
 def _require_store(path: Path) -> None:
     if not (path / "zarr.json").is_file():
         what = "is not a Zarr store" if path.exists() else "does not exist"
-        raise PipelineError(f"maps store {path} {what}; build it with pipeline.build_maps or "
-                            "`pipeline build-maps`")
+        raise PipelineError(
+            f"maps store {path} {what}; build it with pipeline.build_maps or `pipeline build-maps`"
+        )
 
 
 def _require_version(path: Path, attrs) -> None:
     if attrs.get("maps_version") != MAPS_VERSION:
-        raise InvalidParameterError(f"{path} is not a maps store of this version "
-                                    f"(maps_version={attrs.get('maps_version')!r}); rebuild it")
+        raise InvalidParameterError(
+            f"{path} is not a maps store of this version "
+            f"(maps_version={attrs.get('maps_version')!r}); rebuild it"
+        )
 
 
 _STORES: dict = {}
@@ -228,13 +241,17 @@ def open_store(maps) -> MapsStore:
     if isinstance(maps, xr.Dataset):
         path = maps.attrs.get("store")
         if not path:
-            raise InvalidParameterError("`maps` must be a maps store path, a MapsStore or a "
-                                        "Dataset from pipeline.open_maps (planning reads "
-                                        "windows from the store)")
+            raise InvalidParameterError(
+                "`maps` must be a maps store path, a MapsStore or a "
+                "Dataset from pipeline.open_maps (planning reads "
+                "windows from the store)"
+            )
         maps = path
     if not isinstance(maps, str | os.PathLike):
-        raise InvalidParameterError("`maps` must be a maps store path, a MapsStore or a Dataset"
-                                    f" from pipeline.open_maps, got {type(maps).__name__}")
+        raise InvalidParameterError(
+            "`maps` must be a maps store path, a MapsStore or a Dataset"
+            f" from pipeline.open_maps, got {type(maps).__name__}"
+        )
     p = Path(maps).resolve()
     try:
         stamp = (p / "zarr.json").stat().st_mtime_ns
@@ -260,6 +277,9 @@ def open_maps(store: str | os.PathLike, chunks="store"):
     ds = xr.open_zarr(store, consolidated=False, chunks={} if chunks == "store" else chunks)
     _require_version(store, ds.attrs)
     ds.attrs["store"] = str(store.resolve())
-    ds.attrs["parameters"] = json.loads(ds.attrs["parameters"]) \
-        if isinstance(ds.attrs.get("parameters"), str) else ds.attrs.get("parameters")
+    ds.attrs["parameters"] = (
+        json.loads(ds.attrs["parameters"])
+        if isinstance(ds.attrs.get("parameters"), str)
+        else ds.attrs.get("parameters")
+    )
     return ds

@@ -130,7 +130,7 @@ def _seafloor(d):
     """Depth-age subsidence plus the axial high with its summit graben (no noise)."""
     ad = abs(d)
     base = -2600.0 - 2900.0 * math.sqrt(min(ad / 0.45, 1.0))
-    return base + 800.0 * math.exp(-(d / 0.03) ** 2) - 200.0 * math.exp(-(d / 0.005) ** 2)
+    return base + 800.0 * math.exp(-((d / 0.03) ** 2)) - 200.0 * math.exp(-((d / 0.005) ** 2))
 
 
 @njit(nogil=True, cache=True)
@@ -212,9 +212,18 @@ def _synth_block(r0, r1, c0, c1, n_norm, cos_t, sin_t, seg_v, seg_u, islands, se
     nodes = np.empty((k1 - k0 + 1, l1 - l0 + 1))
     for k in range(k0, k1 + 1):
         for m in range(l0, l1 + 1):
-            nodes[k - k0, m - l0] = _scene_height(k * stride + 0.5, m * stride + 0.5, n_norm,
-                                                  cos_t, sin_t, seg_v, seg_u, islands, s,
-                                                  octaves_mid)
+            nodes[k - k0, m - l0] = _scene_height(
+                k * stride + 0.5,
+                m * stride + 0.5,
+                n_norm,
+                cos_t,
+                sin_t,
+                seg_v,
+                seg_u,
+                islands,
+                s,
+                octaves_mid,
+            )
     out = np.empty((r1 - r0, c1 - c0), dtype=np.float32)
     inv = 1.0 / stride
     for i in range(r1 - r0):
@@ -263,9 +272,13 @@ def _scene(seed: int, islands: int):
     return seg_v, seg_u, math.cos(theta), math.sin(theta), isl
 
 
-def synthetic_dem(shape, cell_size: float = SYNTHETIC.cell_size.default,
-                  seed: int = SYNTHETIC.seed.default, chunks=DEFAULT_CHUNK,
-                  islands: int = SYNTHETIC.islands.default) -> xr.DataArray:
+def synthetic_dem(
+    shape,
+    cell_size: float = SYNTHETIC.cell_size.default,
+    seed: int = SYNTHETIC.seed.default,
+    chunks=DEFAULT_CHUNK,
+    islands: int = SYNTHETIC.islands.default,
+) -> xr.DataArray:
     """A virtual mid-ocean-ridge DEM, lazily generated (dask) or in memory (``chunks=None``).
 
     Parameters
@@ -302,19 +315,31 @@ def synthetic_dem(shape, cell_size: float = SYNTHETIC.cell_size.default,
     if ch is None:
         data = _synth_block(0, rows, 0, cols, *args)
     else:
+
         def block(block_info=None):
             (r0, r1), (c0, c1) = block_info[None]["array-location"]
             return _synth_block(r0, r1, c0, c1, *args)
 
-        data = da.map_blocks(block, chunks=da.core.normalize_chunks(ch, (rows, cols)),
-                             dtype=np.float32, meta=np.empty((0, 0), np.float32),
-                             name=f"synthetic-dem-{seed}-{rows}x{cols}-{a}-{islands}-{ch}")
+        data = da.map_blocks(
+            block,
+            chunks=da.core.normalize_chunks(ch, (rows, cols)),
+            dtype=np.float32,
+            meta=np.empty((0, 0), np.float32),
+            name=f"synthetic-dem-{seed}-{rows}x{cols}-{a}-{islands}-{ch}",
+        )
     x = (np.arange(cols) + 0.5) * a
     y = (rows - np.arange(rows) - 0.5) * a
     return xr.DataArray(
-        data, dims=("y", "x"), coords={"y": y, "x": x}, name="elevation",
-        attrs={"cell_size": a, "units": "m", "positive": "up",
-               "source": f"synthetic mid-ocean ridge (seed={seed}, islands={islands}, "
-                         f"generator v{GENERATOR_VERSION})",
-               "long_name": "seabed elevation"},
+        data,
+        dims=("y", "x"),
+        coords={"y": y, "x": x},
+        name="elevation",
+        attrs={
+            "cell_size": a,
+            "units": "m",
+            "positive": "up",
+            "source": f"synthetic mid-ocean ridge (seed={seed}, islands={islands}, "
+            f"generator v{GENERATOR_VERSION})",
+            "long_name": "seabed elevation",
+        },
     )

@@ -21,8 +21,11 @@ def pytest_sessionstart(session):
     """pysheds compiles about 80 numba functions when imported (over a minute in a fresh
     environment, then cached on disk): compile them on the idle core while the first tests run,
     so that the pysheds comparisons find the cache warm (``pysheds_ready``)."""
-    _WARM["pysheds"] = subprocess.Popen([sys.executable, "-c", "import pysheds.grid"],
-                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _WARM["pysheds"] = subprocess.Popen(
+        [sys.executable, "-c", "import pysheds.grid"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 @pytest.fixture(scope="session")
@@ -65,10 +68,14 @@ def lonlat_dataarray(z, lon, lat) -> xr.DataArray:
     if lat[0] < lat[-1]:
         z, lat = z[::-1], lat[::-1]
     return xr.DataArray(
-        z, dims=("lat", "lon"),
-        coords={"lat": ("lat", lat, {"units": "degrees_north", "standard_name": "latitude"}),
-                "lon": ("lon", lon, {"units": "degrees_east", "standard_name": "longitude"})},
-        name="topo", attrs={"units": "m"},
+        z,
+        dims=("lat", "lon"),
+        coords={
+            "lat": ("lat", lat, {"units": "degrees_north", "standard_name": "latitude"}),
+            "lon": ("lon", lon, {"units": "degrees_east", "standard_name": "longitude"}),
+        },
+        name="topo",
+        attrs={"units": "m"},
     )
 
 
@@ -94,13 +101,16 @@ def topobathy_nc(tmp_path_factory, topobathy):
     return path
 
 
-def metric_dataarray(z: np.ndarray, a: float = 50.0, x0: float = 500_000.0,
-                     y0: float = 5_000_000.0) -> xr.DataArray:
+def metric_dataarray(
+    z: np.ndarray, a: float = 50.0, x0: float = 500_000.0, y0: float = 5_000_000.0
+) -> xr.DataArray:
     """A north-up projected grid of cell side ``a`` with ``z`` as values."""
     rows, cols = z.shape
-    return xr.DataArray(z, dims=("y", "x"),
-                        coords={"x": x0 + (np.arange(cols) + 0.5) * a,
-                                "y": y0 - (np.arange(rows) + 0.5) * a})
+    return xr.DataArray(
+        z,
+        dims=("y", "x"),
+        coords={"x": x0 + (np.arange(cols) + 0.5) * a, "y": y0 - (np.arange(rows) + 0.5) * a},
+    )
 
 
 def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
@@ -111,10 +121,10 @@ def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
     z = ndimage.gaussian_filter(rng.normal(size=shape), 2.0) * 400.0 - 3000.0
     z += rng.normal(size=shape) * 5.0
     if flats:
-        z[shape[0] // 4: shape[0] // 2, shape[1] // 4: shape[1] // 2] = -2900.0
+        z[shape[0] // 4 : shape[0] // 2, shape[1] // 4 : shape[1] // 2] = -2900.0
     if holes:
         z[rng.random(shape) < 0.01] = np.nan
-        z[: shape[0] // 6, -shape[1] // 6:] = np.nan
+        z[: shape[0] // 6, -shape[1] // 6 :] = np.nan
     return z.astype(np.float32)
 
 
@@ -131,16 +141,41 @@ def start_dask_cluster(directory: Path, workers: int = 2):
 
     sched_file = directory / "scheduler.json"
     bindir = Path(sys.executable).parent
-    sched = subprocess.Popen([bindir / "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
-                              "--no-dashboard", "--scheduler-file", sched_file],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sched = subprocess.Popen(
+        [
+            bindir / "dask",
+            "scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--no-dashboard",
+            "--scheduler-file",
+            sched_file,
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 60
     while not sched_file.exists() and time.time() < deadline:
         time.sleep(0.2)
-    procs = [subprocess.Popen([bindir / "dask", "worker", "--nthreads", "1", "--no-nanny",
-                               "--no-dashboard", "--scheduler-file", sched_file],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-             for _ in range(workers)]
+    procs = [
+        subprocess.Popen(
+            [
+                bindir / "dask",
+                "worker",
+                "--nthreads",
+                "1",
+                "--no-nanny",
+                "--no-dashboard",
+                "--scheduler-file",
+                sched_file,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for _ in range(workers)
+    ]
     addr = json.loads(sched_file.read_text())["address"]
     with Client(addr, timeout=60) as c:
         c.wait_for_workers(workers, timeout=60)

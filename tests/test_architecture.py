@@ -18,7 +18,7 @@ def _private_uses(source: str, package: tuple):
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
             if node.level:
-                base = list(package[:len(package) - node.level + 1])
+                base = list(package[: len(package) - node.level + 1])
                 module = ".".join(base + ([node.module] if node.module else []))
             else:
                 module = node.module or ""
@@ -27,8 +27,11 @@ def _private_uses(source: str, package: tuple):
             for alias in node.names:
                 if alias.name.startswith("_") and not alias.name.startswith("__"):
                     yield node.lineno, f"from {module} import {alias.name}"
-        elif isinstance(node, ast.Attribute) and node.attr.startswith("_") \
-                and not node.attr.startswith("__"):
+        elif (
+            isinstance(node, ast.Attribute)
+            and node.attr.startswith("_")
+            and not node.attr.startswith("__")
+        ):
             chain = node.value
             while isinstance(chain, ast.Attribute):
                 chain = chain.value
@@ -46,8 +49,12 @@ def test_no_private_name_of_another_module(path):
 
 
 def test_the_check_sees_private_names():
-    src = ("from ..mcpc import _grow\nfrom .core import _trace, Search\nimport pipeline\n"
-           "pipeline.store._STORES\nfrom numpy import _core\n")
+    src = (
+        "from ..mcpc import _grow\nfrom .core import _trace, Search\nimport pipeline\n"
+        "pipeline.store._STORES\nfrom numpy import _core\n"
+    )
     assert [w for _, w in _private_uses(src, ("pipeline", "planners"))] == [
-        "from pipeline.mcpc import _grow", "from pipeline.planners.core import _trace",
-        "pipeline.store._STORES"]
+        "from pipeline.mcpc import _grow",
+        "from pipeline.planners.core import _trace",
+        "pipeline.store._STORES",
+    ]

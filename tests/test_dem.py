@@ -62,8 +62,9 @@ def _reference_reprojection(dem, z, lon, lat):
     lo, la = to_ll.transform(xx, yy)
     lo = np.where(lo < 0, lo + 360.0, lo) if lon.min() > 180 else lo
     order = np.argsort(lat)
-    interp = RegularGridInterpolator((lat[order], lon), z[order].astype(np.float64),
-                                     bounds_error=False, fill_value=np.nan)
+    interp = RegularGridInterpolator(
+        (lat[order], lon), z[order].astype(np.float64), bounds_error=False, fill_value=np.nan
+    )
     return interp(np.stack([la, lo], axis=-1))
 
 
@@ -123,12 +124,15 @@ def test_old_gmt_grid_format(tmp_path):
     z = random_surface((12, 9))
     ny, nx = z.shape
     ds = xr.Dataset(
-        {"x_range": ("side", [1000.0, 1000.0 + 8 * 20.0], {"units": "m"}),
-         "y_range": ("side", [0.0, 11 * 20.0], {"units": "m"}),
-         "z_range": ("side", [float(z.min()), float(z.max())]),
-         "spacing": ("side", [20.0, 20.0]),
-         "dimension": ("side", np.array([nx, ny], dtype=np.int32)),
-         "z": ("xysize", z.ravel(), {"node_offset": 0})})
+        {
+            "x_range": ("side", [1000.0, 1000.0 + 8 * 20.0], {"units": "m"}),
+            "y_range": ("side", [0.0, 11 * 20.0], {"units": "m"}),
+            "z_range": ("side", [float(z.min()), float(z.max())]),
+            "spacing": ("side", [20.0, 20.0]),
+            "dimension": ("side", np.array([nx, ny], dtype=np.int32)),
+            "z": ("xysize", z.ravel(), {"node_offset": 0}),
+        }
+    )
     path = tmp_path / "old.grd"
     ds.to_netcdf(path, format="NETCDF3_CLASSIC")
     dem = pipeline.open_dem(path, chunks=None)
@@ -204,13 +208,15 @@ def test_uneven_axis_is_resampled(tmp_path, caplog):
     z = np.broadcast_to(-2000.0 + 2.0 * x, (5, 7)).astype(np.float32)  # linear in x
     path = tmp_path / "uneven.nc"
     xr.DataArray(z, dims=("y", "x"), coords={"x": x, "y": y}).to_dataset(
-        name="elevation").to_netcdf(path)
+        name="elevation"
+    ).to_netcdf(path)
     with caplog.at_level("WARNING", logger="pipeline"):
         dem = pipeline.open_dem(path, chunks=None)
     assert "unevenly spaced" in caplog.text
     np.testing.assert_allclose(dem.x.values, np.arange(7) * 10.0)
-    np.testing.assert_allclose(dem.values, np.broadcast_to(-2000.0 + 2.0 * dem.x.values, (5, 7)),
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        dem.values, np.broadcast_to(-2000.0 + 2.0 * dem.x.values, (5, 7)), atol=1e-3
+    )
 
 
 def test_no_coordinates_needs_cell_size(tmp_path):
@@ -272,9 +278,11 @@ def test_import_dem_cli_function(tmp_path, topobathy_tif):
 
 
 def _bad_multiband(p):
-    arr = xr.DataArray(np.zeros((3, 8, 8), np.float32), dims=("band", "y", "x"),
-                       coords={"band": [1, 2, 3], "x": np.arange(8.0) * 10,
-                               "y": 80 - np.arange(8.0) * 10})
+    arr = xr.DataArray(
+        np.zeros((3, 8, 8), np.float32),
+        dims=("band", "y", "x"),
+        coords={"band": [1, 2, 3], "x": np.arange(8.0) * 10, "y": 80 - np.arange(8.0) * 10},
+    )
     return _write_tif(arr, p.with_suffix(".tif"))
 
 
@@ -289,13 +297,17 @@ def _bad_nodata_everywhere(p):
 
 def _bad_no_coords(p):
     xr.DataArray(np.zeros((8, 8), np.float32), dims=("a", "b")).to_dataset(
-        name="elevation").to_netcdf(p.with_suffix(".nc"))
+        name="elevation"
+    ).to_netcdf(p.with_suffix(".nc"))
     return p.with_suffix(".nc")
 
 
 def _bad_text_type(p):
-    arr = xr.DataArray(np.array([["a", "b"], ["c", "d"]]), dims=("y", "x"),
-                       coords={"x": [0.0, 1.0], "y": [1.0, 0.0]})
+    arr = xr.DataArray(
+        np.array([["a", "b"], ["c", "d"]]),
+        dims=("y", "x"),
+        coords={"x": [0.0, 1.0], "y": [1.0, 0.0]},
+    )
     arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
     return p.with_suffix(".nc")
 
@@ -313,23 +325,30 @@ def _bad_empty_nc(p):
 
 
 def _bad_unordered(p):
-    arr = xr.DataArray(np.zeros((4, 4), np.float32), dims=("y", "x"),
-                       coords={"x": [0.0, 2.0, 1.0, 3.0], "y": [3.0, 2.0, 1.0, 0.0]})
+    arr = xr.DataArray(
+        np.zeros((4, 4), np.float32),
+        dims=("y", "x"),
+        coords={"x": [0.0, 2.0, 1.0, 3.0], "y": [3.0, 2.0, 1.0, 0.0]},
+    )
     arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
     return p.with_suffix(".nc")
 
 
 def _bad_3d_netcdf(p):
-    arr = xr.DataArray(np.zeros((2, 4, 4), np.float32), dims=("time", "y", "x"),
-                       coords={"x": np.arange(4.0), "y": np.arange(4.0)[::-1]})
+    arr = xr.DataArray(
+        np.zeros((2, 4, 4), np.float32),
+        dims=("time", "y", "x"),
+        coords={"x": np.arange(4.0), "y": np.arange(4.0)[::-1]},
+    )
     arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
     return p.with_suffix(".nc")
 
 
 def _bad_two_vars(p):
     c = {"x": np.arange(4.0), "y": np.arange(4.0)[::-1]}
-    xr.Dataset({"a": (("y", "x"), np.zeros((4, 4))), "b": (("y", "x"), np.ones((4, 4)))},
-               coords=c).to_netcdf(p.with_suffix(".nc"))
+    xr.Dataset(
+        {"a": (("y", "x"), np.zeros((4, 4))), "b": (("y", "x"), np.ones((4, 4)))}, coords=c
+    ).to_netcdf(p.with_suffix(".nc"))
     return p.with_suffix(".nc")
 
 
@@ -343,27 +362,31 @@ def _bad_missing(p):
 
 
 def _bad_one_row(p):
-    arr = xr.DataArray(np.zeros((1, 5), np.float32), dims=("y", "x"),
-                       coords={"x": np.arange(5.0), "y": [0.0]})
+    arr = xr.DataArray(
+        np.zeros((1, 5), np.float32), dims=("y", "x"), coords={"x": np.arange(5.0), "y": [0.0]}
+    )
     arr.to_dataset(name="elevation").to_netcdf(p.with_suffix(".nc"))
     return p.with_suffix(".nc")
 
 
-@pytest.mark.parametrize("make, match", [
-    (_bad_multiband, r"3-D \(band=3.*select one band"),
-    (_bad_3d_netcdf, r"3-D \(time=2"),
-    (_bad_all_nan, "holds no valid elevation"),
-    (_bad_nodata_everywhere, "holds no valid elevation"),
-    (_bad_no_coords, "no coordinates and no cell size"),
-    (_bad_text_type, "not numbers"),
-    (_bad_garbage, "cannot read DEM file"),
-    (_bad_empty_nc, "cannot read DEM file"),
-    (_bad_unordered, "not strictly increasing or decreasing"),
-    (_bad_two_vars, r"several 2-D variables \['a', 'b'\]"),
-    (_bad_plain_dir, "not a Zarr store"),
-    (_bad_missing, "does not exist"),
-    (_bad_one_row, "at least 2 x 2"),
-])
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (_bad_multiband, r"3-D \(band=3.*select one band"),
+        (_bad_3d_netcdf, r"3-D \(time=2"),
+        (_bad_all_nan, "holds no valid elevation"),
+        (_bad_nodata_everywhere, "holds no valid elevation"),
+        (_bad_no_coords, "no coordinates and no cell size"),
+        (_bad_text_type, "not numbers"),
+        (_bad_garbage, "cannot read DEM file"),
+        (_bad_empty_nc, "cannot read DEM file"),
+        (_bad_unordered, "not strictly increasing or decreasing"),
+        (_bad_two_vars, r"several 2-D variables \['a', 'b'\]"),
+        (_bad_plain_dir, "not a Zarr store"),
+        (_bad_missing, "does not exist"),
+        (_bad_one_row, "at least 2 x 2"),
+    ],
+)
 def test_bad_files_are_refused_clearly(tmp_path, make, match):
     path = make(tmp_path / "bad")
     with pytest.raises(InvalidDEMError, match=match) as info:
@@ -374,8 +397,9 @@ def test_bad_files_are_refused_clearly(tmp_path, make, match):
 def test_variable_picks_one_of_several(tmp_path):
     c = {"x": np.arange(4.0) * 10, "y": (np.arange(4.0) * 10)[::-1]}
     path = tmp_path / "two.nc"
-    xr.Dataset({"a": (("y", "x"), np.zeros((4, 4))), "b": (("y", "x"), -np.ones((4, 4)))},
-               coords=c).to_netcdf(path)
+    xr.Dataset(
+        {"a": (("y", "x"), np.zeros((4, 4))), "b": (("y", "x"), -np.ones((4, 4)))}, coords=c
+    ).to_netcdf(path)
     assert float(pipeline.open_dem(path, variable="b", chunks=None).mean()) == -1.0
     with pytest.raises(InvalidDEMError, match="no variable 'c'"):
         pipeline.open_dem(path, variable="c")

@@ -54,34 +54,48 @@ def test_dry_run_computes_nothing(tmp_path):
 
 
 def test_job_with_a_dem_file(tmp_path, topobathy_tif, local_client):
-    job = _job(tmp_path, f'name = "real"\n[dem]\npath = "{topobathy_tif}"\nchunks = 64\n'
-                         f'resolution = 1200.0\n'  # the file's cells are 2.4 km
-                         f'[maps]\nclearance = 1000.0\n'
-                         f'[output]\ncatalog = "{tmp_path / "cat"}"\n')
+    job = _job(
+        tmp_path,
+        f'name = "real"\n[dem]\npath = "{topobathy_tif}"\nchunks = 64\n'
+        f"resolution = 1200.0\n"  # the file's cells are 2.4 km
+        f"[maps]\nclearance = 1000.0\n"
+        f'[output]\ncatalog = "{tmp_path / "cat"}"\n',
+    )
     res = run_job(job, scheduler=local_client)
     dem = pipeline.open_dem(res.dem_store)
     assert "crs_wkt" in dem.attrs and (dem.values >= 0).any()
     assert pipeline.cell_size(dem) == 1200.0
 
 
-@pytest.mark.parametrize("text, match", [
-    ("name = 'x'\n", r"a \[dem\] table is required"),
-    ("[dem]\npath = 'a.tif'\n[dem.synthetic]\nshape = [4, 4]\n", "exactly one of"),
-    ("[dem]\nsynthetic = { shape = [4, 4] }\ncolour = 'red'\n", "unknown key dem.'colour'"),
-    ("[dem.synthetic]\nshape = [4, 4]\nsed = 3\n", r"unknown key dem.synthetic.'sed'"),
-    ("[dem.synthetic]\nshape = [4]\n", r"dem.synthetic.shape must be a pair \(rows, cols\)"),
-    ("[dem.synthetic]\nshape = [4, 4]\nseed = 'one'\n", "dem.synthetic.seed must be an integer"),
-    ("[dem.synthetic]\ncell_size = 3.0\n", "shape is required"),
-    ("[dem]\nchunks = 0\nsynthetic = { shape = [4, 4] }\n", "dem.chunks must be an integer >= 1"),
-    ("[dem]\npath = 'missing.tif'\n", r"dem.path 'missing.tif' does not exist"),
-    ("[dem]\npath = 3\n", "dem.path must be a file path"),
-    ("[dem]\npath = '.'\nresolution = -1.0\n",
-     r"dem.resolution must be a finite number of metres > 0"),
-    ("[dem]\npath = '.'\nresolution = 'fine'\n", r"dem.resolution must be a finite number"),
-    ("planners = 1\n[dem.synthetic]\nshape = [4, 4]\n", "unknown key 'planners'"),
-    ("[dem.synthetic\nshape = [4, 4]\n", "not valid TOML"),
-    ("name = '../up'\n[dem.synthetic]\nshape = [4, 4]\n", "name must be"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("name = 'x'\n", r"a \[dem\] table is required"),
+        ("[dem]\npath = 'a.tif'\n[dem.synthetic]\nshape = [4, 4]\n", "exactly one of"),
+        ("[dem]\nsynthetic = { shape = [4, 4] }\ncolour = 'red'\n", "unknown key dem.'colour'"),
+        ("[dem.synthetic]\nshape = [4, 4]\nsed = 3\n", r"unknown key dem.synthetic.'sed'"),
+        ("[dem.synthetic]\nshape = [4]\n", r"dem.synthetic.shape must be a pair \(rows, cols\)"),
+        (
+            "[dem.synthetic]\nshape = [4, 4]\nseed = 'one'\n",
+            "dem.synthetic.seed must be an integer",
+        ),
+        ("[dem.synthetic]\ncell_size = 3.0\n", "shape is required"),
+        (
+            "[dem]\nchunks = 0\nsynthetic = { shape = [4, 4] }\n",
+            "dem.chunks must be an integer >= 1",
+        ),
+        ("[dem]\npath = 'missing.tif'\n", r"dem.path 'missing.tif' does not exist"),
+        ("[dem]\npath = 3\n", "dem.path must be a file path"),
+        (
+            "[dem]\npath = '.'\nresolution = -1.0\n",
+            r"dem.resolution must be a finite number of metres > 0",
+        ),
+        ("[dem]\npath = '.'\nresolution = 'fine'\n", r"dem.resolution must be a finite number"),
+        ("planners = 1\n[dem.synthetic]\nshape = [4, 4]\n", "unknown key 'planners'"),
+        ("[dem.synthetic\nshape = [4, 4]\n", "not valid TOML"),
+        ("name = '../up'\n[dem.synthetic]\nshape = [4, 4]\n", "name must be"),
+    ],
+)
 def test_bad_job_files(tmp_path, text, match):
     job = _job(tmp_path, text)
     with pytest.raises(JobFileError, match=match) as info:
@@ -125,8 +139,9 @@ def test_real_data_job_file_is_valid(tmp_path, topobathy):
 def test_cli_synth_import_info(tmp_path, topobathy_tif):
     r = CliRunner()
     out = tmp_path / "s.zarr"
-    res = r.invoke(main, ["dem", "synth", str(out), "--shape", "100", "80", "--seed", "2",
-                          "--chunks", "64"])
+    res = r.invoke(
+        main, ["dem", "synth", str(out), "--shape", "100", "80", "--seed", "2", "--chunks", "64"]
+    )
     assert res.exit_code == 0, res.output
     ref = pipeline.synthetic_dem((100, 80), seed=2, chunks=None).values
     np.testing.assert_array_equal(pipeline.open_dem(out, chunks=None).values, ref)
@@ -154,18 +169,29 @@ def test_console_script_runs_a_job(tmp_path, local_client):
     exe = Path(sys.executable).parent / "pipeline"
     env = dict(os.environ)
     on = ["--scheduler", local_client.scheduler.address]
-    proc = subprocess.run([str(exe), "run", str(job), *on], capture_output=True, text=True,
-                          timeout=300, env=env)
+    proc = subprocess.run(
+        [str(exe), "run", str(job), *on], capture_output=True, text=True, timeout=300, env=env
+    )
     assert proc.returncode == 0, proc.stderr
-    assert "job small: 0 missions planned" in proc.stdout and "writing the DEM store" in \
-        proc.stderr and "dask dashboard: http" in proc.stderr
-    proc = subprocess.run([str(exe), "run", str(job), *on], capture_output=True, text=True,
-                          timeout=300, env=env)
+    assert (
+        "job small: 0 missions planned" in proc.stdout
+        and "writing the DEM store" in proc.stderr
+        and "dask dashboard: http" in proc.stderr
+    )
+    proc = subprocess.run(
+        [str(exe), "run", str(job), *on], capture_output=True, text=True, timeout=300, env=env
+    )
     assert proc.returncode == 0 and "is up to date: reusing it" in proc.stderr
-    proc = subprocess.run([str(exe), "run", str(job), *on, "--overwrite"], capture_output=True,
-                          text=True, timeout=300, env=env)
+    proc = subprocess.run(
+        [str(exe), "run", str(job), *on, "--overwrite"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert proc.returncode == 0 and "writing the DEM store" in proc.stderr
     bad = _job(tmp_path, "[dem]\n", "bad.toml")
-    proc = subprocess.run([str(exe), "run", str(bad)], capture_output=True, text=True,
-                          timeout=300, env=env)
+    proc = subprocess.run(
+        [str(exe), "run", str(bad)], capture_output=True, text=True, timeout=300, env=env
+    )
     assert proc.returncode == 2 and "error: job file" in proc.stderr

@@ -60,8 +60,9 @@ def test_refuses_to_clobber_and_rebuilds_on_request(tmp_path):
     pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=90.0)
     with pytest.raises(StoreExistsError, match="overwrite"):
         pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=90.0)
-    m = pipeline.build_maps(dem, tmp_path / "m.zarr", method="vertical", clearance=90.0,
-                            overwrite=True)
+    m = pipeline.build_maps(
+        dem, tmp_path / "m.zarr", method="vertical", clearance=90.0, overwrite=True
+    )
     assert m.attrs["parameters"]["method"] == "vertical"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.zarr"]
 
@@ -82,13 +83,25 @@ def test_cli_build_maps(tmp_path, local_client):
     r = CliRunner()
     dem_store = tmp_path / "dem.zarr"
     pipeline.write_dem(pipeline.synthetic_dem((120, 100), chunks=64), dem_store, chunks=64)
-    res = r.invoke(main, ["build-maps", str(dem_store), str(tmp_path / "maps.zarr"),
-                          "--method", "horizontal", "--clearance", "200",
-                          "--scheduler", local_client.scheduler.address])
+    res = r.invoke(
+        main,
+        [
+            "build-maps",
+            str(dem_store),
+            str(tmp_path / "maps.zarr"),
+            "--method",
+            "horizontal",
+            "--clearance",
+            "200",
+            "--scheduler",
+            local_client.scheduler.address,
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "passable" in res.output
     maps = pipeline.open_maps(tmp_path / "maps.zarr")
     assert maps.attrs["parameters"]["method"] == "horizontal"
-    res = r.invoke(main, ["build-maps", str(dem_store), str(tmp_path / "m2.zarr"),
-                          "--clearance", "5"])
+    res = r.invoke(
+        main, ["build-maps", str(dem_store), str(tmp_path / "m2.zarr"), "--clearance", "5"]
+    )
     assert res.exit_code == 2 and "smaller than half a cell" in res.output

@@ -22,10 +22,10 @@ RING = (175, 232, 150, 232)  # a closed land ring (rows, cols), interior unreach
 
 def wall_dem():
     z = random_surface((240, 240), seed=3) * 0.1 - 2500.0  # gentle relief
-    z[WALL_ROW - 1:WALL_ROW + 2, :WALL_END] = 20.0
+    z[WALL_ROW - 1 : WALL_ROW + 2, :WALL_END] = 20.0
     r0, r1, c0, c1 = RING
-    z[r0:r1, c0:c0 + 2] = z[r0:r1, c1 - 2:c1] = 20.0
-    z[r0:r0 + 2, c0:c1] = z[r1 - 2:r1, c0:c1] = 20.0
+    z[r0:r1, c0 : c0 + 2] = z[r0:r1, c1 - 2 : c1] = 20.0
+    z[r0 : r0 + 2, c0:c1] = z[r1 - 2 : r1, c0:c1] = 20.0
     return metric_dataarray(z.astype(np.float32), a=A).chunk(64)
 
 
@@ -56,15 +56,17 @@ def test_segment_straight_row_by_hand():
     pts = np.array([(0, 0), (0, 10), (0, 20), (0, 30), (0, 40), (0, 50)])
     # side 20 reached at (0, 20): a 21 x 21 square centred on (0, 10), clipped at row 0
     assert segment(pts, 20, 0, (100, 100)) == [
-        (0, 2, (0, 11, 0, 21)), (2, 4, (0, 11, 20, 41)), (4, 5, (0, 6, 40, 51))]
+        (0, 2, (0, 11, 0, 21)),
+        (2, 4, (0, 11, 20, 41)),
+        (4, 5, (0, 6, 40, 51)),
+    ]
 
 
 def test_segment_doubling_back_by_hand():
     pts = np.array([(50, 50), (50, 60), (50, 55), (50, 45), (50, 70), (52, 72)])
     # the box grows to cols 45..70 (side 25 >= 20) only at the 5th point; square of side 25
     # centred on (50, 57.5): rows 37..62, cols 45..70, then margin 2
-    assert segment(pts, 20, 2, (100, 100)) == [(0, 4, (35, 65, 43, 73)),
-                                               (4, 5, (48, 55, 68, 75))]
+    assert segment(pts, 20, 2, (100, 100)) == [(0, 4, (35, 65, 43, 73)), (4, 5, (48, 55, 68, 75))]
 
 
 def test_segment_clipped_by_the_map_edge_by_hand():
@@ -98,23 +100,24 @@ def check_stitched(t, arrays, start, goal):
 
 @pytest.mark.parametrize("planner", ["astar", "ra_star", "lagrangian"])
 def test_stitched_trajectory_is_valid_and_keeps_the_bound_per_section(store, arrays, planner):
-    t = pipeline.plan(store, **MISSION, planner=planner, omega=1.5, client="synchronous",
-                      **SMALL)
+    t = pipeline.plan(store, **MISSION, planner=planner, omega=1.5, client="synchronous", **SMALL)
     check_stitched(t, arrays, MISSION["start"], MISSION["goal"])
     assert len(t.extra["sections"]) >= 5
     assert t.cells[:, 0].max() > WALL_ROW and t.cells[:, 1].max() >= WALL_END  # round the wall
     for sec in t.extra["sections"][:4]:  # each section within omega of its own optimum
         r0, r1, c0, c1 = sec["window"]
         s, g = np.subtract(sec["start"], (r0, c0)), np.subtract(sec["goal"], (r0, c0))
-        opt = reference_length(arrays["safety"][r0:r1, c0:c1],
-                               arrays["passable"][r0:r1, c0:c1], A, s, g)
+        opt = reference_length(
+            arrays["safety"][r0:r1, c0:c1], arrays["passable"][r0:r1, c0:c1], A, s, g
+        )
         assert sec["length_m"] <= 1.5 * opt * (1 + 1e-9)
 
 
 def test_one_window_equals_scipy_and_bounds_mcpc(store, arrays):
     whole = pipeline.plan(store, **MISSION, planner="astar", mcpc=False, client="synchronous")
-    opt = reference_length(arrays["safety"], arrays["passable"], A, MISSION["start"],
-                           MISSION["goal"])
+    opt = reference_length(
+        arrays["safety"], arrays["passable"], A, MISSION["start"], MISSION["goal"]
+    )
     assert math.isclose(whole.length_m, opt, rel_tol=1e-9)
     mc = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
     assert opt * (1 - 1e-9) <= mc.length_m <= 1.5 * opt  # MCPC costs some optimality
@@ -144,22 +147,26 @@ def test_unreachable_goal_is_a_clear_error_not_a_hang(store, arrays):
     inside = ((RING[0] + RING[1]) // 2, (RING[2] + RING[3]) // 2)
     assert arrays["passable"][inside]
     with pytest.raises(pipeline.UnreachableGoalError, match="unreachable|no path"):
-        pipeline.plan(store, MISSION["start"], inside, planner="ra_star", client="synchronous",
-                      **SMALL)
+        pipeline.plan(
+            store, MISSION["start"], inside, planner="ra_star", client="synchronous", **SMALL
+        )
 
 
-@pytest.mark.parametrize(("kwargs", "error", "match"), [
-    (dict(start=(WALL_ROW, 10)), pipeline.InvalidEndpointError, "nearest passable cell"),
-    (dict(goal=(500, 3)), pipeline.InvalidEndpointError, "off the map"),
-    (dict(start=(1.5, 2)), InvalidParameterError, "cell"),
-    (dict(omega=0.9), InvalidParameterError, "omega"),
-    (dict(rho=0), InvalidParameterError, "rho"),
-    (dict(rho=300), InvalidParameterError, "rho"),
-    (dict(section_size=3), InvalidParameterError, "section_size"),
-    (dict(margin=-1), InvalidParameterError, "margin"),
-    (dict(planner="rrt"), InvalidParameterError, "planner"),
-    (dict(client=42), InvalidParameterError, "client"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        (dict(start=(WALL_ROW, 10)), pipeline.InvalidEndpointError, "nearest passable cell"),
+        (dict(goal=(500, 3)), pipeline.InvalidEndpointError, "off the map"),
+        (dict(start=(1.5, 2)), InvalidParameterError, "cell"),
+        (dict(omega=0.9), InvalidParameterError, "omega"),
+        (dict(rho=0), InvalidParameterError, "rho"),
+        (dict(rho=300), InvalidParameterError, "rho"),
+        (dict(section_size=3), InvalidParameterError, "section_size"),
+        (dict(margin=-1), InvalidParameterError, "margin"),
+        (dict(planner="rrt"), InvalidParameterError, "planner"),
+        (dict(client=42), InvalidParameterError, "client"),
+    ],
+)
 def test_parameter_errors(store, kwargs, error, match):
     args = {**MISSION, "planner": "astar", "client": "synchronous", **SMALL, **kwargs}
     with pytest.raises(error, match=match):

@@ -64,8 +64,10 @@ def check_path(t, passable, start, goal):
 def independent_metrics(t, surface, ridge, a):
     length = ridge_len = 0.0
     for (r0, c0), (r1, c1) in zip(t.cells[:-1], t.cells[1:], strict=True):
-        step = math.sqrt(a * a * ((r1 - r0) ** 2 + (c1 - c0) ** 2)
-                         + (float(surface[r1, c1]) - float(surface[r0, c0])) ** 2)
+        step = math.sqrt(
+            a * a * ((r1 - r0) ** 2 + (c1 - c0) ** 2)
+            + (float(surface[r1, c1]) - float(surface[r0, c0])) ** 2
+        )
         length += step
         ridge_len += step if ridge[r1, c1] else 0.0
     return length, ridge_len
@@ -138,29 +140,39 @@ def test_flat_ground_equals_skimage_mcp():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0),
-       density=st.floats(0.0, 0.35))
+@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0), density=st.floats(0.0, 0.35))
 def test_wastar_bound_and_validity(seed, omega, density):
     surface, ridge, passable = obstacle_map((25, 30), seed, density)
     s, g = endpoints(passable, seed)
     ref = reference_length(surface, passable, 30.0, s, g)
     if not np.isfinite(ref):
         return
-    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="wastar",
-                             omega=omega)
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="wastar", omega=omega
+    )
     check_path(t, passable, s, g)
     assert t.length_m <= omega * ref * (1 + 1e-9)
     assert t.lower_bound_m <= ref * (1 + 1e-9)  # a proven lower bound, here checked
-    again = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
-                                 planner="wastar", omega=omega)
+    again = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="wastar", omega=omega
+    )
     np.testing.assert_array_equal(again.cells, t.cells)  # deterministic
 
 
 def test_points_use_coordinates():
     surface = np.full((5, 6), -100.0)
     ok = np.ones((5, 6), bool)
-    t = pipeline.plan_window(surface, ok, ok, (0, 0), (4, 5), cell_size=10.0, planner="astar",
-                             x=1000.0 + 10.0 * np.arange(6), y=500.0 - 10.0 * np.arange(5))
+    t = pipeline.plan_window(
+        surface,
+        ok,
+        ok,
+        (0, 0),
+        (4, 5),
+        cell_size=10.0,
+        planner="astar",
+        x=1000.0 + 10.0 * np.arange(6),
+        y=500.0 - 10.0 * np.arange(5),
+    )
     assert tuple(t.points[0]) == (1000.0, 500.0, -100.0)
     assert tuple(t.points[-1]) == (1050.0, 460.0, -100.0)
 
@@ -176,18 +188,24 @@ def _small():
     return surface, ok.copy(), ok
 
 
-@pytest.mark.parametrize("kwargs, error, match", [
-    ({"start": (10, 0)}, InvalidEndpointError, r"start \(10, 0\) is off the map"),
-    ({"goal": (-1, 3)}, InvalidEndpointError, r"goal \(-1, 3\) is off the map"),
-    ({"start": (2, 2)}, InvalidEndpointError,
-     r"start \(2, 2\) is on land or inside the clearance zone; nearest passable cell"),
-    ({"goal": (0, 8)}, UnreachableGoalError, "no path from start"),
-    ({"omega": 0.5}, InvalidParameterError, "`omega` must be a finite number >= 1, got 0.5"),
-    ({"omega": float("nan")}, InvalidParameterError, "`omega` must be a finite number >= 1"),
-    ({"cell_size": 0.0}, InvalidParameterError, "`cell_size` must be"),
-    ({"planner": "bfs"}, InvalidParameterError, "`planner` must be 'dijkstra', 'astar'"),
-    ({"start": "a"}, InvalidParameterError, "must be a cell"),
-])
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({"start": (10, 0)}, InvalidEndpointError, r"start \(10, 0\) is off the map"),
+        ({"goal": (-1, 3)}, InvalidEndpointError, r"goal \(-1, 3\) is off the map"),
+        (
+            {"start": (2, 2)},
+            InvalidEndpointError,
+            r"start \(2, 2\) is on land or inside the clearance zone; nearest passable cell",
+        ),
+        ({"goal": (0, 8)}, UnreachableGoalError, "no path from start"),
+        ({"omega": 0.5}, InvalidParameterError, "`omega` must be a finite number >= 1, got 0.5"),
+        ({"omega": float("nan")}, InvalidParameterError, "`omega` must be a finite number >= 1"),
+        ({"cell_size": 0.0}, InvalidParameterError, "`cell_size` must be"),
+        ({"planner": "bfs"}, InvalidParameterError, "`planner` must be 'dijkstra', 'astar'"),
+        ({"start": "a"}, InvalidParameterError, "must be a cell"),
+    ],
+)
 def test_errors(kwargs, error, match):
     surface, ridge, ok = _small()
     args = dict(start=(0, 0), goal=(9, 4), cell_size=30.0, planner="astar", omega=2.0)
@@ -199,12 +217,12 @@ def test_errors(kwargs, error, match):
 def test_shape_mismatch_and_nan():
     surface, ridge, ok = _small()
     with pytest.raises(InvalidParameterError, match="one shape"):
-        pipeline.plan_window(surface, ridge[:5], ok, (0, 0), (9, 4), cell_size=30.0,
-                             planner="astar")
+        pipeline.plan_window(
+            surface, ridge[:5], ok, (0, 0), (9, 4), cell_size=30.0, planner="astar"
+        )
     surface[7, 1] = np.nan
     with pytest.raises(InvalidParameterError, match=r"NaN or infinite at passable cell \(7, 1\)"):
-        pipeline.plan_window(surface, ridge, ok, (0, 0), (9, 4), cell_size=30.0,
-                             planner="astar")
+        pipeline.plan_window(surface, ridge, ok, (0, 0), (9, 4), cell_size=30.0, planner="astar")
 
 
 # ----------------------------------------------------------------------------- RA*
@@ -227,30 +245,37 @@ def test_ra_star_with_omega_one_is_optimal(seed):
     ref = reference_length(surface, passable, 30.0, s, g)
     if not np.isfinite(ref):
         return
-    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star",
-                             omega=1.0)
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star", omega=1.0
+    )
     assert t.length_m == pytest.approx(ref, rel=1e-9)
     check_path(t, passable, s, g)
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0), density=st.floats(0.0, 0.35),
-       ridge_share=st.floats(0.05, 0.6))
+@given(
+    seed=st.integers(0, 10_000),
+    omega=st.floats(1.0, 4.0),
+    density=st.floats(0.0, 0.35),
+    ridge_share=st.floats(0.05, 0.6),
+)
 def test_ra_star_bound_validity_and_lower_bound(seed, omega, density, ridge_share):
     mission = random_mission(seed, density, ridge_share)
     if mission is None:
         return
     surface, ridge, passable, s, g, ref = mission
-    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star",
-                             omega=omega)
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star", omega=omega
+    )
     check_path(t, passable, s, g)  # simple, continuous, passable, no corner cutting
     assert t.length_m <= omega * ref * (1 + 1e-9)
     assert t.lower_bound_m <= ref * (1 + 1e-9)
     length, ridge_len = independent_metrics(t, surface, ridge, 30.0)
     assert t.length_m == pytest.approx(length, rel=1e-12)
     assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
-    again = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
-                                 planner="ra_star", omega=omega)
+    again = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star", omega=omega
+    )
     np.testing.assert_array_equal(again.cells, t.cells)
 
 
@@ -265,8 +290,9 @@ def test_ridge_following_ranks_lagrangian_ra_star_astar_on_average():
         if not np.isfinite(reference_length(surface, passable, 30.0, s, g)):
             continue
         for planner in ratios:
-            t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
-                                     planner=planner, omega=2.0)
+            t = pipeline.plan_window(
+                surface, ridge, passable, s, g, cell_size=30.0, planner=planner, omega=2.0
+            )
             ratios[planner].append(t.ridge_ratio)
     assert len(ratios["astar"]) >= 8
     assert np.mean(ratios["ra_star"]) >= np.mean(ratios["astar"])
@@ -275,15 +301,20 @@ def test_ridge_following_ranks_lagrangian_ra_star_astar_on_average():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10_000), omega=st.floats(1.0, 4.0), density=st.floats(0.0, 0.35),
-       ridge_share=st.floats(0.05, 0.6))
+@given(
+    seed=st.integers(0, 10_000),
+    omega=st.floats(1.0, 4.0),
+    density=st.floats(0.0, 0.35),
+    ridge_share=st.floats(0.05, 0.6),
+)
 def test_lagrangian_bound_validity_and_duality(seed, omega, density, ridge_share):
     mission = random_mission(seed, density, ridge_share)
     if mission is None:
         return
     surface, ridge, passable, s, g, ref = mission
-    t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
-                             planner="lagrangian", omega=omega)
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="lagrangian", omega=omega
+    )
     check_path(t, passable, s, g)
     assert t.length_m <= omega * ref * (1 + 1e-9)
     assert t.lower_bound_m == pytest.approx(ref, rel=1e-9)  # it computes the optimum
@@ -291,7 +322,9 @@ def test_lagrangian_bound_validity_and_duality(seed, omega, density, ridge_share
     assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
     # weak duality: the dual bound never exceeds the off-ridge length of a feasible path
     assert t.extra["dual_bound_off_ridge_m"] <= (length - ridge_len) * (1 + 1e-9) + 1e-6
-    ra = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0,
-                              planner="ra_star", omega=omega)
-    assert t.extra["dual_bound_off_ridge_m"] <= (ra.length_m - ra.ridge_length_m) * (1 + 1e-9) \
-        + 1e-6
+    ra = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star", omega=omega
+    )
+    assert (
+        t.extra["dual_bound_off_ridge_m"] <= (ra.length_m - ra.ridge_length_m) * (1 + 1e-9) + 1e-6
+    )

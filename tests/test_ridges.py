@@ -72,8 +72,8 @@ def test_chunked_equals_single_array(real, case, chunks):
 
 def test_large_flat_and_big_hole_chunked():
     z = np.full((80, 90), -3000.0, np.float32)
-    z[10:70, 10:80] = -3500.0                 # one big depression, flat after filling
-    z[30:50, 30:60] = np.nan                  # a hole in it: its rim drains into the hole
+    z[10:70, 10:80] = -3500.0  # one big depression, flat after filling
+    z[30:50, 30:60] = np.nan  # a hole in it: its rim drains into the hole
     z[5, 5] = -2000.0
     F, A = fill_single(z), accumulation_single(fill_single(z))
     for ch in [(7, 5), (13, 64), (80, 90)]:
@@ -142,8 +142,9 @@ def brute_d8(F):
             if np.isnan(w[i, j]):
                 continue
             best, code = 0.0, -1
-            for k, (di, dj) in enumerate([(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1),
-                                          (-1, 0), (-1, 1)]):
+            for k, (di, dj) in enumerate(
+                [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
+            ):
                 ii, jj = i + di, j + dj
                 if 0 <= ii < rows and 0 <= jj < cols and not np.isnan(w[ii, jj]):
                     drop = (w[i, j] - w[ii, jj]) / math.hypot(di, dj)
@@ -175,16 +176,19 @@ def test_d8_and_accumulation_brute_force(seed):
     F = fill_single(z)
     dirs = flow_directions(F)
     np.testing.assert_array_equal(dirs, brute_d8(F))
-    np.testing.assert_array_equal(accumulation_single(F),
-                                  brute_accumulation(dirs, np.isfinite(z)))
+    np.testing.assert_array_equal(accumulation_single(F), brute_accumulation(dirs, np.isfinite(z)))
 
 
 # ----------------------------------------------------------------------------- invariants
 
 
-surfaces = arrays(np.float32, st.tuples(st.integers(2, 20), st.integers(2, 20)),
-                  elements=st.one_of(st.floats(-100, 100, width=32),
-                                     st.sampled_from([np.float32(np.nan), np.float32(0.0)])))
+surfaces = arrays(
+    np.float32,
+    st.tuples(st.integers(2, 20), st.integers(2, 20)),
+    elements=st.one_of(
+        st.floats(-100, 100, width=32), st.sampled_from([np.float32(np.nan), np.float32(0.0)])
+    ),
+)
 
 
 def _outlet_mask(z):
@@ -193,7 +197,7 @@ def _outlet_mask(z):
     near = np.zeros_like(valid)
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
-            near |= pad[1 + di: 1 + di + z.shape[0], 1 + dj: 1 + dj + z.shape[1]]
+            near |= pad[1 + di : 1 + di + z.shape[0], 1 + dj : 1 + dj + z.shape[1]]
     return valid & near  # the map edge counts as no-data outside
 
 
@@ -213,8 +217,12 @@ def test_fill_and_flow_invariants(z):
             for di in (-1, 0, 1):
                 for dj in (-1, 0, 1):
                     ii, jj = i + di, j + dj
-                    if 0 <= ii < z.shape[0] and 0 <= jj < z.shape[1] and reach[ii, jj] \
-                            and F[ii, jj] <= F[i, j]:
+                    if (
+                        0 <= ii < z.shape[0]
+                        and 0 <= jj < z.shape[1]
+                        and reach[ii, jj]
+                        and F[ii, jj] <= F[i, j]
+                    ):
                         reach[i, j] = changed = True
     assert reach[valid].all()
     # filling is minimal: lowering any raised cell would leave it in a pit: it equals the
@@ -242,15 +250,16 @@ def test_any_chunking_property(z, cr, cc):
 
 
 def test_default_threshold():
-    assert default_min_accumulation(30.0) == 1112   # 1 km^2 of 30 m cells
+    assert default_min_accumulation(30.0) == 1112  # 1 km^2 of 30 m cells
     assert default_min_accumulation(100.0) == 100
-    assert default_min_accumulation(1000.0) == 8    # never fewer than 8 cells
+    assert default_min_accumulation(1000.0) == 8  # never fewer than 8 cells
     d = _dem(random_surface((30, 30)), a=100.0)
     assert pipeline.ridge_map(d).attrs["min_accumulation"] == 100
 
 
-@pytest.mark.parametrize("value, match", [(0, ">= 1, got 0"), (-3, ">= 1"), (2.5, "integer"),
-                                          ("8", "integer")])
+@pytest.mark.parametrize(
+    "value, match", [(0, ">= 1, got 0"), (-3, ">= 1"), (2.5, "integer"), ("8", "integer")]
+)
 def test_bad_min_accumulation(value, match):
     with pytest.raises(InvalidParameterError, match=match):
         pipeline.ridge_map(_dem(random_surface((10, 10))), min_accumulation=value)

@@ -134,8 +134,7 @@ def test_geoparquet_and_pngs(done):
         item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
         track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
         coords = np.array(item["geometry"]["coordinates"])
-        np.testing.assert_allclose(np.column_stack([track.geometry.x, track.geometry.y]),
-                                   coords)
+        np.testing.assert_allclose(np.column_stack([track.geometry.x, track.geometry.y]), coords)
         assert track.geometry.has_z.all()
         png = image.imread(root / "missions" / mid / "quicklook.png")
         assert png.ndim == 3 and png.shape[0] > 100 and png.shape[1] > 100
@@ -153,8 +152,14 @@ def test_min_clearance_against_brute_force(done):
         item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
         track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
         pts = np.column_stack([track.geometry.x, track.geometry.y, track["z"]])
-        each = np.concatenate([np.sqrt(((grid[None, :, :] - pts[k:k + 50, None, :]) ** 2)
-                                       .sum(axis=2)).min(axis=1) for k in range(0, len(pts), 50)])
+        each = np.concatenate(
+            [
+                np.sqrt(((grid[None, :, :] - pts[k : k + 50, None, :]) ** 2).sum(axis=2)).min(
+                    axis=1
+                )
+                for k in range(0, len(pts), 50)
+            ]
+        )
         reported = item["properties"]["auv:min_clearance_m"]
         assert reported == pytest.approx(each.min(), abs=1e-6)
         assert reported >= 150.0 - 1e-2  # the spherical map's promise, float32 rounding
@@ -167,53 +172,82 @@ def test_min_clearance_against_brute_force(done):
 def test_rerun_skips_finished_missions(done, local_client):
     job, res = done
     root = res.catalog.parent
-    before = {m: json.loads((root / "missions" / m / f"{m}.json").read_text())
-              ["properties"]["auv:run_id"] for m in ("cells", "xy")}
+    before = {
+        m: json.loads((root / "missions" / m / f"{m}.json").read_text())["properties"]["auv:run_id"]
+        for m in ("cells", "xy")
+    }
     again = run_job(job, scheduler=local_client)
     assert again.skipped == 4 and again.planned == 0 and again.ok
-    after = {m: json.loads((root / "missions" / m / f"{m}.json").read_text())
-             ["properties"]["auv:run_id"] for m in ("cells", "xy")}
+    after = {
+        m: json.loads((root / "missions" / m / f"{m}.json").read_text())["properties"]["auv:run_id"]
+        for m in ("cells", "xy")
+    }
     assert after == before
 
 
 # ------------------------------------------------------------------ bad jobs and missions
 
 
-@pytest.mark.parametrize("extra, match", [
-    ("[maps]\nmethod = 'round'\n", "maps.method must be"),
-    ("[maps]\nclearance = -5\n", "maps.clearance must be a finite number of metres > 0"),
-    ("[maps]\nmin_accumulation = 2.5\n", "maps.min_accumulation must be an integer"),
-    ("[maps]\nradius = 3\n", "unknown key maps.'radius'"),
-    ("[planning]\nomega = 0.5\n", "planning.omega must be a finite number >= 1"),
-    ("[planning]\nplanner = 'rrt'\n", "planning.planner must be 'dijkstra'"),
-    ("[planning]\nmcpc = 'yes'\n", "planning.mcpc must be true or false"),
-    ("[planning]\nrho = 0\n", "planning.rho must be an integer >= 1"),
-    ("[[missions]]\nstart = [1, 2]\n", r"missions\[0\]. needs exactly one of goal"),
-    ("[[missions]]\nstart = [1, 2]\nstart_xy = [1.0, 2.0]\ngoal = [3, 4]\n",
-     "needs exactly one of start"),
-    ("[[missions]]\nstart = [1.5, 2]\ngoal = [3, 4]\n", r"start must be \[row, col\]"),
-    ("[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nspeed = 3\n",
-     r"unknown key missions\[0\].'speed'"),
-    ("[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n"
-     "[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n", "used twice"),
-    ("[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nomega = 0\n",
-     r"missions\[0\].omega must be a finite number >= 1"),
-    ("missions = 3\n", "missions must be an array of tables"),
-])
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        ("[maps]\nmethod = 'round'\n", "maps.method must be"),
+        ("[maps]\nclearance = -5\n", "maps.clearance must be a finite number of metres > 0"),
+        ("[maps]\nmin_accumulation = 2.5\n", "maps.min_accumulation must be an integer"),
+        ("[maps]\nradius = 3\n", "unknown key maps.'radius'"),
+        ("[planning]\nomega = 0.5\n", "planning.omega must be a finite number >= 1"),
+        ("[planning]\nplanner = 'rrt'\n", "planning.planner must be 'dijkstra'"),
+        ("[planning]\nmcpc = 'yes'\n", "planning.mcpc must be true or false"),
+        ("[planning]\nrho = 0\n", "planning.rho must be an integer >= 1"),
+        ("[[missions]]\nstart = [1, 2]\n", r"missions\[0\]. needs exactly one of goal"),
+        (
+            "[[missions]]\nstart = [1, 2]\nstart_xy = [1.0, 2.0]\ngoal = [3, 4]\n",
+            "needs exactly one of start",
+        ),
+        ("[[missions]]\nstart = [1.5, 2]\ngoal = [3, 4]\n", r"start must be \[row, col\]"),
+        (
+            "[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nspeed = 3\n",
+            r"unknown key missions\[0\].'speed'",
+        ),
+        (
+            "[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n"
+            "[[missions]]\nname = 'a'\nstart = [1, 2]\ngoal = [3, 4]\n",
+            "used twice",
+        ),
+        (
+            "[[missions]]\nstart = [1, 2]\ngoal = [3, 4]\nomega = 0\n",
+            r"missions\[0\].omega must be a finite number >= 1",
+        ),
+        ("missions = 3\n", "missions must be an array of tables"),
+    ],
+)
 def test_bad_job_files_name_the_key(tmp_path, extra, match):
     p = tmp_path / "bad.toml"
     # top-level keys and tables go before [dem.synthetic], arrays of tables after it
-    p.write_text(f"{extra}\n[dem.synthetic]\nshape = [40, 40]\n"
-                 if not extra.startswith("[[") else f"[dem.synthetic]\nshape = [40, 40]\n{extra}")
+    p.write_text(
+        f"{extra}\n[dem.synthetic]\nshape = [40, 40]\n"
+        if not extra.startswith("[[")
+        else f"[dem.synthetic]\nshape = [40, 40]\n{extra}"
+    )
     with pytest.raises(JobFileError, match=match) as info:
         load_job(p)
     assert str(p) in str(info.value)
 
 
 def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path, local_client):
-    proc = subprocess.run([str(EXE), "run", str(ROOT / "tasks" / "bad-missions.toml"),
-                           "--scheduler", local_client.scheduler.address],
-                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    proc = subprocess.run(
+        [
+            str(EXE),
+            "run",
+            str(ROOT / "tasks" / "bad-missions.toml"),
+            "--scheduler",
+            local_client.scheduler.address,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 1, proc.stderr[-3000:]
     assert "4 failed" in proc.stdout
     root = tmp_path / "catalogs" / "bad-missions"
@@ -221,12 +255,14 @@ def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path, local_clien
     items = {it.id: it for it in cat.get_items(recursive=True)}
     for it in items.values():
         it.validate()
-    status = {k: (it.properties["auv:status"], it.properties["auv:message"])
-              for k, it in items.items()}
+    status = {
+        k: (it.properties["auv:status"], it.properties["auv:message"]) for k, it in items.items()
+    }
     assert status["good-one"] == ("ok", "")
     assert status["start-on-land"][0] == "failed"
-    assert "on land" in status["start-on-land"][1] and "nearest passable" in \
-        status["start-on-land"][1]
+    assert (
+        "on land" in status["start-on-land"][1] and "nearest passable" in status["start-on-land"][1]
+    )
     assert "unreachable" in status["goal-in-the-lagoon"][1]
     assert "off the map" in status["off-the-map"][1]
     assert "no coordinate reference system" in status["lonlat-without-crs"][1]
@@ -235,14 +271,17 @@ def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path, local_clien
 
 # ------------------------------------------------------------------ kill, resume, lose a worker
 
-MANY = "".join(f"""
+MANY = "".join(
+    f"""
 [[missions]]
 name = "m{i:02d}"
 start = [{5 + 3 * i}, 5]
 goal = [{290 - 2 * i}, 290]
 planner = "lagrangian"
 mcpc = false
-""" for i in range(8))
+"""
+    for i in range(8)
+)
 
 
 def _items(root):
@@ -259,8 +298,12 @@ def test_killed_job_resumes_with_every_mission_once(tmp_path, stores):
     with_stores(stores, tmp_path)
     job = write_job(tmp_path, n=300, missions=MANY, name="kill")
     root = tmp_path / "cat"
-    proc = subprocess.Popen([str(EXE), "run", str(job)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        [str(EXE), "run", str(job)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     deadline = time.time() + 400
     while time.time() < deadline and not _items(root) and proc.poll() is None:
         time.sleep(0.05)
@@ -268,14 +311,13 @@ def test_killed_job_resumes_with_every_mission_once(tmp_path, stores):
     proc.wait()
     first = _items(root)
     assert 1 <= len(first) < 8, "the job should be killed halfway"
-    again = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True,
-                           timeout=600)
+    again = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"{len(first)} skipped" in again.stdout
     final = _items(root)
     assert sorted(final) == [f"m{i:02d}" for i in range(8)]  # every mission, once
-    assert all(final[k] == v for k, v in first.items())      # finished ones not recomputed
-    assert not list((root / "missions").glob(".*tmp*"))      # nothing half-written left
+    assert all(final[k] == v for k, v in first.items())  # finished ones not recomputed
+    assert not list((root / "missions").glob(".*tmp*"))  # nothing half-written left
     cat = pystac.Catalog.from_file(str(root / "catalog.json"))
     assert len(list(cat.get_items(recursive=True))) == 8
 
@@ -286,8 +328,12 @@ def test_job_on_a_real_scheduler_survives_a_killed_worker(tmp_path, stores):
         with_stores(stores, tmp_path)
         job = write_job(tmp_path, n=300, missions=MANY, name="workers")
         root = tmp_path / "cat"
-        proc = subprocess.Popen([str(EXE), "run", str(job), "--scheduler", addr],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [str(EXE), "run", str(job), "--scheduler", addr],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         deadline = time.time() + 400
         while time.time() < deadline and not _items(root) and proc.poll() is None:
             time.sleep(0.05)

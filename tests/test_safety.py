@@ -69,8 +69,13 @@ def scipy_reference(z, a, R):
     d2 = a * a * (off[:, None] ** 2 + off[None, :] ** 2)
     footprint = d2 <= R * R
     structure = np.where(footprint, np.sqrt(np.maximum(R * R - d2, 0.0)), 0.0)
-    return ndimage.grey_dilation(np.asarray(z, np.float64), footprint=footprint,
-                                 structure=structure, mode="constant", cval=-np.inf)
+    return ndimage.grey_dilation(
+        np.asarray(z, np.float64),
+        footprint=footprint,
+        structure=structure,
+        mode="constant",
+        cval=-np.inf,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +137,7 @@ def test_chunking_independent(method, chunks):
 
 def test_keeps_coords_and_records_parameters():
     d = _dem(random_surface((20, 30)), 30.0, (8, 8))
-    d.attrs["crs_wkt"] = "LOCAL_CS[\"x\"]"
+    d.attrs["crs_wkt"] = 'LOCAL_CS["x"]'
     S = pipeline.safety_map(d, "spherical", 120.0)
     assert S.name == "safety" and S.dims == ("y", "x") and S.dtype == np.float32
     xr.testing.assert_equal(S.x, d.x)
@@ -142,8 +147,11 @@ def test_keeps_coords_and_records_parameters():
 
 # ----------------------------------------------------------------------------- invariants
 
-surfaces = arrays(np.float32, st.tuples(st.integers(3, 24), st.integers(3, 24)),
-                  elements=st.floats(-6000, -100, width=32))
+surfaces = arrays(
+    np.float32,
+    st.tuples(st.integers(3, 24), st.integers(3, 24)),
+    elements=st.floats(-6000, -100, width=32),
+)
 
 
 @settings(max_examples=60, deadline=None)
@@ -189,9 +197,9 @@ def test_vertical_le_spherical_le_horizontal(z, R, a):
 
 def test_passable_rules():
     z = np.full((12, 12), -2000.0, np.float32)
-    z[2, 2] = 10.0          # land
-    z[8, 8] = np.nan        # no-data
-    z[5, 10] = -100.0       # too shallow: S = -40 m, the vehicle would surface
+    z[2, 2] = 10.0  # land
+    z[8, 8] = np.nan  # no-data
+    z[5, 10] = -100.0  # too shallow: S = -40 m, the vehicle would surface
     d = _dem(z, 30.0)
     S = pipeline.safety_map(d, "spherical", 60.0)
     ok = pipeline.passable(d, S).values
@@ -219,27 +227,35 @@ def test_passable_lazy_equals_eager():
 # ----------------------------------------------------------------------------- bad input
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"clearance": 0.0}, "`clearance` must be a finite number of metres > 0, got 0.0"),
-    ({"clearance": -5.0}, "`clearance` must be a finite number"),
-    ({"clearance": float("nan")}, "`clearance` must be a finite number"),
-    ({"clearance": "300"}, "`clearance` must be a finite number of metres > 0, got '300'"),
-    ({"clearance": 10.0}, "smaller than half a cell .15 m.*cannot resolve"),
-    ({"method": "round"},
-     "`method` must be 'vertical', 'horizontal' or 'spherical', got 'round'"),
-    ({"horizontal_clearance": 0.0}, "`horizontal_clearance` must be a finite"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"clearance": 0.0}, "`clearance` must be a finite number of metres > 0, got 0.0"),
+        ({"clearance": -5.0}, "`clearance` must be a finite number"),
+        ({"clearance": float("nan")}, "`clearance` must be a finite number"),
+        ({"clearance": "300"}, "`clearance` must be a finite number of metres > 0, got '300'"),
+        ({"clearance": 10.0}, "smaller than half a cell .15 m.*cannot resolve"),
+        (
+            {"method": "round"},
+            "`method` must be 'vertical', 'horizontal' or 'spherical', got 'round'",
+        ),
+        ({"horizontal_clearance": 0.0}, "`horizontal_clearance` must be a finite"),
+    ],
+)
 def test_bad_parameters(kwargs, match):
     with pytest.raises(InvalidParameterError, match=match):
         pipeline.safety_map(_dem(np.zeros((5, 5)) - 100), **kwargs)
 
 
-@pytest.mark.parametrize("dem, error, match", [
-    (np.zeros((5, 5)), InvalidParameterError, "must be an xarray.DataArray, got ndarray"),
-    (xr.DataArray(np.zeros((2, 5, 5)), dims=("t", "y", "x")), InvalidDEMError, "2-D"),
-    (xr.DataArray(np.zeros((5, 5)), dims=("a", "b")), InvalidDEMError, r"dims \('y', 'x'\)"),
-    (_dem(np.zeros((5, 5))).astype(np.int32), InvalidDEMError, "floating-point"),
-])
+@pytest.mark.parametrize(
+    "dem, error, match",
+    [
+        (np.zeros((5, 5)), InvalidParameterError, "must be an xarray.DataArray, got ndarray"),
+        (xr.DataArray(np.zeros((2, 5, 5)), dims=("t", "y", "x")), InvalidDEMError, "2-D"),
+        (xr.DataArray(np.zeros((5, 5)), dims=("a", "b")), InvalidDEMError, r"dims \('y', 'x'\)"),
+        (_dem(np.zeros((5, 5))).astype(np.int32), InvalidDEMError, "floating-point"),
+    ],
+)
 def test_bad_dem(dem, error, match):
     with pytest.raises(error, match=match):
         pipeline.safety_map(dem)

@@ -29,8 +29,12 @@ def test_any_chunking_is_bit_identical(reference_300, chunks):
 
 
 @settings(max_examples=12, deadline=None)
-@given(cr=st.integers(50, 1200), cc=st.integers(50, 1200), r0=st.integers(0, 5900),
-       c0=st.integers(0, 4900))
+@given(
+    cr=st.integers(50, 1200),
+    cc=st.integers(50, 1200),
+    r0=st.integers(0, 5900),
+    c0=st.integers(0, 4900),
+)
 def test_large_map_windows_identical_for_any_chunking(cr, cc, r0, c0):
     """On a 6000 x 5000 map (coarse-lattice path), any chunking gives the same window
     (only the chunks under the window are computed)."""
@@ -91,7 +95,7 @@ def test_roughness_spans_many_octaves(seabed):
     slope, _ = np.polyfit(np.log(k), np.log(radial[k]), 1)
     assert -5.0 < slope < -1.5
     # relief at every scale: each octave band holds a non-negligible share of the power
-    bands = [radial[2 ** i: 2 ** (i + 1)].sum() for i in range(2, 8)]
+    bands = [radial[2**i : 2 ** (i + 1)].sum() for i in range(2, 8)]
     assert min(bands) > 1e-6 * max(bands)
 
 
@@ -108,16 +112,19 @@ def test_ridges_and_valleys_alternate(seabed):
     assert np.median(counts) >= 3
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"shape": (0, 10)}, r"shape\[0\] \(rows\)"),
-    ({"shape": (10,)}, "pair"),
-    ({"shape": (10, 10), "cell_size": 0.0}, "cell_size"),
-    ({"shape": (10, 10), "cell_size": float("nan")}, "cell_size"),
-    ({"shape": (10, 10), "seed": -1}, "seed"),
-    ({"shape": (10, 10), "islands": 11}, "islands"),
-    ({"shape": (10, 10), "chunks": 0}, r"chunks\[0\]"),
-    ({"shape": (10, 10), "chunks": (4, 4, 4)}, "chunks"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"shape": (0, 10)}, r"shape\[0\] \(rows\)"),
+        ({"shape": (10,)}, "pair"),
+        ({"shape": (10, 10), "cell_size": 0.0}, "cell_size"),
+        ({"shape": (10, 10), "cell_size": float("nan")}, "cell_size"),
+        ({"shape": (10, 10), "seed": -1}, "seed"),
+        ({"shape": (10, 10), "islands": 11}, "islands"),
+        ({"shape": (10, 10), "chunks": 0}, r"chunks\[0\]"),
+        ({"shape": (10, 10), "chunks": (4, 4, 4)}, "chunks"),
+    ],
+)
 def test_bad_parameters(kwargs, match):
     with pytest.raises(InvalidParameterError, match=match):
         pipeline.synthetic_dem(**kwargs)

@@ -9,8 +9,9 @@ from .core import TIE, Planner, Search, astar_search
 def _weighted(weight_of):
     def search(surface, ridge, passable, a, s, t, omega) -> Search:
         weight = weight_of(omega)
-        state, _, expansions, found = astar_search(surface, ridge, passable, a, s[0], s[1],
-                                                   t[0], t[1], weight, 0.0)
+        state, _, expansions, found = astar_search(
+            surface, ridge, passable, a, s[0], s[1], t[0], t[1], weight, 0.0
+        )
         # A* (tie-broken) is within 1 + TIE of L*, weighted A* within omega (1 + TIE)
         w = max(weight, 1.0)
         return Search(state, expansions, found, lambda length: length / (w * (1.0 + TIE)))

@@ -76,8 +76,9 @@ INWAIT = 64  # RA*'s ridge search: the state has an entry in WAIT
 
 
 @njit(inline="always", cache=True)
-def relax_successors(surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, gc,
-                     weight, off_weight, octile):
+def relax_successors(
+    surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, gc, weight, off_weight, octile
+):
     """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
     ``g + weight * h`` (weight 0: Dijkstra). An edge costs its 3-D length, times
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
@@ -141,8 +142,9 @@ def astar_search(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight
         expansions += 1
         if u == t:
             return state, g, expansions, True
-        hk, hi, hn = relax_successors(surface, ridge, passable, a, u, g, state, hk, hi, hn, gr,
-                                      gc, weight, off_weight, octile)
+        hk, hi, hn = relax_successors(
+            surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, gc, weight, off_weight, octile
+        )
     return state, g, expansions, False
 
 
@@ -161,14 +163,16 @@ def nearest_passable(passable: np.ndarray, cell, origin=(0, 0)) -> tuple[int, in
 
 
 def off_map_error(name: str, r: int, c: int, shape) -> InvalidEndpointError:
-    return InvalidEndpointError(f"{name} ({r}, {c}) is off the map (rows 0..{shape[0] - 1}, "
-                                f"cols 0..{shape[1] - 1})")
+    return InvalidEndpointError(
+        f"{name} ({r}, {c}) is off the map (rows 0..{shape[0] - 1}, cols 0..{shape[1] - 1})"
+    )
 
 
 def not_passable_error(name: str, r: int, c: int, near, none_hint: str) -> InvalidEndpointError:
     hint = f"nearest passable cell: {near}" if near else none_hint
-    return InvalidEndpointError(f"{name} ({r}, {c}) is on land or inside the clearance zone;"
-                                f" {hint}")
+    return InvalidEndpointError(
+        f"{name} ({r}, {c}) is on land or inside the clearance zone; {hint}"
+    )
 
 
 def check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
@@ -180,8 +184,9 @@ def check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
     if not (0 <= r < rows and 0 <= c < cols):
         raise off_map_error(name, r, c, passable.shape)
     if not passable[r, c]:
-        raise not_passable_error(name, r, c, nearest_passable(passable, (r, c)),
-                                 "no cell of the map is passable")
+        raise not_passable_error(
+            name, r, c, nearest_passable(passable, (r, c)), "no cell of the map is passable"
+        )
     return r, c
 
 
@@ -192,15 +197,19 @@ def check_arrays(surface, ridge, passable):
     ridge = np.asarray(ridge, dtype=bool)
     passable = np.asarray(passable, dtype=bool)
     if surface.ndim != 2 or ridge.shape != surface.shape or passable.shape != surface.shape:
-        raise InvalidParameterError(f"surface, ridge and passable must be 2-D arrays of one "
-                                    f"shape; got {surface.shape}, {ridge.shape}, "
-                                    f"{passable.shape}")
+        raise InvalidParameterError(
+            f"surface, ridge and passable must be 2-D arrays of one "
+            f"shape; got {surface.shape}, {ridge.shape}, "
+            f"{passable.shape}"
+        )
     bad = passable & ~np.isfinite(surface)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise InvalidParameterError(f"the surface is NaN or infinite at passable cell "
-                                    f"({r}, {c}) ({int(bad.sum())} such cells); mark no-data "
-                                    "cells impassable")
+        raise InvalidParameterError(
+            f"the surface is NaN or infinite at passable cell "
+            f"({r}, {c}) ({int(bad.sum())} such cells); mark no-data "
+            "cells impassable"
+        )
     return surface, ridge, passable
 
 

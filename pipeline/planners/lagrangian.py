@@ -33,8 +33,9 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
 
     def search(off_weight):
         nonlocal expansions
-        parent, _, exp, found = astar_search(surface, ridge, passable, a, s[0], s[1], t[0],
-                                             t[1], 1.0, off_weight)
+        parent, _, exp, found = astar_search(
+            surface, ridge, passable, a, s[0], s[1], t[0], t[1], 1.0, off_weight
+        )
         expansions += exp
         if not found:
             return None
@@ -85,5 +86,6 @@ def _search(surface, ridge, passable, a, s, t, omega) -> Search:
     return Search(state, expansions, found, lambda length: f_min / (1.0 + TIE), extra)
 
 
-LAGRANGIAN = Planner("lagrangian", _search,
-                     "most ridge under length <= omega * L* (Lagrangian relaxation, LARAC)")
+LAGRANGIAN = Planner(
+    "lagrangian", _search, "most ridge under length <= omega * L* (Lagrangian relaxation, LARAC)"
+)

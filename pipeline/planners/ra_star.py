@@ -85,7 +85,8 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
         while cn > 0:
             u = ci[0]
             if st_cost[u] & CLOSED or ck[0] != g[u] + a * math.sqrt(
-                    (u // cols - gr) ** 2 + (u % cols - gc) ** 2):
+                (u // cols - gr) ** 2 + (u % cols - gc) ** 2
+            ):
                 heap_pop(ck, ci, cn)
                 cn -= 1
                 continue
@@ -176,16 +177,22 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
             expansions += 1
         if u == t:
             return st_cost, st_nor, expansions, 1, f_min
-        ck, ci, cn = relax_successors(surface, ridge, passable, a, u, g, st_cost, ck, ci, cn,
-                                      gr, gc, 1.0, 0.0, False)
+        ck, ci, cn = relax_successors(
+            surface, ridge, passable, a, u, g, st_cost, ck, ci, cn, gr, gc, 1.0, 0.0, False
+        )
 
 
 def _search(surface, ridge, passable, a, s, t, omega) -> Search:
     st_cost, st_nor, expansions, status, f_min = _ra_star(
-        surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega))
+        surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega)
+    )
     # status 2: the ridge search reached the goal (length < omega f_min); 1: A* did (optimal)
-    return Search(st_nor if status == 2 else st_cost, expansions, status > 0,
-                  lambda length: min(f_min, length))
+    return Search(
+        st_nor if status == 2 else st_cost,
+        expansions,
+        status > 0,
+        lambda length: min(f_min, length),
+    )
 
 
 RA_STAR = Planner("ra_star", _search, "the paper's RA*: most ridge first within omega * f_min")

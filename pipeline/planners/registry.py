@@ -6,10 +6,13 @@ from __future__ import annotations
 from . import astar, lagrangian, ra_star
 from .core import Planner
 
-PLANNERS: dict[str, Planner] = {p.name: p for p in (
-    astar.DIJKSTRA,
-    astar.ASTAR,
-    astar.WASTAR,
-    ra_star.RA_STAR,
-    lagrangian.LAGRANGIAN,
-)}
+PLANNERS: dict[str, Planner] = {
+    p.name: p
+    for p in (
+        astar.DIJKSTRA,
+        astar.ASTAR,
+        astar.WASTAR,
+        ra_star.RA_STAR,
+        lagrangian.LAGRANGIAN,
+    )
+}

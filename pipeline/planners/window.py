@@ -19,9 +19,19 @@ from .core import (
 from .registry import PLANNERS
 
 
-def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
-                planner: str = PLANNING.planner.default, omega: float = PLANNING.omega.default,
-                x=None, y=None) -> Trajectory:
+def plan_window(
+    surface,
+    ridge,
+    passable,
+    start,
+    goal,
+    *,
+    cell_size: float,
+    planner: str = PLANNING.planner.default,
+    omega: float = PLANNING.omega.default,
+    x=None,
+    y=None,
+) -> Trajectory:
     """Plan on one in-memory window.
 
     Parameters
@@ -56,8 +66,10 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     search = PLANNERS[planner].search(surface, ridge, passable, a, s, t, omega)
     runtime = time.perf_counter() - t0
     if not search.found:
-        raise UnreachableGoalError(f"no path from start {s} to goal {t} through passable "
-                                   "cells: they lie in separate regions")
+        raise UnreachableGoalError(
+            f"no path from start {s} to goal {t} through passable "
+            "cells: they lie in separate regions"
+        )
     cells = trace_path(search.state, surface.shape[1], t)
     z = surface[cells[:, 0], cells[:, 1]]
     length, ridge_len, ratio = path_metrics(cells, z, ridge[cells[:, 0], cells[:, 1]], a)
@@ -66,7 +78,16 @@ def plan_window(surface, ridge, passable, start, goal, *, cell_size: float,
     xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a
     ys = np.asarray(y, dtype=np.float64) if y is not None else np.arange(surface.shape[0]) * a
     points = np.column_stack([xs[cells[:, 1]], ys[cells[:, 0]], z])
-    return Trajectory(cells=cells, points=points, length_m=length, ridge_length_m=ridge_len,
-                      ridge_ratio=ratio, lower_bound_m=float(lower),
-                      expansions=int(search.expansions),
-                      runtime_s=runtime, planner=planner, omega=float(omega), extra=search.extra)
+    return Trajectory(
+        cells=cells,
+        points=points,
+        length_m=length,
+        ridge_length_m=ridge_len,
+        ridge_ratio=ratio,
+        lower_bound_m=float(lower),
+        expansions=int(search.expansions),
+        runtime_s=runtime,
+        planner=planner,
+        omega=float(omega),
+        extra=search.extra,
+    )

@@ -17,14 +17,20 @@ from matplotlib import cbook
 def main(out: Path | None = None) -> Path:
     d = cbook.get_sample_data("topobathy.npz")
     z = np.asarray(d["topo"], dtype=np.float32)
-    lon = np.asarray(d["longitude"], dtype=np.float64) - 360.0   # 234..238 E -> -126..-122
+    lon = np.asarray(d["longitude"], dtype=np.float64) - 360.0  # 234..238 E -> -126..-122
     lat = np.asarray(d["latitude"], dtype=np.float64)
-    if lat[0] < lat[-1]:                                          # north first, as grids come
+    if lat[0] < lat[-1]:  # north first, as grids come
         z, lat = z[::-1], lat[::-1]
     da = xr.DataArray(
-        z, dims=("lat", "lon"), name="elevation", attrs={"units": "m", "positive": "up"},
-        coords={"lat": ("lat", lat, {"units": "degrees_north", "standard_name": "latitude"}),
-                "lon": ("lon", lon, {"units": "degrees_east", "standard_name": "longitude"})})
+        z,
+        dims=("lat", "lon"),
+        name="elevation",
+        attrs={"units": "m", "positive": "up"},
+        coords={
+            "lat": ("lat", lat, {"units": "degrees_north", "standard_name": "latitude"}),
+            "lon": ("lon", lon, {"units": "degrees_east", "standard_name": "longitude"}),
+        },
+    )
     out = Path(out) if out is not None else Path(__file__).with_name("topobathy.nc")
     ds = da.to_dataset()
     ds.attrs["source"] = "matplotlib sample data topobathy.npz"
