@@ -17,9 +17,11 @@ Item's presence means the mission is finished (a re-run skips it).
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import uuid
 from pathlib import Path
@@ -48,13 +50,31 @@ def _lonlat(points_xy: np.ndarray, crs_wkt: str | None) -> np.ndarray:
     return np.column_stack([lon, lat])
 
 
-def mission_dir(root: Path, mission_id: str) -> Path:
-    return Path(root) / COLLECTION / mission_id
+_SAFE = re.compile(r"[^A-Za-z0-9_-]")
+_MAX_ID = 80
 
 
-def finished(root: Path, mission_id: str) -> dict | None:
-    """The Item of a finished mission, or None (absent or unreadable: to be planned again)."""
-    p = mission_dir(root, mission_id) / f"{mission_id}.json"
+def mission_id(name: str) -> str:
+    """The Item id and folder name of the mission ``name``: letters, digits, ``_`` and ``-``
+    only, at most about 90 characters. A name that is not such an id already gets the
+    replaced characters and a short hash of the name (so that two names never share an id);
+    the name as given stays in the Item's ``auv:name``."""
+    safe = _SAFE.sub("-", name)[:_MAX_ID]
+    if safe == name:
+        return name
+    digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:10]
+    return f"{safe.strip('-') or 'mission'}-{digest}"
+
+
+def mission_dir(root: Path, name: str) -> Path:
+    return Path(root) / COLLECTION / mission_id(name)
+
+
+def finished(root: Path, name: str) -> dict | None:
+    """The Item of the finished mission ``name``, or None (absent or unreadable: to be planned
+    again)."""
+    mid = mission_id(name)
+    p = mission_dir(root, name) / f"{mid}.json"
     try:
         return json.loads(p.read_text())
     except (OSError, ValueError):
@@ -63,7 +83,7 @@ def finished(root: Path, mission_id: str) -> dict | None:
 
 def write_mission(
     root: Path,
-    mission_id: str,
+    name: str,
     mission: dict,
     traj,
     *,
@@ -73,11 +93,14 @@ def write_mission(
     run_id: str,
     quicklook: bool = True,
 ) -> dict:
-    """Write one mission's Item and assets atomically; returns the Item as a dict."""
+    """Write the Item and assets of the mission ``name`` atomically; returns the Item as a
+    dict. ``mission["fingerprint"]``, when given, is kept as ``auv:fingerprint`` (what a re-run
+    compares to decide whether the mission changed)."""
     import pystac
 
-    final = mission_dir(root, mission_id)
-    tmp = final.parent / f".{mission_id}.tmp-{uuid.uuid4().hex[:8]}"
+    mid = mission_id(name)
+    final = mission_dir(root, name)
+    tmp = final.parent / f".{mid}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
     try:
         ok = traj.status == "ok" and len(traj.cells) > 1
@@ -102,7 +125,8 @@ def write_mission(
             if quicklook:
                 from .plots import mission_quicklook
 
-                mission_quicklook(maps, traj, tmp / "quicklook.png", title=mission_id)
+                title = "".join(c if c.isprintable() else "?" for c in name)
+                mission_quicklook(maps, traj, tmp / "quicklook.png", title=title)
                 assets["quicklook"] = pystac.Asset(
                     "./quicklook.png",
                     title="quick look",
@@ -123,6 +147,8 @@ def write_mission(
         }
         props.update(
             {
+                "auv:name": name,
+                "auv:fingerprint": mission.get("fingerprint"),
                 "auv:planner": traj.planner,
                 "auv:status": traj.status,
                 "auv:message": traj.message,
@@ -135,7 +161,7 @@ def write_mission(
                 "auv:expansions": int(traj.expansions),
             }
         )
-        item = pystac.Item(mission_id, geom, bbox, _dt.datetime.now(_dt.UTC), props, assets=assets)
+        item = pystac.Item(mid, geom, bbox, _dt.datetime.now(_dt.UTC), props, assets=assets)
         d = item.to_dict(include_self_link=False, transform_hrefs=False)
         d["links"] = [
             {"rel": "root", "href": "../../catalog.json", "type": "application/json"},
@@ -143,7 +169,7 @@ def write_mission(
             {"rel": "collection", "href": "../collection.json", "type": "application/json"},
         ]
         d["collection"] = COLLECTION
-        (tmp / f"{mission_id}.json").write_text(json.dumps(d, indent=1))
+        (tmp / f"{mid}.json").write_text(json.dumps(d, indent=1))
         if final.exists():
             shutil.rmtree(final)
         os.rename(tmp, final)
@@ -174,7 +200,7 @@ def _track_parquet(path: Path, traj, crs_wkt: str | None) -> None:
 
 
 def write_catalog(
-    root: Path, name: str, mission_ids: list[str], *, description: str, lonlat: bool
+    root: Path, name: str, mission_names: list[str], *, description: str, lonlat: bool
 ) -> Path:
     """The root catalog, the Collection and the missions GeoParquet, from the Items on disk."""
     import geopandas as gpd
@@ -182,7 +208,7 @@ def write_catalog(
     from shapely.geometry import shape
 
     root = Path(root)
-    items = [finished(root, mid) for mid in mission_ids]
+    items = [finished(root, m) for m in mission_names]
     items = [it for it in items if it is not None]
     rows, geoms = [], []
     for it in items:

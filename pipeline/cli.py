@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import sys
 import time
+import traceback
 
 import click
 
-from .exceptions import PipelineError
+from .exceptions import CatalogBusyError, PipelineError, SchedulerError
 from .params import DEM, MAPS, SYNTHETIC, Param
 
 
@@ -55,6 +57,7 @@ def _progress(what: str):
 @click.version_option(package_name="auv-pipeline")
 def main(verbose: bool) -> None:
     """Plan near-bottom AUV cruise trajectories over large seabed grids (RA* + MCPC)."""
+    _VERBOSE["on"] = verbose
     _setup_logging(verbose)
 
 
@@ -112,16 +115,23 @@ def dem_import(source, out, chunks, variable, cell_size, resolution, overwrite):
 @click.argument("path", type=click.Path())
 def dem_info(path):
     """Describe a DEM file as open_dem sees it."""
-    from .dem import open_dem
+    from .dem import file_chunks, is_read_error, open_dem
+    from .exceptions import InvalidDEMError
 
     with _errors():
         d = open_dem(path, chunks=DEM.chunks.default)
+        stored = file_chunks(path)
         click.echo(
             f"{path}: {d.shape[0]} x {d.shape[1]} cells of {d.attrs['cell_size']:g} m, "
-            f"chunks {d.data.chunksize}"
+            + (f"stored in chunks {stored}" if stored else "stored unchunked")
         )
         click.echo(f"crs: {'set' if 'crs_wkt' in d.attrs else 'none (local metric grid)'}")
-        lo, hi = float(d.min().compute()), float(d.max().compute())
+        try:
+            lo, hi = float(d.min().compute()), float(d.max().compute())
+        except Exception as exc:
+            if is_read_error(exc):
+                raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
+            raise
         click.echo(f"elevation: {lo:.1f} .. {hi:.1f} m")
 
 
@@ -174,13 +184,21 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     type=click.Path(),
     help="A dask scheduler file (JSON) instead of an address.",
 )
+@click.option(
+    "--dashboard-address",
+    default=None,
+    help="Where the local cluster's dashboard listens (default 127.0.0.1:8787, or a free "
+    "port); e.g. 0.0.0.0:8787 to serve it to other machines.",
+)
 @click.option("--dry-run", is_flag=True, help="Validate the job file and stop.")
 @click.option("--overwrite", is_flag=True, help="Recompute what exists already.")
-def run(job, scheduler, scheduler_file, dry_run, overwrite):
+def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite):
     """Run the job file JOB (TOML): DEM and maps stores, every mission, the results catalog.
 
-    Exit status: 0 when every mission was planned, 1 when any failed (each failed mission is
-    an Item with its reason), 2 for a bad job file or another error before planning."""
+    Exit status: 0 every mission planned; 1 some missions failed (each is an Item with its
+    reason, the others are written); 2 bad input (job file, DEM, arguments); 3 the environment
+    (disk, permissions, memory, an unreachable scheduler, a catalog in use by another run);
+    4 an internal error (a bug: -v shows the traceback)."""
     from .jobs import run_job
 
     if scheduler and scheduler_file:
@@ -190,6 +208,7 @@ def run(job, scheduler, scheduler_file, dry_run, overwrite):
             job,
             scheduler=scheduler,
             scheduler_file=scheduler_file,
+            dashboard_address=dashboard_address,
             overwrite=overwrite,
             dry_run=dry_run,
         )
@@ -201,28 +220,77 @@ def run(job, scheduler, scheduler_file, dry_run, overwrite):
             return
         click.echo(
             f"job {res.job.name}: {res.planned} missions planned, {res.skipped} "
-            f"skipped (finished before), {len(res.failed)} failed; catalog "
-            f"{res.catalog} ({res.seconds:.1f} s)"
+            f"skipped (finished before), {len(res.failed)} failed"
+            + (f", {res.replanned} planned again (changed)" if res.replanned else "")
+            + f"; catalog {res.catalog} ({res.seconds:.1f} s)"
         )
         if res.failed:
             click.echo(
                 f"failed missions: {', '.join(res.failed)} (reasons in their Items, auv:message)",
                 err=True,
             )
-            sys.exit(1)
+            sys.exit(EXIT_MISSIONS_FAILED)
+
+
+# exit codes, part of the interface (README "Exit codes")
+EXIT_OK, EXIT_MISSIONS_FAILED, EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_BUG = 0, 1, 2, 3, 4
+_VERBOSE = {"on": False}
+
+
+def _os_message(exc: OSError) -> str:
+    """One line for an error of the operating system (disk, permissions, paths)."""
+    where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    hints = {
+        errno.ENOSPC: "no space left on the device; free some space or write elsewhere",
+        errno.EDQUOT: "disk quota exceeded; free some space or write elsewhere",
+        errno.EACCES: "permission denied; check the permissions or write elsewhere",
+        errno.EPERM: "operation not permitted; check the permissions or write elsewhere",
+        errno.EROFS: "the file system is read-only; write elsewhere",
+        errno.ENOTDIR: "a path component is a file, not a directory; choose another path",
+        errno.EISDIR: "a directory stands where a file is expected; choose another path",
+        errno.ENOENT: "no such file or directory",
+        errno.EEXIST: "a file stands where a directory is needed; choose another path",
+        errno.EFBIG: "file too large (a full disk or a file-size limit); free some space or "
+        "write elsewhere",
+    }
+    what = hints.get(exc.errno, exc.strerror or str(exc) or type(exc).__name__)
+    return f"{what}{where}"
 
 
 class _errors:
-    """Turn a PipelineError into one clear line on stderr and exit code 2."""
+    """Every error ends in one line on stderr and a documented exit code (never a traceback,
+    unless -v): 2 bad input (PipelineError), 3 the environment (disk, permissions, memory, an
+    unreachable scheduler, a busy catalog), 4 a bug (anything else; -v shows the traceback)."""
 
     def __enter__(self):
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        if exc is not None and isinstance(exc, PipelineError):
-            click.echo(f"error: {exc}", err=True)
-            sys.exit(2)
-        return False
+        if exc is None or isinstance(
+            exc, SystemExit | click.exceptions.Exit | click.ClickException | click.exceptions.Abort
+        ):
+            return False
+        if isinstance(exc, KeyboardInterrupt):
+            click.echo("error: interrupted", err=True)
+            sys.exit(130)
+        if isinstance(exc, SchedulerError | CatalogBusyError):
+            code, msg = EXIT_ENVIRONMENT, str(exc)
+        elif isinstance(exc, PipelineError):
+            code, msg = EXIT_BAD_INPUT, str(exc)
+        elif isinstance(exc, MemoryError):
+            code, msg = EXIT_ENVIRONMENT, "out of memory; use smaller chunks or a larger machine"
+        elif isinstance(exc, OSError):
+            code, msg = EXIT_ENVIRONMENT, _os_message(exc)
+        else:
+            code = EXIT_BUG
+            msg = (
+                f"internal error ({type(exc).__name__}: {exc}); run with -v for the "
+                "traceback and report it"
+            )
+        if _VERBOSE["on"]:
+            traceback.print_exception(exc)
+        click.echo(f"error: {' '.join(msg.split())}", err=True)
+        sys.exit(code)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import os
 import socket
 import threading
 from contextlib import contextmanager
@@ -38,9 +39,13 @@ def local_cluster(dashboard_address: str = ":0"):
     )
 
 
-def connect(address: str, *, timeout: float = 30, set_as_default: bool = False):
-    """A client of the scheduler at ``address``, or one :class:`SchedulerError`."""
+def connect(address: str, *, timeout: float | None = None, set_as_default: bool = False):
+    """A client of the scheduler at ``address``, or one :class:`SchedulerError` after
+    ``timeout`` seconds (default ``AUV_PIPELINE_CONNECT_TIMEOUT_S``, else 30)."""
     from distributed import Client
+
+    if timeout is None:
+        timeout = float(os.environ.get("AUV_PIPELINE_CONNECT_TIMEOUT_S", "30"))
 
     try:
         return Client(address, timeout=timeout, set_as_default=set_as_default)
@@ -111,7 +116,7 @@ def get_client(client=None):
         with _LOCAL_LOCK:
             c = _LOCAL.get(("addr", client))
             if c is None:
-                c = connect(client, timeout=10)
+                c = connect(client)
                 _LOCAL[("addr", client)] = c
             return c
     if client is not None:
@@ -138,10 +143,11 @@ def get_client(client=None):
 
 
 @contextmanager
-def session(scheduler=None, scheduler_file=None):
+def session(scheduler=None, scheduler_file=None, dashboard_address=None):
     """A client for a job or a command: ``scheduler`` (an address or a ``Client``, used as it
     is and left open), the scheduler named in ``scheduler_file``, or a new LocalCluster of 2
-    single-threaded workers (dashboard on loopback, port 8787 when free). The client is the
+    single-threaded workers (its dashboard at ``dashboard_address``, by default on loopback,
+    port 8787 when free). The client is the
     default client inside the block, in every thread."""
     from distributed import Client
 
@@ -160,7 +166,7 @@ def session(scheduler=None, scheduler_file=None):
     if scheduler:
         client = connect(scheduler, set_as_default=True)
     else:
-        cluster = local_cluster(_free_dashboard_address())
+        cluster = local_cluster(dashboard_address or _free_dashboard_address())
         client = Client(cluster)
     try:
         yield client

@@ -122,13 +122,18 @@ def open_dem(
         else:
             dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
         return dem
-    dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution)
-    if validate:
-        require_valid_cells(
-            dem,
-            f"DEM file {path} holds no valid elevation: every cell is "
-            "no-data (NaN or the file's nodata value)",
-        )
+    try:
+        dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution)
+        if validate:
+            require_valid_cells(
+                dem,
+                f"DEM file {path} holds no valid elevation: every cell is "
+                "no-data (NaN or the file's nodata value)",
+            )
+    except Exception as exc:
+        if is_read_error(exc):  # a damaged file found while reading its values
+            raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
+        raise
     return dem
 
 
@@ -157,7 +162,14 @@ def write_dem(
     ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
     encoding = {"elevation": {"chunks": ch}}
     with atomic_path(store, overwrite=overwrite) as tmp:
-        ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
+        try:
+            ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
+        except Exception as exc:
+            if is_read_error(exc):
+                raise InvalidDEMError(
+                    f"cannot read DEM file {dem.attrs.get('source', '')}: {exc}"
+                ) from exc
+            raise
     log.info(
         "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
         store,
@@ -166,6 +178,19 @@ def write_dem(
         ch,
     )
     return Path(store)
+
+
+def is_read_error(exc: BaseException) -> bool:
+    """Whether ``exc`` comes from reading a DEM file (a damaged or truncated GeoTIFF or
+    NetCDF file found while its chunks are read), not from writing the store."""
+    try:
+        from rasterio.errors import RasterioError
+
+        if isinstance(exc, RasterioError):
+            return True
+    except ImportError:
+        pass
+    return isinstance(exc, RuntimeError) and ("NetCDF" in str(exc) or "HDF" in str(exc))
 
 
 def import_dem(
@@ -213,12 +238,16 @@ def _kind_of(path: Path) -> str:
 
 
 def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
+    # read in chunks, never a whole large file at once: a GeoTIFF in chunks of the requested
+    # side, a NetCDF file in dask's automatic chunks (about 128 MiB), a Zarr store in its own
     dask_chunks = None if chunks is None else {}
     try:
         if kind == "tiff":
             import rioxarray
 
-            arr = rioxarray.open_rasterio(path, masked=True, chunks=dask_chunks)
+            side = chunks if isinstance(chunks, int) else DEFAULT_CHUNK
+            tif_chunks = None if chunks is None else {"band": 1, "y": side, "x": side}
+            arr = rioxarray.open_rasterio(path, masked=True, chunks=tif_chunks)
             if isinstance(arr, list | xr.Dataset):
                 raise InvalidDEMError(
                     f"DEM file {path} holds several subdatasets; "
@@ -226,7 +255,7 @@ def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
                 )
             return arr
         if kind == "netcdf":
-            ds = xr.open_dataset(path, chunks=dask_chunks)
+            ds = xr.open_dataset(path, chunks=None if chunks is None else "auto")
         else:
             ds = xr.open_zarr(path, chunks=dask_chunks, consolidated=False)
     except InvalidDEMError:
@@ -236,6 +265,34 @@ def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
     if _is_old_gmt(ds):
         return _from_old_gmt(ds, path)
     return _pick_variable(ds, path, variable)
+
+
+def file_chunks(path: str | os.PathLike) -> tuple[int, int] | None:
+    """The chunk (or tile) sides a DEM file is stored in, or None when it has none."""
+    path = Path(path)
+    try:
+        kind = _kind_of(path)
+        if kind == "tiff":
+            import rasterio
+
+            with rasterio.open(path) as src:
+                return tuple(int(v) for v in src.block_shapes[0])
+        if kind == "zarr":
+            import zarr
+
+            group = zarr.open_group(path, mode="r")
+            name = "elevation" if "elevation" in group else next(iter(group.array_keys()))
+            return tuple(int(v) for v in group[name].chunks[-2:])
+        import netCDF4
+
+        with netCDF4.Dataset(path) as nc:
+            for var in nc.variables.values():
+                if var.ndim >= 2:
+                    ch = var.chunking()
+                    return None if ch == "contiguous" else tuple(int(v) for v in ch[-2:])
+    except Exception:  # noqa: BLE001 - only for the description; open_dem says what is wrong
+        return None
+    return None
 
 
 def _pick_variable(ds: xr.Dataset, path: Path, variable: str | None) -> xr.DataArray:
@@ -316,6 +373,14 @@ def _canonicalise(
     if "x" not in arr.coords or "y" not in arr.coords:
         arr = _synthesise_coords(arr, path, cell_size)
     geographic = _is_geographic(arr, crs, xdim, ydim)
+    if geographic:
+        lat, lon = np.asarray(arr["y"].values, float), np.asarray(arr["x"].values, float)
+        if np.abs(lat).max() > 90 or lon.min() < -360 or lon.max() > 360:
+            raise InvalidDEMError(
+                f"DEM file {path} is a lon/lat grid with latitudes beyond +-90 or longitudes "
+                f"beyond +-360 (latitudes {lat.min():g} to {lat.max():g}, longitudes "
+                f"{lon.min():g} to {lon.max():g}); fix its coordinates"
+            )
     sign = _depth_sign(arr, path)
     attrs = {k: v for k, v in arr.attrs.items() if k in ("long_name", "standard_name", "title")}
     values = arr.astype(np.float32) * np.float32(sign) if sign != 1 else arr.astype(np.float32)

@@ -37,3 +37,7 @@ class UnreachableGoalError(PipelineError):
 
 class SchedulerError(PipelineError):
     """The dask cluster to run on cannot be reached or started."""
+
+
+class CatalogBusyError(PipelineError):
+    """Another run holds the catalog's lock."""

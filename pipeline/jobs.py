@@ -28,13 +28,18 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
+import shutil
+import socket
 import time
 import tomllib
+import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .exceptions import InvalidParameterError, JobFileError, PipelineError
+from .exceptions import CatalogBusyError, InvalidParameterError, JobFileError, PipelineError
 from .params import DEFAULT_CHUNK, DEM, MAPS, PLANNING, SYNTHETIC, Param, Schema, shape2d
 
 log = logging.getLogger(__name__)
@@ -70,6 +75,18 @@ class Job:
     def maps_fingerprint(self) -> str:
         """A hash of the DEM definition and the maps parameters (reuse the maps store)."""
         what = {"dem": self.dem_fingerprint(), "maps": self.maps}
+        return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+    def mission_fingerprint(self, mission: dict) -> str:
+        """A hash of what defines a mission's result: its endpoints, its planning options (the
+        job's defaults included) and the maps (hence the DEM). A re-run plans a finished
+        mission again when this changed."""
+        plan = {**self.planning, **{k: mission[k] for k in PLANNING.names() if k in mission}}
+        what = {
+            "ends": {k: mission[k] for k in sorted(mission) if k.startswith(("start", "goal"))},
+            "planning": plan,
+            "maps": self.maps_fingerprint(),
+        }
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
     def dem_fingerprint(self) -> str:
@@ -128,12 +145,19 @@ def load_job(path: str | os.PathLike) -> Job:
     """Read and validate a job file without computing anything."""
     path = Path(path)
     if not path.is_file():
-        raise JobFileError(f"job file {path} does not exist")
+        what = "is a directory, not a file" if path.is_dir() else "does not exist"
+        raise JobFileError(f"job file {path} {what}")
     try:
         with open(path, "rb") as fh:
             doc = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise JobFileError(f"job file {path} is not valid TOML: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise JobFileError(
+            f"job file {path} is not UTF-8 text (byte {exc.start}); save it as UTF-8"
+        ) from exc
+    except OSError as exc:
+        raise JobFileError(f"job file {path} cannot be read: {exc.strerror}") from exc
     _check_keys(path, doc, _TOP_KEYS, "")
     name = doc.get("name", path.stem)
     if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
@@ -144,7 +168,7 @@ def load_job(path: str | os.PathLike) -> Job:
     _check_keys(path, dem, _DEM_KEYS, "dem.")
     if ("path" in dem) == ("synthetic" in dem):
         _fail(path, "[dem] needs exactly one of path = '...' or a [dem.synthetic] table")
-    job = Job(path=path, name=name, catalog=Path("catalogs") / name)
+    job = Job(path=path, name=name, catalog=path.parent / "catalogs" / name)
     given = _checked(path, DEM, {k: v for k, v in dem.items() if k in DEM}, "dem.")
     job.chunks = given.get("chunks", DEFAULT_CHUNK)
     if "path" in dem:
@@ -184,10 +208,12 @@ def load_job(path: str | os.PathLike) -> Job:
         _fail(path, "[output] must be a table")
     _check_keys(path, out, _OUTPUT_KEYS, "output.")
     if "catalog" in out:
-        job.catalog = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
-    # absolute, so that workers in other directories (or on other machines) write the stores
-    # where the client reads them
-    job.catalog = job.catalog.absolute()
+        p = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
+        job.catalog = p if p.is_absolute() else path.parent / p
+    # relative paths are the job file's (a cron job run from elsewhere finds its results), made
+    # absolute so that workers in other directories or on other machines write where the
+    # client reads
+    job.catalog = Path(os.path.abspath(job.catalog))
     return job
 
 
@@ -225,8 +251,8 @@ def _load_missions(path, doc, job):
         where = f"missions[{i}]."
         _check_keys(path, m, _MISSION_KEYS, where)
         name = m.get("name", f"mission-{i + 1:03d}")
-        if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
-            _fail(path, f"{where}name must be a non-empty file-name-safe string, got {name!r}")
+        if not isinstance(name, str) or not name.strip():
+            _fail(path, f"{where}name must be a non-empty string, got {name!r}")
         if name in seen:
             _fail(path, f"{where}name {name!r} is used twice; mission names must be unique")
         seen.add(name)
@@ -282,6 +308,10 @@ class JobResult:
     skipped: int = 0
     failed: list = field(default_factory=list)  # names of failed missions (this run or before)
     dashboard: str | None = None
+    ran: int = 0  # missions this run planned or tried
+    replanned: int = 0  # finished missions planned again because they changed
+    crs_wkt: str | None = None
+    run_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
     @property
     def ok(self) -> bool:
@@ -294,6 +324,7 @@ def run_job(
     overwrite: bool = False,
     dry_run: bool = False,
     scheduler_file: str | os.PathLike | None = None,
+    dashboard_address: str | None = None,
 ) -> JobResult:
     """Run a job file: DEM store, maps store, every mission, the results catalog.
 
@@ -326,32 +357,20 @@ def run_job(
             job.catalog,
         )
         return JobResult(job, dem_store, dem_store.exists(), 0.0, maps_store=maps_store)
-    job.catalog.mkdir(parents=True, exist_ok=True)
-    from distributed import performance_report
-
-    from .cluster import session
-
-    with session(scheduler, scheduler_file) as client:
-        res = JobResult(
-            job, dem_store, False, 0.0, maps_store=maps_store, dashboard=client.dashboard_link
-        )
-        log.info("dask dashboard: %s", client.dashboard_link)
-        report = job.catalog / "performance-report.html"
-        tmp_report = job.catalog / f".performance-report.tmp-{os.getpid()}.html"
-        with performance_report(filename=str(tmp_report)):
-            res.reused = _dem_store(job, dem_store, overwrite)
-            _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
-            crs = _missions(job, maps_store, client, overwrite, res)
-        os.replace(tmp_report, report)
     from .catalog import write_catalog
 
-    res.catalog = write_catalog(
-        job.catalog,
-        job.name,
-        [m["name"] for m in job.missions],
-        description=f"Missions of job {job.name} ({job.path})",
-        lonlat=bool(crs),
-    )
+    with catalog_lock(job.catalog):
+        remove_temporaries(job.catalog)
+        res = _run_locked(
+            job, dem_store, maps_store, overwrite, scheduler, scheduler_file, dashboard_address
+        )
+        res.catalog = write_catalog(
+            job.catalog,
+            job.name,
+            [m["name"] for m in job.missions],
+            description=f"Missions of job {job.name} ({job.path})",
+            lonlat=bool(res.crs_wkt),
+        )
     res.seconds = time.perf_counter() - t0
     log.info(
         "job %s: %d planned, %d skipped (finished before), %d failed; catalog %s (%.1f s)",
@@ -363,6 +382,83 @@ def run_job(
         res.seconds,
     )
     return res
+
+
+def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
+    import datetime as dt
+
+    from distributed import performance_report
+
+    from .cluster import session
+
+    with session(*cluster) as client:
+        res = JobResult(
+            job, dem_store, False, 0.0, maps_store=maps_store, dashboard=client.dashboard_link
+        )
+        log.info("dask dashboard: %s", client.dashboard_link)
+        tmp_report = job.catalog / f".performance-report.tmp-{res.run_id}.html"
+        with performance_report(filename=str(tmp_report), mode="inline"):
+            res.reused = _dem_store(job, dem_store, overwrite)
+            built = _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
+            _missions(job, maps_store, client, overwrite, res)
+    if res.reused and not built and not res.ran:
+        tmp_report.unlink(missing_ok=True)  # nothing was computed: keep the last report
+        return res
+    # one self-contained report per run that did work, the newest also as
+    # performance-report.html
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
+    reports = job.catalog / "reports"
+    reports.mkdir(exist_ok=True)
+    kept = reports / f"performance-{stamp}-{res.run_id}.html"
+    os.replace(tmp_report, kept)
+    latest = job.catalog / f".performance-report.html.tmp-{res.run_id}"
+    shutil.copyfile(kept, latest)
+    os.replace(latest, job.catalog / "performance-report.html")
+    return res
+
+
+@contextmanager
+def catalog_lock(catalog: Path):
+    """Hold ``<catalog>/.lock`` for a run: a second run on the same catalog refuses with one
+    clear line instead of deleting the first one's work in flight. The lock is the operating
+    system's (``flock``), so a killed run never leaves it held."""
+    import fcntl
+
+    catalog.mkdir(parents=True, exist_ok=True)
+    fh = open(catalog / ".lock", "a+")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            who = fh.read().strip() or "another process"
+            raise CatalogBusyError(
+                f"catalog {catalog} is in use by another run ({who}); wait for it to finish, "
+                "or give this job another [output] catalog"
+            ) from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        fh.flush()
+        yield
+    finally:
+        fh.close()
+
+
+def remove_temporaries(catalog: Path) -> list[Path]:
+    """Remove what killed runs left in ``catalog`` (half-written stores, scratch stores,
+    mission folders, reports, coarse maps); call it holding :func:`catalog_lock`, when no
+    other run can be writing them. Returns what was removed."""
+    patterns = (".*.tmp-*", "missions/.*.tmp-*", "*.zarr/.coarse-rho*.tmp-*")
+    gone = [p for pattern in patterns for p in catalog.glob(pattern)]
+    for p in gone:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    if gone:
+        log.info("removed %d temporaries left by earlier runs that were killed", len(gone))
+    return gone
 
 
 def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
@@ -396,7 +492,7 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
 
     if store.exists() and not rebuild:
         log.info("maps store %s is up to date: reusing it", store)
-        return
+        return False
     log.info("building the maps store %s (%s)", store, job.maps)
     try:
         build_maps(
@@ -410,26 +506,30 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
         if isinstance(exc, JobFileError):
             raise
         raise JobFileError(f"job file {job.path}: [maps]: {exc}") from exc
+    return True
 
 
-def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResult):
-    """Plan the missions not finished yet, writing each as it ends; returns the DEM's CRS."""
-    import uuid
-
-    from .catalog import finished, write_mission
-    from .missions import failed_trajectory, min_clearance, plan_missions
+def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResult) -> None:
+    """Plan the missions not finished yet (or changed since), writing each as it ends."""
+    from .catalog import finished
+    from .missions import failed_trajectory, plan_missions
     from .store import open_store
 
     maps = open_store(maps_store)
-    crs = maps.crs_wkt
-    run_id = uuid.uuid4().hex[:12]
-    import shutil
-
-    for stale in (job.catalog / "missions").glob(".*.tmp-*"):  # a killed run's half-written
-        shutil.rmtree(stale, ignore_errors=True)
+    res.crs_wkt = maps.crs_wkt
     todo = []
+    changed = 0
     for m in job.missions:
+        m = {**m, "fingerprint": job.mission_fingerprint(m)}
         done = None if overwrite else finished(job.catalog, m["name"])
+        if done is not None and done["properties"].get("auv:fingerprint") != m["fingerprint"]:
+            log.info(
+                "%s: its definition, the maps or the DEM changed since it was planned: "
+                "planning it again",
+                m["name"],
+            )
+            changed += 1
+            done = None
         if done is None:
             todo.append(m)
         else:
@@ -438,7 +538,7 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
                 res.failed.append(m["name"])
     if res.skipped:
         log.info("%d missions finished before: skipped (--overwrite plans them again)", res.skipped)
-    clearance = float(job.maps["clearance"])
+    res.replanned = changed
     ready, bad = [], []
     for m in todo:
         try:
@@ -449,40 +549,9 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
                     "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"]),
                 }
             )
-        except PipelineError as exc:
-            bad.append((m, str(exc)))
-    count = [0]
-    total = len(todo)
-
-    def record(mission, traj):
-        count[0] += 1
-        clr = min_clearance(maps, traj, clearance) if traj.status == "ok" else float("nan")
-        write_mission(
-            job.catalog,
-            mission["name"],
-            mission,
-            traj,
-            maps=maps,
-            crs_wkt=crs,
-            min_clearance_m=clr,
-            run_id=run_id,
-        )
-        res.planned += 1
-        if traj.status == "ok":
-            log.info(
-                "[%d/%d] %s: ok, %.1f km, %.0f %% ridge, min clearance %.0f m (%.2f s)",
-                count[0],
-                total,
-                mission["name"],
-                traj.length_m / 1e3,
-                100 * traj.ridge_ratio,
-                clr,
-                traj.runtime_s,
-            )
-        else:
-            res.failed.append(mission["name"])
-            log.warning("[%d/%d] %s: FAILED: %s", count[0], total, mission["name"], traj.message)
-
+        except Exception as exc:  # noqa: BLE001 - one mission's failure, not the batch's
+            bad.append((m, str(exc) if isinstance(exc, PipelineError) else repr(exc)))
+    record = _Recorder(job, maps, res, len(todo))
     for m, msg in bad:
         record(m, failed_trajectory({**job.planning, **m}, msg))
     if ready:
@@ -493,4 +562,62 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
             defaults=job.planning,
             on_done=lambda i, mission, traj: record(mission, traj),
         )
-    return crs
+
+
+class _Recorder:
+    """Writes each mission's result as it ends and logs it; a mission whose result cannot be
+    written is recorded as failed with the reason, and the batch goes on."""
+
+    def __init__(self, job: Job, maps, res: JobResult, total: int):
+        self.job, self.maps, self.res, self.total = job, maps, res, total
+        self.count = 0
+        self.clearance = float(job.maps["clearance"])
+
+    def __call__(self, mission: dict, traj) -> None:
+        from .missions import failed_trajectory, min_clearance
+
+        self.count += 1
+        self.res.ran += 1
+        name = mission["name"]
+        try:
+            ok = traj.status == "ok"
+            clr = min_clearance(self.maps, traj, self.clearance) if ok else math.nan
+            self._write(mission, traj, clr)
+        except (OSError, PipelineError, ValueError) as exc:
+            reason = f"its result could not be written: {type(exc).__name__}: {exc}"
+            log.error("[%d/%d] %s: FAILED: %s", self.count, self.total, name, reason)
+            self.res.failed.append(name)
+            try:  # the failure itself, if the disk takes it
+                self._write(mission, failed_trajectory({**self.job.planning, **mission}, reason))
+            except (OSError, PipelineError, ValueError):
+                pass
+            return
+        if traj.status == "ok":
+            self.res.planned += 1
+            log.info(
+                "[%d/%d] %s: ok, %.1f km, %.0f %% ridge, min clearance %.0f m (%.2f s)",
+                self.count,
+                self.total,
+                name,
+                traj.length_m / 1e3,
+                100 * traj.ridge_ratio,
+                clr,
+                traj.runtime_s,
+            )
+        else:
+            self.res.failed.append(name)
+            log.warning("[%d/%d] %s: FAILED: %s", self.count, self.total, name, traj.message)
+
+    def _write(self, mission, traj, clr=math.nan):
+        from .catalog import write_mission
+
+        write_mission(
+            self.job.catalog,
+            mission["name"],
+            mission,
+            traj,
+            maps=self.maps,
+            crs_wkt=self.maps.crs_wkt,
+            min_clearance_m=clr,
+            run_id=self.res.run_id,
+        )

@@ -14,6 +14,7 @@ store is removed at the end.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -34,7 +35,7 @@ from .exceptions import StoreExistsError
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
 from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
-from .store import MAPS_VERSION, open_maps
+from .store import MAPS_VERSION, attrs_signature, open_maps
 
 log = logging.getLogger(__name__)
 
@@ -63,17 +64,16 @@ def dem_hash(dem: xr.DataArray):
     it is chunked. Returns a hex string, or a dask array of per-chunk partials when lazy."""
     ncols = dem.shape[1]
     z = dem.data
-
-    def part(block, block_info=None):
-        (r0, _), (c0, _) = block_info[0]["array-location"]
-        b = np.ascontiguousarray(
-            np.where(np.isnan(block), np.float32(np.nan), block), dtype=np.float32
-        )
-        return np.array([[_block_hash(b, r0, c0, ncols)]], dtype=np.uint64)
-
+    part = functools.partial(_hash_part, ncols=ncols)
     if isinstance(z, da.Array):
         return z.map_blocks(part, chunks=(1, 1), dtype=np.uint64)
     return _hex(part(np.asarray(z, np.float32), {0: {"array-location": [(0, 0), (0, 0)]}}))
+
+
+def _hash_part(block, block_info=None, *, ncols):
+    (r0, _), (c0, _) = block_info[0]["array-location"]
+    b = np.ascontiguousarray(np.where(np.isnan(block), np.float32(np.nan), block), dtype=np.float32)
+    return np.array([[_block_hash(b, r0, c0, ncols)]], dtype=np.uint64)
 
 
 def _hex(partials) -> str:
@@ -196,17 +196,18 @@ def build_maps(
             raise
         shutil.rmtree(scratch, ignore_errors=True)
         group = zarr.open_group(tmp, mode="r+")
-        group.attrs.update(
-            {
-                "title": "pipeline maps store",
-                "maps_version": MAPS_VERSION,
-                "parameters": json.dumps(params),
-                "cell_size": a,
-                "dem_hash": _hex(partials),
-            }
-        )
+        attrs = {
+            "title": "pipeline maps store",
+            "maps_version": MAPS_VERSION,
+            "parameters": json.dumps(params),
+            "cell_size": a,
+            "dem_hash": _hex(partials),
+            "all_chunks_written": True,
+        }
         if "crs_wkt" in dem.attrs:
-            group.attrs["crs_wkt"] = dem.attrs["crs_wkt"]
+            attrs["crs_wkt"] = dem.attrs["crs_wkt"]
+        attrs["signature"] = attrs_signature(attrs)
+        group.attrs.update(attrs)
     log.info(
         "built maps store %s (%s, R = %g m, ridge >= %d cells) in %.1f s",
         store,
@@ -230,6 +231,7 @@ def _write(ds: xr.Dataset, path, ch, *, also):
         consolidated=False,
         encoding={k: {"chunks": ch} for k in ds.data_vars},
         compute=False,
+        write_empty_chunks=True,  # every chunk on disk: a missing one means damage
     )
     _, value = dask.compute(write, also)
     return value

@@ -741,9 +741,13 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     t0 = time.perf_counter()
     z = z.astype(np.float32)
     ncols = z.shape[1]
+    # regular tiles (only the last may be larger, when a thin last chunk is merged into it),
+    # and scratch chunks of the regular tile's size: every scratch chunk is then written by
+    # exactly one tile, so parallel writes never share a chunk
+    z = z.rechunk((z.chunks[0][0], z.chunks[1][0]))
     z, _, tiles = _tiles(z, 2)
     g = zarr.open_group(scratch, mode="w", zarr_format=3)
-    tile = (max(z.chunks[0]), max(z.chunks[1]))
+    tile = (z.chunks[0][0], z.chunks[1][0])
     # written once, read twice: uncompressed is faster than any codec here
     g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32", compressors=None)
     g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32", compressors=None)

@@ -21,6 +21,7 @@ ring buffer of ``2r + 1`` rows. The horizontal one is the same dilation with a f
 
 from __future__ import annotations
 
+import functools
 import math
 
 import dask.array as da
@@ -204,6 +205,56 @@ def check_clearance(
     return value
 
 
+def _vertical_block(block, clearance):
+    return _vertical(block, clearance)
+
+
+def _horizontal_block(block, widths, clearance):
+    return _horizontal(block, widths, clearance)
+
+
+def _dilate_block(block, widths, b):
+    return _dilate(block, widths, b)
+
+
+def _check_memory(dem: xr.DataArray, radius_m: float, a: float) -> None:
+    """Refuse, before any compute, a structuring element too large for this machine: the
+    kernel holds a block with its halo (float32, in and out, plus a ring buffer of rows) and
+    the element's table (float64)."""
+    import psutil
+
+    r = int(radius_m // a)
+    z = dem.data
+    block = z.chunksize if isinstance(z, da.Array) else z.shape
+    side = [min(n, c + 2 * r) for n, c in zip(dem.shape, block, strict=True)]
+    need = 16 * side[0] * side[1] + 8 * (r + 1) ** 2
+    have = psutil.virtual_memory().total
+    if need > have // 2:
+        raise InvalidParameterError(
+            f"the safety map needs about {need / 2**30:.1f} GiB per task (a structuring element "
+            f"of {r} cells: a clearance of {radius_m:g} m over cells of {a:g} m), more than half "
+            f"of this machine's {have / 2**30:.1f} GiB; resample the DEM to larger cells "
+            "(resolution), lower the clearance or use smaller chunks"
+        )
+
+
+def _map_overlap(z: da.Array, kernel, depth: int, meta) -> da.Array:
+    """``kernel`` over ``z`` with a halo of ``depth`` cells, for any map size and chunking, in
+    ``z``'s own chunks: an axis no longer than the halo is taken whole (it needs none), and
+    chunks that map_overlap had to merge (thinner than the halo) are split back, so that the
+    result writes to a store chunked like its input."""
+    chunks = z.chunks
+    halo = {ax: (0 if depth >= z.shape[ax] else depth) for ax in (0, 1)}
+    whole = {ax: -1 for ax in (0, 1) if halo[ax] == 0 and depth > 0}
+    if whole:
+        z = z.rechunk(whole)
+    if halo[0] == halo[1] == 0:
+        data = z.map_blocks(kernel, dtype=np.float32, meta=meta)
+    else:
+        data = z.map_overlap(kernel, depth=halo, boundary="none", dtype=np.float32, meta=meta)
+    return data if data.chunks == chunks else data.rechunk(chunks)
+
+
 def safety_map(
     dem: xr.DataArray,
     method: str = MAPS.method.default,
@@ -244,39 +295,31 @@ def safety_map(
     horizontal_clearance = check_clearance(
         horizontal_clearance, a, "`horizontal_clearance`", MAPS.horizontal_clearance
     )
+    if method != "vertical":
+        radius = horizontal_clearance if method == "horizontal" else clearance
+        _check_memory(dem, radius, a)
 
+    # module-level functions bound with partial: a task pickles them by reference, so a
+    # worker reuses its compiled kernels (a closure would carry the numba dispatcher by value,
+    # and every new client would make the workers compile it again)
     if method == "vertical":
-
-        def kernel(block):
-            return _vertical(block, clearance)
-
+        kernel = functools.partial(_vertical_block, clearance=clearance)
         depth = 0
     elif method == "horizontal":
         widths = disc_widths(horizontal_clearance, a)
-
-        def kernel(block):
-            return _horizontal(block, widths, clearance)
-
+        kernel = functools.partial(_horizontal_block, widths=widths, clearance=clearance)
         depth = widths.size - 1
     else:
         widths = disc_widths(clearance, a)
         b = sphere_heights(clearance, a, widths)
-
-        def kernel(block):
-            return _dilate(block, widths, b)
-
+        kernel = functools.partial(_dilate_block, widths=widths, b=b)
         depth = widths.size - 1
 
     z = dem.data
     if isinstance(z, da.Array):
         z = z.astype(np.float32)
         meta = np.empty((0, 0), dtype=np.float32)
-        if depth == 0:
-            data = z.map_blocks(kernel, dtype=np.float32, meta=meta)
-        else:
-            data = z.map_overlap(
-                kernel, depth={0: depth, 1: depth}, boundary="none", dtype=np.float32, meta=meta
-            )
+        data = _map_overlap(z, kernel, depth, meta)
     else:
         data = kernel(np.ascontiguousarray(z, dtype=np.float32))
     attrs = {

@@ -9,7 +9,9 @@ worker, where :func:`open_store` keeps one per store and process (and the chunks
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import os
 import shutil
 import threading
@@ -23,6 +25,24 @@ from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineErr
 from .params import PLANNING
 
 MAPS_VERSION = 1
+LAYERS = ("elevation", "safety", "passable", "accumulation", "ridge")
+_SIGNED = ("maps_version", "parameters", "cell_size", "dem_hash", "crs_wkt", "all_chunks_written")
+
+
+def attrs_signature(attrs: dict) -> str:
+    """A hash of the attributes that define what a maps store holds: a store whose attributes
+    were edited after it was built no longer matches it."""
+    what = {k: attrs.get(k) for k in _SIGNED}
+    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def damaged(path, what: str) -> PipelineError:
+    return PipelineError(
+        f"maps store {path} is damaged: {what}; rebuild it (build_maps overwrite=True, "
+        "`pipeline build-maps --overwrite`, or `pipeline run --overwrite`)"
+    )
+
+
 COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine cells are
 
 
@@ -49,13 +69,15 @@ class ChunkCache:
             self.arrays[key] = arr
         return arr
 
-    def chunk(self, store: str, var: str, ci: int, cj: int) -> np.ndarray:
+    def chunk(self, store: str, var: str, ci: int, cj: int, complete: bool = False) -> np.ndarray:
         key = (store, var, ci, cj)
         with self.lock:
             got = self.items.get(key)
             if got is not None:
                 self.items.move_to_end(key)
                 return got
+        if complete and not os.path.exists(os.path.join(store, var, "c", str(ci), str(cj))):
+            raise damaged(store, f"chunk ({ci}, {cj}) of its layer {var!r} is missing")
         arr = self.array(store, var)
         ch, cw = arr.chunks
         block = arr[ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
@@ -67,13 +89,15 @@ class ChunkCache:
                 self.used -= old.nbytes
         return block
 
-    def window(self, store: str, var: str, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    def window(
+        self, store: str, var: str, r0: int, r1: int, c0: int, c1: int, complete: bool = False
+    ) -> np.ndarray:
         arr = self.array(store, var)
         ch, cw = arr.chunks
         out = np.empty((r1 - r0, c1 - c0), dtype=arr.dtype)
         for ci in range(r0 // ch, (r1 - 1) // ch + 1):
             for cj in range(c0 // cw, (c1 - 1) // cw + 1):
-                blk = self.chunk(store, var, ci, cj)
+                blk = self.chunk(store, var, ci, cj, complete)
                 br0, bc0 = ci * ch, cj * cw
                 a0, a1 = max(r0, br0), min(r1, br0 + blk.shape[0])
                 b0, b1 = max(c0, bc0), min(c1, bc0 + blk.shape[1])
@@ -107,13 +131,35 @@ class MapsStore:
         attrs = dict(group.attrs)
         _require_version(path, attrs)
         self.path = str(path.resolve())
-        params = attrs.get("parameters")
-        self.parameters = json.loads(params) if isinstance(params, str) else params
-        self.crs_wkt = attrs.get("crs_wkt")
-        self.shape = tuple(int(v) for v in group["safety"].shape)
-        self.cell_size = float(attrs["cell_size"])
-        self.x = np.asarray(group["x"][:], dtype=np.float64)
-        self.y = np.asarray(group["y"][:], dtype=np.float64)
+        try:
+            params = attrs.get("parameters")
+            self.parameters = json.loads(params) if isinstance(params, str) else params
+            self.crs_wkt = attrs.get("crs_wkt")
+            self.shape = tuple(int(v) for v in group["safety"].shape)
+            self.cell_size = float(attrs["cell_size"])
+            self.x = np.asarray(group["x"][:], dtype=np.float64)
+            self.y = np.asarray(group["y"][:], dtype=np.float64)
+            for var in LAYERS:
+                if tuple(group[var].shape) != self.shape:
+                    raise ValueError(f"layer {var} has shape {group[var].shape}")
+        except (KeyError, ValueError, TypeError) as exc:
+            raise damaged(path, f"it is incomplete or malformed ({exc})") from None
+        if "signature" in attrs and attrs_signature(attrs) != attrs["signature"]:
+            raise damaged(
+                path,
+                "its attributes (parameters, cell size, DEM hash) were changed after it was built",
+            )
+        spacing = (
+            abs(self.x[1] - self.x[0]) if len(self.x) > 1 else self.cell_size,
+            abs(self.y[1] - self.y[0]) if len(self.y) > 1 else self.cell_size,
+        )
+        if not all(math.isclose(d, self.cell_size, rel_tol=1e-6) for d in spacing):
+            raise damaged(
+                path,
+                f"its cell_size attribute ({self.cell_size:g} m) disagrees with "
+                f"its coordinates ({spacing[0]:g} x {spacing[1]:g} m)",
+            )
+        self.all_chunks_written = bool(attrs.get("all_chunks_written"))
         self._dataset = None
         self._coarse: dict = {}
         self._lock = threading.Lock()
@@ -132,8 +178,9 @@ class MapsStore:
         return self._dataset
 
     def window(self, var: str, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-        """Rows ``r0:r1`` and columns ``c0:c1`` of layer ``var``, through the chunk cache."""
-        return CACHE.window(self.path, var, r0, r1, c0, c1)
+        """Rows ``r0:r1`` and columns ``c0:c1`` of layer ``var``, through the chunk cache. A
+        chunk missing from a store that wrote every chunk is an error, not NaN."""
+        return CACHE.window(self.path, var, r0, r1, c0, c1, complete=self.all_chunks_written)
 
     def coarse(self, rho: int) -> dict:
         """The maps compressed by ``rho`` (SPEC section 6 step 1), as numpy arrays.
@@ -184,7 +231,19 @@ class MapsStore:
         lon/lat (``"lonlat"``, the DEM needs a CRS); ``name`` (start, goal) goes into errors."""
         if form == "cell":
             return int(value[0]), int(value[1])
-        x, y = float(value[0]), float(value[1])
+        try:
+            x, y = float(value[0]), float(value[1])
+            if not (math.isfinite(x) and math.isfinite(y)):
+                raise ValueError
+        except (TypeError, ValueError, IndexError):
+            raise InvalidParameterError(
+                f"{name}_{form} must be a pair of finite numbers, got {value!r}"
+            ) from None
+        if form == "lonlat" and not (-180 <= x <= 360 and -90 <= y <= 90):
+            raise InvalidParameterError(
+                f"{name}_lonlat {value} is not a longitude and latitude (lon -180..360, lat "
+                "-90..90)"
+            )
         if form == "lonlat":
             if not self.crs_wkt:
                 raise InvalidParameterError(

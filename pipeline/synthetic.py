@@ -16,6 +16,7 @@ and a chunk can be generated on any worker without the rest of the map.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import dask.array as da
@@ -272,6 +273,13 @@ def _scene(seed: int, islands: int):
     return seg_v, seg_u, math.cos(theta), math.sin(theta), isl
 
 
+def _synth_chunk(block_info=None, *, args):
+    """One chunk (a module-level function: tasks pickle it by reference, so workers keep the
+    compiled kernel from one client to the next)."""
+    (r0, r1), (c0, c1) = block_info[None]["array-location"]
+    return _synth_block(r0, r1, c0, c1, *args)
+
+
 def synthetic_dem(
     shape,
     cell_size: float = SYNTHETIC.cell_size.default,
@@ -315,13 +323,8 @@ def synthetic_dem(
     if ch is None:
         data = _synth_block(0, rows, 0, cols, *args)
     else:
-
-        def block(block_info=None):
-            (r0, r1), (c0, c1) = block_info[None]["array-location"]
-            return _synth_block(r0, r1, c0, c1, *args)
-
         data = da.map_blocks(
-            block,
+            functools.partial(_synth_chunk, args=args),
             chunks=da.core.normalize_chunks(ch, (rows, cols)),
             dtype=np.float32,
             meta=np.empty((0, 0), np.float32),

@@ -41,6 +41,36 @@ def test_build_maps_store(tmp_path):
     assert maps.attrs["cell_size"] == 30.0
 
 
+@pytest.mark.parametrize(
+    "shape, chunks",
+    [
+        ((257, 257), 64),  # k * chunk + 1 on both sides: a last chunk of one cell
+        ((129, 67), 64),  # one-cell last rows; 67 mod 64 = 3 columns, below the radius (10)
+        ((130, 200), 64),  # 2 and 8 cells: both below the radius
+        ((12, 9), 4),  # smaller than the structuring element (radius 10 > 9 columns)
+        ((2, 2), 2),  # the smallest DEM
+    ],
+)
+def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, shape, chunks):
+    """Each layer of build_maps against the single-array references (scipy's grey dilation
+    for the safety surface, the in-memory fill and accumulation checked against pysheds in
+    test_ridges.py), built by dask's threads so that tiles are written in parallel."""
+    from pipeline.ridges import accumulation_single, fill_single
+
+    dem = pipeline.synthetic_dem(shape, cell_size=30.0, seed=3, chunks=chunks)
+    maps = pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=300.0, min_accumulation=8)
+    z = dem.values
+    ref = scipy_reference(z, 30.0, 300.0).astype(np.float32)
+    acc = accumulation_single(fill_single(z))
+    np.testing.assert_array_equal(maps["elevation"].values, z)
+    np.testing.assert_array_equal(maps["safety"].values, ref)
+    np.testing.assert_array_equal(maps["passable"].values, (z < 0) & (ref <= -300.0))
+    np.testing.assert_array_equal(maps["accumulation"].values, acc)
+    np.testing.assert_array_equal(maps["ridge"].values, acc >= 8)
+    for v in maps.data_vars.values():
+        assert v.encoding["chunks"] == (min(chunks, shape[0]), min(chunks, shape[1]))
+
+
 def test_dem_hash_is_chunking_independent_and_content_sensitive():
     dem = pipeline.synthetic_dem((200, 170), seed=0, chunks=None)
     h = pipeline.dem_hash(dem)

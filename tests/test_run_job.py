@@ -235,11 +235,15 @@ def test_bad_job_files_name_the_key(tmp_path, extra, match):
 
 
 def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path, local_client):
+    import shutil
+
+    # the job file as shipped, in a copy of tasks/ (its catalog is relative to the job file)
+    shutil.copytree(ROOT / "tasks", tmp_path / "tasks")
     proc = subprocess.run(
         [
             str(EXE),
             "run",
-            str(ROOT / "tasks" / "bad-missions.toml"),
+            str(tmp_path / "tasks" / "bad-missions.toml"),
             "--scheduler",
             local_client.scheduler.address,
         ],
@@ -353,3 +357,130 @@ def test_demo_job_file_is_valid_and_has_six_or_more_missions():
     assert len(job.missions) >= 6
     assert len({m.get("planner", job.planning["planner"]) for m in job.missions}) >= 3
     assert len({m.get("omega", job.planning["omega"]) for m in job.missions}) >= 3
+
+
+# ------------------------------------------------------------------ nothing stale, nothing lost
+
+TWO = """
+[[missions]]
+name = "east"
+start = [150, 5]
+goal = [150, 290]
+mcpc = false
+[[missions]]
+name = "south"
+start = [5, 150]
+goal = [290, 150]
+mcpc = false
+"""
+
+
+def _run_ids(root):
+    return {k: v for k, v in _items(root).items()}
+
+
+def test_a_changed_mission_or_maps_is_planned_again(tmp_path, stores, local_client, caplog):
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="edit")
+    root = tmp_path / "cat"
+    run_job(job, scheduler=local_client)
+    first = _run_ids(root)
+    # the goal of one mission edited: that one is planned again, the other is skipped
+    job.write_text(job.read_text().replace("goal = [150, 290]", "goal = [140, 280]"))
+    with caplog.at_level("INFO", logger="pipeline.jobs"):
+        res = run_job(job, scheduler=local_client)
+    second = _run_ids(root)
+    assert res.skipped == 1 and res.replanned == 1 and res.ok
+    assert second["south"] == first["south"] and second["east"] != first["east"]
+    assert "east: its definition, the maps or the DEM changed" in caplog.text
+    item = json.loads((root / "missions" / "east" / "east.json").read_text())
+    assert item["properties"]["auv:goal"] == [140, 280]
+    # the job's clearance changed: new maps, every mission planned again on them
+    job.write_text(job.read_text().replace("clearance = 150.0", "clearance = 200.0"))
+    res = run_job(job, scheduler=local_client)
+    third = _run_ids(root)
+    assert res.replanned == 2 and res.skipped == 0
+    assert all(third[k] != second[k] for k in third)
+    for mid in ("east", "south"):
+        item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
+        assert item["properties"]["auv:min_clearance_m"] >= 200.0 - 1e-2
+
+
+NAMES = ["collection.json", "missions.parquet", "a#b?c\\\\d", "x" * 300, "nul\\u0000in", "ok"]
+
+
+def test_any_mission_name_gives_a_catalog_pystac_loads(tmp_path, stores, local_client):
+    with_stores(stores, tmp_path)
+    missions = "".join(
+        f'\n[[missions]]\nname = "{n}"\nstart = [150, {5 + i}]\ngoal = [150, 60]\nmcpc = false\n'
+        for i, n in enumerate(NAMES)
+    )
+    job = write_job(tmp_path, missions=missions, name="names")
+    res = run_job(job, scheduler=local_client)
+    assert res.ok and res.planned == len(NAMES)
+    cat = pystac.Catalog.from_file(str(res.catalog))
+    items = list(cat.get_items(recursive=True))
+    got = {it.properties["auv:name"] for it in items}
+    assert got == {n.encode().decode("unicode_escape") for n in NAMES}
+    for it in items:
+        it.validate()
+        assert all(c.isalnum() or c in "-_" for c in it.id) and len(it.id) <= 91
+    assert len({it.id for it in items}) == len(NAMES)
+    table = gpd.read_parquet(res.catalog.parent / "missions" / "missions.parquet")
+    assert len(table) == len(NAMES)
+
+
+def test_a_second_run_on_a_busy_catalog_refuses(tmp_path, local_client):
+    from pipeline.jobs import catalog_lock
+
+    job = write_job(tmp_path, missions="", name="busy")
+    with catalog_lock(tmp_path / "cat"):
+        with pytest.raises(pipeline.PipelineError, match="is in use by another run"):
+            run_job(job, scheduler=local_client)
+        proc = subprocess.run(
+            [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+    assert proc.returncode == 3, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "is in use by another run (pid" in proc.stderr
+
+
+def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
+    tmp_path, stores, local_client
+):
+    with_stores(stores, tmp_path)
+    root = tmp_path / "cat"
+    job = write_job(tmp_path, missions=TWO, name="tmp")
+    run_job(job, scheduler=local_client)
+    report = root / "performance-report.html"
+    html = report.read_text()
+    assert "<script" in html and "cdn.bokeh.org" not in html  # opens offline
+    left = [
+        root / ".maps-0123.zarr.tmp-ab12cd34",
+        root / ".maps-0123.zarr.tmp-ab12cd34-scratch",
+        root / "missions" / ".east.tmp-0badf00d",
+        next(root.glob("maps-*.zarr")) / ".coarse-rho2.tmp-12345678",
+    ]
+    for p in left:
+        (p / "c").mkdir(parents=True)
+    (root / ".performance-report.tmp-1234.html").write_text("half")
+    before = report.stat().st_mtime_ns
+    res = run_job(job, scheduler=local_client)  # nothing to do
+    assert res.skipped == 2 and res.ran == 0
+    assert not any(p.exists() for p in left)
+    assert not list(root.glob(".*.tmp-*"))
+    assert report.stat().st_mtime_ns == before  # the no-op run kept the last report
+    assert len(list((root / "reports").glob("performance-*.html"))) == 1
+
+
+def test_a_mission_that_cannot_be_written_fails_alone(tmp_path, stores, local_client):
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="unwritable")
+    blocker = tmp_path / "cat" / "missions" / "east"
+    blocker.parent.mkdir(parents=True)
+    blocker.write_text("a file where the mission's folder goes")
+    res = run_job(job, scheduler=local_client)
+    assert res.failed == ["east"] and res.planned == 1
+    assert _items(tmp_path / "cat").keys() == {"south"}  # the other one is written

@@ -154,16 +154,20 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
                 nn = np_ + (1 if ridge[nr, nc] else 0)
                 if sv & (PARENT | SEEN) and not (nn > nor[v] or (nn == nor[v] and ng < gi[v])):
                     continue
-                # a state's WAIT entries are never later than its record (an early one
-                # rereads the record when it pops), so a record that waits longer needs no push
+                # INWAIT: the state has a WAIT entry no later than its record (an early one
+                # rereads the record when it pops), so a record that waits longer needs no
+                # push. A record that goes to FOCAL clears it: the entries still in WAIT may
+                # then be later than a later record of the state, which must push its own
                 early = (sv & INWAIT) != 0 and ng >= gi[v]
                 gi[v] = ng
                 nor[v] = nn
-                st_nor[v] = (sv & INWAIT) | PARENT | k
                 hv = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2)
                 if ng + hv < limit:
+                    st_nor[v] = PARENT | k
                     fn = heap_push(fk, fi, fn, _focal_key(nn, ng, gscale), v)
-                elif not early:
+                    continue
+                st_nor[v] = (sv & INWAIT) | PARENT | k
+                if not early:
                     wn = heap_push(wk, wi, wn, ng + hv, v)
                     st_nor[v] |= INWAIT
             if pick != top:

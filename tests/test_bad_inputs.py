@@ -1,0 +1,467 @@
+"""Bad input and faults, as a user and an operator meet them: each case through the command
+line (click's runner, in this process, or the installed console script) or the API, and the
+assertion that it ends in one line naming the problem and a documented exit code (2 bad input,
+3 the environment), never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+from click.testing import CliRunner
+from conftest import metric_dataarray, random_surface
+
+import pipeline
+from pipeline.cli import main
+
+EXE = Path(sys.executable).parent / "pipeline"
+
+
+def one_line_error(res, code: int, match: str) -> None:
+    """The command failed with ``code`` and said so in one line containing ``match``."""
+    out = res.stderr if hasattr(res, "stderr") and res.stderr is not None else res.output
+    assert res.exit_code == code, (res.exit_code, out, getattr(res, "exception", None))
+    lines = [ln for ln in out.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    assert len(errors) == 1, out
+    assert "Traceback" not in out, out
+    assert match in errors[0], (match, errors[0])
+
+
+def invoke(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+# ------------------------------------------------------------------ DEM files
+
+
+def _nc(path, da):
+    da.to_dataset(name=da.name or "elevation").to_netcdf(path)
+    return path
+
+
+def _good_tif(path):
+    import rioxarray  # noqa: F401
+
+    arr = metric_dataarray(random_surface((64, 64)), a=50.0).rio.write_crs("EPSG:32610")
+    arr.rio.to_raster(path)
+    return path
+
+
+def _dem_file(kind, tmp: Path) -> Path:
+    z = random_surface((20, 30))
+    if kind == "missing":
+        return tmp / "nope.tif"
+    if kind == "empty tif":
+        (tmp / "e.tif").write_bytes(b"")
+        return tmp / "e.tif"
+    if kind == "garbage tif":
+        (tmp / "g.tif").write_bytes(b"not a tiff at all" * 10)
+        return tmp / "g.tif"
+    if kind == "truncated tif":
+        p = _good_tif(tmp / "t.tif")
+        data = p.read_bytes()
+        p.write_bytes(data[: len(data) // 2])
+        return p
+    if kind == "garbage nc":
+        (tmp / "g.nc").write_bytes(b"CDF\x01 broken" * 20)
+        return tmp / "g.nc"
+    if kind == "latitude beyond 90":
+        da = xr.DataArray(
+            z,
+            dims=("lat", "lon"),
+            coords={"lat": np.linspace(80, 99, 20), "lon": np.linspace(0, 3, 30)},
+            name="elevation",
+        )
+        da["lat"].attrs.update(units="degrees_north", standard_name="latitude")
+        da["lon"].attrs.update(units="degrees_east", standard_name="longitude")
+        return _nc(tmp / "lat.nc", da)
+    if kind == "time steps":
+        da = xr.DataArray(np.stack([z, z]), dims=("time", "y", "x"), name="elevation")
+        da = da.assign_coords(x=np.arange(30) * 50.0, y=np.arange(20) * 50.0)
+        return _nc(tmp / "time.nc", da)
+    if kind == "no coordinates":
+        return _nc(tmp / "nocoords.nc", xr.DataArray(z, dims=("y", "x"), name="elevation"))
+    if kind == "all no-data":
+        return _nc(tmp / "nan.nc", metric_dataarray(np.full((20, 30), np.nan, np.float32)))
+    if kind == "text values":
+        da = metric_dataarray(np.full((20, 30), "x", dtype=object)).astype(str)
+        return _nc(tmp / "text.nc", da.rename("elevation"))
+    if kind == "unordered coordinates":
+        da = metric_dataarray(z)
+        x = da["x"].values.copy()
+        x[[3, 4]] = x[[4, 3]]
+        return _nc(tmp / "unordered.nc", da.assign_coords(x=x).rename("elevation"))
+    if kind == "two variables":
+        ds = xr.Dataset({"depth_a": metric_dataarray(z), "depth_b": metric_dataarray(z)})
+        ds.to_netcdf(tmp / "two.nc")
+        return tmp / "two.nc"
+    if kind == "one cell":
+        return _nc(tmp / "one.nc", metric_dataarray(z[:1, :1]).rename("elevation"))
+    if kind == "folder, not a store":
+        (tmp / "folder.zarr").mkdir()
+        return tmp / "folder.zarr"
+    if kind == "unknown format":
+        (tmp / "dem.txt").write_text("1 2 3\n")
+        return tmp / "dem.txt"
+    raise AssertionError(kind)
+
+
+DEM_CASES = [
+    ("missing", "does not exist"),
+    ("empty tif", "cannot read DEM file"),
+    ("garbage tif", "cannot read DEM file"),
+    ("truncated tif", "cannot read DEM file"),
+    ("garbage nc", "cannot read DEM file"),
+    ("latitude beyond 90", "latitudes beyond"),
+    ("time steps", "time"),
+    ("no coordinates", "cell size"),
+    ("all no-data", "no-data"),
+    ("text values", "not numbers"),
+    ("unordered coordinates", "not strictly increasing or decreasing"),
+    ("two variables", "variable"),
+    ("one cell", "2 x 2"),
+    ("folder, not a store", "cannot read DEM file"),
+    ("unknown format", "DEM"),
+]
+
+
+@pytest.mark.parametrize("kind, match", DEM_CASES, ids=[k for k, _ in DEM_CASES])
+@pytest.mark.parametrize("command", ["import", "info"])
+def test_bad_dem_files(tmp_path, kind, match, command):
+    src = _dem_file(kind, tmp_path)
+    if command == "import":
+        res = invoke("dem", "import", src, tmp_path / "out.zarr", "--chunks", "16")
+    else:
+        res = invoke("dem", "info", src)
+    one_line_error(res, 2, match)
+    assert not (tmp_path / "out.zarr").exists()
+
+
+# ------------------------------------------------------------------ job files
+
+SYN = "[dem.synthetic]\nshape = [40, 40]\n"
+
+
+def _job_text(case: str) -> str:
+    """A job file with one defect (top-level keys first, arrays of tables last)."""
+    top, tables, missions = "", SYN, ""
+    kind, _, value = case.partition(":")
+    if kind == "top":
+        top = value
+    elif kind == "tables":
+        tables = value
+    elif kind == "extra":
+        tables = SYN + value
+    elif kind == "mission":
+        missions = "[[missions]]\n" + value
+    elif kind == "raw":
+        return value
+    return f"{top}\n{tables}\n{missions}"
+
+
+M = "start = [1, 2]\ngoal = [3, 4]\n"
+JOB_CASES = [
+    ("top:planners = 1", "unknown key 'planners'"),
+    ("top:name = 3", "name must be"),
+    ("tables:name = 'x'", r"a [dem] table is required"),
+    ("tables:[dem]\npath = 'a.tif'\n[dem.synthetic]\nshape = [4, 4]", "exactly one of"),
+    ("tables:[dem]\ncolour = 1\n[dem.synthetic]\nshape = [4, 4]", "unknown key dem.'colour'"),
+    ("tables:[dem.synthetic]\ncell_size = 3.0", "shape is required"),
+    ("tables:[dem.synthetic]\nshape = [4]", "dem.synthetic.shape must be a pair"),
+    ("tables:[dem.synthetic]\nshape = [1, 1]", "dem.synthetic.shape[0] (rows) must be"),
+    ("tables:[dem.synthetic]\nshape = ['a', 'b']", "dem.synthetic.shape[0] (rows) must be"),
+    ("tables:[dem.synthetic]\nshape = [40, 40]\ncell_size = -30", "cell_size must be"),
+    ("tables:[dem.synthetic]\nshape = [40, 40]\ncell_size = 0", "cell_size must be"),
+    ("tables:[dem.synthetic]\nshape = [40, 40]\nislands = 99", "islands must be an integer"),
+    ("tables:[dem.synthetic]\nshape = [40, 40]\nseed = -1", "seed must be an integer >= 0"),
+    ("tables:[dem.synthetic]\nshape = [40, 40]\nseed = 'x'", "seed must be an integer"),
+    ("tables:[dem.synthetic]\nshape = [40, 40]\nsed = 1", "unknown key dem.synthetic.'sed'"),
+    ("tables:[dem]\nchunks = 0\n[dem.synthetic]\nshape = [4, 4]", "dem.chunks must be"),
+    ("tables:[dem]\nchunks = 1.5\n[dem.synthetic]\nshape = [4, 4]", "dem.chunks must be"),
+    ("tables:[dem]\npath = 'missing.tif'", "dem.path 'missing.tif' does not exist"),
+    ("tables:[dem]\npath = 3", "dem.path must be a file path"),
+    ("tables:[dem]\npath = '.'\nresolution = -1.0", "dem.resolution must be"),
+    ("tables:[dem]\npath = '.'\ncell_size = 'big'", "dem.cell_size must be"),
+    ("extra:[maps]\nmethod = 'round'", "maps.method must be"),
+    ("extra:[maps]\nclearance = 0", "maps.clearance must be a finite number of metres > 0"),
+    ("extra:[maps]\nclearance = -5", "maps.clearance must be"),
+    ("extra:[maps]\nclearance = '300'", "maps.clearance must be"),
+    ("extra:[maps]\nclearance = nan", "maps.clearance must be"),
+    ("extra:[maps]\nclearance = inf", "maps.clearance must be"),
+    ("extra:[maps]\nclearance = 10.0", "smaller than half a cell"),
+    ("extra:[maps]\nhorizontal_clearance = 0", "maps.horizontal_clearance must be"),
+    ("extra:[maps]\nsurface_clearance = -1", "maps.surface_clearance must be"),
+    ("extra:[maps]\nsea_level = nan", "maps.sea_level must be"),
+    ("extra:[maps]\nmin_accumulation = 0", "maps.min_accumulation must be"),
+    ("extra:[maps]\nmin_accumulation = 2.5", "maps.min_accumulation must be an integer"),
+    ("extra:[maps]\nradius = 3", "unknown key maps.'radius'"),
+    ("extra:[planning]\nomega = 0.5", "planning.omega must be a finite number >= 1"),
+    ("extra:[planning]\nomega = nan", "planning.omega must be"),
+    ("extra:[planning]\nomega = inf", "planning.omega must be"),
+    ("extra:[planning]\nplanner = 'rrt'", "planning.planner must be 'dijkstra'"),
+    ("extra:[planning]\ncoarse_planner = 'rrt'", "planning.coarse_planner must be"),
+    ("extra:[planning]\nmcpc = 'yes'", "planning.mcpc must be true or false"),
+    ("extra:[planning]\nrho = 0", "planning.rho must be an integer >= 1"),
+    ("extra:[planning]\nsection_size = 1", "planning.section_size must be"),
+    ("extra:[planning]\nmargin = -1", "planning.margin must be"),
+    ("extra:[output]\ncatalog = 3", "output.catalog must be"),
+    ("extra:[output]\nbucket = 'x'", "unknown key output.'bucket'"),
+    ("top:missions = 3", "missions must be an array of tables"),
+    ("mission:start = [1, 2]", "needs exactly one of goal"),
+    ("mission:start = [1, 2]\nstart_xy = [1.0, 2.0]\ngoal = [3, 4]", "needs exactly one"),
+    ("mission:start = [1.5, 2]\ngoal = [3, 4]", r"start must be [row, col]"),
+    ("mission:start_xy = [nan, 1.0]\ngoal = [3, 4]", "start_xy must be a finite number"),
+    ("mission:start_xy = [inf, 1.0]\ngoal = [3, 4]", "start_xy must be a finite number"),
+    ("mission:start_lonlat = [0.0, 95.0]\ngoal = [3, 4]", "start_lonlat must be"),
+    ("mission:start_lonlat = [400.0, 0.0]\ngoal = [3, 4]", "start_lonlat must be"),
+    ("mission:" + M + "speed = 3", r"unknown key missions[0].'speed'"),
+    ("mission:" + M + "omega = 0", "missions[0].omega must be"),
+    ("mission:" + M + "planner = 'bfs'", "missions[0].planner must be"),
+    ("mission:name = ''\n" + M, "name must be a non-empty string"),
+    ("mission:name = 'a'\n" + M + "[[missions]]\nname = 'a'\n" + M, "used twice"),
+    ("raw:[dem.synthetic\nshape = [4, 4]", "not valid TOML"),
+]
+
+
+@pytest.mark.parametrize("case, match", JOB_CASES, ids=[str(i) for i in range(len(JOB_CASES))])
+def test_bad_job_files_dry_run(tmp_path, case, match):
+    job = tmp_path / "job.toml"
+    job.write_text(_job_text(case))
+    one_line_error(invoke("run", job, "--dry-run"), 2, match)
+    assert not (tmp_path / "catalogs").exists()
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda p: p.write_bytes(b"name = '\xff\xfe'\n"), "is not UTF-8"),
+        (lambda p: p.mkdir(), "is a directory, not a file"),
+        (lambda p: None, "does not exist"),
+    ],
+    ids=["not UTF-8", "a directory", "missing"],
+)
+def test_unreadable_job_files(tmp_path, make, match):
+    job = tmp_path / "job.toml"
+    make(job)
+    one_line_error(invoke("run", job), 2, match)
+
+
+# ------------------------------------------------------------------ command-line flags
+
+
+@pytest.fixture
+def small_job(tmp_path):
+    job = tmp_path / "job.toml"
+    job.write_text(f"{SYN}\n[output]\ncatalog = 'cat'\n")
+    return job
+
+
+def test_scheduler_flags(tmp_path, small_job, monkeypatch):
+    monkeypatch.setenv("AUV_PIPELINE_CONNECT_TIMEOUT_S", "2")
+    cases = [
+        (["--scheduler", "tcp://127.0.0.1:1"], 3, "cannot reach the dask scheduler"),
+        (["--scheduler", "not an address"], 3, "cannot reach the dask scheduler"),
+        (["--scheduler-file", tmp_path / "none.json"], 3, "cannot read the scheduler address"),
+        (["--scheduler-file", small_job], 3, "cannot read the scheduler address"),
+    ]
+    (tmp_path / "noaddr.json").write_text(json.dumps({"address": 5}))
+    cases.append((["--scheduler-file", tmp_path / "noaddr.json"], 3, "holds no scheduler"))
+    for flags, code, match in cases:
+        one_line_error(invoke("run", small_job, *flags), code, match)
+    res = invoke("run", small_job, "--scheduler", "a", "--scheduler-file", "b")
+    assert res.exit_code == 2 and "not both" in res.output
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (["dem", "synth", "{t}/s.zarr", "--shape", "0", "5"], "shape[0] (rows)"),
+        (["dem", "synth", "{t}/s.zarr", "--cell-size", "-30"], "`cell_size` must be"),
+        (["dem", "synth", "{t}/s.zarr", "--islands", "99"], "`islands` must be"),
+        (["dem", "synth", "{t}/s.zarr", "--chunks", "0"], "`chunks[0]` must be"),
+        (["build-maps", "{t}/none.zarr", "{t}/m.zarr"], "does not exist"),
+        (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "-1"], "clearance"),
+        (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "5"], "half a cell"),
+        (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--min-accumulation", "0"], "min_acc"),
+        (["build-maps", "{t}/dem.zarr", "{t}/dem.zarr"], "exists already"),
+        (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "1e7"], "needs about"),
+    ],
+)
+def test_bad_cli_arguments(tmp_path, args, match):
+    pipeline.write_dem(pipeline.synthetic_dem((40, 40), chunks=None), tmp_path / "dem.zarr")
+    res = invoke(*[a.format(t=tmp_path) for a in args])
+    one_line_error(res, 2, match)
+    assert not (tmp_path / "m.zarr").exists()
+
+
+# ------------------------------------------------------------------ the environment
+
+
+def test_catalog_path_is_a_file_or_unwritable(tmp_path):
+    (tmp_path / "file").write_text("x")
+    for catalog, match in [
+        (tmp_path / "file", "a file stands where a directory is needed"),
+        (tmp_path / "file" / "sub", "a path component is a file, not a directory"),
+        ("/proc/auv-catalog", "no such file or directory"),
+    ]:
+        job = tmp_path / "job.toml"
+        job.write_text(f"{SYN}\n[output]\ncatalog = '{catalog}'\n")
+        one_line_error(invoke("run", job), 3, match)
+
+
+def test_output_store_under_a_file_is_an_environment_error(tmp_path):
+    (tmp_path / "file").write_text("x")
+    res = invoke("dem", "synth", tmp_path / "file" / "s.zarr", "--shape", "20", "20")
+    one_line_error(res, 3, "a file stands where a directory is needed")
+
+
+def test_a_full_disk_is_one_line_and_exit_3(tmp_path):
+    """A file-size limit stands in for a full disk (the writes fail with an OSError as they
+    do when the disk fills; Python ignores SIGXFSZ)."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+    proc = subprocess.run(
+        [str(EXE), "dem", "synth", str(tmp_path / "s.zarr"), "--shape", "600", "600"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
+    assert proc.returncode == 3, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: file too large")
+    assert not (tmp_path / "s.zarr").exists()
+
+
+# ------------------------------------------------------------------ store tampering
+
+
+@pytest.fixture(scope="module")
+def built_store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("tamper") / "maps.zarr"
+    import dask
+
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(
+            pipeline.synthetic_dem((60, 60), chunks=32, islands=0), path, clearance=90.0
+        )
+    return path
+
+
+def _tamper_attr(store, key, value):
+    g = zarr.open_group(store, mode="r+")
+    g.attrs[key] = value
+
+
+def _tamper_params(store):
+    g = zarr.open_group(store, mode="r+")
+    p = json.loads(g.attrs["parameters"])
+    p["clearance_m"] = 10.0
+    g.attrs["parameters"] = json.dumps(p)
+
+
+TAMPER = [
+    (lambda s: _tamper_attr(s, "cell_size", 31.0), "damaged: its attributes"),
+    (lambda s: _tamper_params(s), "damaged: its attributes"),
+    (lambda s: _tamper_attr(s, "maps_version", 99), "not a maps store of this version"),
+    (lambda s: shutil.rmtree(s / "ridge"), "damaged: it is incomplete"),
+    (lambda s: os.remove(s / "zarr.json"), "is not a Zarr store"),
+    (lambda s: os.remove(s / "safety" / "c" / "0" / "1"), "chunk (0, 1) of its layer 'safety'"),
+]
+
+
+@pytest.mark.parametrize("tamper, match", TAMPER, ids=[m for _, m in TAMPER])
+def test_tampered_stores_are_refused(tmp_path, built_store, tamper, match):
+    store = tmp_path / "maps.zarr"
+    shutil.copytree(built_store, store)
+    tamper(store)
+    with pytest.raises(pipeline.PipelineError, match=match.replace("(", r"\(").replace(")", r"\)")):
+        pipeline.plan(store, (5, 5), (50, 50), planner="astar", mcpc=False, client="synchronous")
+
+
+def test_an_untampered_copy_plans(tmp_path, built_store):
+    store = tmp_path / "maps.zarr"
+    shutil.copytree(built_store, store)
+    t = pipeline.plan(store, (5, 5), (50, 50), planner="astar", mcpc=False, client="synchronous")
+    assert t.status == "ok"
+
+
+# ------------------------------------------------------------------ API arguments
+
+API = [
+    (lambda: pipeline.synthetic_dem((10, 10), islands=11), "`islands` must be"),
+    (lambda: pipeline.synthetic_dem((10, 10), seed=-1), "`seed` must be"),
+    (lambda: pipeline.synthetic_dem((1, 10)), r"`shape[0] (rows)` must be"),
+    (
+        lambda: pipeline.safety_map(pipeline.synthetic_dem((10, 10), chunks=None), method="cube"),
+        "`method` must be",
+    ),
+    (
+        lambda: pipeline.safety_map(
+            pipeline.synthetic_dem((50, 50), chunks=None, cell_size=1.0), clearance=1e6
+        ),
+        "needs about",
+    ),
+    (
+        lambda: pipeline.plan_window(
+            np.zeros((3, 3)),
+            np.zeros((3, 3)),
+            np.ones((3, 3)),
+            (0, 0),
+            (2, 2),
+            cell_size=30.0,
+            omega=float("inf"),
+        ),
+        "`omega` must be",
+    ),
+    (
+        lambda: pipeline.plan_window(
+            np.zeros((3, 3)),
+            np.zeros((3, 3)),
+            np.ones((3, 3)),
+            (0, 0),
+            (2, 2),
+            cell_size=float("nan"),
+        ),
+        "`cell_size` must be",
+    ),
+    (lambda: pipeline.plan_missions("/nonexistent.zarr", []), "does not exist"),
+    (lambda: pipeline.open_store(42), "`maps` must be"),
+]
+
+
+@pytest.mark.parametrize("call, match", API, ids=[m for _, m in API])
+def test_bad_api_arguments(call, match):
+    import re
+
+    with pytest.raises(pipeline.PipelineError, match=re.escape(match)):
+        call()
+
+
+@pytest.mark.parametrize(
+    "form, value, match",
+    [
+        ("xy", [float("nan"), 1.0], "start_xy must be a pair of finite numbers"),
+        ("xy", [float("inf"), 1.0], "start_xy must be a pair of finite numbers"),
+        ("xy", ["a", 1.0], "start_xy must be a pair of finite numbers"),
+        ("lonlat", [0.0, 95.0], "is not a longitude and latitude"),
+        ("xy", [-1e9, 0.0], "off the map"),
+    ],
+)
+def test_mission_coordinates_through_the_api(built_store, form, value, match):
+    store = pipeline.open_store(built_store)
+    with pytest.raises(pipeline.PipelineError, match=match):
+        store.cell_of("start", form, value)
