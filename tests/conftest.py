@@ -35,8 +35,38 @@ def pysheds_ready():
         proc.wait(timeout=900)
 
 
+def _compile_kernels(tmp: Path) -> None:
+    """Compile every numba kernel the workers run, once, in this process: the workers then load
+    them from numba's cache instead of each compiling its own (in a fresh environment, about
+    a minute of two processes' time)."""
+    import dask
+
+    import pipeline
+
+    with dask.config.set(scheduler="synchronous"):
+        dem = pipeline.synthetic_dem((48, 48), chunks=24, islands=0)
+        pipeline.build_maps(dem, tmp / "maps.zarr", clearance=60.0, min_accumulation=4)
+    ok = pipeline.open_maps(tmp / "maps.zarr")["passable"].values
+    cells = np.argwhere(ok)
+    s, g = tuple(cells[0]), tuple(cells[-1])
+    for planner in pipeline.PLANNERS:
+        try:  # the compilation is what counts here, not whether a path exists
+            pipeline.plan(
+                tmp / "maps.zarr",
+                s,
+                g,
+                planner=planner,
+                omega=1.5,
+                rho=2,
+                section_size=8,
+                client="synchronous",
+            )
+        except pipeline.PipelineError:
+            pass
+
+
 @pytest.fixture(scope="session")
-def local_client():
+def local_client(tmp_path_factory):
     """One LocalCluster of 2 single-threaded worker processes for every test that needs a
     cluster but does not test starting one (jobs take it as their scheduler): its workers
     import the library and load the compiled kernels once."""
@@ -44,6 +74,7 @@ def local_client():
 
     from pipeline.cluster import local_cluster
 
+    _compile_kernels(tmp_path_factory.mktemp("warm"))
     cluster = local_cluster()
     client = Client(cluster, set_as_default=False)
     yield client

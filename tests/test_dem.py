@@ -414,3 +414,14 @@ def test_lonlat_dataarray_helper_roundtrip(topobathy):
     z, lon, lat = topobathy
     arr = lonlat_dataarray(z, lon, lat)
     assert arr.lat.values[0] > arr.lat.values[-1]
+
+
+def test_a_geotiff_is_read_in_chunks_not_whole(tmp_path):
+    """A large file must never be one dask chunk (dem info or an import would hold it all)."""
+    import rioxarray  # noqa: F401
+
+    arr = metric_dataarray(random_surface((300, 260)), a=50.0).rio.write_crs("EPSG:32610")
+    arr.rio.to_raster(tmp_path / "big.tif", tiled=True, blockxsize=64, blockysize=64)
+    dem = pipeline.open_dem(tmp_path / "big.tif", chunks=64)
+    assert dem.data.chunksize == (64, 64)
+    assert pipeline.dem.file_chunks(tmp_path / "big.tif") == (64, 64)

@@ -151,6 +151,8 @@ def test_cli_synth_import_info(tmp_path, topobathy_tif):
     assert res.exit_code == 0, res.output
     res = r.invoke(main, ["dem", "info", str(tmp_path / "r.zarr")])
     assert res.exit_code == 0 and "cells of" in res.output and "crs: set" in res.output
+    res = r.invoke(main, ["dem", "info", str(out)])  # the store's own chunks, not the reader's
+    assert res.exit_code == 0 and "stored in chunks (64, 64)" in res.output
 
 
 def test_cli_bad_file_is_one_clear_line(tmp_path):
