@@ -30,6 +30,7 @@ import zarr
 from numba import njit
 
 from ._io import atomic_path, remove_settled
+from .components import components_staged
 from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import StoreExistsError
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
@@ -161,6 +162,7 @@ def build_maps(
     t0 = time.perf_counter()
     with atomic_path(store, overwrite=overwrite) as tmp:
         scratch = tmp.with_name(tmp.name + "-scratch")
+        labels = tmp.with_name(tmp.name + "-components")
         try:
             # passes 1-2: tiles flooded once, fill and flow summaries solved globally
             _, acc, ridge = ridge_layers_staged(
@@ -191,10 +193,31 @@ def build_maps(
                 }
             )
             partials = _write(ds, tmp, ch, also=dem_hash(dem))
+            # pass 4: connected components of the passable layer just written
+            component = components_staged(da.from_zarr(str(tmp / "passable")), labels)
+            xr.Dataset(
+                {
+                    "component": (
+                        ("y", "x"),
+                        component,
+                        {"long_name": "connected component of the passable graph (0: none)"},
+                    )
+                }
+            ).to_zarr(
+                tmp,
+                mode="a",
+                zarr_format=3,
+                consolidated=False,
+                encoding={"component": {"chunks": ch}},
+                write_empty_chunks=True,
+            )
+            log.info("maps %s: components labelled", store)
         except BaseException:
-            remove_settled(scratch)  # tasks still running may write into it after a failure
+            for p in (scratch, labels):  # tasks still running may write after a failure
+                remove_settled(p)
             raise
         shutil.rmtree(scratch, ignore_errors=True)
+        shutil.rmtree(labels, ignore_errors=True)
         group = zarr.open_group(tmp, mode="r+")
         attrs = {
             "title": "pipeline maps store",

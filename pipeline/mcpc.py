@@ -395,6 +395,13 @@ def plan(
     check_planner(coarse_planner, omega, "coarse_planner")
     mcpc = PLANNING.mcpc.check(mcpc)
     start, goal = _check_endpoints(m, start, goal)
+    # the components layer proves reachability at once, either way
+    ca, cb = m.component(start), m.component(goal)
+    if ca is not None and ca != cb:
+        raise UnreachableGoalError(
+            f"the goal is unreachable: start {start} and goal {goal} lie in separate passable "
+            f"regions (components {ca} and {cb} of the maps store)"
+        )
     run_on = get_client(client)
     extra: dict = {
         "mcpc": bool(mcpc),
@@ -404,24 +411,45 @@ def plan(
         "coarse_planner": coarse_planner,
     }
     if not mcpc:
-        whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal)
-        res = _run(run_on, m, [whole], planner, omega)[0]
-        if not res.ok:
-            raise UnreachableGoalError(f"no path on the whole map: {res.message}")
-        extra["sections"] = [_section_summary(res, whole)]
-        return _finish(
+        return _plan_whole(m, run_on, planner, omega, start, goal, t0, extra)
+    try:
+        return _plan_mcpc(
             m,
-            [res],
+            run_on,
             planner,
             omega,
             start,
             goal,
-            res.expansions,
             t0,
             extra,
-            lower=res.lower_bound_m,
+            rho,
+            section_size,
+            margin,
+            coarse_planner,
         )
+    except UnreachableGoalError as exc:
+        if ca is None:  # reachability unknown (a store without components): as it says
+            raise
+        # start and goal share a component, so a path exists that the coarse map or the
+        # sections missed (a passage narrower than rho cells): plan the whole map
+        extra["fallback"] = f"MCPC found no path ({exc}); planned on the whole map instead"
+        return _plan_whole(m, run_on, planner, omega, start, goal, t0, extra)
 
+
+def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra) -> Trajectory:
+    whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal)
+    res = _run(run_on, m, [whole], planner, omega)[0]
+    if not res.ok:
+        raise UnreachableGoalError(f"no path on the whole map: {res.message}")
+    extra["sections"] = [_section_summary(res, whole)]
+    return _finish(
+        m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower=res.lower_bound_m
+    )
+
+
+def _plan_mcpc(
+    m, run_on, planner, omega, start, goal, t0, extra, rho, section_size, margin, coarse_planner
+) -> Trajectory:
     # 1-2: compression (cached) and the coarse path
     tc = time.perf_counter()
     co = m.coarse(rho)
@@ -456,7 +484,7 @@ def plan(
     # 3-5: restore, segment, snap the joints
     pts = restore(ct.cells, rho, m.shape, start, goal)
     secs = segment(pts, section_size, margin, m.shape)
-    joints = [tuple(pts[i0]) for i0, _, _ in secs] + [goal]
+    joints = [(int(pts[i0][0]), int(pts[i0][1])) for i0, _, _ in secs] + [goal]
     for k in range(1, len(secs)):
         wins = (secs[k - 1][2], secs[k][2])
         snapped = None

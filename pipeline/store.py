@@ -160,6 +160,8 @@ class MapsStore:
                 f"its coordinates ({spacing[0]:g} x {spacing[1]:g} m)",
             )
         self.all_chunks_written = bool(attrs.get("all_chunks_written"))
+        # stores built before the components layer have none: reachability then is not known
+        self.has_components = "component" in group
         self._dataset = None
         self._coarse: dict = {}
         self._lock = threading.Lock()
@@ -181,6 +183,14 @@ class MapsStore:
         """Rows ``r0:r1`` and columns ``c0:c1`` of layer ``var``, through the chunk cache. A
         chunk missing from a store that wrote every chunk is an error, not NaN."""
         return CACHE.window(self.path, var, r0, r1, c0, c1, complete=self.all_chunks_written)
+
+    def component(self, cell) -> int | None:
+        """The connected component of a cell (0: not passable), or None for a store without
+        the components layer."""
+        if not self.has_components:
+            return None
+        r, c = int(cell[0]), int(cell[1])
+        return int(self.window("component", r, r + 1, c, c + 1)[0, 0])
 
     def coarse(self, rho: int) -> dict:
         """The maps compressed by ``rho`` (SPEC section 6 step 1), as numpy arrays.

@@ -214,14 +214,18 @@ def start_dask_cluster(directory: Path, workers: int = 2):
 
 
 def stop_dask_cluster(sched, procs) -> None:
-    for p in [*procs, sched]:
-        if p.poll() is None:
-            p.terminate()
-    for p in [*procs, sched]:
-        try:
-            p.wait(timeout=30)
-        except Exception:  # noqa: BLE001
-            p.kill()
+    """Workers first, then the scheduler (a worker whose scheduler went first keeps trying to
+    reconnect); whatever has not stopped within seconds is killed."""
+    for group in (procs, [sched]):
+        for p in group:
+            if p.poll() is None:
+                p.terminate()
+        for p in group:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
 
 
 @pytest.fixture(scope="module")

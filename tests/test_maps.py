@@ -16,7 +16,14 @@ from pipeline.exceptions import StoreExistsError
 def test_build_maps_store(tmp_path):
     dem = pipeline.synthetic_dem((300, 250), cell_size=30.0, seed=2, chunks=64)
     maps = pipeline.build_maps(dem, tmp_path / "maps.zarr", clearance=300.0)
-    assert set(maps.data_vars) == {"elevation", "safety", "passable", "accumulation", "ridge"}
+    assert set(maps.data_vars) == {
+        "elevation",
+        "safety",
+        "passable",
+        "accumulation",
+        "ridge",
+        "component",
+    }
     for v in maps.data_vars.values():
         assert v.data.chunksize == (64, 64)  # chunked identically
     g = zarr.open_group(tmp_path / "maps.zarr", mode="r")
@@ -55,6 +62,7 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, 
     """Each layer of build_maps against the single-array references (scipy's grey dilation
     for the safety surface, the in-memory fill and accumulation checked against pysheds in
     test_ridges.py), built by dask's threads so that tiles are written in parallel."""
+    from pipeline.components import label_components
     from pipeline.ridges import accumulation_single, fill_single
 
     dem = pipeline.synthetic_dem(shape, cell_size=30.0, seed=3, chunks=chunks)
@@ -67,6 +75,8 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, 
     np.testing.assert_array_equal(maps["passable"].values, (z < 0) & (ref <= -300.0))
     np.testing.assert_array_equal(maps["accumulation"].values, acc)
     np.testing.assert_array_equal(maps["ridge"].values, acc >= 8)
+    labels, _ = label_components(maps["passable"].values)  # checked against scipy's csgraph
+    np.testing.assert_array_equal(maps["component"].values, labels)
     for v in maps.data_vars.values():
         assert v.encoding["chunks"] == (min(chunks, shape[0]), min(chunks, shape[1]))
 
