@@ -18,11 +18,12 @@ _WARM: dict = {}
 
 
 def pytest_sessionstart(session):
-    """pysheds compiles about 80 numba functions when imported (over a minute in a fresh
-    environment, then cached on disk): compile them on the idle core while the first tests run,
-    so that the pysheds comparisons find the cache warm (``pysheds_ready``)."""
-    _WARM["pysheds"] = subprocess.Popen(
-        [sys.executable, "-c", "import pysheds.grid"],
+    """In a fresh environment numba compiles every kernel on first use (about a minute for the
+    library's, over a minute for the ~80 that pysheds compiles when imported), then caches it
+    on disk. Most tests use one core: compile both on the other one while the first tests run
+    (tests/_warm_numba.py), so that later tests, and the cluster's workers, load them."""
+    _WARM["numba"] = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("_warm_numba.py"))],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -30,31 +31,41 @@ def pytest_sessionstart(session):
 
 @pytest.fixture(scope="session")
 def pysheds_ready():
-    proc = _WARM.get("pysheds")
+    """The warm-up has compiled pysheds (its comparisons then take seconds, not a minute)."""
+    proc = _WARM.get("numba")
     if proc is not None:
         proc.wait(timeout=900)
 
 
-def _compile_kernels(tmp: Path) -> None:
-    """Compile every numba kernel the workers run, once, in this process: the workers then load
-    them from numba's cache instead of each compiling its own (in a fresh environment, about
-    a minute of two processes' time)."""
+def compile_kernels(tmp: Path) -> None:
+    """Run every numba kernel of the library once on tiny inputs, with the argument types the
+    tests and the workers use, so that numba compiles and caches each (tests/_warm_numba.py
+    runs this at session start; the session cluster runs it before its workers start)."""
     import dask
 
     import pipeline
+    from pipeline.ridges import accumulation_single, fill_single
 
     with dask.config.set(scheduler="synchronous"):
         dem = pipeline.synthetic_dem((48, 48), chunks=24, islands=0)
         pipeline.build_maps(dem, tmp / "maps.zarr", clearance=60.0, min_accumulation=4)
-    ok = pipeline.open_maps(tmp / "maps.zarr")["passable"].values
-    cells = np.argwhere(ok)
-    s, g = tuple(cells[0]), tuple(cells[-1])
+        small = pipeline.synthetic_dem((40, 40), chunks=None)
+        for method in ("vertical", "horizontal", "spherical"):
+            pipeline.safety_map(small, method=method, clearance=60.0)
+            pipeline.safety_map(small.chunk(16), method=method, clearance=60.0).compute()
+        accumulation_single(fill_single(small.values))
+    surface = random_surface((12, 12)).astype(np.float64)
+    ridge, ok = np.zeros(surface.shape, bool), np.ones(surface.shape, bool)
+    cells = np.argwhere(pipeline.open_maps(tmp / "maps.zarr")["passable"].values)
     for planner in pipeline.PLANNERS:
-        try:  # the compilation is what counts here, not whether a path exists
+        pipeline.plan_window(
+            surface, ridge, ok, (0, 0), (11, 11), cell_size=30.0, planner=planner, omega=1.5
+        )
+        try:  # on the store's float32 maps, in sections; whether a path exists does not count
             pipeline.plan(
                 tmp / "maps.zarr",
-                s,
-                g,
+                tuple(cells[0]),
+                tuple(cells[-1]),
                 planner=planner,
                 omega=1.5,
                 rho=2,
@@ -74,7 +85,7 @@ def local_client(tmp_path_factory):
 
     from pipeline.cluster import local_cluster
 
-    _compile_kernels(tmp_path_factory.mktemp("warm"))
+    compile_kernels(tmp_path_factory.mktemp("warm"))
     cluster = local_cluster()
     client = Client(cluster, set_as_default=False)
     yield client

@@ -401,6 +401,13 @@ def test_an_untampered_copy_plans(tmp_path, built_store):
 
 # ------------------------------------------------------------------ API arguments
 
+
+def _tiny_window(**kwargs):
+    args = {"cell_size": 30.0, **kwargs}
+    grid = np.zeros((3, 3))
+    return pipeline.plan_window(grid, grid, grid == 0, (0, 0), (2, 2), **args)
+
+
 API = [
     (lambda: pipeline.synthetic_dem((10, 10), islands=11), "`islands` must be"),
     (lambda: pipeline.synthetic_dem((10, 10), seed=-1), "`seed` must be"),
@@ -415,29 +422,8 @@ API = [
         ),
         "needs about",
     ),
-    (
-        lambda: pipeline.plan_window(
-            np.zeros((3, 3)),
-            np.zeros((3, 3)),
-            np.ones((3, 3)),
-            (0, 0),
-            (2, 2),
-            cell_size=30.0,
-            omega=float("inf"),
-        ),
-        "`omega` must be",
-    ),
-    (
-        lambda: pipeline.plan_window(
-            np.zeros((3, 3)),
-            np.zeros((3, 3)),
-            np.ones((3, 3)),
-            (0, 0),
-            (2, 2),
-            cell_size=float("nan"),
-        ),
-        "`cell_size` must be",
-    ),
+    (lambda: _tiny_window(omega=float("inf")), "`omega` must be"),
+    (lambda: _tiny_window(cell_size=float("nan")), "`cell_size` must be"),
     (lambda: pipeline.plan_missions("/nonexistent.zarr", []), "does not exist"),
     (lambda: pipeline.open_store(42), "`maps` must be"),
 ]

@@ -14,9 +14,8 @@ from conftest import CHUNKINGS, metric_dataarray, random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from test_planners import MOVES, check_path, reference_length
+from test_planners import check_path, reference_graph, reference_length
 
 import pipeline
 from pipeline.components import components_staged, label_components
@@ -24,22 +23,8 @@ from pipeline.components import components_staged, label_components
 
 def reference_partition(ok: np.ndarray) -> np.ndarray:
     """Components of the planners' graph, edge by edge, by scipy.sparse.csgraph."""
-    rows, cols = ok.shape
-    src, dst = [], []
-    for r in range(rows):
-        for c in range(cols):
-            if not ok[r, c]:
-                continue
-            for dr, dc in MOVES:
-                nr, nc = r + dr, c + dc
-                if not (0 <= nr < rows and 0 <= nc < cols and ok[nr, nc]):
-                    continue
-                if dr and dc and not (ok[r, nc] and ok[nr, c]):
-                    continue  # no corner cutting
-                src.append(r * cols + c)
-                dst.append(nr * cols + nc)
-    g = coo_matrix((np.ones(len(src)), (src, dst)), shape=(rows * cols, rows * cols))
-    return connected_components(g, directed=False)[1].reshape(rows, cols)
+    graph = reference_graph(np.zeros(ok.shape), ok, 1.0)
+    return connected_components(graph, directed=False)[1].reshape(ok.shape)
 
 
 def same_partition(labels, ref, ok) -> bool:

@@ -28,7 +28,9 @@ def reference_length(surface, passable, a, start, goal):
     return float(d[goal[0] * surface.shape[1] + goal[1]])
 
 
-def reference_distances(surface, passable, a, start):
+def reference_graph(surface, passable, a):
+    """SPEC section 4's graph built edge by edge (8 moves, no corner cutting, 3-D lengths) as
+    a scipy sparse matrix over row-major cell indices."""
     rows, cols = surface.shape
     src, dst, w = [], [], []
     for r in range(rows):
@@ -45,8 +47,12 @@ def reference_distances(surface, passable, a, start):
                 dst.append(nr * cols + nc)
                 dz = float(surface[nr, nc]) - float(surface[r, c])
                 w.append(math.sqrt(a * a * (dr * dr + dc * dc) + dz * dz))
-    g = coo_matrix((w, (src, dst)), shape=(rows * cols, rows * cols)).tocsr()
-    return dijkstra(g, indices=start[0] * cols + start[1])
+    return coo_matrix((w, (src, dst)), shape=(rows * cols, rows * cols)).tocsr()
+
+
+def reference_distances(surface, passable, a, start):
+    g = reference_graph(surface, passable, a)
+    return dijkstra(g, indices=start[0] * surface.shape[1] + start[1])
 
 
 def check_path(t, passable, start, goal):
