@@ -1,15 +1,18 @@
 """The maps store: one Zarr (v3) store per DEM and parameter set (SPEC section 1).
 
-It holds ``elevation``, ``safety``, ``passable``, ``accumulation`` and ``ridge``, chunked
-identically, with the parameters and a content hash of the input DEM in its attributes. It is
-written once, atomically, and read by every mission.
+It holds ``elevation``, ``safety``, ``passable``, ``accumulation``, ``ridge`` and
+``component``, chunked identically, every chunk written, with the parameters, a content hash
+of the input DEM and a signature of those attributes. It is written once, atomically, and read
+by every mission (:mod:`pipeline.store`).
 
-The build runs as three streaming passes, each a dask computation that reads its input chunk
-by chunk, so that no worker holds more than a chunk or two plus perimeter data: (1) every tile
+The build runs as streaming passes, each a dask computation that reads its input chunk by
+chunk, so that no worker holds more than a chunk or two plus perimeter data: (1) every tile
 is flooded once, its local fill and label indices go to a scratch store, and the spill edges
 to a small global solve; (2) the fill is finished elementwise per tile (plus a one-cell halo)
-and the flow summaries go to the second global solve; (3) every layer is written. The scratch
-store is removed at the end.
+and the flow summaries go to the second global solve; (3) every layer is written; (4) the
+passable layer is labelled tile by tile, the labels that touch across tile borders joined in a
+third small solve, and the component layer written (:mod:`pipeline.components`). The scratch
+stores are removed at the end.
 """
 
 from __future__ import annotations
