@@ -507,7 +507,6 @@ def _plan_mcpc(
 
     # 7: stitch, then cut any loops
     extra["sections"] = [_section_summary(r, sec) for r, sec in zip(results, sections, strict=True)]
-    extra["section_bound_m"] = float(sum(r.lower_bound_m for r in results))
     expansions = ct.expansions + sum(r.expansions for r in results)
     return _finish(m, results, planner, omega, start, goal, expansions, t0, extra)
 
