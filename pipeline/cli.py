@@ -115,8 +115,7 @@ def dem_import(source, out, chunks, variable, cell_size, resolution, overwrite):
 @click.argument("path", type=click.Path())
 def dem_info(path):
     """Describe a DEM file as open_dem sees it."""
-    from .dem import file_chunks, is_read_error, open_dem
-    from .exceptions import InvalidDEMError
+    from .dem import file_chunks, open_dem, reading
 
     with _errors():
         d = open_dem(path, chunks=DEM.chunks.default)
@@ -126,12 +125,8 @@ def dem_info(path):
             + (f"stored in chunks {stored}" if stored else "stored unchunked")
         )
         click.echo(f"crs: {'set' if 'crs_wkt' in d.attrs else 'none (local metric grid)'}")
-        try:
+        with reading(path):
             lo, hi = float(d.min().compute()), float(d.max().compute())
-        except Exception as exc:
-            if is_read_error(exc):
-                raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
-            raise
         click.echo(f"elevation: {lo:.1f} .. {hi:.1f} m")
 
 

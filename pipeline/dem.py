@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import dask.array as da
@@ -122,7 +124,7 @@ def open_dem(
         else:
             dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
         return dem
-    try:
+    with reading(path):
         dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution)
         if validate:
             require_valid_cells(
@@ -130,10 +132,6 @@ def open_dem(
                 f"DEM file {path} holds no valid elevation: every cell is "
                 "no-data (NaN or the file's nodata value)",
             )
-    except Exception as exc:
-        if is_read_error(exc):  # a damaged file found while reading its values
-            raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
-        raise
     return dem
 
 
@@ -162,14 +160,8 @@ def write_dem(
     ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
     encoding = {"elevation": {"chunks": ch}}
     with atomic_path(store, overwrite=overwrite) as tmp:
-        try:
+        with reading(dem.attrs.get("source", "")):
             ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
-        except Exception as exc:
-            if is_read_error(exc):
-                raise InvalidDEMError(
-                    f"cannot read DEM file {dem.attrs.get('source', '')}: {exc}"
-                ) from exc
-            raise
     log.info(
         "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
         store,
@@ -180,17 +172,20 @@ def write_dem(
     return Path(store)
 
 
-def is_read_error(exc: BaseException) -> bool:
-    """Whether ``exc`` comes from reading a DEM file (a damaged or truncated GeoTIFF or
-    NetCDF file found while its chunks are read), not from writing the store."""
+@contextmanager
+def reading(source) -> Iterator[None]:
+    """Turn an error of the file readers raised inside the block (a damaged or truncated
+    GeoTIFF or NetCDF file, found when its chunks are read lazily) into one
+    :class:`InvalidDEMError` naming ``source``; errors of writing pass unchanged."""
     try:
+        yield
+    except Exception as exc:
         from rasterio.errors import RasterioError
 
-        if isinstance(exc, RasterioError):
-            return True
-    except ImportError:
-        pass
-    return isinstance(exc, RuntimeError) and ("NetCDF" in str(exc) or "HDF" in str(exc))
+        netcdf = isinstance(exc, RuntimeError) and ("NetCDF" in str(exc) or "HDF" in str(exc))
+        if isinstance(exc, RasterioError) or netcdf:
+            raise InvalidDEMError(f"cannot read DEM file {source}: {exc}") from exc
+        raise
 
 
 def import_dem(
