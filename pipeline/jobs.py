@@ -40,7 +40,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .exceptions import CatalogBusyError, InvalidParameterError, JobFileError, PipelineError
-from .params import DEFAULT_CHUNK, DEM, MAPS, PLANNING, SYNTHETIC, Param, Schema, shape2d
+from .params import (
+    DEFAULT_CHUNK,
+    DEM,
+    LATITUDE,
+    LONGITUDE,
+    MAPS,
+    PLANNING,
+    SYNTHETIC,
+    Param,
+    Schema,
+    shape2d,
+)
 
 log = logging.getLogger(__name__)
 
@@ -51,8 +62,6 @@ _DEM_KEYS = {"path", "synthetic"} | DEM.names()
 _SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
 _OUTPUT_KEYS = {"catalog"}
 _COORD = Param("coordinate", "float", None, "")
-_LON = Param("longitude", "float", None, "", "degrees", minimum=-180.0, maximum=360.0)
-_LAT = Param("latitude", "float", None, "", "degrees", minimum=-90.0, maximum=90.0)
 
 
 @dataclass
@@ -282,7 +291,7 @@ def _load_missions(path, doc, job):
             if form != "cell":
                 try:
                     for x, param in zip(
-                        v, (_LON, _LAT) if form == "lonlat" else (_COORD,) * 2, strict=True
+                        v, (LONGITUDE, LATITUDE) if form == "lonlat" else (_COORD,) * 2, strict=True
                     ):
                         param.check(x, f"{where}{key}")
                 except InvalidParameterError as exc:
@@ -518,7 +527,6 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
     maps = open_store(maps_store)
     res.crs_wkt = maps.crs_wkt
     todo = []
-    changed = 0
     for m in job.missions:
         m = {**m, "fingerprint": job.mission_fingerprint(m)}
         done = None if overwrite else finished(job.catalog, m["name"])
@@ -528,7 +536,7 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
                 "planning it again",
                 m["name"],
             )
-            changed += 1
+            res.replanned += 1
             done = None
         if done is None:
             todo.append(m)
@@ -538,7 +546,6 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
                 res.failed.append(m["name"])
     if res.skipped:
         log.info("%d missions finished before: skipped (--overwrite plans them again)", res.skipped)
-    res.replanned = changed
     ready, bad = [], []
     for m in todo:
         try:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
-from .params import PLANNING
+from .params import LATITUDE, LONGITUDE, PLANNING
 
 MAPS_VERSION = 1
 LAYERS = ("elevation", "safety", "passable", "accumulation", "ridge")
@@ -249,12 +249,16 @@ class MapsStore:
             raise InvalidParameterError(
                 f"{name}_{form} must be a pair of finite numbers, got {value!r}"
             ) from None
-        if form == "lonlat" and not (-180 <= x <= 360 and -90 <= y <= 90):
-            raise InvalidParameterError(
-                f"{name}_lonlat {value} is not a longitude and latitude (lon -180..360, lat "
-                "-90..90)"
-            )
         if form == "lonlat":
+            try:  # the job loader's bounds
+                LONGITUDE.check(x)
+                LATITUDE.check(y)
+            except InvalidParameterError:
+                raise InvalidParameterError(
+                    f"{name}_lonlat {value} is not a longitude and latitude (lon "
+                    f"{LONGITUDE.minimum:g}..{LONGITUDE.maximum:g}, lat "
+                    f"{LATITUDE.minimum:g}..{LATITUDE.maximum:g})"
+                ) from None
             if not self.crs_wkt:
                 raise InvalidParameterError(
                     f"{name}_lonlat {value} given, but the DEM has no coordinate reference "
