@@ -103,7 +103,7 @@ def write_mission(
     tmp = final.parent / f".{mid}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
     try:
-        ok = traj.status == "ok" and len(traj.cells) > 1
+        ok = traj.planned and len(traj.cells) > 1
         geom = bbox = None
         assets = {}
         if ok:
@@ -141,6 +141,7 @@ def write_mission(
                 ("ridge_ratio", traj.ridge_ratio),
                 ("omega", traj.omega),
                 ("lower_bound_m", traj.lower_bound_m),
+                ("certified_ratio", traj.certified_ratio),
                 ("min_clearance_m", min_clearance_m),
                 ("runtime_s", traj.runtime_s),
             )

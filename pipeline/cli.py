@@ -139,6 +139,7 @@ def dem_info(path):
 @_option(MAPS.sea_level)
 @_option(MAPS.surface_clearance)
 @_option(MAPS.min_accumulation)
+@_option(MAPS.landmarks)
 @click.option("--chunks", type=int, default=None, help="Chunk side; default the DEM's.")
 @click.option("--scheduler", default=None, help="Address of a dask scheduler.")
 @click.option(
@@ -149,8 +150,8 @@ def dem_info(path):
 )
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, **params):
-    """Build the maps store OUT (elevation, safety, passable, accumulation, ridge) from the
-    DEM at DEM_PATH."""
+    """Build the maps store OUT (elevation, safety, passable, accumulation, ridge, component,
+    landmark distances) from the DEM at DEM_PATH."""
     from .cluster import session
     from .dem import open_dem
     from .maps import build_maps
@@ -190,10 +191,11 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
 def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite):
     """Run the job file JOB (TOML): DEM and maps stores, every mission, the results catalog.
 
-    Exit status: 0 every mission planned; 1 some missions failed (each is an Item with its
-    reason, the others are written); 2 bad input (job file, DEM, arguments); 3 the environment
-    (disk, permissions, memory, an unreachable scheduler, a catalog in use by another run);
-    4 an internal error (a bug: -v shows the traceback)."""
+    Exit status: 0 every mission planned and certified; 1 some missions failed (each is an
+    Item with its reason, the others are written); 2 bad input (job file, DEM, arguments); 3
+    the environment (disk, permissions, memory, an unreachable scheduler, a catalog in use by
+    another run); 4 an internal error (a bug: -v shows the traceback); 5 every mission
+    planned, some not certified (status "uncertified", the proven ratio in the Item)."""
     from .jobs import run_job
 
     if scheduler and scheduler_file:
@@ -217,18 +219,28 @@ def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite):
             f"job {res.job.name}: {res.planned} missions planned, {res.skipped} "
             f"skipped (finished before), {len(res.failed)} failed"
             + (f", {res.replanned} planned again (changed)" if res.replanned else "")
+            + (f", {len(res.uncertified)} not certified" if res.uncertified else "")
             + f"; catalog {res.catalog} ({res.seconds:.1f} s)"
         )
+        if res.uncertified:
+            click.echo(
+                f"missions whose bound length <= omega * shortest is not proven: "
+                f"{', '.join(res.uncertified)} (the proven ratio in their Items, auv:message)",
+                err=True,
+            )
         if res.failed:
             click.echo(
                 f"failed missions: {', '.join(res.failed)} (reasons in their Items, auv:message)",
                 err=True,
             )
             sys.exit(EXIT_MISSIONS_FAILED)
+        if res.uncertified:
+            sys.exit(EXIT_UNCERTIFIED)
 
 
 # exit codes, part of the interface (README "Exit codes")
 EXIT_OK, EXIT_MISSIONS_FAILED, EXIT_BAD_INPUT, EXIT_ENVIRONMENT, EXIT_BUG = 0, 1, 2, 3, 4
+EXIT_UNCERTIFIED = 5
 _VERBOSE = {"on": False}
 
 

@@ -146,8 +146,13 @@ def _checked(path: Path, schema: Schema, table: dict, where: str) -> dict:
 
 
 def _maps_defaults(table: dict) -> dict:
-    # method and clearance always, the rest as given: the maps store's fingerprint
-    return {"method": MAPS.method.default, "clearance": MAPS.clearance.default, **table}
+    # method, clearance and landmarks always, the rest as given: the maps store's fingerprint
+    return {
+        "method": MAPS.method.default,
+        "clearance": MAPS.clearance.default,
+        "landmarks": MAPS.landmarks.default,
+        **table,
+    }
 
 
 def load_job(path: str | os.PathLike) -> Job:
@@ -316,6 +321,7 @@ class JobResult:
     planned: int = 0
     skipped: int = 0
     failed: list = field(default_factory=list)  # names of failed missions (this run or before)
+    uncertified: list = field(default_factory=list)  # planned, bound not proven (this run)
     dashboard: str | None = None
     ran: int = 0  # missions this run planned or tried
     replanned: int = 0  # finished missions planned again because they changed
@@ -587,8 +593,7 @@ class _Recorder:
         self.res.ran += 1
         name = mission["name"]
         try:
-            ok = traj.status == "ok"
-            clr = min_clearance(self.maps, traj, self.clearance) if ok else math.nan
+            clr = min_clearance(self.maps, traj, self.clearance) if traj.planned else math.nan
             self._write(mission, traj, clr)
         except (OSError, PipelineError, ValueError) as exc:
             reason = f"its result could not be written: {type(exc).__name__}: {exc}"
@@ -599,17 +604,23 @@ class _Recorder:
             except (OSError, PipelineError, ValueError):
                 pass
             return
-        if traj.status == "ok":
+        if traj.planned:
             self.res.planned += 1
-            log.info(
-                "[%d/%d] %s: ok, %.1f km, %.0f %% ridge, min clearance %.0f m (%.2f s)",
+            if traj.status != "ok":
+                self.res.uncertified.append(name)
+            (log.info if traj.status == "ok" else log.warning)(
+                "[%d/%d] %s: %s, %.1f km (<= %.3f x the shortest), %.0f %% ridge, min clearance "
+                "%.0f m (%.2f s)%s",
                 self.count,
                 self.total,
                 name,
+                traj.status,
                 traj.length_m / 1e3,
+                traj.certified_ratio,
                 100 * traj.ridge_ratio,
                 clr,
                 traj.runtime_s,
+                f": {traj.message}" if traj.message else "",
             )
         else:
             self.res.failed.append(name)

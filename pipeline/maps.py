@@ -36,6 +36,7 @@ from ._io import atomic_path, remove_settled
 from .components import components_staged
 from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import StoreExistsError
+from .landmarks import landmarks_staged
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
 from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
@@ -95,6 +96,7 @@ def build_maps(
     sea_level: float = MAPS.sea_level.default,
     surface_clearance: float | None = None,
     min_accumulation: int | None = None,
+    landmarks: int = MAPS.landmarks.default,
     chunks=None,
     overwrite: bool = False,
 ) -> xr.Dataset:
@@ -112,6 +114,10 @@ def build_maps(
         As :func:`pipeline.passable`.
     min_accumulation : int, optional
         Ridge threshold in cells, as :func:`pipeline.ridge_map` (default: a 1 km^2 area).
+    landmarks : int
+        Landmark distance layers to store (:mod:`pipeline.landmarks`): the proven lower bound
+        every mission is certified against. 0 stores none (missions are then certified only
+        when planned on the whole map).
     chunks : int or (int, int), optional
         Chunk sides of the store; default the DEM's chunks, else 1024.
     overwrite : bool
@@ -149,6 +155,7 @@ def build_maps(
     if min_accumulation is None:
         min_accumulation = default_min_accumulation(a)
     min_accumulation = MAPS.min_accumulation.check(min_accumulation)
+    landmarks = MAPS.landmarks.check(landmarks)
     require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
     params = {
         "method": method,
@@ -157,6 +164,7 @@ def build_maps(
         "sea_level_m": ok.attrs["sea_level_m"],
         "surface_clearance_m": ok.attrs["surface_clearance_m"],
         "min_accumulation": min_accumulation,
+        "landmarks": landmarks,
         "cell_size": a,
         "chunks": list(ch),
     }
@@ -215,6 +223,13 @@ def build_maps(
                 write_empty_chunks=True,
             )
             log.info("maps %s: components labelled", store)
+            # pass 5: landmark distance layers (the proven lower bound)
+            tl = time.perf_counter()
+            cells = landmarks_staged(
+                tmp, landmarks, a, log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a)
+            )
+            landmarks_s = time.perf_counter() - tl
+            log.info("maps %s: %d landmarks written (%.1f s)", store, len(cells), landmarks_s)
         except BaseException:
             for p in (scratch, labels):  # tasks still running may write after a failure
                 remove_settled(p)
@@ -229,6 +244,11 @@ def build_maps(
             "cell_size": a,
             "dem_hash": _hex(partials),
             "all_chunks_written": True,
+            "landmarks": json.dumps(cells),
+            "build_seconds": {
+                "total": round(time.perf_counter() - t0, 2),
+                "landmarks": round(landmarks_s, 2),
+            },
         }
         if "crs_wkt" in dem.attrs:
             attrs["crs_wkt"] = dem.attrs["crs_wkt"]

@@ -45,8 +45,10 @@ from .planners.window import plan_window
 from .store import COARSE_RIDGE_FRACTION, MapsStore, open_store
 
 __all__ = [
+    "CERTIFY_TOLERANCE",
     "Section",
     "SectionResult",
+    "certified",
     "default_parameters",
     "plan",
     "plan_section",
@@ -310,9 +312,10 @@ def _check_endpoints(m: MapsStore, start, goal):
 
 
 def _finish(
-    m: MapsStore, results: list, planner, omega, start, goal, expansions, t0, extra, lower=None
+    m: MapsStore, results: list, planner, omega, start, goal, expansions, t0, extra, lower: float
 ) -> Trajectory:
-    """Stitch section results (dropping the duplicated joints), cut any loops, measure."""
+    """Stitch section results (dropping the duplicated joints), cut any loops, measure;
+    ``lower`` is the proven lower bound on the whole map's optimum known so far."""
     cells = np.vstack([r.cells if k == 0 else r.cells[1:] for k, r in enumerate(results)])
     z = np.concatenate([r.z if k == 0 else r.z[1:] for k, r in enumerate(results)])
     rdg = np.concatenate([r.ridge if k == 0 else r.ridge[1:] for k, r in enumerate(results)])
@@ -329,7 +332,7 @@ def _finish(
         length_m=length,
         ridge_length_m=ridge_len,
         ridge_ratio=ratio,
-        lower_bound_m=float(max(h0, lower or 0.0)),
+        lower_bound_m=float(max(h0, lower)),
         expansions=int(expansions),
         runtime_s=time.perf_counter() - t0,
         planner=planner,
@@ -350,9 +353,19 @@ def plan(
     section_size: int | None = None,
     margin: int | None = None,
     coarse_planner: str = PLANNING.coarse_planner.default,
+    repair_max_cells: int = PLANNING.repair_max_cells.default,
     client=None,
 ) -> Trajectory:
-    """Plan a mission on a maps store, coarse to fine (MCPC) or in one window.
+    """Plan a mission on a maps store, coarse to fine (MCPC) or in one window, and certify it.
+
+    Certification: ``lower_bound_m`` is a proven lower bound on the shortest safe path ``L*``
+    between start and goal on the whole map (the larger of the octile distance, the landmark
+    bound of the store and, for a search of the whole map, the planner's own bound). The
+    status is ``"ok"`` only when ``length_m <= omega * lower_bound_m`` (up to a relative
+    ``CERTIFY_TOLERANCE`` for floating point), which proves ``length_m <= omega * L*``. A
+    stitched MCPC path that is not certified is planned again on the whole map (whose search
+    proves its own bound) when the map has at most ``repair_max_cells`` cells; otherwise it is
+    returned with status ``"uncertified"`` and the proven ratio in ``message``.
 
     Parameters
     ----------
@@ -374,14 +387,19 @@ def plan(
     coarse_planner : str
         Planner of the coarse path (A*, the paper's choice). Coarse ridge cells are those whose
         block is at least half ridge.
+    repair_max_cells : int
+        The largest map (rows x cols) on which an uncertified MCPC path is planned again on
+        the whole map; 0 never does.
     client : None, "synchronous", scheduler address or distributed.Client
         Where the sections run (see :func:`pipeline.cluster.get_client`).
 
     Returns
     -------
     Trajectory
-        ``extra`` holds the parameters, the coarse path, every section (window, attempts,
-        times) and the timings of the stages.
+        ``status`` "ok" (certified) or "uncertified"; ``certified_ratio`` is ``length_m /
+        lower_bound_m``. ``extra`` holds the parameters, the coarse path, every section
+        (window, attempts, times), the timings of the stages and, when the path was repaired,
+        ``extra["repair"]``.
 
     Examples
     --------
@@ -394,6 +412,7 @@ def plan(
     )
     check_planner(coarse_planner, omega, "coarse_planner")
     mcpc = PLANNING.mcpc.check(mcpc)
+    repair_max_cells = PLANNING.repair_max_cells.check(repair_max_cells)
     start, goal = _check_endpoints(m, start, goal)
     # the components layer proves reachability at once, either way
     ca, cb = m.component(start), m.component(goal)
@@ -410,10 +429,14 @@ def plan(
         "margin": margin,
         "coarse_planner": coarse_planner,
     }
+    tb = time.perf_counter()
+    bound = m.lower_bound(start, goal)
+    extra["landmark_bound_m"] = bound
+    extra["bound_s"] = time.perf_counter() - tb
     if not mcpc:
-        return _plan_whole(m, run_on, planner, omega, start, goal, t0, extra)
+        return _certify(_plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
     try:
-        return _plan_mcpc(
+        t = _plan_mcpc(
             m,
             run_on,
             planner,
@@ -426,6 +449,7 @@ def plan(
             section_size,
             margin,
             coarse_planner,
+            bound,
         )
     except UnreachableGoalError as exc:
         if ca is None:  # reachability unknown (a store without components): as it says
@@ -433,22 +457,80 @@ def plan(
         # start and goal share a component, so a path exists that the coarse map or the
         # sections missed (a passage narrower than rho cells): plan the whole map
         extra["fallback"] = f"MCPC found no path ({exc}); planned on the whole map instead"
-        return _plan_whole(m, run_on, planner, omega, start, goal, t0, extra)
+        return _certify(_plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+    if certified(t.length_m, t.lower_bound_m, omega):
+        return _certify(t)
+    cells = m.shape[0] * m.shape[1]
+    if cells > repair_max_cells:
+        return _certify(t, repair=f"the map's {cells} cells exceed repair_max_cells")
+    # repair: one search over the whole map, whose planner proves its own bound
+    tr = time.perf_counter()
+    repair = {
+        "reason": f"the stitched path ({t.length_m:.1f} m) is {t.length_m / t.lower_bound_m:.4f}"
+        f" x the proven lower bound ({t.lower_bound_m:.1f} m), above omega = {omega:g}",
+        "stitched_length_m": t.length_m,
+        "stitched_ridge_ratio": t.ridge_ratio,
+    }
+    extra = {**t.extra, "repair": repair}
+    whole = _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound)
+    repair["seconds"] = time.perf_counter() - tr
+    return _certify(whole)
 
 
-def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra) -> Trajectory:
+# ``length <= omega * lower`` is checked up to this relative tolerance: the floating point of
+# the lengths, and A*'s tie-breaking (within 1 + TIE of the optimum, TIE = 1e-10)
+CERTIFY_TOLERANCE = 1e-9
+
+
+def certified(length: float, lower: float, omega: float) -> bool:
+    """Whether ``length <= omega * lower`` (up to ``CERTIFY_TOLERANCE``): with ``lower`` a
+    proven lower bound on the optimum, the proof that ``length <= omega * L*``."""
+    return length <= omega * lower * (1.0 + CERTIFY_TOLERANCE)
+
+
+def _certify(t: Trajectory, repair: str | None = None) -> Trajectory:
+    """Set the status from the proven bound: "ok" when certified, else "uncertified" with the
+    proven ratio in the message."""
+    if certified(t.length_m, t.lower_bound_m, t.omega):
+        t.status, t.message = "ok", ""
+        return t
+    ratio = t.length_m / t.lower_bound_m if t.lower_bound_m > 0 else math.inf
+    t.status = "uncertified"
+    t.message = (
+        f"length {t.length_m:.1f} m is at most {ratio:.4f} x the shortest safe path (proven "
+        f"lower bound {t.lower_bound_m:.1f} m), which does not prove the bound omega = "
+        f"{t.omega:g}"
+        + (f"; not repaired: {repair}" if repair else "")
+        + "; plan it with mcpc=False (the whole map) to certify it"
+    )
+    return t
+
+
+def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Trajectory:
     whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal)
     res = _run(run_on, m, [whole], planner, omega)[0]
     if not res.ok:
         raise UnreachableGoalError(f"no path on the whole map: {res.message}")
     extra["sections"] = [_section_summary(res, whole)]
-    return _finish(
-        m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower=res.lower_bound_m
-    )
+    # a search of the whole map proves its own bound on L*
+    lower = max(bound, res.lower_bound_m)
+    return _finish(m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower)
 
 
 def _plan_mcpc(
-    m, run_on, planner, omega, start, goal, t0, extra, rho, section_size, margin, coarse_planner
+    m,
+    run_on,
+    planner,
+    omega,
+    start,
+    goal,
+    t0,
+    extra,
+    rho,
+    section_size,
+    margin,
+    coarse_planner,
+    bound,
 ) -> Trajectory:
     # 1-2: compression (cached) and the coarse path
     tc = time.perf_counter()
@@ -508,7 +590,8 @@ def _plan_mcpc(
     # 7: stitch, then cut any loops
     extra["sections"] = [_section_summary(r, sec) for r, sec in zip(results, sections, strict=True)]
     expansions = ct.expansions + sum(r.expansions for r in results)
-    return _finish(m, results, planner, omega, start, goal, expansions, t0, extra)
+    # the sections' own bounds hold on their windows only: the landmark bound is the proof
+    return _finish(m, results, planner, omega, start, goal, expansions, t0, extra, bound)
 
 
 def plan_sections(

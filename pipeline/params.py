@@ -205,6 +205,14 @@ MAPS = Schema(
         "cells",
         minimum=1,
     ),
+    Param(
+        "landmarks",
+        "int",
+        8,
+        "landmark distance layers stored for the proven lower bound (0: none)",
+        minimum=0,
+        maximum=64,
+    ),
 )
 
 
@@ -238,6 +246,15 @@ PLANNING = Schema(
     ),
     Param(
         "coarse_planner", "choice", "astar", "planner of the coarse path", choices=_planner_names
+    ),
+    Param(
+        "repair_max_cells",
+        "int",
+        25_000_000,
+        "a path MCPC cannot certify is planned again on the whole map when the map has at "
+        "most this many cells (0: never)",
+        "cells",
+        minimum=0,
     ),
 )
 

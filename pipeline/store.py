@@ -33,6 +33,8 @@ def attrs_signature(attrs: dict) -> str:
     """A hash of the attributes that define what a maps store holds: a store whose attributes
     were edited after it was built no longer matches it."""
     what = {k: attrs.get(k) for k in _SIGNED}
+    if "landmarks" in attrs:  # stores built before the landmark layers have none
+        what["landmarks"] = attrs["landmarks"]
     return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:32]
 
 
@@ -162,6 +164,17 @@ class MapsStore:
         self.all_chunks_written = bool(attrs.get("all_chunks_written"))
         # stores built before the components layer have none: reachability then is not known
         self.has_components = "component" in group
+        try:
+            self.landmarks = [tuple(int(v) for v in c) for c in json.loads(attrs["landmarks"])]
+        except KeyError:
+            self.landmarks = []  # a store built before the landmark layers
+        except (TypeError, ValueError):
+            raise damaged(path, "its landmarks attribute is malformed") from None
+        from .landmarks import layer_name
+
+        for i in range(len(self.landmarks)):
+            if layer_name(i) not in group or tuple(group[layer_name(i)].shape) != self.shape:
+                raise damaged(path, f"its landmark layer {layer_name(i)!r} is missing")
         self._dataset = None
         self._coarse: dict = {}
         self._lock = threading.Lock()
@@ -191,6 +204,30 @@ class MapsStore:
             return None
         r, c = int(cell[0]), int(cell[1])
         return int(self.window("component", r, r + 1, c, c + 1)[0, 0])
+
+    def landmark_distances(self, cell) -> np.ndarray:
+        """The distances of ``cell`` from every landmark (metres, ``inf`` where a landmark does
+        not reach it): one small chunk per landmark, through the chunk cache."""
+        from .landmarks import layer_name
+
+        r, c = int(cell[0]), int(cell[1])
+        return np.array(
+            [
+                self.window(layer_name(i), r, r + 1, c, c + 1)[0, 0]
+                for i in range(len(self.landmarks))
+            ],
+            dtype=np.float64,
+        )
+
+    def lower_bound(self, start, goal) -> float:
+        """A proven lower bound (metres) on the shortest safe path from ``start`` to ``goal``
+        on the whole map: the landmark bound (:func:`pipeline.landmarks.lower_bound`), or 0
+        with no landmark layers."""
+        from .landmarks import lower_bound
+
+        if not self.landmarks:
+            return 0.0
+        return lower_bound(self.landmark_distances(start), self.landmark_distances(goal))
 
     def coarse(self, rho: int) -> dict:
         """The maps compressed by ``rho`` (SPEC section 6 step 1), as numpy arrays.

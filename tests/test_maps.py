@@ -11,6 +11,7 @@ from test_safety import scipy_reference
 import pipeline
 from pipeline.cli import main
 from pipeline.exceptions import StoreExistsError
+from pipeline.params import MAPS
 
 
 def test_build_maps_store(tmp_path):
@@ -23,9 +24,9 @@ def test_build_maps_store(tmp_path):
         "accumulation",
         "ridge",
         "component",
-    }
-    for v in maps.data_vars.values():
-        assert v.data.chunksize == (64, 64)  # chunked identically
+    } | {f"landmark{i}" for i in range(MAPS.landmarks.default)}
+    for k, v in maps.data_vars.items():  # chunked identically; landmark layers in small chunks
+        assert v.data.chunksize == ((64, 64) if not k.startswith("landmark") else (256, 250))
     g = zarr.open_group(tmp_path / "maps.zarr", mode="r")
     assert g.metadata.zarr_format == 3 and g["safety"].chunks == (64, 64)
     z = dem.values
@@ -77,8 +78,20 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, 
     np.testing.assert_array_equal(maps["ridge"].values, acc >= 8)
     labels, _ = label_components(maps["passable"].values)  # checked against scipy's csgraph
     np.testing.assert_array_equal(maps["component"].values, labels)
-    for v in maps.data_vars.values():
-        assert v.encoding["chunks"] == (min(chunks, shape[0]), min(chunks, shape[1]))
+    # landmark layers (in chunks of their own): the in-memory layers from the same cells
+    from pipeline import landmarks
+
+    cells = pipeline.open_store(tmp_path / "m.zarr").landmarks
+    ok = maps["passable"].values.astype(bool)
+    assert cells == landmarks.place_landmarks(maps["safety"].values, ok, 30.0)
+    for i, cell in enumerate(cells):
+        np.testing.assert_array_equal(
+            maps[landmarks.layer_name(i)].values,
+            landmarks.landmark_layer(maps["safety"].values, ok, 30.0, cell),
+        )
+    for k, v in maps.data_vars.items():
+        if not k.startswith("landmark"):
+            assert v.encoding["chunks"] == (min(chunks, shape[0]), min(chunks, shape[1]))
 
 
 def test_dem_hash_is_chunking_independent_and_content_sensitive():

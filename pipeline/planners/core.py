@@ -36,9 +36,22 @@ class Trajectory:
     runtime_s: float
     planner: str
     omega: float
-    status: str = "ok"
+    status: str = "ok"  # "ok" (certified), "uncertified" or "failed"
     message: str = ""
     extra: dict = field(default_factory=dict)
+
+    @property
+    def certified_ratio(self) -> float:
+        """``length_m / lower_bound_m``: the path is proven within this factor of the shortest
+        safe path (NaN without a path, 1 for a path of one cell)."""
+        if not (self.length_m == self.length_m) or not (self.lower_bound_m > 0):
+            return 1.0 if self.length_m == 0 else math.nan
+        return self.length_m / self.lower_bound_m
+
+    @property
+    def planned(self) -> bool:
+        """Whether there is a path (status "ok" or "uncertified")."""
+        return self.status in ("ok", "uncertified")
 
 
 @njit(inline="always", cache=True)

@@ -1,0 +1,473 @@
+"""Issue 15 figures: the certified bound.
+
+1. On four maps (synthetic 2000^2, real bathymetry with land, a serpentine corridor map, a wall
+   with one narrow gap) and omega 1.0, 1.01, 1.2, 2: every mission planned with `plan` (MCPC,
+   ra_star, a LocalCluster of 2 workers) against the optimum L* of the whole fine graph from
+   scipy.sparse.csgraph.dijkstra (the graph built here, independently of the library):
+   violations of `ok => length <= omega * L*` (must be 0), the landmark lower bound against L*
+   (target: >= 0.95 L* on at least 90 % of missions) beside the octile distance, how often a
+   mission needed repair and what the repair cost, how many stay uncertified.
+2. 10000^2: the extra build time and store size of the landmark layers, and mission latency
+   with certification (target: median under 0.5 s).
+
+    .venv/bin/python benchmarks/bench_certify.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import OUT, machine, maps_store
+from _report import Report, figure_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+OMEGAS = (1.0, 1.01, 1.2, 2.0)
+
+
+# ------------------------------------------------------------------ the independent reference
+
+
+def csgraph(surface: np.ndarray, ok: np.ndarray, a: float):
+    """The planners' graph (8 moves over passable cells, no corner cutting, 3-D edge lengths)
+    as a scipy CSR matrix, built with numpy from the definition (not from the library)."""
+    from scipy.sparse import coo_matrix
+
+    rows, cols = ok.shape
+    z = surface.astype(np.float64)
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    src, dst, w = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        r0, r1 = 0, rows - dr
+        c0, c1 = max(0, -dc), cols - max(0, dc)
+        a_ok = ok[r0:r1, c0:c1]
+        b_ok = ok[r0 + dr : r1 + dr, c0 + dc : c1 + dc]
+        m = a_ok & b_ok
+        if dr and dc:  # both cells the diagonal passes between
+            m &= ok[r0:r1, c0 + dc : c1 + dc] & ok[r0 + dr : r1 + dr, c0:c1]
+        dz = z[r0 + dr : r1 + dr, c0 + dc : c1 + dc] - z[r0:r1, c0:c1]
+        src.append(idx[r0:r1, c0:c1][m])
+        dst.append(idx[r0 + dr : r1 + dr, c0 + dc : c1 + dc][m])
+        w.append(np.sqrt(a * a * (dr * dr + dc * dc) + dz[m] ** 2))
+    src, dst, w = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
+    return coo_matrix((w, (src, dst)), shape=(rows * cols, rows * cols)).tocsr()
+
+
+def optimum(graph, shape, s, g) -> float:
+    from scipy.sparse.csgraph import dijkstra
+
+    d = dijkstra(graph, directed=False, indices=s[0] * shape[1] + s[1])
+    return float(d[g[0] * shape[1] + g[1]])
+
+
+# ------------------------------------------------------------------ the maps
+
+
+def serpentine_dem(n: int):
+    """A deep seabed crossed by land walls every n/8 rows, each open at alternate ends: the
+    straight line between most pairs of cells crosses land."""
+    import pipeline
+
+    dem = pipeline.synthetic_dem((n, n), cell_size=30.0, seed=5, islands=0, chunks=512)
+    z = np.minimum(dem.values, -600.0)
+    step = n // 8
+    for k in range(1, 8):
+        r = k * step
+        z[r - 2 : r + 2, :] = 30.0
+        if k % 2:
+            z[r - 2 : r + 2, n - n // 10 :] = -1500.0
+        else:
+            z[r - 2 : r + 2, : n // 10] = -1500.0
+    return dem.copy(data=z.astype(np.float32))
+
+
+def wall_gap_dem(n: int):
+    """A deep seabed with one land wall across the middle and a 6-cell gap near one end."""
+    import pipeline
+
+    dem = pipeline.synthetic_dem((n, n), cell_size=30.0, seed=6, islands=0, chunks=512)
+    z = np.minimum(dem.values, -600.0)
+    z[n // 2 - 2 : n // 2 + 2, :] = 30.0
+    z[n // 2 - 2 : n // 2 + 2, 20:26] = -1500.0
+    return dem.copy(data=z.astype(np.float32))
+
+
+def build(name: str, dem) -> Path:
+    import dask
+
+    import pipeline
+
+    path = OUT / f"certify-{name}.zarr"
+    if path.exists():
+        import zarr
+
+        if "landmarks" in zarr.open_group(path, mode="r").attrs:
+            return path
+    with dask.config.set(scheduler="threads", num_workers=2):
+        pipeline.build_maps(
+            dem, path, clearance=300.0, min_accumulation=20, chunks=512, overwrite=True
+        )
+    return path
+
+
+def realdata_store() -> Path:
+    """The topobathy job's maps store (the job imports the real grid and builds it)."""
+    import subprocess
+    import sys
+
+    import pipeline
+
+    subprocess.run(
+        [sys.executable, str(ROOT / "tasks" / "data" / "make_topobathy.py")], check=True, cwd=ROOT
+    )
+    job = pipeline.jobs.load_job(ROOT / "tasks" / "topobathy.toml")
+    res = pipeline.run_job(job.path)
+    return Path(res.maps_store)
+
+
+def missions(ok, comp, k: int, seed: int, min_frac: float):
+    rng = np.random.default_rng(seed)
+    cells = np.argwhere(ok)
+    side = max(ok.shape)
+    out = []
+    for _ in range(200000):
+        if len(out) == k:
+            break
+        s, g = (tuple(int(v) for v in cells[i]) for i in rng.integers(len(cells), size=2))
+        if comp[s] == comp[g] and math.dist(s, g) >= min_frac * side:
+            out.append((s, g))
+    return out
+
+
+# ------------------------------------------------------------------ part 1
+
+
+def study(client, name: str, store: Path, k: int, min_frac: float, seed: int) -> list[dict]:
+    import pipeline
+    from pipeline.planners.core import heuristic
+
+    ds = pipeline.open_maps(store)
+    surface = ds["safety"].values
+    ok = ds["passable"].values.astype(bool)
+    comp = ds["component"].values
+    a = float(ds.attrs["cell_size"])
+    t0 = time.perf_counter()
+    graph = csgraph(surface, ok, a)
+    print(f"{name}: graph {graph.nnz} edges in {time.perf_counter() - t0:.1f} s", flush=True)
+    rows = []
+    for s, g in missions(ok, comp, k, seed, min_frac):
+        opt = optimum(graph, ok.shape, s, g)
+        octile = heuristic(a, s[0], s[1], g[0], g[1], True)
+        for omega in OMEGAS:
+            t0 = time.perf_counter()
+            t = pipeline.plan(store, s, g, planner="ra_star", omega=omega, client=client)
+            dt = time.perf_counter() - t0
+            rep = t.extra.get("repair")
+            rows.append(
+                dict(
+                    map=name,
+                    omega=omega,
+                    start=s,
+                    goal=g,
+                    opt=opt,
+                    length=t.length_m,
+                    lower=t.lower_bound_m,
+                    landmark=t.extra["landmark_bound_m"],
+                    octile=octile,
+                    status=t.status,
+                    ratio=t.certified_ratio,
+                    seconds=dt,
+                    repaired=rep is not None,
+                    repair_s=rep["seconds"] if rep else 0.0,
+                    stitched=(rep["stitched_length_m"] / opt) if rep else t.length_m / opt,
+                    fallback="fallback" in t.extra,
+                    blocked=octile < 0.999 * opt,
+                )
+            )
+        r = rows[-1]
+        print(
+            f"  {s}->{g}: L* {opt / 1e3:.1f} km, landmark {r['landmark'] / opt:.4f} L*, octile "
+            f"{octile / opt:.4f} L*; "
+            + ", ".join(
+                f"w{x['omega']:g} {x['status']} {x['length'] / opt:.4f}"
+                + (" (repaired)" if x["repaired"] else "")
+                for x in rows[-len(OMEGAS) :]
+            ),
+            flush=True,
+        )
+    return rows
+
+
+def summarise(rows: list[dict]) -> dict:
+    missions = {(r["map"], r["start"], r["goal"]): r for r in rows}.values()
+    lb = np.array([r["landmark"] / r["opt"] for r in missions])
+    lbb = np.array([max(r["landmark"], r["octile"]) / r["opt"] for r in missions])
+    oc = np.array([r["octile"] / r["opt"] for r in missions])
+    blocked = np.array([r["blocked"] for r in missions])
+    viol = [
+        r for r in rows if r["status"] == "ok" and r["length"] > r["omega"] * r["opt"] * (1 + 1e-9)
+    ]
+    over = [r for r in rows if r["lower"] > r["opt"]]
+    return dict(
+        missions=len(lb),
+        plans=len(rows),
+        violations=len(viol),
+        bound_above_opt=len(over),
+        ok=sum(r["status"] == "ok" for r in rows),
+        uncertified=sum(r["status"] == "uncertified" for r in rows),
+        repaired=sum(r["repaired"] for r in rows),
+        repair_s=[r["repair_s"] for r in rows if r["repaired"]],
+        share_95=float((lbb >= 0.95).mean()) if lb.size else math.nan,
+        median_lb=float(np.median(lbb)) if lb.size else math.nan,
+        min_lb=float(lbb.min()) if lb.size else math.nan,
+        octile_95=float((oc >= 0.95).mean()) if lb.size else math.nan,
+        median_octile=float(np.median(oc)) if lb.size else math.nan,
+        blocked=int(blocked.sum()),
+        share_95_blocked=float((lbb[blocked] >= 0.95).mean()) if blocked.any() else math.nan,
+    )
+
+
+def plot_bounds(rows: list[dict], png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    missions = list({(r["map"], r["start"], r["goal"]): r for r in rows}.values())
+    maps = sorted({r["map"] for r in missions})
+    fig, ax = plt.subplots(figsize=(7.5, 4.6), dpi=110)
+    colours = dict(zip(maps, plt.cm.tab10.colors, strict=False))
+    for name in maps:
+        ms = [r for r in missions if r["map"] == name]
+        ax.scatter(
+            [r["octile"] / r["opt"] for r in ms],
+            [max(r["landmark"], r["octile"]) / r["opt"] for r in ms],
+            s=22,
+            color=colours[name],
+            label=f"{name} ({len(ms)} missions)",
+        )
+    ax.axhline(0.95, color="grey", ls="--", lw=0.8)
+    ax.text(0.02, 0.955, "0.95 L*", color="grey", fontsize=8, transform=ax.get_yaxis_transform())
+    ax.plot([0, 1], [0, 1], color="black", lw=0.6, ls=":", label="no better than the octile")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("octile distance / L* (the bound before)")
+    ax.set_ylabel("proven lower bound / L* (landmarks)")
+    ax.set_title("Proven lower bounds against the optimum L* (scipy), per mission", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(png)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------ part 2
+
+
+def large(n: int, k: int, client) -> dict:
+    import zarr
+
+    import pipeline
+
+    t0 = time.perf_counter()
+    existed = (OUT / f"maps{n}.zarr").exists()
+    store = maps_store(n)
+    built_s = time.perf_counter() - t0
+
+    def size(p: Path) -> int:
+        return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+    group = zarr.open_group(store, mode="r")
+    marks = json.loads(group.attrs["landmarks"])
+    lm_bytes = sum(size(store / f"landmark{i}") for i in range(len(marks)))
+    total = size(store)
+    m = pipeline.open_store(store)
+    secs = dict(group.attrs.get("build_seconds", {}))
+    peaks = OUT / f"maps{n}.build.json"
+    peaks = json.loads(peaks.read_text()) if peaks.exists() else {}
+
+    ok = pipeline.open_maps(store)["passable"]
+    rng = np.random.default_rng(n)
+    ms = []
+    while len(ms) < k + 1:
+        s, g = rng.integers(n, size=2), rng.integers(n, size=2)
+        if (
+            np.hypot(*(s - g)) >= 0.5 * n
+            and ok[int(s[0]), int(s[1])].values
+            and ok[int(g[0]), int(g[1])].values
+        ):
+            ms.append((tuple(int(v) for v in s), tuple(int(v) for v in g)))
+    pipeline.plan(m, *ms[0], planner="ra_star", omega=2.0, client=client)  # warm-up
+    times, bound_s, status, ratios, lbs = [], [], [], [], []
+    for s, g in ms[1:]:
+        t0 = time.perf_counter()
+        t = pipeline.plan(m, s, g, planner="ra_star", omega=2.0, client=client)
+        times.append(time.perf_counter() - t0)
+        bound_s.append(t.extra["bound_s"])
+        status.append(t.status)
+        ratios.append(t.certified_ratio)
+        lbs.append(t.extra["landmark_bound_m"] / t.length_m)
+    return dict(
+        n=n,
+        built_now=not existed,
+        build_s=built_s if not existed else None,
+        build_seconds=secs,
+        worker_peak_gib=peaks.get("peak_rss_children_gib"),
+        client_peak_gib=peaks.get("peak_rss_gib"),
+        landmarks=len(marks),
+        landmark_gib=lm_bytes / 2**30,
+        store_gib=total / 2**30,
+        median_s=statistics.median(times),
+        p90_s=float(np.percentile(times, 90)),
+        bound_ms=1e3 * statistics.median(bound_s),
+        ok=status.count("ok"),
+        uncertified=status.count("uncertified"),
+        missions=len(times),
+        median_ratio=statistics.median(ratios),
+        max_ratio=max(ratios),
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="smaller maps, fewer missions")
+    args = ap.parse_args()
+    quick = args.quick
+    print(machine(), flush=True)
+    from distributed import Client, LocalCluster
+
+    import pipeline
+
+    rep = Report(
+        "certify",
+        6,
+        "The certified bound: length <= omega x L*, proven per mission",
+        ".venv/bin/python benchmarks/bench_certify.py",
+        quick,
+    )
+    k = 4 if quick else 12
+    side = 1000 if quick else 2000
+    cases = [
+        (f"synthetic {side}^2", maps_store(side), 0.5, 1),
+        ("real bathymetry (topobathy)", realdata_store(), 0.2, 2),
+        ("serpentine corridors 1000^2", build("serpentine", serpentine_dem(1000)), 0.3, 3),
+        ("wall with one gap 400^2", build("wallgap", wall_gap_dem(400)), 0.3, 4),
+    ]
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        rows = []
+        for name, store, frac, seed in cases:
+            rows += study(client, name, store, k, frac, seed)
+        per_map = {name: summarise([r for r in rows if r["map"] == name]) for name, *_ in cases}
+        total = summarise(rows)
+        big = large(4000 if quick else 10000, 5 if quick else 20, client)
+    (OUT / "certify.json").write_text(json.dumps(dict(rows=rows, big=big), default=str))
+
+    rep.p(f"""Every mission planned by `pipeline.plan` (ra_star, MCPC with default parameters,
+          a LocalCluster of 2 single-threaded workers) at omega {", ".join(map(str, OMEGAS))},
+          and compared with the optimum L* of the whole fine graph: scipy.sparse.csgraph.dijkstra
+          on the planners' graph built in this script from its definition. {total["missions"]}
+          missions ({total["blocked"]} of them with land or a detour across the straight line:
+          octile distance below L*), {total["plans"]} plans. The landmark bound is that of the
+          maps store's {pipeline.MAPS.landmarks.default} landmark layers; the proven lower bound
+          of a mission is the larger of it and the octile distance.""")
+    rep.table(
+        [
+            "map",
+            "missions",
+            "bound >= 0.95 L*",
+            "bound / L* median (min)",
+            "octile >= 0.95 L* (before)",
+            "plans ok",
+            "uncertified",
+            "repaired (median s)",
+            "ok but > omega L*",
+            "bound > L*",
+        ],
+        [
+            [
+                name,
+                s["missions"],
+                f"{100 * s['share_95']:.0f} %",
+                f"{s['median_lb']:.4f} ({s['min_lb']:.4f})",
+                f"{100 * s['octile_95']:.0f} %",
+                f"{s['ok']} of {s['plans']}",
+                s["uncertified"],
+                f"{s['repaired']} ({statistics.median(s['repair_s']):.2f})"
+                if s["repair_s"]
+                else "0",
+                s["violations"],
+                s["bound_above_opt"],
+            ]
+            for name, s in list(per_map.items()) + [("all", total)]
+        ],
+    )
+    by_omega = {
+        om: summarise([r for r in rows if r["omega"] == om])
+        | {"stitched": [r["stitched"] for r in rows if r["omega"] == om]}
+        for om in OMEGAS
+    }
+    rep.p("""Per omega: how many stitched MCPC paths could not be certified by the landmark
+          bound and were planned again on the whole map (a search that proves its own bound),
+          the repair's median time, and the stitched path's worst length against L*:""")
+    rep.table(
+        ["omega", "plans", "repaired", "repair median s", "stitched length / L* (max)", "ok"],
+        [
+            [
+                om,
+                s["plans"],
+                s["repaired"],
+                statistics.median(s["repair_s"]) if s["repair_s"] else "-",
+                f"{max(s['stitched']):.4f}",
+                s["ok"],
+            ]
+            for om, s in by_omega.items()
+        ],
+    )
+    png = figure_dir(quick) / "certify-bounds.png"
+    plot_bounds(rows, png)
+    rep.figure(png, "the landmark lower bound against the octile distance, per mission")
+    b = big
+    rep.h(f"{b['n']}^2: the landmark layers and mission latency with certification")
+    secs = b["build_seconds"]
+    rep.p(f"""The maps store of the {b["n"]}^2 synthetic map holds {b["landmarks"]} landmark
+          layers: {b["landmark_gib"]:.2f} GiB of the store's {b["store_gib"]:.2f} GiB
+          (float32, 256^2 chunks, zstd with bit shuffle).
+          Building the store took {secs.get("total", float("nan")):.0f} s (2 workers), of which
+          the landmark pass (placement, then one exact Dijkstra search of the whole map per
+          landmark, two at a time) {secs.get("landmarks", float("nan")):.0f} s; peak memory
+          {b["worker_peak_gib"]} GiB per worker, {b["client_peak_gib"]} GiB in the client (a
+          landmark's search holds the whole map, 18 bytes a cell).
+          {b["missions"]} missions (ra_star, omega 2, MCPC, 2 workers) at least half the map
+          apart: median **{b["median_s"]:.3f} s** (p90 {b["p90_s"]:.3f} s) with the bound read
+          and checked (median {b["bound_ms"]:.1f} ms for the bound); {b["ok"]} certified,
+          {b["uncertified"]} uncertified (maps above `repair_max_cells` are not repaired);
+          proven ratio length / bound median {b["median_ratio"]:.3f}, max
+          {b["max_ratio"]:.3f}.""")
+    rep.headline(
+        "certify",
+        55,
+        "certified bound: ok => length <= omega L* (scipy), 4 maps, omega 1-2",
+        f"{total['violations']} violations in {total['plans']} plans; bound >= 0.95 L* on "
+        f"{100 * total['share_95']:.0f} % of missions (octile: {100 * total['octile_95']:.0f} %)",
+        target="0 violations; >= 90 %",
+    )
+    rep.headline(
+        "certify-latency",
+        56,
+        f"one mission with certification, {b['n']}^2, ra_star omega 2 (median)",
+        f"{b['median_s']:.3f} s, {b['ok']} of {b['missions']} certified",
+        target="< 0.5 s",
+    )
+    rep.save()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,353 @@
+"""Landmark distance layers: a proven lower bound on the shortest safe path between any two
+cells of a maps store, and a strong A* heuristic (ALT: A*, landmarks, triangle inequality;
+Goldberg & Harrelson 2005).
+
+For a landmark cell ``l`` let ``d_l(v)`` be the exact length of the shortest path from ``l``
+to ``v`` on the planners' fine graph (8-connected over passable cells, no corner cutting, an
+edge costs its 3-D length along the safety surface; the graph is symmetric). For any two cells
+``s``, ``g`` of the landmark's component the triangle inequality gives
+
+    L*(s, g) >= |d_l(s) - d_l(g)|
+
+so ``max_l |d_l(s) - d_l(g)|`` is a lower bound on the optimum ``L*(s, g)``; as a function of
+``s`` it is also a consistent A* heuristic (it changes along an edge by at most the edge's
+cost). Landmarks are placed farthest-point: the first is the cell farthest (in graph distance)
+from an arbitrary cell of the largest component, every next one the cell farthest from all the
+landmarks placed so far; a component that no landmark has reached is farther than any reached
+cell, so every large component gets its own landmarks. Components of fewer than
+``MIN_COMPONENT_FRACTION`` of the passable cells get none (their missions fall back on the
+octile distance).
+
+Distances are computed in float64 and stored as float32, rounded to nearest; every value then
+carries a relative error of at most 2^-24 plus the float64 summation error (at most
+``n * 2^-53`` relative for a path of ``n`` edges, ``n < 2^32``), so
+:func:`lower_bound` takes ``|d_l(s) - d_l(g)| - REL_MARGIN * (d_l(s) + d_l(g))`` with
+``REL_MARGIN = 2^-22``, a margin that covers both with room to spare.
+
+The Dijkstra search runs on the whole map in one process: it holds the safety surface (float32),
+the passable mask, a float64 distance per cell and the frontier; 13 bytes a cell, 1.3 GB at
+10000^2 (:func:`memory_per_landmark`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ._grid8 import DC, DR
+from .components import label_components
+
+MIN_COMPONENT_FRACTION = 0.01
+REL_MARGIN = 2.0**-22
+DEFAULT_LANDMARKS = 8
+
+
+@njit(inline="always", cache=True)
+def _push(head, nxt, node, free, b, v):
+    """Put ``v`` into bucket ``b`` (a list threaded through the pool ``nxt``/``node``);
+    returns the pool and its free slot list head."""
+    if free < 0:  # grow the pool; the new slots form the free list
+        m = node.size
+        node2 = np.empty(2 * m, dtype=np.int64)
+        nxt2 = np.empty(2 * m, dtype=np.int64)
+        node2[:m] = node
+        nxt2[:m] = nxt
+        for i in range(m, 2 * m - 1):
+            nxt2[i] = i + 1
+        nxt2[2 * m - 1] = -1
+        node, nxt, free = node2, nxt2, m
+    slot = free
+    free = nxt[slot]
+    node[slot] = v
+    nxt[slot] = head[b]
+    head[b] = slot
+    return node, nxt, free
+
+
+@njit(nogil=True, cache=True)
+def dijkstra(surface, passable, a, sources):
+    """Exact shortest path lengths (float64, ``inf`` where unreached) from the cells
+    ``sources`` (flat indices, distance 0) to every cell, on the planners' graph.
+
+    A bucket queue (Dial's algorithm with buckets narrower than the shortest edge, ``a``): a
+    cell taken from the lowest bucket cannot be improved by any other cell of that bucket, so
+    its distance is final, as in Dijkstra's algorithm, at O(1) a queue operation. The buckets
+    are circular, as many as the longest edge spans."""
+    rows, cols = surface.shape
+    n = rows * cols
+    dist = np.full(n, np.inf)
+    done = np.zeros(n, dtype=np.bool_)
+    lo = np.inf
+    hi = -np.inf
+    for r in range(rows):
+        for c in range(cols):
+            if passable[r, c]:
+                z = np.float64(surface[r, c])
+                lo = min(lo, z)
+                hi = max(hi, z)
+    w = a * (1.0 - 1e-7)
+    longest = math.sqrt(2.0 * a * a + (hi - lo) ** 2) if hi >= lo else a
+    nb = int(longest / w) + 2
+    head = np.full(nb, -1, dtype=np.int64)
+    m = 4096
+    node = np.empty(m, dtype=np.int64)
+    nxt = np.empty(m, dtype=np.int64)
+    for i in range(m - 1):
+        nxt[i] = i + 1
+    nxt[m - 1] = -1
+    free = 0
+    queued = 0
+    for s in sources:
+        dist[s] = 0.0
+        node, nxt, free = _push(head, nxt, node, free, 0, s)
+        queued += 1
+    cur = 0  # the bucket index (not wrapped) being emptied
+    while queued > 0:
+        cb = cur % nb
+        slot = head[cb]
+        if slot < 0:
+            cur += 1
+            continue
+        head[cb] = nxt[slot]
+        u = node[slot]
+        nxt[slot] = free
+        free = slot
+        queued -= 1
+        if done[u]:
+            continue
+        done[u] = True
+        du = dist[u]
+        r = u // cols
+        c = u - r * cols
+        su = np.float64(surface[r, c])
+        for k in range(8):
+            nr = r + DR[k]
+            nc = c + DC[k]
+            if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
+                continue
+            v = nr * cols + nc
+            if done[v] or not passable[nr, nc]:
+                continue
+            if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
+                continue
+            dz = np.float64(surface[nr, nc]) - su
+            h2 = 2.0 if k % 2 == 1 else 1.0
+            nd = du + math.sqrt(a * a * h2 + dz * dz)
+            if nd < dist[v]:
+                dist[v] = nd
+                b = max(int(nd / w), cur)
+                node, nxt, free = _push(head, nxt, node, free, b % nb, v)
+                queued += 1
+    return dist.reshape(rows, cols)
+
+
+# --------------------------------------------------------------------------- placement
+
+PLACEMENT_SIDE = 512  # landmarks are placed on a coarse grid of at most this many cells a side
+
+
+def placement_factor(shape) -> int:
+    """The block side of the coarse grid landmarks are placed on."""
+    return max(1, math.ceil(max(shape) / PLACEMENT_SIDE))
+
+
+def large_components(component: np.ndarray | None, counts: np.ndarray) -> np.ndarray:
+    """The labels of the components that get landmarks: at least ``MIN_COMPONENT_FRACTION``
+    of the passable cells (``counts[label]`` cells each, ``counts[0]`` the impassable)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    total = counts[1:].sum()
+    if total == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero((counts >= MIN_COMPONENT_FRACTION * total) & (np.arange(counts.size) > 0))
+
+
+def place_coarse(surface, ok, a: float, k: int) -> list[tuple[int, int]]:
+    """Farthest-point placement of ``k`` landmarks on a coarse grid (``ok`` its passable cells,
+    ``surface`` its mean safety surface, ``a`` its cell size): the first is the cell farthest
+    from the first passable cell, each next the cell farthest from those placed; a cell no
+    landmark reaches counts as farthest of all, so each separate region gets landmarks."""
+    surface = np.ascontiguousarray(surface, dtype=np.float32)
+    ok = np.ascontiguousarray(ok, dtype=np.bool_)
+    cells = np.flatnonzero(ok.ravel())
+    if cells.size == 0 or k <= 0:
+        return []
+    cols = ok.shape[1]
+    far = dijkstra(surface, ok, a, cells[:1]).ravel()
+    nearest = np.full(ok.size, np.inf)  # distance to the nearest landmark placed
+    out: list[tuple[int, int]] = []
+    score = np.where(np.isfinite(far), far, -1.0)
+    for _ in range(min(k, cells.size)):
+        cand = np.where(ok.ravel(), np.where(np.isfinite(nearest), nearest, np.inf), -1.0)
+        if out:
+            v = int(np.argmax(cand))
+        else:
+            v = int(np.argmax(np.where(ok.ravel(), score, -1.0)))
+        if out and cand[v] <= 0.0:
+            break  # every cell is a landmark already
+        out.append((v // cols, v % cols))
+        d = dijkstra(surface, ok, a, np.array([v])).ravel()
+        nearest = np.minimum(nearest, d)
+    return out
+
+
+def coarse_grid(surface, passable, keep, factor: int):
+    """Block means of ``surface`` over the ``keep`` cells (those of large components) and a
+    coarse passable mask (at least half of a block's cells kept), for placement."""
+    rows, cols = passable.shape
+    pr, pc = -rows % factor, -cols % factor
+    keep = np.asarray(keep, bool)
+    z = np.where(keep, np.nan_to_num(np.asarray(surface, np.float64)), 0.0)
+    keep = np.pad(keep, ((0, pr), (0, pc)))
+    z = np.pad(z, ((0, pr), (0, pc)))
+    shp = (keep.shape[0] // factor, factor, keep.shape[1] // factor, factor)
+    n = keep.reshape(shp).sum(axis=(1, 3))
+    zs = z.reshape(shp).sum(axis=(1, 3))
+    ok = n >= (factor * factor) / 2
+    mean = np.where(n > 0, zs / np.maximum(n, 1), 0.0).astype(np.float32)
+    return mean, ok
+
+
+def fine_cell(keep_block: np.ndarray, r0: int, c0: int) -> tuple[int, int] | None:
+    """The kept cell of a block (its first cell ``(r0, c0)``) nearest the block's centre."""
+    idx = np.argwhere(keep_block)
+    if idx.size == 0:
+        return None
+    centre = (np.array(keep_block.shape) - 1) / 2
+    r, c = idx[int(np.argmin(((idx - centre) ** 2).sum(axis=1)))]
+    return int(r) + r0, int(c) + c0
+
+
+def place_landmarks(surface, passable, a: float, k: int = DEFAULT_LANDMARKS, component=None):
+    """The landmark cells of an in-memory map (see the module doc)."""
+    passable = np.asarray(passable, dtype=bool)
+    if component is None:
+        component, _ = label_components(passable)
+    keep = np.isin(component, large_components(component, np.bincount(component.ravel())))
+    f = placement_factor(passable.shape)
+    mean, ok = coarse_grid(surface, passable, keep, f)
+    out = []
+    for cr, cc in place_coarse(mean, ok, a * f, k):
+        cell = fine_cell(keep[cr * f : (cr + 1) * f, cc * f : (cc + 1) * f], cr * f, cc * f)
+        if cell is not None and cell not in out:
+            out.append(cell)
+    return out
+
+
+def landmark_layer(surface, passable, a: float, cell) -> np.ndarray:
+    """The float32 distance layer of one landmark (``inf`` outside its component)."""
+    surface = np.ascontiguousarray(surface)
+    if surface.dtype != np.float32:
+        surface = surface.astype(np.float32)
+    passable = np.ascontiguousarray(passable, dtype=np.bool_)
+    src = np.array([int(cell[0]) * passable.shape[1] + int(cell[1])], dtype=np.int64)
+    return dijkstra(surface, passable, float(a), src).astype(np.float32)
+
+
+def lower_bound(ds: np.ndarray, dg: np.ndarray) -> float:
+    """The proven lower bound on the shortest path between two cells from their landmark
+    distances ``ds``, ``dg`` (one value per landmark; ``inf`` where a landmark does not reach):
+    ``max_l |d_l(s) - d_l(g)|`` less the rounding margin (module doc); 0 with no common
+    landmark."""
+    ds = np.asarray(ds, dtype=np.float64)
+    dg = np.asarray(dg, dtype=np.float64)
+    both = np.isfinite(ds) & np.isfinite(dg)
+    if not both.any():
+        return 0.0
+    b = np.abs(ds[both] - dg[both]) - REL_MARGIN * (ds[both] + dg[both])
+    return float(max(b.max(), 0.0))
+
+
+# --------------------------------------------------------------------------- the maps store
+
+LANDMARK_CHUNK = 256  # small chunks: a mission reads one value per landmark at each end
+
+
+def layer_name(i: int) -> str:
+    return f"landmark{i}"
+
+
+def memory_per_landmark(shape) -> int:
+    """Bytes one landmark's Dijkstra task holds: the safety surface (float32), the passable
+    mask, float64 distances, settled flags and the float32 result."""
+    return 18 * int(shape[0]) * int(shape[1])
+
+
+def _layer_task(store: str, i: int, cell, a: float) -> None:
+    import zarr
+
+    g = zarr.open_group(store, mode="r")
+    d = landmark_layer(g["safety"][:], g["passable"][:], a, cell)
+    zarr.open_array(f"{store}/{layer_name(i)}", mode="r+")[:] = d
+
+
+def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]:
+    """Place ``k`` landmarks on the maps store being built at ``store`` (its safety, passable
+    and component layers written) and write their distance layers ``landmark0..`` into it.
+
+    Placement reads the component layer chunk-wise (sizes, then a coarse grid of block means
+    of at most ``PLACEMENT_SIDE`` cells a side); each layer is one task, run where the dask
+    scheduler in use puts it (several in parallel), that holds the whole map
+    (:func:`memory_per_landmark`). Returns the landmark cells."""
+    import dask
+    import dask.array as da
+    import xarray as xr
+    import zarr
+
+    store = str(store)
+    comp = da.from_zarr(zarr.open_array(f"{store}/component", mode="r"))
+    safety = da.from_zarr(zarr.open_array(f"{store}/safety", mode="r"))
+    nmax = int(comp.max().compute())
+    if k <= 0 or nmax == 0:
+        return []
+    counts = da.bincount(comp.ravel(), minlength=nmax + 1).compute()
+    big = large_components(None, counts)
+    keep = da.isin(comp, big)
+    f = placement_factor(comp.shape)
+    dims = ("y", "x")
+    kx = xr.DataArray(keep, dims=dims)
+    zx = xr.DataArray(da.where(keep, da.nan_to_num(safety.astype(np.float64)), 0.0), dims=dims)
+    n, zs = dask.compute(
+        kx.coarsen(y=f, x=f, boundary="pad").sum().data,
+        zx.coarsen(y=f, x=f, boundary="pad").sum().data,
+    )
+    n, zs = np.asarray(n), np.asarray(zs)
+    ok = n >= (f * f) / 2
+    mean = np.where(n > 0, zs / np.maximum(n, 1), 0.0).astype(np.float32)
+    cells: list[tuple[int, int]] = []
+    for cr, cc in place_coarse(mean, ok, a * f, k):
+        block = np.isin(
+            zarr.open_array(f"{store}/component", mode="r")[
+                cr * f : (cr + 1) * f, cc * f : (cc + 1) * f
+            ],
+            big,
+        )
+        cell = fine_cell(block, cr * f, cc * f)
+        if cell is not None and cell not in cells:
+            cells.append(cell)
+    if log:
+        log("placing %d landmarks: %s", len(cells), cells)
+    group = zarr.open_group(store, mode="r+")
+    for i in range(len(cells)):
+        group.create_array(
+            layer_name(i),
+            shape=comp.shape,
+            chunks=(LANDMARK_CHUNK, LANDMARK_CHUNK),
+            dtype="float32",
+            # no distance is negative, so no chunk equals the fill value and every chunk is
+            # written (also those all inf, outside the landmark's component)
+            fill_value=-1.0,
+            compressors=zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"),
+            dimension_names=dims,
+            attributes={
+                "long_name": f"shortest safe path length from landmark {i}",
+                "units": "m",
+                "landmark_cell": list(cells[i]),
+            },
+            overwrite=True,
+        )
+    dask.compute(
+        *[dask.delayed(_layer_task, pure=False)(store, i, c, a) for i, c in enumerate(cells)]
+    )
+    return cells

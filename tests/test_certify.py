@@ -1,0 +1,333 @@
+"""The certified bound: landmark distances against scipy's Dijkstra on the planners' graph built
+edge by edge, the landmark lower bound never above the optimum L* (scipy), the stored layers
+and their placement equal to the in-memory ones for any chunking, and every "ok" mission of
+`plan` within omega of L*, with "uncertified" said when it is not proven."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pystac
+import pytest
+from conftest import metric_dataarray, random_surface
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.sparse.csgraph import dijkstra as scipy_dijkstra
+from test_components import A, wall_with_gap_dem
+from test_planners import reference_graph
+
+import pipeline
+from pipeline import landmarks as lm
+from pipeline.components import label_components
+
+EXE = Path(sys.executable).parent / "pipeline"
+
+
+def obstacle_map(seed: int, shape, land: float):
+    rng = np.random.default_rng(seed)
+    surface = random_surface(shape, seed=seed).astype(np.float32) * 40.0
+    ok = rng.random(shape) > land
+    return surface, ok
+
+
+def scipy_distances(surface, ok, a, sources):
+    g = reference_graph(surface, ok, a)
+    return scipy_dijkstra(g, directed=False, indices=sources, min_only=True).reshape(ok.shape)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.integers(0, 10_000),
+    st.tuples(st.integers(1, 18), st.integers(1, 18)),
+    st.floats(0.0, 0.5),
+    st.integers(1, 3),
+)
+def test_dijkstra_equals_scipy(seed, shape, land, nsrc):
+    surface, ok = obstacle_map(seed, shape, land)
+    cells = np.flatnonzero(ok.ravel())
+    if cells.size == 0:
+        return
+    src = np.random.default_rng(seed).choice(cells, size=min(nsrc, cells.size), replace=False)
+    got = lm.dijkstra(surface, ok, 7.5, src.astype(np.int64))
+    want = scipy_distances(surface, ok, 7.5, src)
+    np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+    fin = np.isfinite(want)
+    np.testing.assert_allclose(got[fin], want[fin], rtol=1e-12, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(0, 10_000),
+    st.tuples(st.integers(2, 24), st.integers(2, 24)),
+    st.floats(0.0, 0.45),
+    st.integers(1, 6),
+)
+def test_lower_bound_never_exceeds_the_optimum(seed, shape, land, k):
+    surface, ok = obstacle_map(seed, shape, land)
+    if not ok.any():
+        return
+    rng = np.random.default_rng(seed + 1)
+    cells = np.argwhere(ok)
+    marks = lm.place_landmarks(surface, ok, A, k)
+    assert len(marks) <= k and all(ok[c] for c in marks) and len(set(marks)) == len(marks)
+    layers = [lm.landmark_layer(surface, ok, A, c) for c in marks]
+    g = reference_graph(surface, ok, A)
+    for _ in range(4):
+        s, t = (tuple(cells[i]) for i in rng.integers(len(cells), size=2))
+        opt = scipy_dijkstra(g, directed=False, indices=s[0] * shape[1] + s[1])[
+            t[0] * shape[1] + t[1]
+        ]
+        lb = lm.lower_bound([d[s] for d in layers], [d[t] for d in layers])
+        if math.isfinite(opt):
+            assert 0.0 <= lb <= opt
+        else:
+            assert lb == 0.0  # no landmark reaches both
+
+
+def test_the_bound_is_exact_on_a_line_through_a_landmark():
+    # a corridor one cell wide: every path runs through the landmark's line, so the bound is
+    # the optimum (less the rounding margin)
+    surface = np.linspace(0, 300, 40, dtype=np.float32)[None, :].repeat(3, 0)
+    ok = np.zeros((3, 40), bool)
+    ok[1] = True
+    d = lm.landmark_layer(surface, ok, A, (1, 0))
+    opt = scipy_distances(surface, ok, A, [1 * 40 + 5])[1, 33]
+    lb = lm.lower_bound([d[1, 5]], [d[1, 33]])
+    assert opt * (1 - 1e-6) <= lb <= opt
+
+
+def test_landmarks_go_to_every_large_component_only():
+    ok = np.zeros((60, 80), bool)
+    ok[:, :30] = True  # a large region
+    ok[:, 40:] = True  # another
+    ok[0, 33] = True  # a puddle of one cell (below MIN_COMPONENT_FRACTION)
+    comp, _ = label_components(ok)
+    marks = lm.place_landmarks(np.zeros(ok.shape, np.float32), ok, A, 4)
+    got = {int(comp[c]) for c in marks}
+    assert got == {int(comp[0, 0]), int(comp[0, 40])}
+
+
+# ------------------------------------------------------------------ in the maps store
+
+
+@pytest.mark.parametrize("chunks", [(48, 56), (64, 64), (100, 37), (96, 112)])
+def test_store_layers_equal_the_in_memory_ones_for_any_chunking(tmp_path, chunks):
+    # 97 x 113 cells: (96, 112) leaves a last chunk of one cell on both sides
+    import dask
+
+    z = random_surface((97, 113), seed=3) * 300.0 - 2000.0
+    z[30:34, 10:100] = 50.0  # a land wall with gaps at both ends
+    dem = metric_dataarray(z.astype(np.float32), a=A)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(
+            dem,
+            tmp_path / "m.zarr",
+            clearance=60.0,
+            min_accumulation=8,
+            chunks=chunks,
+            landmarks=5,
+        )
+    m = pipeline.open_store(tmp_path / "m.zarr")
+    ds = pipeline.open_maps(tmp_path / "m.zarr")
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    assert m.landmarks == lm.place_landmarks(surface, ok, A, 5)
+    for i, cell in enumerate(m.landmarks):
+        np.testing.assert_array_equal(
+            ds[lm.layer_name(i)].values, lm.landmark_layer(surface, ok, A, cell)
+        )
+
+
+def test_every_landmark_chunk_is_written_also_where_it_does_not_reach(tmp_path):
+    import dask
+
+    z = random_surface((300, 40), seed=2) * 50.0 - 1500.0
+    z[256:259] = 40.0  # land across: rows 259.. are a region of their own, no chunk of the
+    # upper region's landmark reaches them (a chunk all inf, once not written at all)
+    dem = metric_dataarray(z.astype(np.float32), a=A)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=2)
+    m = pipeline.open_store(tmp_path / "m.zarr")
+    comp = pipeline.open_maps(tmp_path / "m.zarr")["component"].values
+    assert len({int(comp[c]) for c in m.landmarks}) == 2  # one in each region
+    for i in range(2):
+        files = [
+            p for p in (tmp_path / "m.zarr" / lm.layer_name(i) / "c").rglob("*") if p.is_file()
+        ]
+        assert len(files) == 2  # both 256-row chunks
+    assert m.lower_bound((5, 5), (250, 30)) > 0 and m.lower_bound((280, 5), (295, 30)) > 0
+
+
+def test_a_store_without_landmarks_has_no_bound(tmp_path):
+    import dask
+
+    dem = metric_dataarray((random_surface((40, 40)) * 50 - 1000).astype(np.float32), a=A)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=0)
+    m = pipeline.open_store(tmp_path / "m.zarr")
+    assert m.landmarks == [] and m.lower_bound((1, 1), (38, 38)) == 0.0
+
+
+def test_a_store_whose_landmark_layer_is_gone_is_damaged(tmp_path):
+    import shutil
+
+    import dask
+
+    dem = metric_dataarray((random_surface((40, 40)) * 50 - 1000).astype(np.float32), a=A)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=2)
+    shutil.rmtree(tmp_path / "m.zarr" / "landmark1")
+    with pytest.raises(pipeline.PipelineError, match="landmark layer 'landmark1' is missing"):
+        pipeline.open_store(tmp_path / "m.zarr")
+
+
+# ------------------------------------------------------------------ certification in plan
+
+
+@pytest.fixture(scope="module")
+def wall(tmp_path_factory):
+    """A 200^2 map with a land wall and one narrow gap (test_components), and its graph."""
+    import dask
+
+    path = tmp_path_factory.mktemp("certify") / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(wall_with_gap_dem(), path, clearance=60.0, min_accumulation=8)
+    ds = pipeline.open_maps(path)
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    return path, surface, ok, reference_graph(surface, ok, A)
+
+
+def optimum(graph, shape, s, g):
+    return scipy_dijkstra(graph, directed=False, indices=s[0] * shape[1] + s[1])[
+        g[0] * shape[1] + g[1]
+    ]
+
+
+def missions(ok, k, seed):
+    from pipeline.components import label_components
+
+    comp, _ = label_components(ok)
+    rng = np.random.default_rng(seed)
+    cells = np.argwhere(ok)
+    out = []
+    while len(out) < k:
+        s, g = (tuple(int(v) for v in cells[i]) for i in rng.integers(len(cells), size=2))
+        if comp[s] == comp[g] and s != g:
+            out.append((s, g))
+    return out
+
+
+@pytest.mark.parametrize("omega", [1.0, 1.01, 1.2, 2.0])
+@pytest.mark.parametrize("planner", ["astar", "ra_star"])
+def test_ok_implies_the_bound_against_scipy(wall, omega, planner):
+    path, surface, ok, graph = wall
+    for s, g in missions(ok, 6, seed=int(omega * 100)):
+        t = pipeline.plan(path, s, g, planner=planner, omega=omega, client="synchronous")
+        opt = optimum(graph, ok.shape, s, g)
+        assert t.lower_bound_m <= opt  # proven: never above the optimum
+        assert t.status == "ok", t.message  # repaired when needed, so always certified here
+        assert t.length_m <= omega * opt * (1 + pipeline.mcpc.CERTIFY_TOLERANCE)
+        assert t.certified_ratio == pytest.approx(t.length_m / t.lower_bound_m)
+
+
+@pytest.mark.parametrize("rho", [5, 10, 20])
+def test_wall_with_gap_is_never_ok_beyond_omega(wall, rho):
+    path, surface, ok, graph = wall
+    start, goal = (20, 150), (180, 150)  # the gap is far from the straight line
+    opt = optimum(graph, ok.shape, start, goal)
+    for repair in (25_000_000, 0):
+        t = pipeline.plan(
+            path,
+            start,
+            goal,
+            planner="ra_star",
+            omega=1.5,
+            rho=rho,
+            section_size=4 * rho,
+            repair_max_cells=repair,
+            client="synchronous",
+        )
+        assert t.lower_bound_m <= opt
+        if t.status == "ok":
+            assert t.length_m <= 1.5 * opt * (1 + 1e-9)
+        else:
+            assert t.status == "uncertified" and repair == 0
+
+
+def test_uncertified_says_so_with_the_proven_ratio(wall):
+    path, surface, ok, graph = wall
+    seen = 0
+    for s, g in missions(ok, 8, seed=5):
+        t = pipeline.plan(path, s, g, omega=1.0, repair_max_cells=0, client="synchronous")
+        if t.status == "uncertified":
+            seen += 1
+            assert f"{t.certified_ratio:.4f} x the shortest" in t.message
+            assert "repair_max_cells" in t.message and "mcpc=False" in t.message
+            assert t.length_m > t.lower_bound_m and len(t.cells) > 1
+        else:
+            assert t.length_m <= optimum(graph, ok.shape, s, g) * (1 + 1e-9)
+    assert seen  # at omega 1 a stitched path is rarely proven optimal by the bound alone
+
+
+def test_the_landmark_bound_beats_the_octile_distance_behind_the_wall(wall):
+    path, surface, ok, graph = wall
+    start, goal = (20, 150), (180, 150)
+    m = pipeline.open_store(path)
+    opt = optimum(graph, ok.shape, start, goal)
+    octile = A * 160
+    assert octile < 0.7 * opt  # the detour through the gap
+    assert 0.95 * opt <= m.lower_bound(start, goal) <= opt
+
+
+UNCERTIFIED_JOB = """
+name = "u"
+[dem]
+chunks = 64
+[dem.synthetic]
+shape = [160, 160]
+cell_size = 30.0
+seed = 4
+islands = 0
+[maps]
+clearance = 150.0
+[planning]
+omega = 1.0
+repair_max_cells = 0
+rho = 4
+{missions}
+[output]
+catalog = "{catalog}"
+"""
+
+
+def test_a_job_with_uncertified_missions_exits_5_and_writes_them(tmp_path, local_client):
+    missions = "".join(
+        f'[[missions]]\nname = "m{i}"\nstart = [{3 + 11 * i}, 4]\ngoal = [{150 - 9 * i}, 155]\n'
+        for i in range(5)
+    )
+    job = tmp_path / "job.toml"
+    job.write_text(UNCERTIFIED_JOB.format(missions=missions, catalog=tmp_path / "cat"))
+    proc = subprocess.run(
+        [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    cat = pystac.Catalog.from_file(str(tmp_path / "cat" / "catalog.json"))
+    props = {it.id: it.properties for it in cat.get_items(recursive=True)}
+    status = [p["auv:status"] for p in props.values()]
+    assert len(status) == 5 and set(status) <= {"ok", "uncertified"}
+    if "uncertified" in status:
+        assert proc.returncode == 5, proc.stderr[-2000:]
+        assert "not certified" in proc.stdout and "is not proven" in proc.stderr
+    else:
+        assert proc.returncode == 0
+    for p in props.values():
+        assert p["auv:certified_ratio"] == pytest.approx(p["auv:length_m"] / p["auv:lower_bound_m"])
+        if p["auv:status"] == "uncertified":
+            assert p["auv:certified_ratio"] > 1.0 and "x the shortest" in p["auv:message"]
+    assert "uncertified" in status, json.dumps(props, indent=1)[:2000]
