@@ -22,7 +22,8 @@ Distances are computed in float64 and stored as float32, rounded to nearest; eve
 carries a relative error of at most 2^-24 plus the float64 summation error (at most
 ``n * 2^-53`` relative for a path of ``n`` edges, ``n < 2^32``), so
 :func:`lower_bound` takes ``|d_l(s) - d_l(g)| - REL_MARGIN * (d_l(s) + d_l(g))`` with
-``REL_MARGIN = 2^-22``, a margin that covers both with room to spare.
+``REL_MARGIN = 2^-22`` (``LANDMARK_MARGIN`` of the planners' core, which uses the same bound as
+its A* heuristic), a margin that covers both with room to spare.
 
 The Dijkstra search runs on the whole map in one process: it holds the safety surface (float32),
 the passable mask, a float64 distance per cell and the frontier; 13 bytes a cell, 1.3 GB at
@@ -38,9 +39,10 @@ from numba import njit
 
 from ._grid8 import DC, DR
 from .components import label_components
+from .planners.core import LANDMARK_MARGIN
 
 MIN_COMPONENT_FRACTION = 0.01
-REL_MARGIN = 2.0**-22
+REL_MARGIN = LANDMARK_MARGIN
 DEFAULT_LANDMARKS = 8
 
 

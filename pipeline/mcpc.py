@@ -41,6 +41,7 @@ from .planners.core import (
     off_map_error,
     path_metrics,
 )
+from .landmarks import layer_name
 from .planners.window import plan_window
 from .store import COARSE_RIDGE_FRACTION, MapsStore, open_store
 
@@ -177,6 +178,7 @@ class Section:
     goal: tuple[int, int]
     attempts: int = 1
     merged: bool = False
+    landmarks: int = 0  # landmark layers read for the heuristic (the whole-map search)
 
 
 @dataclass
@@ -208,12 +210,28 @@ def plan_section(store: MapsStore, section: Section, planner: str, omega: float)
     surface = store.window("safety", r0, r1, c0, c1)
     ridge = store.window("ridge", r0, r1, c0, c1)
     ok = store.window("passable", r0, r1, c0, c1)
+    lm = None
+    if section.landmarks:
+        lm = np.stack(
+            [
+                store.window(layer_name(i), r0, r1, c0, c1)
+                for i in store.active_landmarks(section.start, section.goal, section.landmarks)
+            ]
+        )
     read_s = time.perf_counter() - t0
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
         t = plan_window(
-            surface, ridge, ok, s, g, cell_size=store.cell_size, planner=planner, omega=omega
+            surface,
+            ridge,
+            ok,
+            s,
+            g,
+            cell_size=store.cell_size,
+            planner=planner,
+            omega=omega,
+            landmarks=lm,
         )
     except PipelineError as e:
         return SectionResult("failed", section.window, message=str(e), read_s=read_s)
@@ -506,8 +524,14 @@ def _certify(t: Trajectory, repair: str | None = None) -> Trajectory:
     return t
 
 
+# landmark layers the whole-map search reads for its heuristic: those that bound this mission
+# best (each costs 4 bytes a cell of memory and its reading time)
+ACTIVE_LANDMARKS = 2
+
+
 def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Trajectory:
-    whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal)
+    k = min(ACTIVE_LANDMARKS, len(m.landmarks))
+    whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal, landmarks=k)
     res = _run(run_on, m, [whole], planner, omega)[0]
     if not res.ok:
         raise UnreachableGoalError(f"no path on the whole map: {res.message}")

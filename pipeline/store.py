@@ -219,6 +219,15 @@ class MapsStore:
             dtype=np.float64,
         )
 
+    def active_landmarks(self, start, goal, k: int) -> list[int]:
+        """The ``k`` landmarks whose bound is largest for this pair of cells (the most useful
+        as an A* heuristic towards ``goal``)."""
+        ds, dg = self.landmark_distances(start), self.landmark_distances(goal)
+        both = np.isfinite(ds) & np.isfinite(dg)
+        gain = np.full(ds.shape, -1.0)
+        gain[both] = np.abs(ds[both] - dg[both])
+        return [int(i) for i in np.argsort(-gain, kind="stable")[:k] if both[i]]
+
     def lower_bound(self, start, goal) -> float:
         """A proven lower bound (metres) on the shortest safe path from ``start`` to ``goal``
         on the whole map: the landmark bound (:func:`pipeline.landmarks.lower_bound`), or 0

@@ -89,6 +89,53 @@ def test_lower_bound_never_exceeds_the_optimum(seed, shape, land, k):
             assert lb == 0.0  # no landmark reaches both
 
 
+@settings(max_examples=30, deadline=None)
+@given(
+    st.integers(0, 10_000),
+    st.tuples(st.integers(2, 22), st.integers(2, 22)),
+    st.floats(0.0, 0.4),
+    st.sampled_from([("astar", 1.0), ("wastar", 1.5), ("lagrangian", 1.2), ("dijkstra", 1.0)]),
+)
+def test_searches_with_the_landmark_heuristic_keep_their_bound(seed, shape, land, case):
+    planner, omega = case
+    surface, ok = obstacle_map(seed, shape, land)
+    cells = np.argwhere(ok)
+    if len(cells) < 2:
+        return
+    rng = np.random.default_rng(seed)
+    s, g = (tuple(int(v) for v in cells[i]) for i in rng.integers(len(cells), size=2))
+    opt = scipy_distances(surface, ok, A, [s[0] * shape[1] + s[1]])[g]
+    if not math.isfinite(opt):
+        return
+    marks = lm.place_landmarks(surface, ok, A, 4)
+    layers = np.stack([lm.landmark_layer(surface, ok, A, c) for c in marks])
+    ridge = np.random.default_rng(seed + 2).random(shape) < 0.3
+    t = pipeline.plan_window(
+        surface, ridge, ok, s, g, cell_size=A, planner=planner, omega=omega, landmarks=layers
+    )
+    assert t.length_m <= omega * opt * (1 + 1e-9)
+    assert t.lower_bound_m <= opt * (1 + 1e-12)
+    if planner in ("astar", "dijkstra"):
+        assert t.length_m == pytest.approx(opt, rel=1e-9)
+
+
+def test_the_landmark_heuristic_expands_fewer_cells_behind_a_wall(wall):
+    path, surface, ok, graph = wall
+    m = pipeline.open_store(path)
+    start, goal = (20, 150), (180, 150)
+    layers = np.stack([pipeline.open_maps(path)[lm.layer_name(i)].values for i in range(8)])
+    ridge = np.zeros(ok.shape, bool)
+    plain = pipeline.plan_window(surface, ridge, ok, start, goal, cell_size=A, planner="astar")
+    alt = pipeline.plan_window(
+        surface, ridge, ok, start, goal, cell_size=A, planner="astar", landmarks=layers
+    )
+    assert alt.length_m == pytest.approx(plain.length_m, rel=1e-9)
+    assert alt.length_m == pytest.approx(optimum(graph, ok.shape, start, goal), rel=1e-9)
+    assert alt.expansions < 0.6 * plain.expansions
+    whole = pipeline.plan(m, start, goal, planner="astar", mcpc=False, client="synchronous")
+    assert whole.length_m == pytest.approx(plain.length_m, rel=1e-9)
+
+
 def test_the_bound_is_exact_on_a_line_through_a_landmark():
     # a corridor one cell wide: every path runs through the landmark's line, so the bound is
     # the optimum (less the rounding margin)

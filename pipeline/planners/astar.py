@@ -1,16 +1,28 @@
 """Dijkstra, A* and weighted A* (SPEC section 5): the grid core's A* search with weight 0, 1
-and ``omega`` on the octile heuristic, ties broken towards the goal."""
+and ``omega`` on the octile heuristic (or the landmark bound where it is larger), ties broken
+towards the goal."""
 
 from __future__ import annotations
 
-from .core import TIE, Planner, Search, astar_search
+from .core import TIE, Planner, Search, astar_search, landmark_rows
 
 
 def _weighted(weight_of):
-    def search(surface, ridge, passable, a, s, t, omega) -> Search:
+    def search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
         weight = weight_of(omega)
         state, _, expansions, found = astar_search(
-            surface, ridge, passable, a, s[0], s[1], t[0], t[1], weight, 0.0
+            surface,
+            ridge,
+            passable,
+            a,
+            s[0],
+            s[1],
+            t[0],
+            t[1],
+            weight,
+            0.0,
+            True,
+            landmark_rows(landmarks, surface.shape),
         )
         # A* (tie-broken) is within 1 + TIE of L*, weighted A* within omega (1 + TIE)
         w = max(weight, 1.0)

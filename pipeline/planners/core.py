@@ -79,6 +79,42 @@ def heuristic(a, r, c, gr, gc, octile):
     return a * math.sqrt(dr * dr + dc * dc)
 
 
+# landmark distances (ALT, :mod:`pipeline.landmarks`) are float32: a bound from them is taken
+# less this relative margin (float32 rounding and float64 summation), so that it never exceeds
+# the true distance
+LANDMARK_MARGIN = 2.0**-22
+NO_LANDMARKS = np.zeros((0, 0), dtype=np.float32)
+NO_GOAL = np.zeros(0)
+
+
+@njit(inline="always", cache=True)
+def landmark_heuristic(lm, lg, v, h):
+    """``max(h, max_l |d_l(v) - d_l(goal)|)`` less the rounding margin: a lower bound on the
+    length from flat cell ``v`` of the window to the goal, by the triangle inequality;
+    ``lm[l, v]`` the distances from landmark ``l`` (inf: it does not reach), ``lg`` the goal's."""
+    for k in range(lm.shape[0]):
+        d = np.float64(lm[k, v])
+        if d == np.inf or lg[k] == np.inf:
+            continue
+        b = abs(d - lg[k]) - LANDMARK_MARGIN * (d + lg[k])
+        if b > h:
+            h = b
+    return h
+
+
+def landmark_rows(landmarks, shape) -> np.ndarray:
+    """Landmark layers of a window, ``(k, rows, cols)``, as the ``(k, cells)`` float32 array the
+    searches take (none: an empty array)."""
+    if landmarks is None or len(landmarks) == 0:
+        return NO_LANDMARKS
+    lm = np.ascontiguousarray(landmarks, dtype=np.float32)
+    if lm.ndim != 3 or lm.shape[1:] != tuple(shape):
+        raise InvalidParameterError(
+            f"`landmarks` must be k layers of the window's shape {tuple(shape)}, got {lm.shape}"
+        )
+    return lm.reshape(lm.shape[0], -1)
+
+
 # Search state, one byte a cell: bits 0-2 the neighbour index (``_grid8``) of the move that
 # entered the cell, PARENT when it has one, CLOSED once expanded, SEEN for the root. ``g`` is
 # valid only where PARENT or SEEN is set, so it needs no initialisation pass (np.empty).
@@ -90,12 +126,32 @@ INWAIT = 64  # RA*'s ridge search: the state has an entry in WAIT
 
 @njit(inline="always", cache=True)
 def relax_successors(
-    surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, gc, weight, off_weight, octile
+    surface,
+    ridge,
+    passable,
+    a,
+    u,
+    g,
+    state,
+    hk,
+    hi,
+    hn,
+    gr,
+    gc,
+    weight,
+    off_weight,
+    octile,
+    lm=NO_LANDMARKS,
+    lg=NO_GOAL,
 ):
     """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
     ``g + weight * h`` (weight 0: Dijkstra). An edge costs its 3-D length, times
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
-    ``length + off_ridge / lambda``; 0 for plain length). Returns the heap and its size."""
+    ``length + off_ridge / lambda``; 0 for plain length). With landmark layers ``lm`` (goal
+    distances ``lg``) ``h`` is the larger of the octile and the landmark bound; that bound
+    is admissible but, rounded to float32, consistent only to about 1e-7, so a closed state
+    whose ``g`` improves is reopened (A* with re-expansions keeps its bound with an admissible
+    heuristic). Returns the heap and its size."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
@@ -109,7 +165,7 @@ def relax_successors(
             continue
         v = nr * cols + nc
         sv = state[v]
-        if sv & CLOSED or not passable[nr, nc]:
+        if (sv & CLOSED and lm.shape[0] == 0) or not passable[nr, nc]:
             continue
         if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
             continue  # a diagonal must not cut a corner
@@ -119,17 +175,24 @@ def relax_successors(
         ng = gu + cost
         if (sv & (PARENT | SEEN)) == 0 or ng < g[v]:
             g[v] = ng
-            state[v] = PARENT | k
-            hn = heap_push(hk, hi, hn, ng + weight * heuristic(a, nr, nc, gr, gc, octile), v)
+            state[v] = PARENT | k  # (re)opened
+            h = heuristic(a, nr, nc, gr, gc, octile)
+            if lm.shape[0] > 0:
+                h = landmark_heuristic(lm, lg, v, h)
+            hn = heap_push(hk, hi, hn, ng + weight * h, v)
     return hk, hi, hn
 
 
 @njit(nogil=True, cache=True)
-def astar_search(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octile=True):
+def astar_search(
+    surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octile=True, lm=NO_LANDMARKS
+):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
-    No re-expansions: with a consistent heuristic, weighted A* without reopening still
-    returns a path within ``weight`` of the optimum (Likhachev et al. 2003).
+    No re-expansions with the octile heuristic: it is consistent, and weighted A* without
+    reopening still returns a path within ``weight`` of the optimum (Likhachev et al. 2003).
+    With landmark layers ``lm`` (k x cells of the window, float32) the heuristic is the larger
+    of the octile and the landmark bound, and states are reopened (see ``relax_successors``).
     Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
     found flag.
     """
@@ -144,7 +207,13 @@ def astar_search(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight
     g[s] = 0.0
     state[s] = SEEN
     weight = weight * (1.0 + TIE)
-    hn = heap_push(hk, hi, 0, weight * heuristic(a, sr, sc, gr, gc, octile), s)
+    lg = np.empty(lm.shape[0])
+    for k in range(lm.shape[0]):
+        lg[k] = lm[k, t]
+    h0 = heuristic(a, sr, sc, gr, gc, octile)
+    if lm.shape[0] > 0:
+        h0 = landmark_heuristic(lm, lg, s, h0)
+    hn = heap_push(hk, hi, 0, weight * h0, s)
     expansions = 0
     while hn > 0:
         _, u = heap_pop(hk, hi, hn)
@@ -156,7 +225,23 @@ def astar_search(surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight
         if u == t:
             return state, g, expansions, True
         hk, hi, hn = relax_successors(
-            surface, ridge, passable, a, u, g, state, hk, hi, hn, gr, gc, weight, off_weight, octile
+            surface,
+            ridge,
+            passable,
+            a,
+            u,
+            g,
+            state,
+            hk,
+            hi,
+            hn,
+            gr,
+            gc,
+            weight,
+            off_weight,
+            octile,
+            lm,
+            lg,
         )
     return state, g, expansions, False
 
@@ -288,8 +373,9 @@ class Search:
 
 @dataclass(frozen=True)
 class Planner:
-    """A planner of the registry: ``search(surface, ridge, passable, a, start, goal, omega)``
-    returns a :class:`Search`."""
+    """A planner of the registry: ``search(surface, ridge, passable, a, start, goal, omega,
+    landmarks=None)`` returns a :class:`Search`; ``landmarks`` (k layers of landmark distances
+    over the window) may strengthen its heuristic, never its result's bound."""
 
     name: str
     search: Callable[..., Search]

@@ -14,7 +14,7 @@ returned, with the dual lower bound on the off-ridge length in ``extra``.
 
 from __future__ import annotations
 
-from .core import TIE, Planner, Search, astar_search, path_steps, trace_path
+from .core import TIE, Planner, Search, astar_search, landmark_rows, path_steps, trace_path
 
 # lambda -> 0 end: off-ridge length first, length only as a tie-break
 _OFF_FIRST = 1e7
@@ -26,15 +26,18 @@ def _measure(cells, surface, ridge, a):
     return float(step.sum()), float(step[~ridge[cells[1:, 0], cells[1:, 1]]].sum())
 
 
-def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
-    """(search state of the chosen path, expansions, found, extra) for ``plan_window``."""
+def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmarks=None):
+    """(search state of the chosen path, expansions, found, extra) for ``plan_window``.
+    Every search may use the landmark bound: a bound on the length bounds every weighted
+    cost too (an edge costs at least its length)."""
     cols = surface.shape[1]
     expansions = 0
+    lm = landmark_rows(landmarks, surface.shape)
 
     def search(off_weight):
         nonlocal expansions
         parent, _, exp, found = astar_search(
-            surface, ridge, passable, a, s[0], s[1], t[0], t[1], 1.0, off_weight
+            surface, ridge, passable, a, s[0], s[1], t[0], t[1], 1.0, off_weight, True, lm
         )
         expansions += exp
         if not found:
@@ -80,8 +83,10 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30):
     return feasible[0], expansions, True, extra
 
 
-def _search(surface, ridge, passable, a, s, t, omega) -> Search:
-    state, expansions, found, extra = larac(surface, ridge, passable, a, s, t, float(omega))
+def _search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
+    state, expansions, found, extra = larac(
+        surface, ridge, passable, a, s, t, float(omega), landmarks=landmarks
+    )
     f_min = extra.get("optimum_m", 0.0)  # its first search is A*: within 1 + TIE of L*
     return Search(state, expansions, found, lambda length: f_min / (1.0 + TIE), extra)
 

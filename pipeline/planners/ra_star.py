@@ -186,7 +186,8 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
         )
 
 
-def _search(surface, ridge, passable, a, s, t, omega) -> Search:
+def _search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
+    # the landmark bound is not used: RA*'s two lists keep SPEC's straight-line heuristic
     st_cost, st_nor, expansions, status, f_min = _ra_star(
         surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega)
     )

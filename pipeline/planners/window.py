@@ -31,6 +31,7 @@ def plan_window(
     omega: float = PLANNING.omega.default,
     x=None,
     y=None,
+    landmarks=None,
 ) -> Trajectory:
     """Plan on one in-memory window.
 
@@ -51,6 +52,12 @@ def plan_window(
     x, y : 1-D arrays, optional
         Map coordinates of the columns and rows for ``points`` (default: ``col * a``,
         ``row * a``).
+    landmarks : array (k, rows, cols), optional
+        Exact shortest-path distances from k landmark cells over this window's graph
+        (:mod:`pipeline.landmarks`; ``inf`` where a landmark does not reach): A*, weighted A*
+        and the Lagrangian planner then use the landmark bound as their heuristic where it
+        beats the octile distance. Distances over a larger map bound this window's too (a
+        window's paths are paths of the map), so a window of a maps store may take its layers.
 
     Examples
     --------
@@ -63,7 +70,7 @@ def plan_window(
     s = check_endpoint("start", start, passable)
     t = check_endpoint("goal", goal, passable)
     t0 = time.perf_counter()
-    search = PLANNERS[planner].search(surface, ridge, passable, a, s, t, omega)
+    search = PLANNERS[planner].search(surface, ridge, passable, a, s, t, omega, landmarks)
     runtime = time.perf_counter() - t0
     if not search.found:
         raise UnreachableGoalError(
