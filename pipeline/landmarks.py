@@ -264,10 +264,7 @@ def lower_bound(ds: np.ndarray, dg: np.ndarray) -> float:
 # --------------------------------------------------------------------------- the maps store
 
 LANDMARK_CHUNK = 256  # small chunks: a mission reads one value per landmark at each end
-
-
-def layer_name(i: int) -> str:
-    return f"landmark{i}"
+VARIABLE = "landmark_distance"  # (landmark, y, x), float32, chunks (1, 256, 256)
 
 
 def memory_per_landmark(shape) -> int:
@@ -281,12 +278,13 @@ def _layer_task(store: str, i: int, cell, a: float) -> None:
 
     g = zarr.open_group(store, mode="r")
     d = landmark_layer(g["safety"][:], g["passable"][:], a, cell)
-    zarr.open_array(f"{store}/{layer_name(i)}", mode="r+")[:] = d
+    zarr.open_array(f"{store}/{VARIABLE}", mode="r+")[i] = d
 
 
 def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]:
     """Place ``k`` landmarks on the maps store being built at ``store`` (its safety, passable
-    and component layers written) and write their distance layers ``landmark0..`` into it.
+    and component layers written) and write their distance layers into it: the variable
+    ``landmark_distance`` (landmark, y, x).
 
     Placement reads the component layer chunk-wise (sizes, then a coarse grid of block means
     of at most ``PLACEMENT_SIDE`` cells a side); each layer is one task, run where the dask
@@ -331,24 +329,25 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     if log:
         log("placing %d landmarks: %s", len(cells), cells)
     group = zarr.open_group(store, mode="r+")
-    for i in range(len(cells)):
-        group.create_array(
-            layer_name(i),
-            shape=comp.shape,
-            chunks=(LANDMARK_CHUNK, LANDMARK_CHUNK),
-            dtype="float32",
-            # no distance is negative, so no chunk equals the fill value and every chunk is
-            # written (also those all inf, outside the landmark's component)
-            fill_value=-1.0,
-            compressors=zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"),
-            dimension_names=dims,
-            attributes={
-                "long_name": f"shortest safe path length from landmark {i}",
-                "units": "m",
-                "landmark_cell": list(cells[i]),
-            },
-            overwrite=True,
-        )
+    if not cells:
+        return cells
+    group.create_array(
+        VARIABLE,
+        shape=(len(cells),) + tuple(comp.shape),
+        chunks=(1, LANDMARK_CHUNK, LANDMARK_CHUNK),
+        dtype="float32",
+        # no distance is negative, so no chunk equals the fill value and every chunk is
+        # written (also those all inf, outside the landmark's component)
+        fill_value=-1.0,
+        compressors=zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"),
+        dimension_names=("landmark",) + dims,
+        attributes={
+            "long_name": "shortest safe path length from each landmark (inf: not reached)",
+            "units": "m",
+            "landmark_cells": [list(c) for c in cells],
+        },
+        overwrite=True,
+    )
     dask.compute(
         *[dask.delayed(_layer_task, pure=False)(store, i, c, a) for i, c in enumerate(cells)]
     )

@@ -41,7 +41,6 @@ from .planners.core import (
     off_map_error,
     path_metrics,
 )
-from .landmarks import layer_name
 from .planners.window import plan_window
 from .store import COARSE_RIDGE_FRACTION, MapsStore, open_store
 
@@ -214,7 +213,7 @@ def plan_section(store: MapsStore, section: Section, planner: str, omega: float)
     if section.landmarks:
         lm = np.stack(
             [
-                store.window(layer_name(i), r0, r1, c0, c1)
+                store.landmark_window(i, r0, r1, c0, c1)
                 for i in store.active_landmarks(section.start, section.goal, section.landmarks)
             ]
         )

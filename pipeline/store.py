@@ -71,18 +71,15 @@ class ChunkCache:
             self.arrays[key] = arr
         return arr
 
-    def chunk(self, store: str, var: str, ci: int, cj: int, complete: bool = False) -> np.ndarray:
-        key = (store, var, ci, cj)
+    def _cached(self, key, load) -> np.ndarray:
+        """The block under ``key``, or ``load()`` kept under it (least recently used first
+        out while over the budget)."""
         with self.lock:
             got = self.items.get(key)
             if got is not None:
                 self.items.move_to_end(key)
                 return got
-        if complete and not os.path.exists(os.path.join(store, var, "c", str(ci), str(cj))):
-            raise damaged(store, f"chunk ({ci}, {cj}) of its layer {var!r} is missing")
-        arr = self.array(store, var)
-        ch, cw = arr.chunks
-        block = arr[ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
+        block = load()
         with self.lock:
             self.items[key] = block
             self.used += block.nbytes
@@ -90,6 +87,16 @@ class ChunkCache:
                 _, old = self.items.popitem(last=False)
                 self.used -= old.nbytes
         return block
+
+    def chunk(self, store: str, var: str, ci: int, cj: int, complete: bool = False) -> np.ndarray:
+        def load():
+            if complete and not os.path.exists(os.path.join(store, var, "c", str(ci), str(cj))):
+                raise damaged(store, f"chunk ({ci}, {cj}) of its layer {var!r} is missing")
+            arr = self.array(store, var)
+            ch, cw = arr.chunks
+            return arr[ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
+
+        return self._cached((store, var, ci, cj), load)
 
     def window(
         self, store: str, var: str, r0: int, r1: int, c0: int, c1: int, complete: bool = False
@@ -107,6 +114,22 @@ class ChunkCache:
                     a0 - br0 : a1 - br0, b0 - bc0 : b1 - bc0
                 ]
         return out
+
+    def stack_block(self, store: str, var: str, r: int, c: int, complete: bool = False):
+        """The chunk-sized block of every layer of a 3-D ``var`` (layer, y, x) that holds cell
+        ``(r, c)``, in one read: ``(block, r0, c0)`` with ``block[:, r - r0, c - c0]`` the
+        cell's values."""
+        arr = self.array(store, var)
+        _, ch, cw = arr.chunks
+        ci, cj = r // ch, c // cw
+
+        def load():
+            for i in range(arr.shape[0] if complete else 0):
+                if not os.path.exists(os.path.join(store, var, "c", str(i), str(ci), str(cj))):
+                    raise damaged(store, f"chunk ({i}, {ci}, {cj}) of its layer {var!r} is missing")
+            return arr[:, ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
+
+        return self._cached((store, var, "stack", ci, cj), load), ci * ch, cj * cw
 
     def clear(self) -> None:
         with self.lock:
@@ -170,11 +193,12 @@ class MapsStore:
             self.landmarks = []  # a store built before the landmark layers
         except (TypeError, ValueError):
             raise damaged(path, "its landmarks attribute is malformed") from None
-        from .landmarks import layer_name
+        from .landmarks import VARIABLE
 
-        for i in range(len(self.landmarks)):
-            if layer_name(i) not in group or tuple(group[layer_name(i)].shape) != self.shape:
-                raise damaged(path, f"its landmark layer {layer_name(i)!r} is missing")
+        if self.landmarks:
+            want = (len(self.landmarks),) + self.shape
+            if VARIABLE not in group or tuple(group[VARIABLE].shape) != want:
+                raise damaged(path, f"its landmark layers ({VARIABLE!r}, {want}) are missing")
         self._dataset = None
         self._coarse: dict = {}
         self._lock = threading.Lock()
@@ -207,17 +231,20 @@ class MapsStore:
 
     def landmark_distances(self, cell) -> np.ndarray:
         """The distances of ``cell`` from every landmark (metres, ``inf`` where a landmark does
-        not reach it): one small chunk per landmark, through the chunk cache."""
-        from .landmarks import layer_name
+        not reach it): one 256^2 block of every layer, read in one call, through the chunk
+        cache."""
+        from .landmarks import VARIABLE
 
         r, c = int(cell[0]), int(cell[1])
-        return np.array(
-            [
-                self.window(layer_name(i), r, r + 1, c, c + 1)[0, 0]
-                for i in range(len(self.landmarks))
-            ],
-            dtype=np.float64,
-        )
+        block, r0, c0 = CACHE.stack_block(self.path, VARIABLE, r, c, self.all_chunks_written)
+        return block[:, r - r0, c - c0].astype(np.float64)
+
+    def landmark_window(self, i: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Rows ``r0:r1`` and columns ``c0:c1`` of landmark ``i``'s distance layer (read
+        directly, not cached: the whole-map search reads large windows once)."""
+        from .landmarks import VARIABLE
+
+        return CACHE.array(self.path, VARIABLE)[i, r0:r1, c0:c1]
 
     def active_landmarks(self, start, goal, k: int) -> list[int]:
         """The ``k`` landmarks whose bound is largest for this pair of cells (the most useful

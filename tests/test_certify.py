@@ -24,6 +24,7 @@ from test_planners import reference_graph
 import pipeline
 from pipeline import landmarks as lm
 from pipeline.components import label_components
+from pipeline.store import MapsStore
 
 EXE = Path(sys.executable).parent / "pipeline"
 
@@ -123,7 +124,7 @@ def test_the_landmark_heuristic_expands_fewer_cells_behind_a_wall(wall):
     path, surface, ok, graph = wall
     m = pipeline.open_store(path)
     start, goal = (20, 150), (180, 150)
-    layers = np.stack([pipeline.open_maps(path)[lm.layer_name(i)].values for i in range(8)])
+    layers = pipeline.open_maps(path)[lm.VARIABLE].values
     ridge = np.zeros(ok.shape, bool)
     plain = pipeline.plan_window(surface, ridge, ok, start, goal, cell_size=A, planner="astar")
     alt = pipeline.plan_window(
@@ -185,7 +186,7 @@ def test_store_layers_equal_the_in_memory_ones_for_any_chunking(tmp_path, chunks
     assert m.landmarks == lm.place_landmarks(surface, ok, A, 5)
     for i, cell in enumerate(m.landmarks):
         np.testing.assert_array_equal(
-            ds[lm.layer_name(i)].values, lm.landmark_layer(surface, ok, A, cell)
+            ds[lm.VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
         )
 
 
@@ -202,10 +203,8 @@ def test_every_landmark_chunk_is_written_also_where_it_does_not_reach(tmp_path):
     comp = pipeline.open_maps(tmp_path / "m.zarr")["component"].values
     assert len({int(comp[c]) for c in m.landmarks}) == 2  # one in each region
     for i in range(2):
-        files = [
-            p for p in (tmp_path / "m.zarr" / lm.layer_name(i) / "c").rglob("*") if p.is_file()
-        ]
-        assert len(files) == 2  # both 256-row chunks
+        files = [p for p in (tmp_path / "m.zarr" / lm.VARIABLE / "c" / str(i)).rglob("*")]
+        assert len([p for p in files if p.is_file()]) == 2  # both 256-row chunks
     assert m.lower_bound((5, 5), (250, 30)) > 0 and m.lower_bound((280, 5), (295, 30)) > 0
 
 
@@ -227,9 +226,13 @@ def test_a_store_whose_landmark_layer_is_gone_is_damaged(tmp_path):
     dem = metric_dataarray((random_surface((40, 40)) * 50 - 1000).astype(np.float32), a=A)
     with dask.config.set(scheduler="synchronous"):
         pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=2)
-    shutil.rmtree(tmp_path / "m.zarr" / "landmark1")
-    with pytest.raises(pipeline.PipelineError, match="landmark layer 'landmark1' is missing"):
-        pipeline.open_store(tmp_path / "m.zarr")
+    shutil.rmtree(tmp_path / "m.zarr" / lm.VARIABLE / "c" / "1")  # layer 1's chunks
+    m = pipeline.open_store(tmp_path / "m.zarr")
+    with pytest.raises(pipeline.PipelineError, match=r"chunk \(1, 0, 0\) of its layer"):
+        m.lower_bound((1, 1), (38, 38))
+    shutil.rmtree(tmp_path / "m.zarr" / lm.VARIABLE)
+    with pytest.raises(pipeline.PipelineError, match="landmark layers .* are missing"):
+        MapsStore(tmp_path / "m.zarr")  # (open_store would keep the store it opened)
 
 
 # ------------------------------------------------------------------ certification in plan
@@ -254,16 +257,15 @@ def optimum(graph, shape, s, g):
     ]
 
 
-def missions(ok, k, seed):
-    from pipeline.components import label_components
-
+def missions(ok, k, seed, min_cells=1):
+    """k random missions within one component, at least ``min_cells`` apart."""
     comp, _ = label_components(ok)
     rng = np.random.default_rng(seed)
     cells = np.argwhere(ok)
     out = []
     while len(out) < k:
         s, g = (tuple(int(v) for v in cells[i]) for i in rng.integers(len(cells), size=2))
-        if comp[s] == comp[g] and s != g:
+        if comp[s] == comp[g] and math.dist(s, g) >= min_cells:
             out.append((s, g))
     return out
 
@@ -279,6 +281,50 @@ def test_ok_implies_the_bound_against_scipy(wall, omega, planner):
         assert t.status == "ok", t.message  # repaired when needed, so always certified here
         assert t.length_m <= omega * opt * (1 + pipeline.mcpc.CERTIFY_TOLERANCE)
         assert t.certified_ratio == pytest.approx(t.length_m / t.lower_bound_m)
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    st.integers(0, 10_000),
+    st.sampled_from([1.0, 1.01, 1.2, 2.0]),
+    st.sampled_from(["ra_star", "astar", "lagrangian"]),
+    st.integers(0, 1),
+)
+def test_ok_implies_the_bound_on_random_obstacle_maps(tmp_path_factory, seed, omega, planner, rep):
+    import dask
+
+    rng = np.random.default_rng(seed)
+    z = random_surface((60, 70), seed=seed) * 200.0 - 1500.0
+    for _ in range(rng.integers(2, 6)):  # land blocks: straight lines cross them
+        r, c = rng.integers(0, 50), rng.integers(0, 60)
+        z[r : r + rng.integers(3, 12), c : c + rng.integers(3, 25)] = 20.0
+    path = tmp_path_factory.mktemp("random") / "m.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(
+            metric_dataarray(z.astype(np.float32), a=A), path, clearance=45.0, chunks=32
+        )
+    ds = pipeline.open_maps(path)
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    graph = reference_graph(surface, ok, A)
+    for s, g in missions(ok, 3, seed=seed, min_cells=20):
+        t = pipeline.plan(
+            path,
+            s,
+            g,
+            planner=planner,
+            omega=omega,
+            rho=3,
+            section_size=12,
+            repair_max_cells=rep * 10**6,
+            client="synchronous",
+        )
+        opt = optimum(graph, ok.shape, s, g)
+        assert t.lower_bound_m <= opt
+        assert t.status == ("ok" if rep else t.status)
+        if t.status == "ok":
+            assert t.length_m <= omega * opt * (1 + 1e-9)
+        else:
+            assert t.status == "uncertified" and t.certified_ratio > omega
 
 
 @pytest.mark.parametrize("rho", [5, 10, 20])
@@ -378,3 +424,36 @@ def test_a_job_with_uncertified_missions_exits_5_and_writes_them(tmp_path, local
         if p["auv:status"] == "uncertified":
             assert p["auv:certified_ratio"] > 1.0 and "x the shortest" in p["auv:message"]
     assert "uncertified" in status, json.dumps(props, indent=1)[:2000]
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory, topobathy_nc):
+    """Real bathymetry with land (matplotlib's topobathy, lon/lat) at 600 m cells: channels,
+    straits and the continental slope, 1.6 % of the cells passable."""
+    import dask
+
+    tmp = tmp_path_factory.mktemp("real-certify")
+    dem = pipeline.open_dem(topobathy_nc, resolution=600.0, chunks=128)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(
+            dem, tmp / "m.zarr", clearance=300.0, surface_clearance=50.0, min_accumulation=8
+        )
+    ds = pipeline.open_maps(tmp / "m.zarr")
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    return tmp / "m.zarr", surface, ok, reference_graph(surface, ok, 600.0)
+
+
+@pytest.mark.parametrize("omega", [1.0, 1.2, 2.0])
+def test_real_bathymetry_missions_are_certified_against_scipy(real, omega):
+    path, surface, ok, graph = real
+    ms = missions(ok, 5, seed=11, min_cells=80)
+    detours = 0
+    for s, g in ms:
+        t = pipeline.plan(path, s, g, omega=omega, rho=4, client="synchronous")
+        opt = optimum(graph, ok.shape, s, g)
+        assert t.lower_bound_m <= opt
+        assert t.status == "ok", t.message
+        assert t.length_m <= omega * opt * (1 + 1e-9)
+        line = np.linspace(s, g, 400).round().astype(int)
+        detours += not ok[line[:, 0], line[:, 1]].all()
+    assert detours >= 2  # missions whose straight line crosses land or shallows

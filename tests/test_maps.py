@@ -24,9 +24,11 @@ def test_build_maps_store(tmp_path):
         "accumulation",
         "ridge",
         "component",
-    } | {f"landmark{i}" for i in range(MAPS.landmarks.default)}
+        "landmark_distance",
+    }
+    assert maps["landmark_distance"].shape == (MAPS.landmarks.default, 300, 250)
     for k, v in maps.data_vars.items():  # chunked identically; landmark layers in small chunks
-        assert v.data.chunksize == ((64, 64) if not k.startswith("landmark") else (256, 250))
+        assert v.data.chunksize == ((64, 64) if k != "landmark_distance" else (1, 256, 250))
     g = zarr.open_group(tmp_path / "maps.zarr", mode="r")
     assert g.metadata.zarr_format == 3 and g["safety"].chunks == (64, 64)
     z = dem.values
@@ -86,11 +88,11 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, 
     assert cells == landmarks.place_landmarks(maps["safety"].values, ok, 30.0)
     for i, cell in enumerate(cells):
         np.testing.assert_array_equal(
-            maps[landmarks.layer_name(i)].values,
+            maps[landmarks.VARIABLE][i].values,
             landmarks.landmark_layer(maps["safety"].values, ok, 30.0, cell),
         )
     for k, v in maps.data_vars.items():
-        if not k.startswith("landmark"):
+        if k != landmarks.VARIABLE:
             assert v.encoding["chunks"] == (min(chunks, shape[0]), min(chunks, shape[1]))
 
 
