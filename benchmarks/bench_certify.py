@@ -435,7 +435,7 @@ def main() -> None:
 
     rep = Report(
         "certify",
-        6,
+        8,
         "The certified bound: length <= omega x L*, proven per mission",
         ".venv/bin/python benchmarks/bench_certify.py",
         quick,
