@@ -41,6 +41,7 @@ from .planners.core import (
     off_map_error,
     path_metrics,
 )
+from .planners.registry import PLANNERS
 from .planners.window import plan_window
 from .store import COARSE_RIDGE_FRACTION, MapsStore, open_store
 
@@ -529,7 +530,7 @@ ACTIVE_LANDMARKS = 2
 
 
 def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Trajectory:
-    k = min(ACTIVE_LANDMARKS, len(m.landmarks))
+    k = min(ACTIVE_LANDMARKS, len(m.landmarks)) if PLANNERS[planner].uses_landmarks else 0
     whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal, landmarks=k)
     res = _run(run_on, m, [whole], planner, omega)[0]
     if not res.ok:

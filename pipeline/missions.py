@@ -93,7 +93,9 @@ def plan_missions(
     Returns
     -------
     list of Trajectory
-        Failed missions have ``status == "failed"`` and the reason in ``message``.
+        Certified missions have ``status == "ok"``; planned but not certified ones
+        ``"uncertified"`` (the proven ratio in ``message``, see :func:`pipeline.plan`); failed
+        missions ``"failed"`` and the reason in ``message``.
 
     Examples
     --------

@@ -172,7 +172,8 @@ class MapsStore:
         if "signature" in attrs and attrs_signature(attrs) != attrs["signature"]:
             raise damaged(
                 path,
-                "its attributes (parameters, cell size, DEM hash) were changed after it was built",
+                "its attributes (parameters, cell size, DEM hash, landmarks) were changed after it "
+                "was built",
             )
         spacing = (
             abs(self.x[1] - self.x[0]) if len(self.x) > 1 else self.cell_size,

@@ -205,6 +205,9 @@ JOB_CASES = [
     ("extra:[maps]\nmin_accumulation = 0", "maps.min_accumulation must be"),
     ("extra:[maps]\nmin_accumulation = 2.5", "maps.min_accumulation must be an integer"),
     ("extra:[maps]\nradius = 3", "unknown key maps.'radius'"),
+    ("extra:[maps]\nlandmarks = -1", "maps.landmarks must be an integer from 0 to 64"),
+    ("extra:[maps]\nlandmarks = 2.5", "maps.landmarks must be an integer"),
+    ("extra:[planning]\nrepair_max_cells = -5", "planning.repair_max_cells must be an integer"),
     ("extra:[planning]\nomega = 0.5", "planning.omega must be a finite number >= 1"),
     ("extra:[planning]\nomega = nan", "planning.omega must be"),
     ("extra:[planning]\nomega = inf", "planning.omega must be"),
@@ -293,6 +296,8 @@ def test_scheduler_flags(tmp_path, small_job, monkeypatch):
         (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "-1"], "clearance"),
         (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "5"], "half a cell"),
         (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--min-accumulation", "0"], "min_acc"),
+        (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--landmarks", "-1"], "landmarks"),
+        (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--landmarks", "65"], "landmarks"),
         (["build-maps", "{t}/dem.zarr", "{t}/dem.zarr"], "exists already"),
         (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "1e7"], "needs about"),
     ],
@@ -380,6 +385,12 @@ TAMPER = [
     (lambda s: shutil.rmtree(s / "ridge"), "damaged: it is incomplete"),
     (lambda s: os.remove(s / "zarr.json"), "is not a Zarr store"),
     (lambda s: os.remove(s / "safety" / "c" / "0" / "1"), "chunk (0, 1) of its layer 'safety'"),
+    (lambda s: _tamper_attr(s, "landmarks", "[[1, 2]]"), "damaged: its attributes"),
+    (lambda s: shutil.rmtree(s / "landmark_distance"), "damaged: its landmark layers"),
+    (
+        lambda s: os.remove(s / "landmark_distance" / "c" / "3" / "0" / "0"),
+        "chunk (3, 0, 0) of its layer 'landmark_distance'",
+    ),
 ]
 
 

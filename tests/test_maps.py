@@ -148,6 +148,8 @@ def test_cli_build_maps(tmp_path, local_client):
             "horizontal",
             "--clearance",
             "200",
+            "--landmarks",
+            "3",
             "--scheduler",
             local_client.scheduler.address,
         ],
@@ -156,6 +158,7 @@ def test_cli_build_maps(tmp_path, local_client):
     assert "passable" in res.output
     maps = pipeline.open_maps(tmp_path / "maps.zarr")
     assert maps.attrs["parameters"]["method"] == "horizontal"
+    assert maps.attrs["parameters"]["landmarks"] == 3 == maps["landmark_distance"].shape[0]
     res = r.invoke(
         main, ["build-maps", str(dem_store), str(tmp_path / "m2.zarr"), "--clearance", "5"]
     )

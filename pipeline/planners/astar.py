@@ -32,5 +32,7 @@ def _weighted(weight_of):
 
 
 DIJKSTRA = Planner("dijkstra", _weighted(lambda omega: 0.0), "optimal, no heuristic")
-ASTAR = Planner("astar", _weighted(lambda omega: 1.0), "optimal, octile heuristic")
-WASTAR = Planner("wastar", _weighted(float), "weighted A*: length <= omega * L*")
+ASTAR = Planner(
+    "astar", _weighted(lambda omega: 1.0), "optimal, octile or landmark heuristic", True
+)
+WASTAR = Planner("wastar", _weighted(float), "weighted A*: length <= omega * L*", True)

@@ -380,3 +380,4 @@ class Planner:
     name: str
     search: Callable[..., Search]
     summary: str
+    uses_landmarks: bool = False  # whether ``landmarks`` serves its heuristic

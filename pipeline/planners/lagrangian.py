@@ -92,5 +92,8 @@ def _search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
 
 
 LAGRANGIAN = Planner(
-    "lagrangian", _search, "most ridge under length <= omega * L* (Lagrangian relaxation, LARAC)"
+    "lagrangian",
+    _search,
+    "most ridge under length <= omega * L* (Lagrangian relaxation, LARAC)",
+    True,
 )
