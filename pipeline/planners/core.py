@@ -87,16 +87,33 @@ NO_LANDMARKS = np.zeros((0, 0), dtype=np.float32)
 NO_GOAL = np.zeros(0)
 
 
+@njit(cache=True)
+def landmark_shrink(lm, a):
+    """The factor ``1 - delta`` that makes the landmark heuristic consistent: stored as float32,
+    a distance ``D`` is off by up to ``2^-24 D``, so ``|d_l(u) - d_l(g)|`` may change along an
+    edge by its cost plus ``2^-23 D_max``; every edge costs at least ``a``, so shrinking by
+    ``delta = 2 LANDMARK_MARGIN + 2^-22 D_max / a`` absorbs that (and the margin's own change)
+    with room to spare. ``D_max``: the largest finite distance of the window's layers."""
+    dmax = 0.0
+    for k in range(lm.shape[0]):
+        for v in range(lm.shape[1]):
+            d = np.float64(lm[k, v])
+            if d != np.inf and d > dmax:
+                dmax = d
+    return 1.0 - (2.0 * LANDMARK_MARGIN + 2.0**-22 * dmax / a)
+
+
 @njit(inline="always", cache=True)
-def landmark_heuristic(lm, lg, v, h):
-    """``max(h, max_l |d_l(v) - d_l(goal)|)`` less the rounding margin: a lower bound on the
-    length from flat cell ``v`` of the window to the goal, by the triangle inequality;
-    ``lm[l, v]`` the distances from landmark ``l`` (inf: it does not reach), ``lg`` the goal's."""
+def landmark_heuristic(lm, lg, shrink, v, h):
+    """``max(h, shrink * max_l |d_l(v) - d_l(goal)|)`` less the rounding margin: a lower bound
+    on the length from flat cell ``v`` of the window to the goal, by the triangle inequality,
+    and consistent (``landmark_shrink``); ``lm[l, v]`` the distances from landmark ``l`` (inf:
+    it does not reach), ``lg`` the goal's."""
     for k in range(lm.shape[0]):
         d = np.float64(lm[k, v])
         if d == np.inf or lg[k] == np.inf:
             continue
-        b = abs(d - lg[k]) - LANDMARK_MARGIN * (d + lg[k])
+        b = shrink * abs(d - lg[k]) - LANDMARK_MARGIN * (d + lg[k])
         if b > h:
             h = b
     return h
@@ -143,15 +160,14 @@ def relax_successors(
     octile,
     lm=NO_LANDMARKS,
     lg=NO_GOAL,
+    shrink=1.0,
 ):
     """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
     ``g + weight * h`` (weight 0: Dijkstra). An edge costs its 3-D length, times
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
     ``length + off_ridge / lambda``; 0 for plain length). With landmark layers ``lm`` (goal
-    distances ``lg``) ``h`` is the larger of the octile and the landmark bound; that bound
-    is admissible but, rounded to float32, consistent only to about 1e-7, so a closed state
-    whose ``g`` improves is reopened (A* with re-expansions keeps its bound with an admissible
-    heuristic). Returns the heap and its size."""
+    distances ``lg``, consistency factor ``shrink``) ``h`` is the larger of the octile and the
+    landmark bound, both consistent. Returns the heap and its size."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
@@ -165,7 +181,7 @@ def relax_successors(
             continue
         v = nr * cols + nc
         sv = state[v]
-        if (sv & CLOSED and lm.shape[0] == 0) or not passable[nr, nc]:
+        if sv & CLOSED or not passable[nr, nc]:
             continue
         if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
             continue  # a diagonal must not cut a corner
@@ -175,10 +191,10 @@ def relax_successors(
         ng = gu + cost
         if (sv & (PARENT | SEEN)) == 0 or ng < g[v]:
             g[v] = ng
-            state[v] = PARENT | k  # (re)opened
+            state[v] = PARENT | k
             h = heuristic(a, nr, nc, gr, gc, octile)
             if lm.shape[0] > 0:
-                h = landmark_heuristic(lm, lg, v, h)
+                h = landmark_heuristic(lm, lg, shrink, v, h)
             hn = heap_push(hk, hi, hn, ng + weight * h, v)
     return hk, hi, hn
 
@@ -189,10 +205,10 @@ def astar_search(
 ):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
-    No re-expansions with the octile heuristic: it is consistent, and weighted A* without
-    reopening still returns a path within ``weight`` of the optimum (Likhachev et al. 2003).
-    With landmark layers ``lm`` (k x cells of the window, float32) the heuristic is the larger
-    of the octile and the landmark bound, and states are reopened (see ``relax_successors``).
+    No re-expansions: the heuristic is consistent, and weighted A* without reopening still
+    returns a path within ``weight`` of the optimum (Likhachev et al. 2003). With landmark
+    layers ``lm`` (k x cells of the window, float32) the heuristic is the larger of the octile
+    distance and the landmark bound, made consistent by ``landmark_shrink``.
     Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
     found flag.
     """
@@ -210,9 +226,10 @@ def astar_search(
     lg = np.empty(lm.shape[0])
     for k in range(lm.shape[0]):
         lg[k] = lm[k, t]
+    shrink = landmark_shrink(lm, a) if lm.shape[0] > 0 else 1.0
     h0 = heuristic(a, sr, sc, gr, gc, octile)
     if lm.shape[0] > 0:
-        h0 = landmark_heuristic(lm, lg, s, h0)
+        h0 = landmark_heuristic(lm, lg, shrink, s, h0)
     hn = heap_push(hk, hi, 0, weight * h0, s)
     expansions = 0
     while hn > 0:
@@ -242,6 +259,7 @@ def astar_search(
             octile,
             lm,
             lg,
+            shrink,
         )
     return state, g, expansions, False
 

@@ -55,9 +55,10 @@ def plan_window(
     landmarks : array (k, rows, cols), optional
         Exact shortest-path distances from k landmark cells over this window's graph
         (:mod:`pipeline.landmarks`; ``inf`` where a landmark does not reach): A*, weighted A*
-        and the Lagrangian planner then use the landmark bound as their heuristic where it
-        beats the octile distance. Distances over a larger map bound this window's too (a
-        window's paths are paths of the map), so a window of a maps store may take its layers.
+        and the Lagrangian planner then use the landmark bound (made consistent) as their
+        heuristic where it beats the octile distance. Distances over a larger map bound this
+        window's too (a window's paths are paths of the map), so a window of a maps store may
+        take its layers.
 
     Examples
     --------
