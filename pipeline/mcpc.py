@@ -524,9 +524,12 @@ def _certify(t: Trajectory, repair: str | None = None) -> Trajectory:
     return t
 
 
-# landmark layers the whole-map search reads for its heuristic: those that bound this mission
-# best (each costs 4 bytes a cell of memory and its reading time)
-ACTIVE_LANDMARKS = 2
+# landmark layers the whole-map search reads for its heuristic (those that bound the mission
+# best). None by default: measured on the benchmark maps (benchmarks/bench_certify.py), reading
+# one layer of 10000^2 takes about 3.7 s, more than the landmark heuristic saves A* there
+# (6.3 s -> 4.7 s with two layers); on maze-like maps it saves far more. plan_window takes
+# layers directly (``landmarks=``).
+ACTIVE_LANDMARKS = 0
 
 
 def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Trajectory:
