@@ -567,8 +567,9 @@ def main() -> None:
     rep.p("""A* (optimal; `plan_window(planner="astar")` in memory, the store's reads not
           timed) with the octile heuristic, with the landmark bound of the 2 landmarks that
           bound the mission best and of all of them (`plan` does not read layers for its
-          whole-map searches by default: one layer of 10000^2 takes about 3.7 s to read); pyastar2d (C++ A*, uniform cost on a weight
-          grid, no 3-D surface: an easier problem) on the same missions. Every A* variant
+          whole-map searches by default: one layer of 10000^2 takes about 3.7 s to read);
+          pyastar2d (C++ A*, uniform cost on a weight grid, no 3-D surface: an easier problem)
+          on the same missions. Every A* variant
           returns the same optimal length (checked).""")
     ex_rows = []
     names = None
