@@ -61,7 +61,7 @@ def test_dijkstra_equals_scipy(seed, shape, land, nsrc):
     np.testing.assert_allclose(got[fin], want[fin], rtol=1e-12, atol=1e-9)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=25, deadline=None)
 @given(
     st.integers(0, 10_000),
     st.tuples(st.integers(2, 24), st.integers(2, 24)),
@@ -263,6 +263,18 @@ def missions(ok, k, seed, min_cells=1):
     rng = np.random.default_rng(seed)
     cells = np.argwhere(ok)
     out = []
+    if min_cells > 1:  # far apart: draw candidate pairs in batches
+        while len(out) < k:
+            i = rng.integers(len(cells), size=(4096, 2))
+            a, b = cells[i[:, 0]], cells[i[:, 1]]
+            keep = (comp[a[:, 0], a[:, 1]] == comp[b[:, 0], b[:, 1]]) & (
+                np.hypot(*(a - b).T) >= min_cells
+            )
+            out += [
+                (tuple(map(int, x)), tuple(map(int, y)))
+                for x, y in zip(a[keep], b[keep], strict=True)
+            ]
+        return out[:k]
     while len(out) < k:
         s, g = (tuple(int(v) for v in cells[i]) for i in rng.integers(len(cells), size=2))
         if comp[s] == comp[g] and math.dist(s, g) >= min_cells:
@@ -274,7 +286,7 @@ def missions(ok, k, seed, min_cells=1):
 @pytest.mark.parametrize("planner", ["astar", "ra_star"])
 def test_ok_implies_the_bound_against_scipy(wall, omega, planner):
     path, surface, ok, graph = wall
-    for s, g in missions(ok, 6, seed=int(omega * 100)):
+    for s, g in missions(ok, 4, seed=int(omega * 100)):
         t = pipeline.plan(path, s, g, planner=planner, omega=omega, client="synchronous")
         opt = optimum(graph, ok.shape, s, g)
         assert t.lower_bound_m <= opt  # proven: never above the optimum
@@ -283,7 +295,7 @@ def test_ok_implies_the_bound_against_scipy(wall, omega, planner):
         assert t.certified_ratio == pytest.approx(t.length_m / t.lower_bound_m)
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=5, deadline=None)
 @given(
     st.integers(0, 10_000),
     st.sampled_from([1.0, 1.01, 1.2, 2.0]),
@@ -381,7 +393,7 @@ name = "u"
 [dem]
 chunks = 64
 [dem.synthetic]
-shape = [160, 160]
+shape = [120, 120]
 cell_size = 30.0
 seed = 4
 islands = 0
@@ -399,8 +411,8 @@ catalog = "{catalog}"
 
 def test_a_job_with_uncertified_missions_exits_5_and_writes_them(tmp_path, local_client):
     missions = "".join(
-        f'[[missions]]\nname = "m{i}"\nstart = [{3 + 11 * i}, 4]\ngoal = [{150 - 9 * i}, 155]\n'
-        for i in range(5)
+        f'[[missions]]\nname = "m{i}"\nstart = [{3 + 11 * i}, 4]\ngoal = [{115 - 9 * i}, 116]\n'
+        for i in range(4)
     )
     job = tmp_path / "job.toml"
     job.write_text(UNCERTIFIED_JOB.format(missions=missions, catalog=tmp_path / "cat"))
@@ -413,7 +425,7 @@ def test_a_job_with_uncertified_missions_exits_5_and_writes_them(tmp_path, local
     cat = pystac.Catalog.from_file(str(tmp_path / "cat" / "catalog.json"))
     props = {it.id: it.properties for it in cat.get_items(recursive=True)}
     status = [p["auv:status"] for p in props.values()]
-    assert len(status) == 5 and set(status) <= {"ok", "uncertified"}
+    assert len(status) == 4 and set(status) <= {"ok", "uncertified"}
     if "uncertified" in status:
         assert proc.returncode == 5, proc.stderr[-2000:]
         assert "not certified" in proc.stdout and "is not proven" in proc.stderr
