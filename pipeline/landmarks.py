@@ -39,7 +39,7 @@ from numba import njit
 
 from ._grid8 import DC, DR
 from .components import label_components
-from .planners.core import LANDMARK_MARGIN
+from .planners.core import LANDMARK_MARGIN, edge_cost
 
 MIN_COMPONENT_FRACTION = 0.01
 REL_MARGIN = LANDMARK_MARGIN
@@ -123,7 +123,6 @@ def dijkstra(surface, passable, a, sources):
         du = dist[u]
         r = u // cols
         c = u - r * cols
-        su = np.float64(surface[r, c])
         for k in range(8):
             nr = r + DR[k]
             nc = c + DC[k]
@@ -134,9 +133,7 @@ def dijkstra(surface, passable, a, sources):
                 continue
             if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
                 continue
-            dz = np.float64(surface[nr, nc]) - su
-            h2 = 2.0 if k % 2 == 1 else 1.0
-            nd = du + math.sqrt(a * a * h2 + dz * dz)
+            nd = du + edge_cost(surface, a, r, c, nr, nc)  # the planners' edge, one definition
             if nd < dist[v]:
                 dist[v] = nd
                 b = max(int(nd / w), cur)
