@@ -280,12 +280,26 @@ def _synth_chunk(block_info=None, *, args):
     return _synth_block(r0, r1, c0, c1, *args)
 
 
+def local_crs(lon0: float, lat0: float, x0: float, y0: float):
+    """A transverse Mercator CRS (WGS84, metres, scale 1) centred on ``lon0, lat0``, where the
+    centre has eastings and northings ``x0, y0``."""
+    from pyproj import CRS
+
+    return CRS.from_proj4(
+        f"+proj=tmerc +lat_0={lat0!r} +lon_0={lon0!r} +k=1 +x_0={x0!r} +y_0={y0!r} "
+        "+datum=WGS84 +units=m +no_defs +type=crs"
+    )
+
+
 def synthetic_dem(
     shape,
     cell_size: float = SYNTHETIC.cell_size.default,
     seed: int = SYNTHETIC.seed.default,
     chunks=DEFAULT_CHUNK,
     islands: int = SYNTHETIC.islands.default,
+    origin_lon: float = SYNTHETIC.origin_lon.default,
+    origin_lat: float = SYNTHETIC.origin_lat.default,
+    georeferenced: bool = SYNTHETIC.georeferenced.default,
 ) -> xr.DataArray:
     """A virtual mid-ocean-ridge DEM, lazily generated (dask) or in memory (``chunks=None``).
 
@@ -301,6 +315,14 @@ def synthetic_dem(
         Dask chunk sides, or ``None`` for a numpy-backed array.
     islands : int
         Number of volcanic islands that break the surface (land obstacles), 0 to 10.
+    origin_lon, origin_lat : float
+        Where the map's centre lies on the Earth (default: 26.14 N, 44.83 W, the TAG
+        hydrothermal field on the Mid-Atlantic Ridge). The map's CRS (``crs_wkt``) is a
+        transverse Mercator projection centred there, with the map's own x and y (metres
+        from its south-west corner) as eastings and northings, so that lon/lat endpoints,
+        WGS84 catalogs and waypoint files work on generated maps as on surveys.
+    georeferenced : bool
+        False: no CRS (map coordinates only).
 
     Examples
     --------
@@ -332,6 +354,11 @@ def synthetic_dem(
         )
     x = (np.arange(cols) + 0.5) * a
     y = (rows - np.arange(rows) - 0.5) * a
+    lon0 = SYNTHETIC.origin_lon.check(origin_lon, "`origin_lon`")
+    lat0 = SYNTHETIC.origin_lat.check(origin_lat, "`origin_lat`")
+    extra = {}
+    if SYNTHETIC.georeferenced.check(georeferenced, "`georeferenced`"):
+        extra["crs_wkt"] = local_crs(lon0, lat0, cols * a / 2, rows * a / 2).to_wkt()
     return xr.DataArray(
         data,
         dims=("y", "x"),
@@ -344,5 +371,6 @@ def synthetic_dem(
             "source": f"synthetic mid-ocean ridge (seed={seed}, islands={islands}, "
             f"generator v{GENERATOR_VERSION})",
             "long_name": "seabed elevation",
+            **extra,
         },
     )
