@@ -56,7 +56,7 @@ def read_catalog() -> tuple[list[dict], dict]:
     rows = []
     for it in sorted(items, key=lambda i: i.id):
         p = it.properties
-        track = gpd.read_parquet(CATALOG / "missions" / it.id / "track.parquet")
+        track = gpd.read_parquet(CATALOG / "missions" / it.id / "grid-path.parquet")
         rows.append(
             dict(
                 id=it.id,
@@ -112,8 +112,8 @@ def plot(rows, info, png: Path) -> None:
     for k, r in enumerate(rows):
         track = gpd.read_parquet(CATALOG / "missions" / r["id"] / "track.parquet")
         ax.plot(
-            track.geometry.x / 1e3,
-            track.geometry.y / 1e3,
+            track["x"] / 1e3,
+            track["y"] / 1e3,
             color=colours[k % 6],
             lw=1.8,
             label=f"{r['id']} ({r['planner']}, omega {r['omega']}): {r['length_km']:.0f} "

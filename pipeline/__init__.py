@@ -18,6 +18,7 @@ from .exceptions import (
     StoreExistsError,
     UnreachableGoalError,
 )
+from .flight import Flight, Vehicle, fly
 from .jobs import run_job
 from .maps import build_maps, dem_hash
 from .mcpc import plan
@@ -43,11 +44,14 @@ __all__ = [
     "Trajectory",
     "UnreachableGoalError",
     "__version__",
+    "Flight",
+    "Vehicle",
     "build_maps",
     "cell_size",
     "dem_hash",
     "fill_depressions",
     "flow_accumulation",
+    "fly",
     "import_dem",
     "open_dem",
     "open_maps",

@@ -7,8 +7,17 @@ Layout under the catalog directory::
     missions/collection.json          the job's Collection; asset missions.parquet
     missions/missions.parquet         one row per mission (LineString, auv: properties)
     missions/<id>/<id>.json           one Item per mission (failed ones too)
-    missions/<id>/track.parquet       the trajectory points (x, y, z) as GeoParquet
-    missions/<id>/quicklook.png       hillshade, ridge cells, track coloured by clearance
+    missions/<id>/track.parquet       the flown track (x, y, z, altitude, time; lon/lat points)
+    missions/<id>/grid-path.parquet   the planned grid path (cells, safety surface)
+    missions/<id>/waypoints.geojson   waypoints, WGS84 (also waypoints.csv)
+    missions/<id>/mission.waypoints   QGroundControl / ArduSub (QGC WPL 110)
+    missions/<id>/mission.kml         Google Earth
+    missions/<id>/mission.imc         LSTS IMC plan (Neptus, DUNE)
+    missions/<id>/quicklook.png       plan view and depth profile
+
+Item geometries are WGS84 longitude/latitude (RFC 7946) when the DEM has a CRS, with the STAC
+projection extension giving the maps' CRS; the file formats are described in
+:mod:`pipeline.exports` and ``docs/flyable-missions.md``.
 
 A mission's folder is written beside its place and renamed into it when complete, so the
 Item's presence means the mission is finished (a re-run skips it).
@@ -29,25 +38,6 @@ from pathlib import Path
 import numpy as np
 
 COLLECTION = "missions"
-
-
-def _transformer(crs_wkt: str | None):
-    if not crs_wkt:
-        return None
-    from pyproj import CRS, Transformer
-
-    crs = CRS.from_wkt(crs_wkt)
-    if crs.is_geographic:
-        return None
-    return Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
-
-
-def _lonlat(points_xy: np.ndarray, crs_wkt: str | None) -> np.ndarray:
-    tr = _transformer(crs_wkt)
-    if tr is None:
-        return points_xy
-    lon, lat = tr.transform(points_xy[:, 0], points_xy[:, 1])
-    return np.column_stack([lon, lat])
 
 
 _SAFE = re.compile(r"[^A-Za-z0-9_-]")
@@ -103,49 +93,40 @@ def write_mission(
     tmp = final.parent / f".{mid}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir(parents=True)
     try:
-        ok = traj.planned and len(traj.cells) > 1
+        ok = len(traj.cells) > 1  # a path (failed by a vehicle limit, it is kept to inspect)
         geom = bbox = None
         assets = {}
+        props = {}
         if ok:
-            ll = _lonlat(traj.points[:, :2], crs_wkt)
-            geom = {"type": "LineString", "coordinates": ll.tolist()}
-            bbox = [
-                float(ll[:, 0].min()),
-                float(ll[:, 1].min()),
-                float(ll[:, 0].max()),
-                float(ll[:, 1].max()),
-            ]
-            _track_parquet(tmp / "track.parquet", traj, crs_wkt)
-            assets["track"] = pystac.Asset(
-                "./track.parquet",
-                title="trajectory points x, y, z",
-                media_type="application/vnd.apache.parquet",
-                roles=["data"],
-            )
+            files, geom, bbox, props = _mission_files(tmp, name, mid, traj, maps, crs_wkt)
+            for key, (href, title, media, roles) in files.items():
+                assets[key] = pystac.Asset(f"./{href}", title=title, media_type=media, roles=roles)
             if quicklook:
                 from .plots import mission_quicklook
 
                 title = "".join(c if c.isprintable() else "?" for c in name)
-                mission_quicklook(maps, traj, tmp / "quicklook.png", title=title)
+                mission_quicklook(maps, traj, tmp / "quicklook.png", title=title, crs_wkt=crs_wkt)
                 assets["quicklook"] = pystac.Asset(
                     "./quicklook.png",
-                    title="quick look",
+                    title="plan view and depth profile",
                     media_type=pystac.MediaType.PNG,
                     roles=["overview"],
                 )
-        props = {
-            f"auv:{k}": _num(v)
-            for k, v in (
-                ("length_m", traj.length_m),
-                ("ridge_length_m", traj.ridge_length_m),
-                ("ridge_ratio", traj.ridge_ratio),
-                ("omega", traj.omega),
-                ("lower_bound_m", traj.lower_bound_m),
-                ("certified_ratio", traj.certified_ratio),
-                ("min_clearance_m", min_clearance_m),
-                ("runtime_s", traj.runtime_s),
-            )
-        }
+        props.update(
+            {
+                f"auv:{k}": _num(v)
+                for k, v in (
+                    ("length_m", traj.length_m),
+                    ("ridge_length_m", traj.ridge_length_m),
+                    ("ridge_ratio", traj.ridge_ratio),
+                    ("omega", traj.omega),
+                    ("lower_bound_m", traj.lower_bound_m),
+                    ("certified_ratio", traj.certified_ratio),
+                    ("min_clearance_m", min_clearance_m),
+                    ("runtime_s", traj.runtime_s),
+                )
+            }
+        )
         props.update(
             {
                 "auv:name": name,
@@ -163,6 +144,8 @@ def write_mission(
             }
         )
         item = pystac.Item(mid, geom, bbox, _dt.datetime.now(_dt.UTC), props, assets=assets)
+        if ok and crs_wkt:
+            _projection(item, crs_wkt, traj)
         d = item.to_dict(include_self_link=False, transform_hrefs=False)
         d["links"] = [
             {"rel": "root", "href": "../../catalog.json", "type": "application/json"},
@@ -188,16 +171,67 @@ def _num(v):
     return v
 
 
-def _track_parquet(path: Path, traj, crs_wkt: str | None) -> None:
-    import geopandas as gpd
-    from shapely import points
+def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
+    """Write a mission's files; returns its assets, its geometry and bbox (WGS84 when the DEM
+    has a CRS: the waypoint route, or the grid path without a flight) and its flight's
+    properties."""
+    from .exports import PARQUET, to_lonlat, write_grid_path, write_mission_files
 
-    gdf = gpd.GeoDataFrame(
-        {"row": traj.cells[:, 0], "col": traj.cells[:, 1], "z": traj.points[:, 2]},
-        geometry=points(traj.points[:, 0], traj.points[:, 1], traj.points[:, 2]),
-        crs=crs_wkt or None,
-    )
-    gdf.to_parquet(path)
+    f = traj.flight
+    props = {}
+    if f is None:
+        write_grid_path(folder / "grid-path.parquet", traj, crs_wkt)
+        files = {"grid-path": ("grid-path.parquet", "planned grid path (cells)", PARQUET, ["data"])}
+        xy = traj.points[:, :2]
+    else:
+        sea = float(maps.parameters.get("sea_level_m", 0.0))
+        files = write_mission_files(folder, name, mid, traj, crs_wkt, sea)
+        xy = f.waypoints[:, :2]
+        props = {
+            f"auv:{k}": _num(v)
+            for k, v in (
+                ("flown_length_m", f.flown_length_m),
+                ("route_length_m", f.route_length_m),
+                ("flown_ridge_ratio", f.ridge_ratio),
+                ("duration_s", f.duration_s),
+                ("max_pitch_deg", f.max_pitch_deg),
+                ("min_turn_radius_m", f.min_turn_radius_m),
+                ("waypoints", len(f.waypoints)),
+                ("energy_wh", f.energy_wh),
+            )
+        }
+        props["auv:smoothing"] = f.smoothing
+        props["auv:vehicle"] = {**f.vehicle.to_dict(), "min_turn_radius_m": f.turn_radius_m}
+        if f.problems:
+            props["auv:flight_problems"] = list(f.problems)
+        if crs_wkt is None:
+            props["auv:skipped_files"] = (
+                "waypoints.geojson, mission.waypoints, mission.kml, mission.imc: the DEM has "
+                "no coordinate reference system, so there are no latitudes and longitudes"
+            )
+    ll = to_lonlat(crs_wkt, xy[:, 0], xy[:, 1])
+    pts = np.column_stack(ll) if ll is not None else xy
+    geom = {"type": "LineString", "coordinates": pts.tolist()}
+    bbox = [float(pts[:, 0].min()), float(pts[:, 1].min())]
+    bbox += [float(pts[:, 0].max()), float(pts[:, 1].max())]
+    return files, geom, bbox, props
+
+
+def _projection(item, crs_wkt: str, traj) -> None:
+    """The STAC projection extension: the maps' CRS (an EPSG code when it has one, else
+    WKT2) and the track's bounding box in it."""
+    from pyproj import CRS
+    from pystac.extensions.projection import ProjectionExtension
+
+    crs = CRS.from_wkt(crs_wkt)
+    proj = ProjectionExtension.ext(item, add_if_missing=True)
+    epsg = crs.to_epsg()
+    proj.code = f"EPSG:{epsg}" if epsg else None
+    if not epsg:
+        proj.wkt2 = crs.to_wkt()
+    f = traj.flight
+    xy = np.column_stack([f.x, f.y]) if f is not None else traj.points[:, :2]
+    proj.bbox = [float(v) for v in (*xy.min(axis=0), *xy.max(axis=0))]
 
 
 def write_catalog(

@@ -14,11 +14,14 @@ A job file::
     [planning]                  # defaults of every mission: planner, omega, mcpc, rho,
     planner = "ra_star"         # section_size, margin
     omega = 2.0
+    [vehicle]                   # speed_m_s, max_pitch_deg, min_turn_radius_m, hotel_power_w,
+    speed_m_s = 1.5             # propulsion_power_w, battery_wh
     [[missions]]
     name = "north-ridge"
     start = [100, 120]          # a cell (row, col); or start_xy = [x, y] in map
     goal = [1800, 1700]         # coordinates, or start_lonlat = [lon, lat]
     omega = 1.5                 # any [planning] key, for this mission
+    vehicle = { max_pitch_deg = 15 }   # any [vehicle] key, for this mission
     [output]
     catalog = "catalogs/demo"
 """
@@ -48,6 +51,7 @@ from .params import (
     MAPS,
     PLANNING,
     SYNTHETIC,
+    VEHICLE,
     Param,
     Schema,
     shape2d,
@@ -55,9 +59,9 @@ from .params import (
 
 log = logging.getLogger(__name__)
 
-_TOP_KEYS = {"name", "dem", "maps", "planning", "missions", "output"}
+_TOP_KEYS = {"name", "dem", "maps", "planning", "vehicle", "missions", "output"}
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
-_MISSION_KEYS = {"name"} | PLANNING.names() | _ENDPOINT_KEYS
+_MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS
 _DEM_KEYS = {"path", "synthetic"} | DEM.names()
 _SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
 _OUTPUT_KEYS = {"catalog"}
@@ -79,6 +83,7 @@ class Job:
     synthetic: dict = field(default_factory=dict)
     maps: dict = field(default_factory=lambda: _maps_defaults({}))
     planning: dict = field(default_factory=dict)
+    vehicle: dict = field(default_factory=dict)  # the [vehicle] keys given
     missions: list = field(default_factory=list)
 
     def maps_fingerprint(self) -> str:
@@ -94,9 +99,14 @@ class Job:
         what = {
             "ends": {k: mission[k] for k in sorted(mission) if k.startswith(("start", "goal"))},
             "planning": plan,
+            "vehicle": self.vehicle_of(mission),
             "maps": self.maps_fingerprint(),
         }
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+    def vehicle_of(self, mission: dict) -> dict:
+        """The vehicle of a mission: the job's [vehicle] with the mission's own keys over it."""
+        return {**self.vehicle, **mission.get("vehicle", {})}
 
     def dem_fingerprint(self) -> str:
         """A hash of what defines the DEM: re-running with the same inputs reuses the store."""
@@ -216,6 +226,7 @@ def load_job(path: str | os.PathLike) -> Job:
         cell = job.synthetic["cell_size"]
     _load_maps(path, doc, job, cell)
     _load_planning(path, doc, job)
+    job.vehicle = _load_vehicle(path, doc.get("vehicle", {}), "vehicle.")
     _load_missions(path, doc, job)
     out = doc.get("output", {})
     if not isinstance(out, dict):
@@ -254,6 +265,24 @@ def _load_planning(path, doc, job):
         _fail(path, "[planning] must be a table")
     _check_keys(path, t, PLANNING.names(), "planning.")
     job.planning = _checked(path, PLANNING, t, "planning.")
+
+
+def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:
+    from .flight import Vehicle
+
+    if not isinstance(t, dict):
+        _fail(
+            path,
+            f"{where.rstrip('.')} must be a table, e.g. {where.rstrip('.')} = "
+            "{ speed_m_s = 1.5 }",
+        )
+    _check_keys(path, t, VEHICLE.names(), where)
+    t = _checked(path, VEHICLE, t, where)
+    try:
+        Vehicle(**{**(base or {}), **t})
+    except InvalidParameterError as exc:
+        _fail(path, f"[{where.rstrip('.')}]: {exc}")
+    return t
 
 
 def _load_missions(path, doc, job):
@@ -305,6 +334,8 @@ def _load_missions(path, doc, job):
             mission[f"{end}_input"] = list(v)
         plan = {k: m[k] for k in PLANNING.names() if k in m}
         mission.update(_checked(path, PLANNING, plan, where))
+        if "vehicle" in m:
+            mission["vehicle"] = _load_vehicle(path, m["vehicle"], f"{where}vehicle.", job.vehicle)
         job.missions.append(mission)
 
 
@@ -573,6 +604,7 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
             ready,
             client=client,
             defaults=job.planning,
+            vehicle=job.vehicle,
             on_done=lambda i, mission, traj: record(mission, traj),
         )
 
@@ -620,7 +652,13 @@ class _Recorder:
                 100 * traj.ridge_ratio,
                 clr,
                 traj.runtime_s,
-                f": {traj.message}" if traj.message else "",
+                (
+                    f"; flown {traj.flight.flown_length_m / 1e3:.1f} km in "
+                    f"{traj.flight.duration_s / 3600:.1f} h, {len(traj.flight.waypoints)} waypoints"
+                    if traj.flight is not None
+                    else ""
+                )
+                + (f": {traj.message}" if traj.message else ""),
             )
         else:
             self.res.failed.append(name)

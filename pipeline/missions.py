@@ -17,6 +17,7 @@ import numpy as np
 
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError
+from .flight import Vehicle, with_flight
 from .mcpc import plan
 from .params import PLANNING
 from .planners.core import Trajectory
@@ -70,6 +71,7 @@ def plan_missions(
     defaults: dict | None = None,
     max_concurrent: int = 4,
     on_done: Callable[[int, dict, Trajectory], None] | None = None,
+    vehicle=None,
 ) -> list[Trajectory]:
     """Plan many missions on one maps store; trajectories come back in mission order.
 
@@ -89,6 +91,11 @@ def plan_missions(
     on_done : callable, optional
         ``on_done(index, mission, trajectory)`` as each mission finishes (in finishing order),
         e.g. to write its result at once.
+    vehicle : Vehicle or dict, optional
+        When given (or when a mission has a ``vehicle`` dict of its own, laid over it), each
+        planned trajectory gets its flown track and waypoints (``trajectory.flight``,
+        :func:`pipeline.fly`); a flight that breaks a vehicle limit or needs more energy than
+        the battery holds fails the mission with the reason.
 
     Returns
     -------
@@ -118,9 +125,18 @@ def plan_missions(
         mission = items[i]
         opts = {**defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
         try:
-            return plan(m, mission["start"], mission["goal"], client=run_on, **opts)
+            t = plan(m, mission["start"], mission["goal"], client=run_on, **opts)
         except PipelineError as exc:
             return failed_trajectory({**opts}, str(exc))
+        if vehicle is None and "vehicle" not in mission:
+            return t
+        veh = vehicle.to_dict() if isinstance(vehicle, Vehicle) else dict(vehicle or {})
+        try:
+            return with_flight(m, t, {**veh, **mission.get("vehicle", {})})
+        except PipelineError as exc:
+            t.status = "failed"
+            t.message = f"its flown track could not be made: {exc}"
+            return t
 
     out: list[Trajectory | None] = [None] * len(items)
     workers = max(1, min(int(max_concurrent), len(items)))

@@ -160,6 +160,31 @@ SYNTHETIC = Schema(
     Param("cell_size", "float", 30.0, "cell side", "metres", above=0),
     Param("seed", "int", 0, "random seed of the scene", minimum=0),
     Param("islands", "int", 2, "islands breaking the surface", minimum=0, maximum=10),
+    Param(
+        "origin_lon",
+        "float",
+        -44.83,
+        "longitude of the map's centre (default: the Mid-Atlantic Ridge at the TAG field)",
+        "degrees",
+        minimum=-180.0,
+        maximum=180.0,
+    ),
+    Param(
+        "origin_lat",
+        "float",
+        26.14,
+        "latitude of the map's centre",
+        "degrees",
+        minimum=-85.0,
+        maximum=85.0,
+    ),
+    Param(
+        "georeferenced",
+        "bool",
+        True,
+        "give the map a CRS (a transverse Mercator centred on the origin); false: map "
+        "coordinates only",
+    ),
 )
 
 DEM = Schema(
@@ -255,6 +280,39 @@ PLANNING = Schema(
         "most this many cells (0: never)",
         "cells",
         minimum=0,
+    ),
+)
+
+
+VEHICLE = Schema(
+    "the vehicle (fly, [vehicle], per mission vehicle = {...})",
+    Param("speed_m_s", "float", 1.5, "cruise speed through the water", "m/s", above=0),
+    Param(
+        "max_pitch_deg",
+        "float",
+        20.0,
+        "steepest climb or dive the vehicle holds",
+        "degrees",
+        above=0,
+        maximum=89,
+    ),
+    Param(
+        "min_turn_radius_m",
+        "float",
+        None,
+        "tightest horizontal turn; default one cell side, at most 50 m",
+        "metres",
+        above=0,
+    ),
+    Param("hotel_power_w", "float", None, "power of everything but propulsion", "W", minimum=0),
+    Param("propulsion_power_w", "float", None, "propulsion power at cruise speed", "W", minimum=0),
+    Param(
+        "battery_wh",
+        "float",
+        None,
+        "usable energy; a mission needing more fails with the reason",
+        "Wh",
+        above=0,
     ),
 )
 

@@ -72,49 +72,280 @@ def hillshade_png(dem, path: str | os.PathLike, *, title: str | None = None) -> 
     return str(path)
 
 
-def mission_quicklook(
-    maps, traj, path: str | os.PathLike, *, title: str = "", max_side: int = 800
-) -> str:
-    """A mission's quick look: hillshade of the region around the track, ridge cells, the track
-    coloured by its height above the seabed, start and goal."""
-    r0, c0 = traj.cells.min(axis=0)
-    r1, c1 = traj.cells.max(axis=0) + 1
-    pad = max(20, int(0.15 * max(r1 - r0, c1 - c0)))
-    ds = maps.dataset
-    rows, cols = maps.shape
-    r0, c0 = max(int(r0) - pad, 0), max(int(c0) - pad, 0)
-    r1, c1 = min(int(r1) + pad, rows), min(int(c1) + pad, cols)
-    step = max(1, int(np.ceil(max(r1 - r0, c1 - c0) / max_side)))
-    sub = ds["elevation"][r0:r1:step, c0:c1:step].load()
-    sub.attrs["cell_size"] = maps.cell_size
-    rdg = ds["ridge"][r0:r1:step, c0:c1:step].values
-    fig, ax = plt.subplots(figsize=(7.5, 6.5), dpi=100)
-    hillshade_axes(ax, sub, colorbar=False)
-    xs, ys = sub["x"].values / 1e3, sub["y"].values / 1e3
-    rr, cc = np.nonzero(rdg)
-    ax.scatter(xs[cc], ys[rr], s=0.6, c="white", alpha=0.5, linewidths=0)
-    import xarray as xr
+def _nice_step(span: float) -> float:
+    """A graticule step (degrees) giving about 3 to 6 lines over ``span`` degrees."""
+    for st in (0.01, 0.02, 0.05, 0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0):
+        if span / st <= 6:
+            return st
+    return 30.0
 
-    elev = (
-        ds["elevation"]
-        .isel(
-            y=xr.DataArray(traj.cells[:, 0], dims="p"), x=xr.DataArray(traj.cells[:, 1], dims="p")
+
+_LABEL_BOX = dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.75)
+
+
+def graticule(ax, crs_wkt: str, extent_km) -> None:
+    """Lines of constant longitude and latitude over a map in km of a projected CRS, labelled
+    at the bottom and left edges."""
+    from pyproj import CRS, Transformer
+
+    crs = CRS.from_wkt(crs_wkt)
+    if crs.is_geographic:
+        return
+    fwd = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    inv = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    x0, x1, y0, y1 = (v * 1e3 for v in extent_km)
+    ex = np.linspace(x0, x1, 25)
+    ey = np.linspace(y0, y1, 25)
+    bx = np.concatenate([ex, np.full(25, x1), ex[::-1], np.full(25, x0)])
+    by = np.concatenate([np.full(25, y0), ey, np.full(25, y1), ey[::-1]])
+    lon, lat = fwd.transform(bx, by)
+    style = dict(color="0.15", lw=0.5, ls=(0, (4, 3)), alpha=0.7, zorder=2)
+    for which, lo, hi in (("lon", min(lon), max(lon)), ("lat", min(lat), max(lat))):
+        st = _nice_step(hi - lo)
+        for v in np.arange(np.ceil(lo / st) * st, hi + 1e-12, st):
+            t = np.linspace(
+                min(lat) if which == "lon" else min(lon),
+                max(lat) if which == "lon" else max(lon),
+                100,
+            )
+            x, y = (
+                inv.transform(np.full(100, v), t)
+                if which == "lon"
+                else inv.transform(t, np.full(100, v))
+            )
+            ax.plot(np.asarray(x) / 1e3, np.asarray(y) / 1e3, **style)
+            hemi = ("E" if v >= 0 else "W") if which == "lon" else ("N" if v >= 0 else "S")
+            label = f"{abs(v):.{max(0, -int(np.floor(np.log10(st))))}f}\N{DEGREE SIGN}{hemi}"
+            if which == "lon":
+                at, _ = inv.transform(v, fwd.transform((x0 + x1) / 2, y0)[1])
+                at = (at / 1e3, y0 / 1e3) if x0 <= at <= x1 else None
+            else:
+                _, at = inv.transform(fwd.transform(x0, (y0 + y1) / 2)[0], v)
+                at = (x0 / 1e3, at / 1e3) if y0 <= at <= y1 else None
+            if at is not None:  # inside the map, at its lower or left edge
+                ax.annotate(
+                    label,
+                    at,
+                    xytext=(2, 3),
+                    textcoords="offset points",
+                    ha="left",
+                    va="bottom",
+                    fontsize=7,
+                    color="0.1",
+                    bbox=_LABEL_BOX,
+                    zorder=7,
+                )
+    ax.set_xlim(x0 / 1e3, x1 / 1e3)
+    ax.set_ylim(y0 / 1e3, y1 / 1e3)
+
+
+RIDGE_RGBA = (0.55, 0.95, 1.0, 0.4)
+
+
+def _block_max(a: np.ndarray, step: int) -> np.ndarray:
+    """``a`` reduced by ``step`` with the maximum of each block (thin ridge lines survive)."""
+    if step == 1:
+        return a
+    r, c = (-(-n // step) * step for n in a.shape)
+    pad = np.zeros((r, c), dtype=a.dtype)
+    pad[: a.shape[0], : a.shape[1]] = a
+    return pad.reshape(r // step, step, c // step, step).max(axis=(1, 3))
+
+
+def mission_quicklook(
+    maps,
+    traj,
+    path: str | os.PathLike,
+    *,
+    title: str = "",
+    crs_wkt: str | None = None,
+    max_side: int = 700,
+) -> str:
+    """A mission's quick look: a plan view (hillshade, ridge network, the grid path faint, the
+    flown track bold, waypoints, start and goal; a lon/lat graticule when the maps have a
+    CRS) above the depth profile along the flown track (seabed, the lowest safe height, the
+    flown height, waypoints), with the clearance and the vehicle's limits stated."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.lines import Line2D
+
+    f = traj.flight
+    a = maps.cell_size
+    xs_all, ys_all = (f.x, f.y) if f is not None else (traj.points[:, 0], traj.points[:, 1])
+    dx = maps.x[1] - maps.x[0]
+    dy = maps.y[1] - maps.y[0]
+    cols_f = (xs_all - maps.x[0]) / dx
+    rows_f = (ys_all - maps.y[0]) / dy
+    rows, cols = maps.shape
+    span = max(rows_f.max() - rows_f.min(), cols_f.max() - cols_f.min())
+    pad = max(20, int(0.08 * span))
+    r0 = max(int(np.floor(min(rows_f.min(), traj.cells[:, 0].min()))) - pad, 0)
+    c0 = max(int(np.floor(min(cols_f.min(), traj.cells[:, 1].min()))) - pad, 0)
+    r1 = min(int(np.ceil(max(rows_f.max(), traj.cells[:, 0].max()))) + pad + 1, rows)
+    c1 = min(int(np.ceil(max(cols_f.max(), traj.cells[:, 1].max()))) + pad + 1, cols)
+    step = max(1, int(np.ceil(max(r1 - r0, c1 - c0) / max_side)))
+    ds = maps.dataset
+    sub = ds["elevation"][r0:r1:step, c0:c1:step].load()
+    sub.attrs["cell_size"] = a * step
+    rdg = _block_max(maps.window("ridge", r0, r1, c0, c1).astype(np.uint8), step)
+    # figure shape: the plan view follows the track's extent, the profile below it
+    w_km, h_km = (c1 - c0) * a, (r1 - r0) * a
+    plan_w = 9.0
+    plan_h = float(np.clip(plan_w * h_km / w_km, 2.5, 9.0))
+    fig = plt.figure(figsize=(plan_w + 1.2, plan_h + 5.4), dpi=100)
+    gs = fig.add_gridspec(
+        3, 3, height_ratios=[plan_h, 1.7, 2.7], width_ratios=[1.2, 1.2, 1.0], hspace=0.45
+    )
+    ax = fig.add_subplot(gs[0, :])
+    hillshade_axes(ax, sub, colorbar=False)
+    ext = _extent_km(sub)
+    ridge_cmap = ListedColormap([(0, 0, 0, 0), RIDGE_RGBA])
+    rdg = rdg[: sub.shape[0], : sub.shape[1]]
+    if sub["y"].values[0] < sub["y"].values[-1]:
+        rdg = rdg[::-1]
+    ax.imshow(
+        rdg,
+        extent=ext,
+        origin="upper",
+        cmap=ridge_cmap,
+        vmin=0,
+        vmax=1,
+        interpolation="nearest",
+        zorder=1,
+    )
+    if crs_wkt:
+        graticule(ax, crs_wkt, ext)
+    gx, gy = traj.points[:, 0] / 1e3, traj.points[:, 1] / 1e3
+    ax.plot(gx, gy, color="0.25", lw=0.8, alpha=0.6, zorder=3)
+    handles = [
+        Line2D([], [], color=RIDGE_RGBA[:3], lw=6, alpha=RIDGE_RGBA[3], label="ridge cells"),
+        Line2D(
+            [],
+            [],
+            color="0.25",
+            lw=0.8,
+            alpha=0.6,
+            label=f"grid path ({traj.length_m / 1e3:.1f} km)",
+        ),
+    ]
+    if f is not None:
+        ax.plot(f.x / 1e3, f.y / 1e3, color="#d62728", lw=2.0, zorder=4)
+        handles.append(
+            Line2D(
+                [],
+                [],
+                color="#d62728",
+                lw=2.0,
+                label=f"flown track ({f.flown_length_m / 1e3:.1f} km)",
+            )
         )
-        .values
+        wx, wy = f.waypoints[:, 0] / 1e3, f.waypoints[:, 1] / 1e3
+        ax.plot(wx, wy, "o", ms=3, mfc="white", mec="k", mew=0.6, zorder=5)
+        handles.append(
+            Line2D(
+                [],
+                [],
+                ls="",
+                marker="o",
+                ms=4,
+                mfc="white",
+                mec="k",
+                label=f"waypoints ({len(wx)})",
+            )
+        )
+        sx, sy, ex_, ey_ = f.x[0], f.y[0], f.x[-1], f.y[-1]
+    else:
+        sx, sy, ex_, ey_ = gx[0] * 1e3, gy[0] * 1e3, gx[-1] * 1e3, gy[-1] * 1e3
+    ax.plot(sx / 1e3, sy / 1e3, "o", color="lime", ms=9, mec="k", zorder=6)
+    ax.plot(ex_ / 1e3, ey_ / 1e3, "*", color="gold", ms=14, mec="k", zorder=6)
+    handles += [
+        Line2D([], [], ls="", marker="o", color="lime", mec="k", ms=8, label="start"),
+        Line2D([], [], ls="", marker="*", color="gold", mec="k", ms=12, label="goal"),
+    ]
+    land = plt.Line2D([], [], color="k", lw=0.6, label="coastline")
+    handles.append(land)
+    ax.set_aspect("equal")
+    leg = fig.add_subplot(gs[1, 0])
+    leg.axis("off")
+    leg.legend(handles=handles, loc="upper left", fontsize=8, frameon=False, ncols=2)
+    side = fig.add_subplot(gs[1, 1])
+    side.axis("off")
+    lines = [
+        f"planner {traj.planner}, omega {traj.omega:g}",
+        f"status: {traj.status}",
+        f"grid path {traj.length_m / 1e3:.1f} km, {100 * traj.ridge_ratio:.0f} % ridge",
+    ]
+    if f is not None:
+        v = f.vehicle
+        lines += [
+            f"flown {f.flown_length_m / 1e3:.1f} km, {100 * f.ridge_ratio:.0f} % ridge",
+            f"duration {f.duration_s / 3600:.1f} h at {v.speed_m_s:g} m/s",
+            f"max pitch {f.max_pitch_deg:.1f} deg (limit {v.max_pitch_deg:g})",
+            f"tightest turn {f.min_turn_radius_m:.0f} m (min {f.turn_radius_m:g})"
+            if np.isfinite(f.min_turn_radius_m)
+            else "no turn",
+        ]
+        if f.energy_wh is not None:
+            lines.append(f"energy {f.energy_wh:.0f} Wh")
+    side.text(0.05, 1.0, "\n".join(lines), transform=side.transAxes, fontsize=8, va="top")
+    sm = plt.cm.ScalarMappable(
+        cmap=plt.get_cmap("gist_earth"),
+        norm=plt.Normalize(
+            float(np.nanpercentile(sub.values, 0.5)),
+            float(max(np.nanpercentile(sub.values, 99.5), 0.0)),
+        ),
     )
-    above = traj.points[:, 2] - elev
-    x, y = traj.points[:, 0] / 1e3, traj.points[:, 1] / 1e3
-    sc = ax.scatter(x, y, c=above, s=3, cmap="plasma", zorder=3)
-    plt.colorbar(sc, ax=ax, shrink=0.8, label="height above the seabed (m)")
-    ax.plot(x[0], y[0], "o", color="lime", ms=8, mec="k", zorder=4, label="start")
-    ax.plot(x[-1], y[-1], "*", color="red", ms=12, mec="k", zorder=4, label="goal")
-    ax.legend(loc="lower right", fontsize=8)
-    ax.set_title(
-        f"{title}: {traj.planner}, omega {traj.omega:g}, {traj.length_m / 1e3:.1f} km, "
-        f"{100 * traj.ridge_ratio:.0f} % ridge",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    fig.savefig(path)
+    host = fig.add_subplot(gs[1, 2])
+    host.axis("off")
+    cax = host.inset_axes([0.05, 0.7, 0.9, 0.12])
+    fig.colorbar(sm, cax=cax, orientation="horizontal", label="seabed elevation (m)")
+    ax.set_title(title, fontsize=11)
+
+    pr = fig.add_subplot(gs[2, :])
+    p = maps.parameters
+    method = p.get("method", "spherical")
+    clearance = p.get("clearance_m")
+    if f is not None:
+        s = f.s / 1e3
+        floor = float(np.nanmin(f.seabed_m)) - 100
+        pr.fill_between(
+            s, floor, f.seabed_m, color="#8c6d46", alpha=0.8, lw=0, label="seabed under the track"
+        )
+        pr.plot(
+            s,
+            f.required_m,
+            color="#1f77b4",
+            lw=0.8,
+            ls="--",
+            label=f"lowest safe height ({clearance:g} m clearance, {method})",
+        )
+        pr.plot(s, f.z, color="#d62728", lw=1.6, label="flown height")
+        from scipy.spatial import cKDTree
+
+        # each waypoint at the distance of the nearest sample of the flown track
+        _, near = cKDTree(np.column_stack([f.x, f.y])).query(f.waypoints[:, :2])
+        pr.plot(
+            s[near],
+            f.waypoints[:, 2],
+            "o",
+            ms=2.5,
+            mfc="white",
+            mec="k",
+            mew=0.5,
+            label="waypoints",
+        )
+        pr.set_ylim(floor, max(float(np.nanmax(f.z)), float(np.nanmax(f.seabed_m))) + 150)
+        pr.set_title(
+            f"depth profile: clearance {clearance:g} m from every DEM grid point; pitch "
+            f"<= {f.vehicle.max_pitch_deg:g} deg; turns >= {f.turn_radius_m:g} m",
+            fontsize=9,
+        )
+    else:
+        gs_ = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(traj.points[:, :2], axis=0).T))))
+        pr.plot(gs_ / 1e3, traj.points[:, 2], color="0.3", lw=1, label="grid path height")
+    pr.set_xlabel("distance along the track (km)")
+    pr.set_ylabel("height (m)")
+    pr.grid(alpha=0.3)
+    pr.legend(loc="upper center", bbox_to_anchor=(0.5, -0.22), fontsize=7, frameon=False, ncols=4)
+    fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
     return str(path)

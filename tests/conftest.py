@@ -29,6 +29,21 @@ def pytest_sessionstart(session):
     )
 
 
+@pytest.fixture(scope="session", autouse=True)
+def offline_stac_schemas():
+    """Items carry the STAC projection extension, whose schema pystac would fetch from the
+    network: validate against the copy of its fields in tests/data instead (no network)."""
+    import json
+
+    import pystac.validation
+
+    url = "https://stac-extensions.github.io/projection/v2.0.0/schema.json"
+    schema = json.loads(
+        Path(__file__).with_name("data").joinpath("stac-projection-v2.0.0.json").read_text()
+    )
+    pystac.validation.RegisteredValidator.get_validator().schema_cache[url] = schema
+
+
 @pytest.fixture(scope="session")
 def pysheds_ready():
     """The warm-up has compiled pysheds (its comparisons then take seconds, not a minute)."""
@@ -62,7 +77,7 @@ def compile_kernels(tmp: Path) -> None:
             surface, ridge, ok, (0, 0), (11, 11), cell_size=30.0, planner=planner, omega=1.5
         )
         try:  # on the store's float32 maps, in sections; whether a path exists does not count
-            pipeline.plan(
+            t = pipeline.plan(
                 tmp / "maps.zarr",
                 tuple(cells[0]),
                 tuple(cells[-1]),
@@ -73,7 +88,9 @@ def compile_kernels(tmp: Path) -> None:
                 client="synchronous",
             )
         except pipeline.PipelineError:
-            pass
+            continue
+        if planner == "astar" and t.planned:  # the flight's kernels
+            pipeline.fly(tmp / "maps.zarr", t)
 
 
 @pytest.fixture(scope="session")

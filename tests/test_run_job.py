@@ -119,7 +119,16 @@ def test_catalog_loads_and_items_validate_against_the_stac_schema(done):
         assert p["auv:ridge_length_m"] <= p["auv:length_m"]
         assert p["auv:lower_bound_m"] <= p["auv:length_m"]
         assert it.geometry["type"] == "LineString"
-        assert set(it.assets) == {"track", "quicklook"}
+        assert set(it.assets) == {
+            "track",
+            "grid-path",
+            "waypoints",
+            "waypoints-csv",
+            "qgc",
+            "kml",
+            "imc",
+            "quicklook",
+        }
     assert items["xy"].properties["auv:planner"] == "lagrangian"
     assert items["xy"].properties["auv:omega"] == 1.5
 
@@ -132,10 +141,15 @@ def test_geoparquet_and_pngs(done):
     assert (table.geometry.geom_type == "LineString").all()
     for mid in table["id"]:
         item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
-        track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
+        # the Item's geometry is the waypoint route in WGS84, as in waypoints.geojson
+        wps = gpd.read_file(root / "missions" / mid / "waypoints.geojson")
+        wps = wps[wps.geometry.geom_type == "Point"]
         coords = np.array(item["geometry"]["coordinates"])
-        np.testing.assert_allclose(np.column_stack([track.geometry.x, track.geometry.y]), coords)
-        assert track.geometry.has_z.all()
+        np.testing.assert_allclose(np.column_stack([wps.geometry.x, wps.geometry.y]), coords)
+        track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
+        assert track.crs.to_epsg() == 4326 and {"x", "y", "z", "time_s"} <= set(track)
+        grid = gpd.read_parquet(root / "missions" / mid / "grid-path.parquet")
+        assert {"row", "col", "x", "y", "z"} <= set(grid)
         png = image.imread(root / "missions" / mid / "quicklook.png")
         assert png.ndim == 3 and png.shape[0] > 100 and png.shape[1] > 100
     assert (root / "performance-report.html").stat().st_size > 1000
@@ -150,8 +164,8 @@ def test_min_clearance_against_brute_force(done):
     grid = np.column_stack([gx.ravel(), gy.ravel(), dem.values.ravel().astype(np.float64)])
     for mid in ("cells", "astar"):
         item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
-        track = gpd.read_parquet(root / "missions" / mid / "track.parquet")
-        pts = np.column_stack([track.geometry.x, track.geometry.y, track["z"]])
+        track = gpd.read_parquet(root / "missions" / mid / "grid-path.parquet")
+        pts = np.column_stack([track["x"], track["y"], track["z"]])
         each = np.concatenate(
             [
                 np.sqrt(((grid[None, :, :] - pts[k : k + 50, None, :]) ** 2).sum(axis=2)).min(

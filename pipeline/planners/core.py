@@ -39,6 +39,7 @@ class Trajectory:
     status: str = "ok"  # "ok" (certified), "uncertified" or "failed"
     message: str = ""
     extra: dict = field(default_factory=dict)
+    flight: object = None  # the flown track (pipeline.flight.Flight), when computed
 
     @property
     def certified_ratio(self) -> float:

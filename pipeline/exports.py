@@ -1,0 +1,368 @@
+"""A mission's files for people and vehicles: the flown track and the grid path (GeoParquet),
+the waypoints (GeoJSON, CSV), a QGroundControl / ArduSub mission (QGC WPL 110), a Google Earth
+file (KML) and an LSTS IMC plan for Neptus and DUNE (a ``PlanSpecification`` holding one
+``FollowPath``).
+
+Heights: ``z`` is the vehicle's height (metres, positive up, the DEM's vertical datum);
+``depth_m = sea_level - z``; ``altitude_m`` is the height above the seabed (the DEM interpolated
+bilinearly under the vehicle). Horizontal positions are the maps' projection (``x``, ``y``)
+and WGS84 longitude and latitude (degrees) when the DEM has a CRS; without one, only the
+files in map coordinates are written (the Item says which were skipped).
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import math
+import struct
+import time
+from pathlib import Path
+from xml.sax.saxutils import escape
+
+import numpy as np
+
+PARQUET = "application/vnd.apache.parquet"
+KML_TRACK_POINTS = 4000
+
+
+@functools.lru_cache(maxsize=8)
+def _to_wgs84(crs_wkt: str):
+    from pyproj import CRS, Transformer
+
+    crs = CRS.from_wkt(crs_wkt)
+    if crs.is_geographic:
+        return None
+    return Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+
+
+def to_lonlat(crs_wkt: str | None, x, y):
+    """Longitudes and latitudes (WGS84, degrees) of map coordinates, or None without a CRS."""
+    if not crs_wkt:
+        return None
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    tr = _to_wgs84(crs_wkt)
+    if tr is None:
+        return x, y
+    lon, lat = tr.transform(x, y)
+    return np.asarray(lon), np.asarray(lat)
+
+
+def _points_frame(columns: dict, x, y, lonlat, crs_wkt):
+    import geopandas as gpd
+    from shapely import points
+
+    if lonlat is not None:
+        return gpd.GeoDataFrame(columns, geometry=points(lonlat[0], lonlat[1]), crs="EPSG:4326")
+    return gpd.GeoDataFrame(columns, geometry=points(x, y), crs=crs_wkt or None)
+
+
+def write_track(path: Path, flight, crs_wkt: str | None, lonlat=None) -> None:
+    """The flown track, one row per sample (no two more than half a cell apart)."""
+    f = flight
+    if lonlat is None:
+        lonlat = to_lonlat(crs_wkt, f.x, f.y)
+    cols = {
+        "x": f.x,
+        "y": f.y,
+        "z": f.z,
+        "altitude_m": f.altitude_m,
+        "seabed_m": f.seabed_m,
+        "required_m": f.required_m,
+        "s_m": f.s,
+        "time_s": f.time_s,
+    }
+    _points_frame(cols, f.x, f.y, lonlat, crs_wkt).to_parquet(path)
+
+
+def write_grid_path(path: Path, traj, crs_wkt: str | None) -> None:
+    """The planned grid path: its cells, their centres and the safety surface there."""
+    x, y, z = traj.points[:, 0], traj.points[:, 1], traj.points[:, 2]
+    cols = {"row": traj.cells[:, 0], "col": traj.cells[:, 1], "x": x, "y": y, "z": z}
+    _points_frame(cols, x, y, to_lonlat(crs_wkt, x, y), crs_wkt).to_parquet(path)
+
+
+def waypoint_table(flight, sea_level: float, lonlat) -> dict:
+    """The waypoints as columns: index, lat, lon, x, y, depth_m, altitude_m, speed_m_s,
+    time_s (lat and lon None without a CRS)."""
+    w = flight.waypoints
+    seabed = flight.route_seabed_m[flight.waypoint_index]
+    return {
+        "index": np.arange(len(w)),
+        "lat": None if lonlat is None else lonlat[1],
+        "lon": None if lonlat is None else lonlat[0],
+        "x": w[:, 0],
+        "y": w[:, 1],
+        "depth_m": sea_level - w[:, 2],
+        "altitude_m": w[:, 2] - seabed,
+        "speed_m_s": np.full(len(w), flight.vehicle.speed_m_s),
+        "time_s": w[:, 3],
+    }
+
+
+def write_waypoints_csv(path: Path, table: dict) -> None:
+    """lat, lon, depth_m, altitude_m, speed_m_s, time_s (x_m, y_m without a CRS)."""
+    geo = table["lat"] is not None
+    head = ["lat", "lon"] if geo else ["x_m", "y_m"]
+    a, b = (table["lat"], table["lon"]) if geo else (table["x"], table["y"])
+    with open(path, "w", newline="") as fh:
+        out = csv.writer(fh)
+        out.writerow(head + ["depth_m", "altitude_m", "speed_m_s", "time_s"])
+        for k in range(len(table["index"])):
+            out.writerow(
+                [
+                    f"{a[k]:.8f}" if geo else f"{a[k]:.2f}",
+                    f"{b[k]:.8f}" if geo else f"{b[k]:.2f}",
+                    f"{table['depth_m'][k]:.2f}",
+                    f"{table['altitude_m'][k]:.2f}",
+                    f"{table['speed_m_s'][k]:g}",
+                    f"{table['time_s'][k]:.1f}",
+                ]
+            )
+
+
+def waypoints_geojson(table: dict, sea_level: float) -> dict:
+    """RFC 7946 (WGS84 lon, lat, height in metres, positive up): one Point per waypoint with
+    its depth, altitude, speed and time, and the route as a LineString."""
+    feats = []
+    coords = []
+    for k in range(len(table["index"])):
+        c = [
+            round(float(table["lon"][k]), 8),
+            round(float(table["lat"][k]), 8),
+            round(sea_level - float(table["depth_m"][k]), 2),
+        ]
+        coords.append(c)
+        feats.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": c},
+                "properties": {
+                    "index": int(table["index"][k]),
+                    "depth_m": round(float(table["depth_m"][k]), 2),
+                    "altitude_m": round(float(table["altitude_m"][k]), 2),
+                    "speed_m_s": float(table["speed_m_s"][k]),
+                    "time_s": round(float(table["time_s"][k]), 1),
+                },
+            }
+        )
+    feats.append(
+        {
+            "type": "Feature",
+            "geometry": {"type": "LineString", "coordinates": coords},
+            "properties": {"role": "route"},
+        }
+    )
+    return {"type": "FeatureCollection", "features": feats}
+
+
+# MAVLink: MAV_CMD_NAV_WAYPOINT, MAV_FRAME_GLOBAL, MAV_FRAME_GLOBAL_RELATIVE_ALT
+_NAV_WAYPOINT, _FRAME_GLOBAL, _FRAME_RELATIVE_ALT = 16, 0, 3
+
+
+def qgc_wpl(table: dict, acceptance_m: float) -> str:
+    """A QGC WPL 110 mission (QGroundControl, ArduSub, Mission Planner): row 0 the home
+    position at the surface above the first waypoint, then one NAV_WAYPOINT per waypoint in
+    the frame relative to home, altitude ``-depth_m`` (ArduSub: negative is below the
+    surface), acceptance radius ``acceptance_m``. 12 tab-separated fields per row: index,
+    current, frame, command, param1-4, latitude, longitude, altitude, autocontinue."""
+    rows = ["QGC WPL 110"]
+
+    def row(i, current, frame, lat, lon, alt, p2):
+        fields = [i, current, frame, _NAV_WAYPOINT, 0, p2, 0, 0]
+        return "\t".join(
+            [str(v) if isinstance(v, int) else f"{v:g}" for v in fields]
+            + [f"{lat:.8f}", f"{lon:.8f}", f"{alt:.2f}", "1"]
+        )
+
+    lat, lon = table["lat"], table["lon"]
+    rows.append(row(0, 1, _FRAME_GLOBAL, lat[0], lon[0], 0.0, 0.0))
+    for k in range(len(lat)):
+        rows.append(
+            row(k + 1, 0, _FRAME_RELATIVE_ALT, lat[k], lon[k], -table["depth_m"][k], acceptance_m)
+        )
+    return "\n".join(rows) + "\n"
+
+
+def kml(name: str, flight, table: dict, lonlat_track, sea_level: float) -> bytes:
+    """KML 2.2 for Google Earth: the flown track and the waypoint route as 3-D lines (absolute
+    heights, negative below sea level) and one placemark per waypoint."""
+    # the flown track at most KML_TRACK_POINTS vertices (a line for the eye; the exact track
+    # is track.parquet)
+    n = len(flight.z)
+    keep = np.unique(np.append(np.arange(0, n, max(1, -(-n // KML_TRACK_POINTS))), n - 1))
+    wz = sea_level - np.asarray(table["depth_m"], dtype=np.float64)
+    lines = (
+        ("flown track", "#track", lonlat_track[0][keep], lonlat_track[1][keep], flight.z[keep]),
+        ("waypoint route", "#route", table["lon"], table["lat"], wz),
+    )
+    out = [
+        '<?xml version="1.0" encoding="UTF-8"?>',
+        '<kml xmlns="http://www.opengis.net/kml/2.2"><Document>',
+        f"<name>{escape(name)}</name>",
+    ]
+    for sid, colour, width in (("track", "ff0000ff", "3"), ("route", "ff00ffff", "1.5")):
+        out.append(
+            f'<Style id="{sid}"><LineStyle><color>{colour}</color><width>{width}</width>'
+            "</LineStyle></Style>"
+        )
+    for title, style, lo, la, zz in lines:
+        out.append(
+            f"<Placemark><name>{title}</name><styleUrl>{style}</styleUrl><LineString>"
+            f"<altitudeMode>absolute</altitudeMode><coordinates>{_coords(lo, la, zz)}"
+            "</coordinates></LineString></Placemark>"
+        )
+    out.append("<Folder><name>waypoints</name>")
+    depth, alt, tt = (
+        np.asarray(table[k], dtype=np.float64).tolist() for k in ("depth_m", "altitude_m", "time_s")
+    )
+    coords = _coords(table["lon"], table["lat"], wz).split(" ")
+    for k, c in enumerate(coords):
+        out.append(
+            f"<Placemark><name>WP{k}</name><description>depth {depth[k]:.0f} m, altitude "
+            f"{alt[k]:.0f} m, t = {tt[k]:.0f} s</description><Point><altitudeMode>absolute"
+            f"</altitudeMode><coordinates>{c}</coordinates></Point></Placemark>"
+        )
+    out.append("</Folder></Document></kml>")
+    return "\n".join(out).encode("utf-8")
+
+
+def _coords(lon, lat, z) -> str:
+    """KML coordinates: ``lon,lat,height`` tuples separated by spaces."""
+    lon, lat, z = (np.asarray(v, dtype=np.float64).tolist() for v in (lon, lat, z))
+    return " ".join(f"{a:.8f},{b:.8f},{c:.1f}" for a, b, c in zip(lon, lat, z, strict=True))
+
+
+# ---------------------------------------------------------------- IMC (LSTS), binary
+
+_IMC_SYNC = 0xFE54
+_PLAN_SPECIFICATION, _PLAN_MANEUVER, _FOLLOW_PATH, _PATH_POINT = 551, 552, 457, 458
+_Z_DEPTH, _SPEED_M_S = 1, 0
+
+
+def _crc16(data: bytes) -> int:
+    """CRC-16/IBM (polynomial 0x8005 reflected, initial value 0): IMC's packet checksum."""
+    crc = 0
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def _text(s: str) -> bytes:
+    b = s.encode("ascii", "replace")
+    return struct.pack("<H", len(b)) + b
+
+
+def ned_offsets(lat0, lon0, lat, lon):
+    """North and east offsets (metres) of points from a reference, on the WGS84 ellipsoid:
+    the ECEF difference rotated into the reference's local north-east-down frame (as DUNE
+    displaces positions)."""
+    from pyproj import Transformer
+
+    tr = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+    x0, y0, z0 = tr.transform(lon0, lat0, 0.0)
+    x, y, z = tr.transform(np.asarray(lon), np.asarray(lat), np.zeros(len(lat)))
+    dx, dy, dz = np.asarray(x) - x0, np.asarray(y) - y0, np.asarray(z) - z0
+    p, la = math.radians(lat0), math.radians(lon0)
+    north = -math.sin(p) * math.cos(la) * dx - math.sin(p) * math.sin(la) * dy + math.cos(p) * dz
+    east = -math.sin(la) * dx + math.cos(la) * dy
+    return north, east
+
+
+def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> bytes:
+    """An IMC ``PlanSpecification`` packet (little-endian, CRC-16) holding one maneuver, a
+    ``FollowPath``: its reference is the first waypoint (latitude and longitude in radians,
+    ``z`` its depth in metres, ``z_units`` DEPTH, the speed in m/s) and its ``PathPoint``s are
+    the waypoints as north, east and depth offsets from it (metres)."""
+    lat, lon, depth = table["lat"], table["lon"], np.asarray(table["depth_m"], dtype=np.float64)
+    north, east = ned_offsets(float(lat[0]), float(lon[0]), lat, lon)
+    points = b"".join(
+        struct.pack("<Hfff", _PATH_POINT, n, e, d - depth[0])
+        for n, e, d in zip(north, east, depth, strict=True)
+    )
+    follow = (
+        struct.pack("<H", _FOLLOW_PATH)
+        + struct.pack(
+            "<HddfBfB",
+            0,  # timeout: none
+            math.radians(float(lat[0])),
+            math.radians(float(lon[0])),
+            float(depth[0]),
+            _Z_DEPTH,
+            float(table["speed_m_s"][0]),
+            _SPEED_M_S,
+        )
+        + struct.pack("<H", len(north))
+        + points
+        + _text("")  # custom
+    )
+    man_id = "follow-path"
+    maneuver = struct.pack("<H", _PLAN_MANEUVER) + _text(man_id) + follow + b"\0\0" + b"\0\0"
+    payload = (
+        _text(plan_id)
+        + _text(description)
+        + _text("")  # vnamespace
+        + struct.pack("<H", 0)  # variables
+        + _text(man_id)
+        + struct.pack("<H", 1)
+        + maneuver
+        + struct.pack("<HHH", 0, 0, 0)  # transitions, start actions, end actions
+    )
+    stamp = time.time() if timestamp is None else timestamp
+    header = struct.pack(
+        "<HHHdHBHB", _IMC_SYNC, _PLAN_SPECIFICATION, len(payload), stamp, 0, 0xFF, 0xFFFF, 0xFF
+    )
+    body = header + payload
+    return body + struct.pack("<H", _crc16(body))
+
+
+def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, sea_level) -> dict:
+    """Every file of a mission with a flight into ``folder``; returns ``{asset key: (file,
+    title, media type, roles)}`` and the formats skipped for want of a CRS."""
+    f = traj.flight
+    folder = Path(folder)
+    lonlat = to_lonlat(crs_wkt, f.x, f.y)
+    out = {}
+    write_track(folder / "track.parquet", f, crs_wkt, lonlat)
+    out["track"] = ("track.parquet", "flown track (x, y, z, altitude, time)", PARQUET, ["data"])
+    write_grid_path(folder / "grid-path.parquet", traj, crs_wkt)
+    out["grid-path"] = ("grid-path.parquet", "planned grid path (cells)", PARQUET, ["data"])
+    wll = to_lonlat(crs_wkt, f.waypoints[:, 0], f.waypoints[:, 1])
+    table = waypoint_table(f, sea_level, wll)
+    write_waypoints_csv(folder / "waypoints.csv", table)
+    out["waypoints-csv"] = ("waypoints.csv", "waypoints (CSV)", "text/csv", ["data"])
+    if wll is None:
+        return out
+    import json
+
+    (folder / "waypoints.geojson").write_text(json.dumps(waypoints_geojson(table, sea_level)))
+    out["waypoints"] = (
+        "waypoints.geojson",
+        "waypoints (GeoJSON, WGS84)",
+        "application/geo+json",
+        ["data"],
+    )
+    (folder / "mission.waypoints").write_text(qgc_wpl(table, f.turn_radius_m))
+    out["qgc"] = (
+        "mission.waypoints",
+        "QGroundControl / ArduSub mission (QGC WPL 110)",
+        "text/plain",
+        ["data"],
+    )
+    (folder / "mission.kml").write_bytes(kml(name, f, table, lonlat, sea_level))
+    out["kml"] = (
+        "mission.kml",
+        "Google Earth (KML)",
+        "application/vnd.google-earth.kml+xml",
+        ["visual"],
+    )
+    (folder / "mission.imc").write_bytes(imc_plan(plan_id, name[:200], table))
+    out["imc"] = (
+        "mission.imc",
+        "LSTS IMC PlanSpecification with a FollowPath (Neptus, DUNE)",
+        "application/octet-stream",
+        ["data"],
+    )
+    return out

@@ -1,0 +1,985 @@
+"""From a planned grid path to a track a vehicle can fly (``fly``): any-angle shortcuts, turns
+rounded to the vehicle's radius, the lowest pitch-limited depth profile above the terrain,
+waypoints, timing and energy.
+
+The planned path is a chain of grid cells on the safety surface. A vehicle flies neither cell
+centres nor 45-degree staircases, and it cannot climb at 70 degrees. ``fly`` turns the path
+into a track in four steps, every one checked against the terrain itself (the DEM's grid
+points, not the safety layer):
+
+1. **Shortcuts** (string pulling): from each kept vertex, the farthest later vertex of the
+   path that a straight leg reaches over usable cells (passable, no corner cutting, terrain
+   known around it) becomes the next vertex.
+2. **Turns**: every corner is rounded by a circular arc of the vehicle's minimum turn radius
+   (or wider: never tighter), tangent to both legs. Where two corners are too close for the
+   radius, the arc is as wide as the legs allow and the corner is reported.
+3. **Depth profile**: along the horizontal track, sampled every half cell, the required height
+   ``h(p)`` is the clearance surface of the maps' method evaluated at that exact point (for
+   the spherical method ``max{ z(q) + sqrt(R^2 - |q - p|^2) : |q - p| <= R }`` over every DEM
+   grid point ``q``). The flown height is the lowest profile above ``h`` whose slope never
+   exceeds ``tan(max_pitch)``: ``z_i = max_j (h_j - tan(max_pitch) |s_i - s_j|)``, computed
+   exactly by one forward and one backward pass (linear time).
+4. **Waypoints**: a greedy simplification of the 3-D track whose straight legs keep the
+   clearance (checked every half cell against ``h``), the pitch limit and the surface limit.
+
+If the smoothed track breaks a limit (terrain unknown near a shortcut, the profile forced
+above the surface clearance, or a flown length above ``omega`` times the proven lower bound),
+``fly`` falls back to the path's own vertices, then to the grid path without arcs; what still
+breaks a limit is listed in ``Flight.problems``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from numba import njit
+
+from .exceptions import InvalidParameterError
+from .params import VEHICLE
+
+# -------------------------------------------------------------------------- the vehicle
+
+DEFAULT_TURN_RADIUS_MAX_M = 50.0
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """The vehicle's limits and, optionally, its energy model ([vehicle] in job files)."""
+
+    speed_m_s: float = VEHICLE.speed_m_s.default
+    max_pitch_deg: float = VEHICLE.max_pitch_deg.default
+    min_turn_radius_m: float | None = None  # default: min(cell side, 50 m)
+    hotel_power_w: float | None = None
+    propulsion_power_w: float | None = None
+    battery_wh: float | None = None
+
+    def __post_init__(self):
+        for p in VEHICLE:
+            v = getattr(self, p.name)
+            if v is None and p.default is None:
+                continue
+            object.__setattr__(self, p.name, p.check(v, f"vehicle.{p.name}"))
+        power = (self.hotel_power_w, self.propulsion_power_w)
+        if self.battery_wh is not None and all(v is None for v in power):
+            raise InvalidParameterError(
+                "vehicle.battery_wh is given without a power: give hotel_power_w and/or "
+                "propulsion_power_w (W) so that the mission's energy can be computed"
+            )
+
+    @classmethod
+    def of(cls, value) -> Vehicle:
+        """A Vehicle from None (the defaults), a Vehicle or a dict of VEHICLE's keys."""
+        if value is None:
+            return cls()
+        if isinstance(value, Vehicle):
+            return value
+        if isinstance(value, dict):
+            unknown = sorted(set(value) - VEHICLE.names())
+            if unknown:
+                raise InvalidParameterError(
+                    f"unknown vehicle key {unknown[0]!r}; allowed: {sorted(VEHICLE.names())}"
+                )
+            return cls(**value)
+        raise InvalidParameterError(
+            f"`vehicle` must be a Vehicle or a dict of {sorted(VEHICLE.names())}, got {value!r}"
+        )
+
+    def turn_radius(self, cell_size: float) -> float:
+        """The minimum turn radius in metres (the default: one cell side, at most 50 m)."""
+        if self.min_turn_radius_m is not None:
+            return float(self.min_turn_radius_m)
+        return float(min(cell_size, DEFAULT_TURN_RADIUS_MAX_M))
+
+    @property
+    def power_w(self) -> float | None:
+        """Hotel plus propulsion power at cruise speed, None when no power is given."""
+        p = [v for v in (self.hotel_power_w, self.propulsion_power_w) if v is not None]
+        return float(sum(p)) if p else None
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+# -------------------------------------------------------------------------- the flown track
+
+
+@dataclass
+class Flight:
+    """The track a vehicle flies for one mission; lengths in metres, heights positive up.
+
+    Dense samples (no two more than half a cell apart): ``x``, ``y`` (map coordinates),
+    ``z`` (vehicle height), ``s`` (horizontal distance along the track), ``time_s``,
+    ``seabed_m`` (DEM interpolated bilinearly under the vehicle), ``required_m`` (the lowest
+    height keeping the clearance there), ``altitude_m`` (``z - seabed_m``). Waypoints:
+    ``waypoints`` (k x 4: x, y, z, time_s) and ``waypoint_index`` (their sample indices)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    s: np.ndarray
+    time_s: np.ndarray
+    seabed_m: np.ndarray
+    required_m: np.ndarray
+    waypoints: np.ndarray
+    waypoint_index: np.ndarray
+    vehicle: Vehicle
+    turn_radius_m: float  # the minimum the vehicle was given
+    flown_length_m: float
+    route_length_m: float  # the waypoints' straight 3-D legs
+    grid_length_m: float
+    duration_s: float
+    max_pitch_deg: float  # the steepest flown
+    min_turn_radius_m: float  # the tightest turn flown (inf: no turn)
+    ridge_ratio: float  # share of the flown 3-D length over ridge cells
+    energy_wh: float | None
+    surface_limit_m: float
+    smoothing: str  # "shortcuts", "path vertices" or "grid path"
+    problems: list = field(default_factory=list)
+    seconds: float = 0.0
+    route: np.ndarray | None = None  # the waypoint route sampled: x, y, z (waypoints' legs)
+    route_seabed_m: np.ndarray | None = None
+
+    @property
+    def altitude_m(self) -> np.ndarray:
+        return self.z - self.seabed_m
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+# the flown track and the waypoint legs are sampled (and checked) every SAMPLE_STEP cells
+SAMPLE_STEP = 0.5
+# waypoint legs may fly up to this share of the clearance above the lowest profile of their
+# route: fewer waypoints for a little more altitude
+WAYPOINT_BAND = 0.25
+# the waypoint route may leave the smoothed track by this much (cells) to skip small wiggles
+ROUTE_TOLERANCE = 2.0
+
+# the maps' clearance methods, as the kernels know them
+_METHOD = {"vertical": 0, "horizontal": 1, "spherical": 2}
+
+
+@njit(inline="always", cache=True)
+def _cell(slot, tiles, tr, tc, i, j, missing):
+    s = slot[i // tr, j // tc]
+    if s < 0:
+        return missing
+    return tiles[s, i % tr, j % tc]
+
+
+@njit(inline="always", cache=True)
+def _usable(pas, slot, tr, tc, rows, cols, pad, i, j):
+    """Passable, and the terrain known within ``pad`` cells (its tiles are loaded)."""
+    if i < 0 or j < 0 or i >= rows or j >= cols:
+        return False
+    if slot[i // tr, j // tc] < 0 or not pas[slot[i // tr, j // tc], i % tr, j % tc]:
+        return False
+    i0 = max(i - pad, 0)
+    i1 = min(i + pad, rows - 1)
+    j0 = max(j - pad, 0)
+    j1 = min(j + pad, cols - 1)
+    return (
+        slot[i0 // tr, j0 // tc] >= 0
+        and slot[i0 // tr, j1 // tc] >= 0
+        and slot[i1 // tr, j0 // tc] >= 0
+        and slot[i1 // tr, j1 // tc] >= 0
+    )
+
+
+@njit(cache=True, nogil=True)
+def _line_usable(pas, slot, tr, tc, rows, cols, pad, ar, ac, br, bc):
+    """Whether the straight segment between two points (grid units: row, col) crosses only
+    usable cells, without cutting a corner between two cells it passes diagonally."""
+    dr = br - ar
+    dc = bc - ac
+    n = max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
+    pi = -(10**9)
+    pj = -(10**9)
+    for k in range(n + 1):
+        t = k / n
+        i = int(math.floor(ar + t * dr + 0.5))
+        j = int(math.floor(ac + t * dc + 0.5))
+        if i == pi and j == pj:
+            continue
+        if not _usable(pas, slot, tr, tc, rows, cols, pad, i, j):
+            return False
+        if k > 0 and i != pi and j != pj:
+            if not (
+                _usable(pas, slot, tr, tc, rows, cols, pad, pi, j)
+                and _usable(pas, slot, tr, tc, rows, cols, pad, i, pj)
+            ):
+                return False
+        pi = i
+        pj = j
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _off_ridge(rdg, slot, tr, tc, ar, ac, br, bc):
+    """The length (grid units) of the straight segment lying over cells that are not ridge."""
+    dr = br - ar
+    dc = bc - ac
+    n = max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
+    piece = math.hypot(dr, dc) / n
+    off = 0.0
+    for k in range(n):
+        t = (k + 0.5) / n
+        i = int(math.floor(ar + t * dr + 0.5))
+        j = int(math.floor(ac + t * dc + 0.5))
+        if i < 0 or j < 0 or i >= slot.shape[0] * tr or j >= slot.shape[1] * tc:
+            off += piece
+        elif not _cell(slot, rdg, tr, tc, i, j, 0):
+            off += piece
+    return off
+
+
+@njit(inline="always", cache=True)
+def _leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad):
+    if not _line_usable(pas, slot, tr, tc, rows, cols, pad, pr[i], pc[i], pr[j], pc[j]):
+        return False
+    # no more off-ridge length than the path between them, nor a larger off-ridge share
+    seg = _off_ridge(rdg, slot, tr, tc, pr[i], pc[i], pr[j], pc[j])
+    path = off[j] - off[i]
+    if seg > path + 0.5:
+        return False
+    return seg / math.hypot(pr[j] - pr[i], pc[j] - pc[i]) <= path / (along[j] - along[i]) + 0.02
+
+
+@njit(cache=True, nogil=True)
+def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_leg):
+    """Indices of the vertices kept by string pulling: from each kept vertex, the farthest
+    later one (probed at doubling steps, then refined) reached by a usable straight leg that
+    flies no more off the ridge cells than the path between them does (``off``: the path's
+    off-ridge length up to each vertex, grid units; half a cell of slack)."""
+    n = pr.size
+    keep = np.empty(n, dtype=np.int64)
+    m = 0
+    keep[m] = 0
+    m += 1
+    i = 0
+    while i < n - 1:
+        best = i + 1
+        step = 1
+        fails = 0
+        nxt = n - 1
+        while True:
+            j = min(i + step, n - 1)
+            if j - i > max_leg:
+                nxt = j
+                break
+            if _leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad):
+                best = j
+                nxt = min(i + 2 * step, n - 1)
+            else:
+                fails += 1
+                if fails >= 3:
+                    break
+            if j == n - 1:
+                break
+            step *= 2
+        lo = best
+        hi = max(nxt, best)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if mid - i <= max_leg and _leg_allowed(
+                pr, pc, off, along, i, mid, pas, rdg, slot, tr, tc, rows, cols, pad
+            ):
+                lo = mid
+            else:
+                hi = mid
+        i = lo
+        keep[m] = i
+        m += 1
+    return keep[:m]
+
+
+@njit(cache=True, nogil=True)
+def _arcs_radii(wr, wc, radius):
+    """The radius of the arc at each corner (inf where straight) and ``tan(theta / 2)``."""
+    m = wr.size
+    tan_d = np.zeros(m)  # tangent length at each corner
+    rad = np.full(m, np.inf)
+    half = np.zeros(m)  # tan(theta / 2) at each corner
+    for k in range(1, m - 1):
+        ur = wr[k] - wr[k - 1]
+        uc = wc[k] - wc[k - 1]
+        vr = wr[k + 1] - wr[k]
+        vc = wc[k + 1] - wc[k]
+        cosang = (ur * vr + uc * vc) / (math.hypot(ur, uc) * math.hypot(vr, vc))
+        theta = math.acos(min(1.0, max(-1.0, cosang)))
+        if theta >= 1e-9:
+            half[k] = math.tan(theta / 2.0)
+    # each leg shared by two corners: both arcs at full radius when their tangent lengths fit
+    # in it, else both shrunk in proportion
+    scale = np.ones(m)
+    for k in range(m - 1):
+        need = radius * (half[k] + half[k + 1])
+        ln = math.hypot(wr[k + 1] - wr[k], wc[k + 1] - wc[k])
+        if need > ln:
+            f = ln / need
+            scale[k] = min(scale[k], f)
+            scale[k + 1] = min(scale[k + 1], f)
+    for k in range(1, m - 1):
+        if half[k] > 0:
+            rad[k] = radius * scale[k]
+            tan_d[k] = rad[k] * half[k]
+    return tan_d, rad
+
+
+@njit(cache=True, nogil=True)
+def _arcs(wr, wc, radius, step):
+    """Dense samples (grid units) of the polyline ``w`` with every corner rounded by an arc of
+    ``radius`` (grid units; narrower where two corners share a leg too short for both).
+    Returns rows, cols, the leg of each sample (-1 on an arc), the radius used at each corner
+    (inf where straight) and the tangent lengths."""
+    m = wr.size
+    tan_d, rad = _arcs_radii(wr, wc, radius)
+    total = 2
+    for k in range(m - 1):
+        total += int(math.ceil(math.hypot(wr[k + 1] - wr[k], wc[k + 1] - wc[k]) / step)) + 2
+        if rad[k] < np.inf:
+            total += int(math.ceil(rad[k] * math.pi / step)) + 2
+    outr = np.empty(total)
+    outc = np.empty(total)
+    leg = np.empty(total, dtype=np.int64)
+    n = 0
+    for k in range(m - 1):
+        lr = wr[k + 1] - wr[k]
+        lc = wc[k + 1] - wc[k]
+        ln = math.hypot(lr, lc)
+        ur = lr / ln
+        uc = lc / ln
+        a0 = tan_d[k]
+        a1 = ln - tan_d[k + 1]
+        ns = max(1, int(math.ceil((a1 - a0) / step)))
+        for q in range(ns):
+            t = a0 + (a1 - a0) * q / ns
+            outr[n] = wr[k] + ur * t
+            outc[n] = wc[k] + uc * t
+            leg[n] = k
+            n += 1
+        kk = k + 1
+        if kk < m - 1 and rad[kk] < np.inf:
+            # arc from the tangent point on leg k to the one on leg k + 1
+            vr = wr[kk + 1] - wr[kk]
+            vc = wc[kk + 1] - wc[kk]
+            lv = math.hypot(vr, vc)
+            vr /= lv
+            vc /= lv
+            t1r = wr[kk] - ur * tan_d[kk]
+            t1c = wc[kk] - uc * tan_d[kk]
+            cross = ur * vc - uc * vr
+            side = 1.0 if cross > 0 else -1.0
+            # normal of leg k towards the inside of the turn
+            nr = -uc * side
+            nc = ur * side
+            r = rad[kk]
+            cr = t1r + nr * r
+            cc = t1c + nc * r
+            a_start = math.atan2(t1c - cc, t1r - cr)
+            theta = math.acos(min(1.0, max(-1.0, ur * vr + uc * vc)))
+            na = max(1, int(math.ceil(r * theta / step)))
+            for q in range(na):
+                ang = a_start + side * theta * q / na
+                outr[n] = cr + r * math.cos(ang)
+                outc[n] = cc + r * math.sin(ang)
+                leg[n] = -1
+                n += 1
+    outr[n] = wr[m - 1]
+    outc[n] = wc[m - 1]
+    leg[n] = m - 1
+    n += 1
+    return outr[:n], outc[:n], leg[:n], rad, tan_d
+
+
+def _route_samples(wr, wc, pr, pc, leg, tan_d, step):
+    """Samples of the straight legs between the corners ``w`` that share the flown track's
+    samples where the two coincide (a leg's straight part between its arcs); the rest (from a
+    corner to where its arc leaves the legs) sampled anew. Returns rows, cols, the track sample
+    each shares (-1: new) and each corner's sample index."""
+    rows, cols, shared, vi = [], [], [], []
+    n = 0
+    for k in range(len(wr) - 1):
+        d = np.array([wr[k + 1] - wr[k], wc[k + 1] - wc[k]])
+        ln = float(np.hypot(*d))
+        u = d / ln
+        vi.append(n)
+        parts = []
+        if tan_d[k] > 0:  # from the corner to where the arc joins this leg
+            t = np.arange(int(math.ceil(tan_d[k] / step))) / math.ceil(tan_d[k] / step) * tan_d[k]
+            parts.append((t, None))
+        idx = np.nonzero(leg == k)[0]
+        parts.append((None, idx))
+        if tan_d[k + 1] > 0 and k + 1 < len(wr) - 1:  # from where the next arc leaves it
+            q = int(math.ceil(tan_d[k + 1] / step))
+            parts.append((ln - tan_d[k + 1] + np.arange(q) / q * tan_d[k + 1], None))
+        for t, idx in parts:
+            if idx is None:
+                rows.append(wr[k] + u[0] * t)
+                cols.append(wc[k] + u[1] * t)
+                shared.append(np.full(len(t), -1))
+                n += len(t)
+            else:
+                rows.append(pr[idx])
+                cols.append(pc[idx])
+                shared.append(idx)
+                n += len(idx)
+    vi.append(n)
+    shared = np.concatenate(shared + [np.array([np.nonzero(leg == len(wr) - 1)[0][0]])])
+    rows = np.concatenate(rows + [np.array([wr[-1]])])
+    cols = np.concatenate(cols + [np.array([wc[-1]])])
+    return rows, cols, shared, np.array(vi)
+
+
+@njit(cache=True, nogil=True)
+def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, clearance):
+    """The lowest height at each point (grid units) that keeps the clearance from every DEM
+    grid point, by the maps' method: spherical ``max z(q) + sqrt(R^2 - d^2)`` over grid points
+    within ``R``; horizontal ``max z(q) + R`` within ``R_h`` (``radius``); vertical
+    ``max z + R`` over the (up to four) grid points less than a cell away in row and column.
+    NaN where a grid point it needs is unknown (no-data or not loaded); ``-inf`` where no grid
+    point is near enough to constrain it."""
+    n = pr.size
+    out = np.empty(n)
+    r2 = radius * radius
+    rc = radius / a
+    for k in range(n):
+        p = pr[k]
+        q = pc[k]
+        best = -np.inf
+        bad = False
+        if method == 0:
+            i0 = int(math.floor(p))
+            j0 = int(math.floor(q))
+            for i in range(i0, i0 + 2):
+                for j in range(j0, j0 + 2):
+                    if abs(i - p) < 1.0 and abs(j - q) < 1.0 and 0 <= i < rows and 0 <= j < cols:
+                        z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
+                        if z != z:
+                            bad = True
+                        elif z > best:
+                            best = z
+            out[k] = np.nan if bad else best + clearance
+            continue
+        ilo = max(0, int(math.ceil(p - rc)))
+        ihi = min(rows - 1, int(math.floor(p + rc)))
+        ic = min(max(int(math.floor(p + 0.5)), ilo), ihi)
+        # rows from the centre out: the highest caps first, so that the bound below skips
+        # most square roots further out (every grid point is still read: no-data is checked)
+        for step in range(2 * (ihi - ilo) + 2):
+            i = ic + (step + 1) // 2 if step % 2 else ic - step // 2
+            if i < ilo or i > ihi:
+                continue
+            di2 = (i - p) * (i - p) * a * a
+            rem = r2 - di2
+            if rem < 0:
+                continue
+            w = math.sqrt(rem) / a
+            cap = math.sqrt(rem) if method == 2 else 0.0  # the row's highest cap
+            jlo = max(0, int(math.ceil(q - w)))
+            jhi = min(cols - 1, int(math.floor(q + w)))
+            for j in range(jlo, jhi + 1):
+                d2 = di2 + (j - q) * (j - q) * a * a
+                if d2 > r2:
+                    continue
+                z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
+                if z != z:
+                    bad = True
+                    break
+                if z + cap <= best:
+                    continue
+                v = z + math.sqrt(r2 - d2) if method == 2 else z
+                if v > best:
+                    best = v
+            if bad:
+                break
+        if bad:
+            out[k] = np.nan
+        elif method == 2 or best == -np.inf:
+            out[k] = best
+        else:
+            out[k] = best + clearance
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _bilinear(el, slot, tr, tc, rows, cols, pr, pc):
+    n = pr.size
+    out = np.empty(n)
+    for k in range(n):
+        p = min(max(pr[k], 0.0), rows - 1.0)
+        q = min(max(pc[k], 0.0), cols - 1.0)
+        i0 = min(int(math.floor(p)), max(rows - 2, 0))
+        j0 = min(int(math.floor(q)), max(cols - 2, 0))
+        fi = p - i0
+        fj = q - j0
+        acc = 0.0
+        for di in range(2):
+            for dj in range(2):
+                wgt = (fi if di else 1.0 - fi) * (fj if dj else 1.0 - fj)
+                if wgt == 0.0:
+                    continue
+                z = np.float64(
+                    _cell(slot, el, tr, tc, min(i0 + di, rows - 1), min(j0 + dj, cols - 1), np.nan)
+                )
+                acc += wgt * z
+        out[k] = acc
+    return out
+
+
+@njit(cache=True, nogil=True)
+def pitch_envelope(h, s, slope):
+    """The lowest profile ``z >= h`` with ``|dz/ds| <= slope``: ``z_i = max_j (h_j - slope
+    |s_i - s_j|)`` by a forward and a backward pass (``-inf`` in ``h``: no constraint)."""
+    n = h.size
+    z = h.copy()
+    for k in range(1, n):
+        v = z[k - 1] - slope * (s[k] - s[k - 1])
+        if v > z[k]:
+            z[k] = v
+    for k in range(n - 2, -1, -1):
+        v = z[k + 1] - slope * (s[k + 1] - s[k])
+        if v > z[k]:
+            z[k] = v
+    return z
+
+
+@njit(cache=True, nogil=True)
+def band_profile(s, env, band, top, slope):
+    """Few straight pieces inside the band ``[env, min(env + band, top)]``, each with
+    ``|slope| <= slope``: greedy, each piece as long as a line from its start stays in the
+    band (the feasible slopes narrowed sample by sample). Returns the heights at every sample
+    and the indices where pieces meet."""
+    n = s.size
+    zr = np.empty(n)
+    brk = np.empty(n, dtype=np.int64)
+    nb = 0
+    brk[nb] = 0
+    nb += 1
+    i = 0
+    zi = env[0]
+    zr[0] = zi
+    lo = -slope
+    hi = slope
+    k = 1
+    while k < n:
+        ds = s[k] - s[i]
+        if ds <= 0.0:
+            zr[k] = zi
+            k += 1
+            continue
+        if env[k] != env[k]:  # unknown terrain (reported by the caller): hold the height
+            zr[k] = zi
+            k += 1
+            continue
+        up = min(env[k] + band, top)
+        if up < env[k]:
+            up = env[k]
+        nlo = max(lo, (env[k] - zi) / ds)
+        nhi = min(hi, (up - zi) / ds)
+        if nlo <= nhi + 1e-12:  # (a profile at the pitch limit meets it up to rounding)
+            lo = min(nlo, nhi)
+            hi = nhi
+            k += 1
+            continue
+        if k == i + 1:
+            # not even the next sample: only rounding at the pitch limit does this; step to it
+            zr[k] = max(env[k], zi + max(-slope, min(slope, (env[k] - zi) / ds)) * ds)
+            i = k
+            zi = zr[k]
+            brk[nb] = i
+            nb += 1
+            lo = -slope
+            hi = slope
+            k += 1
+            continue
+        # the piece from i ends at k - 1
+        m = 0.5 * (lo + hi)
+        for q in range(i + 1, k):
+            zr[q] = zi + m * (s[q] - s[i])
+        i = k - 1
+        zi = zr[i]
+        brk[nb] = i
+        nb += 1
+        lo = -slope
+        hi = slope
+    m = 0.5 * (lo + hi)
+    for q in range(i + 1, n):
+        zr[q] = zi + m * (s[q] - s[i])
+    if brk[nb - 1] != n - 1:
+        brk[nb] = n - 1
+        nb += 1
+    return zr, brk[:nb]
+
+
+@njit(cache=True, nogil=True)
+def _route_vertices(wr, wc, tol, pas, slot, tr, tc, rows, cols, pad):
+    """Indices of the corners kept for the waypoint route: greedy, each leg the longest usable
+    one that passes within ``tol`` (grid units) of every corner it skips."""
+    n = wr.size
+    keep = np.empty(n, dtype=np.int64)
+    m = 0
+    keep[m] = 0
+    m += 1
+    i = 0
+    while i < n - 1:
+        j = i + 1
+        while j + 1 < n:
+            c = j + 1
+            dr = wr[c] - wr[i]
+            dc = wc[c] - wc[i]
+            ln = math.hypot(dr, dc)
+            ok = ln > 0.0
+            for q in range(i + 1, c):
+                if not ok:
+                    break
+                t = ((wr[q] - wr[i]) * dr + (wc[q] - wc[i]) * dc) / (ln * ln)
+                t = min(1.0, max(0.0, t))
+                if math.hypot(wr[i] + t * dr - wr[q], wc[i] + t * dc - wc[q]) > tol:
+                    ok = False
+            if not ok or not _line_usable(
+                pas, slot, tr, tc, rows, cols, pad, wr[i], wc[i], wr[c], wc[c]
+            ):
+                break
+            j = c
+        i = j
+        keep[m] = i
+        m += 1
+    return keep[:m]
+
+
+def _corner_vertices(cells: np.ndarray) -> np.ndarray:
+    """Indices of the path's cells where its direction changes (and both ends)."""
+    if len(cells) <= 2:
+        return np.arange(len(cells))
+    d = np.diff(cells, axis=0)
+    turn = np.any(d[1:] != d[:-1], axis=1)
+    return np.concatenate(([0], np.nonzero(turn)[0] + 1, [len(cells) - 1]))
+
+
+class _Corridor:
+    """The store chunks (elevation, passable, ridge) around a path, as stacked tiles with a
+    slot table, so that the kernels read the terrain near the track and nothing else."""
+
+    def __init__(self, m, cells: np.ndarray, pad: int):
+        import zarr
+
+        from .store import CACHE
+
+        rows, cols = m.shape
+        arr = zarr.open_array(f"{m.path}/elevation", mode="r")
+        tr, tc = (int(v) for v in arr.chunks)
+        self.tr, self.tc, self.rows, self.cols = tr, tc, rows, cols
+        nti, ntj = -(-rows // tr), -(-cols // tc)
+        want = np.zeros((nti, ntj), dtype=bool)
+        r, c = cells[:, 0].astype(np.int64), cells[:, 1].astype(np.int64)
+        steps = range(-pad, pad + 1, max(1, min(tr, tc) - 1))
+        offs = sorted(set(list(steps) + [pad]))
+        for dr in offs:
+            for dc in offs:
+                rr = np.clip(r + dr, 0, rows - 1) // tr
+                cc = np.clip(c + dc, 0, cols - 1) // tc
+                want[rr, cc] = True
+        ti, tj = np.nonzero(want)
+        self.slot = np.full((nti, ntj), -1, dtype=np.int64)
+        self.slot[ti, tj] = np.arange(len(ti))
+        complete = m.all_chunks_written
+        self.el = np.full((len(ti), tr, tc), np.nan, dtype=np.float32)
+        self.pas = np.zeros((len(ti), tr, tc), dtype=np.uint8)
+        self.rdg = np.zeros((len(ti), tr, tc), dtype=np.uint8)
+        layers = (("elevation", self.el), ("passable", self.pas), ("ridge", self.rdg))
+
+        def load(job):
+            k, i, j, var, dst = job
+            ch = CACHE.chunk(m.path, var, i, j, complete=complete)
+            dst[k, : ch.shape[0], : ch.shape[1]] = ch
+
+        jobs = [
+            (k, i, j, var, dst)
+            for k, (i, j) in enumerate(zip(ti.tolist(), tj.tolist(), strict=True))
+            for var, dst in layers
+        ]
+        # decoding releases the GIL: read the chunks a few at a time
+        with ThreadPoolExecutor(max_workers=4, thread_name_prefix="corridor") as pool:
+            list(pool.map(load, jobs))
+        self.tiles = len(ti)
+
+
+@dataclass
+class _Geometry:
+    pr: np.ndarray
+    pc: np.ndarray
+    radii: np.ndarray
+    smoothing: str
+
+
+def fly(maps, traj, vehicle=None) -> Flight:
+    """The track a vehicle flies for ``traj`` (a planned :class:`Trajectory`) on the maps store
+    ``maps``, and its waypoints: see the module's description. ``vehicle``: a
+    :class:`Vehicle`, a dict of its keys, or None (the defaults).
+
+    Examples
+    --------
+    >>> t = pipeline.plan("maps.zarr", (120, 150), (1850, 1800))          # doctest: +SKIP
+    >>> f = pipeline.fly("maps.zarr", t, {"max_pitch_deg": 15})         # doctest: +SKIP
+    >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
+    (True, 41)
+    """
+    from .store import open_store
+
+    t0 = time.perf_counter()
+    m = open_store(maps)
+    veh = Vehicle.of(vehicle)
+    if not traj.planned or len(traj.cells) < 2:
+        raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
+    p = m.parameters
+    a = m.cell_size
+    method = p.get("method", "spherical")
+    clearance = float(p["clearance_m"])
+    radius = clearance
+    if method == "horizontal" and p.get("horizontal_clearance_m"):
+        radius = float(p["horizontal_clearance_m"])
+    surface = p.get("surface_clearance_m")
+    top = float(p.get("sea_level_m", 0.0)) - float(clearance if surface is None else surface)
+    turn_m = veh.turn_radius(a)
+    slope = math.tan(math.radians(veh.max_pitch_deg))
+    if method == "spherical":
+        # samples clear of every grid point by R' = sqrt(R^2 + (L/2)^2), L the longest 3-D
+        # step between samples: then every point of the straight step between two samples
+        # is at least R from every grid point, not only the samples
+        step_3d = SAMPLE_STEP * a * math.sqrt(1.0 + slope * slope)
+        radius = math.sqrt(clearance * clearance + 0.25 * step_3d * step_3d)
+    rows, cols = m.shape
+    elem = int(math.ceil(radius / a)) + 1
+    pad = elem + int(math.ceil(turn_m / a)) + 2
+    cells = np.asarray(traj.cells, dtype=np.int64)
+    cor = _Corridor(m, cells, pad)
+    grid = (cor.el, cor.slot, cor.tr, cor.tc, rows, cols)
+    terrain = (a, radius, _METHOD[method], clearance)
+    usable = (cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem)
+    verts = _corner_vertices(cells)
+    vr = cells[verts, 0].astype(np.float64)
+    vc = cells[verts, 1].astype(np.float64)
+    if traj.lower_bound_m > 0:
+        limit = traj.omega * traj.lower_bound_m
+    else:
+        limit = traj.length_m
+    if traj.status != "ok":
+        limit = max(limit, traj.length_m)
+    off, along = _path_off_ridge(cells, cor)
+    keep = _shortcuts(
+        vr, vc, off[verts], along[verts], cor.pas, cor.rdg, *usable[1:], 4 * max(rows, cols)
+    )
+    rad = turn_m / a
+    tries = (
+        ("shortcuts", *_widen_turns(vr[keep], vc[keep], rad, usable), rad),
+        ("path vertices", *_widen_turns(vr, vc, rad, usable), rad),
+        ("grid path", vr, vc, 0.0),
+    )
+    band = WAYPOINT_BAND * clearance
+    for name, wr, wc, rad in tries:  # noqa: B007 - the last one tried is used below
+        # the waypoint route: the corners, a leg skipping those it passes within
+        # ROUTE_TOLERANCE of; the flown track: the route with its turns rounded
+        if rad > 0:
+            rk = _route_vertices(wr, wc, ROUTE_TOLERANCE, *usable)
+            wr, wc = _widen_turns(wr[rk], wc[rk], rad, usable)
+        pr, pc, leg, radii, tan_d = _arcs(wr, wc, rad, SAMPLE_STEP)
+        track = _profile(grid, terrain, pr, pc, slope)
+        qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, SAMPLE_STEP)
+        hq = np.empty(len(qr))
+        new = shared < 0
+        hq[~new] = track["h"][shared[~new]]
+        hq[new] = _required_threaded(grid, terrain, qr[new], qc[new])
+        route = _profile(grid, terrain, qr, qc, slope, hq)
+        zq, brk = band_profile(route["s"], route["z"], band, top, slope)
+        problems = []
+        if not (track["known"] and route["known"]):
+            problems.append("the terrain near the track is unknown (no-data) at some samples")
+        elif max(track["z"].max(), route["z"].max()) > top + 1e-6:
+            problems.append(
+                f"the pitch limit forces the vehicle to {-track['z'].max():.0f} m depth, above "
+                f"the surface limit ({-top:.0f} m)"
+            )
+        route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
+        longest = max(track["length"], route_length)
+        if longest > limit * (1 + 1e-9):
+            problems.append(
+                f"the flown length {longest:.0f} m exceeds omega x the proven lower "
+                f"bound ({limit:.0f} m)"
+            )
+        if not problems:
+            break
+    z, s, h = track["z"], track["s"], track["h"]
+    turns = radii[np.isfinite(radii)] * a
+    min_turn = float(turns.min()) if turns.size else math.inf
+    tight = int(np.sum(turns < turn_m * (1 - 1e-9)))
+    if name == "grid path":
+        problems.append("turns are not rounded (the smoothed tracks broke a limit)")
+        min_turn = 0.0
+    elif tight:
+        problems.append(
+            f"{tight} turns are tighter than the minimum turn radius {turn_m:g} m (tightest "
+            f"{min_turn:.1f} m): the corners are too close together"
+        )
+    dz, ds = np.diff(z), np.diff(s)
+    pitch = np.degrees(np.arctan2(np.abs(dz), ds))
+    seg = np.hypot(ds, dz)
+    t = np.concatenate(([0.0], np.cumsum(seg))) / veh.speed_m_s
+    mid_r = np.rint(0.5 * (pr[1:] + pr[:-1])).astype(np.int64)
+    mid_c = np.rint(0.5 * (pc[1:] + pc[:-1])).astype(np.int64)
+    on_ridge = _lookup(cor.rdg, cor.slot, cor.tr, cor.tc, mid_r, mid_c).astype(bool)
+    total = float(seg.sum())
+    x, y = _map_xy(m, pr, pc)
+    # waypoints: every corner of the route and every break of its height profile
+    wi = np.union1d(vi, brk)
+    wx, wy = _map_xy(m, qr[wi], qc[wi])
+    rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
+    duration = float(t[-1])
+    return Flight(
+        x=x,
+        y=y,
+        z=z,
+        s=s,
+        time_s=t,
+        seabed_m=_bilinear(*grid, pr, pc),
+        required_m=h,
+        waypoints=np.column_stack([wx, wy, zq[wi], rt[wi] / veh.speed_m_s]),
+        waypoint_index=wi,
+        vehicle=veh,
+        turn_radius_m=turn_m,
+        flown_length_m=float(track["length"]),
+        route_length_m=route_length,
+        grid_length_m=float(traj.length_m),
+        duration_s=duration,
+        max_pitch_deg=float(pitch.max()) if pitch.size else 0.0,
+        min_turn_radius_m=min_turn,
+        ridge_ratio=float(seg[on_ridge].sum() / total) if total > 0 else 0.0,
+        energy_wh=veh.power_w * duration / 3600.0 if veh.power_w is not None else None,
+        surface_limit_m=top,
+        smoothing=name,
+        problems=problems,
+        seconds=time.perf_counter() - t0,
+        route=np.column_stack([*_map_xy(m, qr, qc), zq]),
+        route_seabed_m=_bilinear(*grid, qr, qc),
+    )
+
+
+def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> np.ndarray:
+    """``required_heights`` over the samples, in ``parts`` threads (the kernel releases the
+    GIL): the mission's other work waits for it, the cores do not."""
+    n = len(pr)
+    if n < 4096 or parts < 2:
+        return required_heights(*grid, pr, pc, *terrain)
+    cut = np.linspace(0, n, parts + 1).astype(int)
+    with ThreadPoolExecutor(max_workers=parts, thread_name_prefix="heights") as pool:
+        out = pool.map(
+            lambda k: required_heights(
+                *grid, pr[cut[k] : cut[k + 1]], pc[cut[k] : cut[k + 1]], *terrain
+            ),
+            range(parts),
+        )
+        return np.concatenate(list(out))
+
+
+def _profile(grid, terrain, pr, pc, slope, h=None) -> dict:
+    """Required heights along samples (grid units; ``h`` when known), their lowest
+    pitch-limited profile and its 3-D length (inf where the terrain is unknown)."""
+    if h is None:
+        h = _required_threaded(grid, terrain, pr, pc)
+    a = terrain[0]
+    s = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
+    known = bool(not np.isnan(h).any())
+    z = pitch_envelope(np.where(np.isnan(h), np.inf, h), s, slope)
+    length = float(np.hypot(np.diff(s), np.diff(z)).sum()) if known else math.inf
+    if not known:
+        z = np.where(np.isfinite(z), z, np.nan)
+    return {"h": h, "s": s, "z": z, "known": known, "length": length}
+
+
+@njit(cache=True)
+def _lookup(tiles, slot, tr, tc, r, c):
+    out = np.zeros(r.size, dtype=np.uint8)
+    for k in range(r.size):
+        out[k] = _cell(slot, tiles, tr, tc, r[k], c[k], 0)
+    return out
+
+
+def _widen_turns(wr, wc, radius, usable, passes: int = 8):
+    """Remove corners too close together for the turn radius where a straight leg between
+    their neighbours is usable (an out-and-back spur, two short zigzags), tightest first."""
+    wr, wc = _distinct(np.asarray(wr, dtype=np.float64), np.asarray(wc, dtype=np.float64))
+    for _ in range(passes):
+        if len(wr) <= 2:
+            break
+        rad = _arcs_radii(wr, wc, radius)[1]
+        tight = np.nonzero(rad < radius * (1 - 1e-9))[0]
+        if tight.size == 0:
+            break
+        drop = np.zeros(len(wr), dtype=bool)
+        for k in tight[np.argsort(rad[tight])]:
+            if drop[k - 1] or drop[k + 1] or drop[k]:
+                continue
+            if _line_usable(*usable[:6], usable[6], wr[k - 1], wc[k - 1], wr[k + 1], wc[k + 1]):
+                drop[k] = True
+        if not drop.any():
+            break
+        wr, wc = _distinct(wr[~drop], wc[~drop])
+    return wr, wc
+
+
+def _distinct(wr, wc):
+    """The polyline without repeated consecutive vertices (an out-and-back spur cut at its
+    tip returns to where it left)."""
+    keep = np.ones(len(wr), dtype=bool)
+    keep[1:] = (np.diff(wr) != 0) | (np.diff(wc) != 0)
+    return wr[keep], wc[keep]
+
+
+def _path_off_ridge(cells: np.ndarray, cor: _Corridor) -> np.ndarray:
+    """The path's off-ridge horizontal length up to each cell, and its horizontal length
+    (grid units): each move counted by halves at its two cells, as ``_off_ridge`` counts a
+    straight leg."""
+    on = _lookup(cor.rdg, cor.slot, cor.tr, cor.tc, cells[:, 0], cells[:, 1]).astype(bool)
+    step = np.hypot(*np.diff(cells, axis=0).T.astype(np.float64))
+    half = 0.5 * step
+    move = half * ~on[:-1] + half * ~on[1:]
+    return np.concatenate(([0.0], np.cumsum(move))), np.concatenate(([0.0], np.cumsum(step)))
+
+
+def _map_xy(m, pr, pc):
+    dx = m.x[1] - m.x[0] if len(m.x) > 1 else m.cell_size
+    dy = m.y[1] - m.y[0] if len(m.y) > 1 else -m.cell_size
+    return m.x[0] + pc * dx, m.y[0] + pr * dy
+
+
+def with_flight(maps, traj, vehicle=None):
+    """``traj`` with its flown track (``traj.flight``) and the status it implies: a flight
+    that breaks a vehicle limit, or needs more energy than the battery holds, fails the
+    mission with the reason (its track is kept for inspection)."""
+    if not traj.planned or len(traj.cells) < 2:
+        return traj
+    f = fly(maps, traj, vehicle)
+    traj.flight = f
+    veh = f.vehicle
+    reasons = list(f.problems)
+    if veh.battery_wh is not None and f.energy_wh is not None and f.energy_wh > veh.battery_wh:
+        reasons.append(
+            f"the flown track needs {f.energy_wh:.0f} Wh ({f.duration_s / 3600:.1f} h at "
+            f"{veh.speed_m_s:g} m/s and {veh.power_w:g} W), more than the battery's "
+            f"{veh.battery_wh:g} Wh: raise battery_wh or lower the powers, or split the mission"
+        )
+    bound = [r for r in reasons if r.startswith("the flown length")]
+    if bound and len(bound) == len(reasons):
+        if traj.status == "ok":
+            traj.status = "uncertified"
+        traj.message = f"{traj.message}; flight: {bound[0]}" if traj.message else bound[0]
+    elif reasons:
+        traj.status = "failed"
+        msg = "; ".join(reasons)
+        traj.message = f"{traj.message}; flight: {msg}" if traj.message else f"flight: {msg}"
+    return traj

@@ -1,0 +1,453 @@
+"""Flyable missions (pipeline.flight, pipeline.exports): the flown track and its waypoints
+checked against the terrain by brute force (every DEM grid point, scipy's KD-tree), against
+scipy's optimum, and every file read back by an independent reader (pymavlink, fastkml,
+geopandas, imcpy, pyproj)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+from test_certify import missions, optimum
+from test_planners import reference_graph
+
+import pipeline
+from pipeline import exports
+from pipeline.flight import Vehicle, band_profile, pitch_envelope, with_flight
+
+# ------------------------------------------------------------------ the profile kernels
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.integers(2, 60), st.floats(0.05, 2.0))
+def test_pitch_envelope_is_the_lowest_slope_limited_profile(seed, n, slope):
+    rng = np.random.default_rng(seed)
+    h = rng.normal(size=n) * 100
+    h[rng.random(n) < 0.1] = -np.inf  # no constraint there
+    h[rng.integers(n)] = 0.0  # at least one constraint
+    s = np.cumsum(rng.random(n) * 30)
+    z = pitch_envelope(h, s, slope)
+    # brute force: z_i = max_j h_j - slope |s_i - s_j|
+    ref = np.max(h[None, :] - slope * np.abs(s[:, None] - s[None, :]), axis=1)
+    np.testing.assert_allclose(z, ref, rtol=0, atol=1e-9)
+    assert np.all(np.abs(np.diff(z)) <= slope * np.diff(s) + 1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.integers(2, 80), st.floats(0.05, 1.0), st.floats(1, 100))
+def test_band_profile_stays_in_its_band_within_the_pitch_limit(seed, n, slope, band):
+    rng = np.random.default_rng(seed)
+    s = np.cumsum(0.1 + rng.random(n) * 30)
+    env = pitch_envelope(rng.normal(size=n) * 200, s, slope)
+    z, brk = band_profile(s, env, band, np.inf, slope)
+    assert np.all(z >= env - 1e-6) and np.all(z <= env + band + 1e-6)
+    assert np.all(np.abs(np.diff(z)) <= slope * np.diff(s) * (1 + 1e-9) + 1e-9)
+    assert brk[0] == 0 and brk[-1] == n - 1
+    # straight between breaks
+    for a, b in zip(brk[:-1], brk[1:], strict=True):
+        t = (s[a : b + 1] - s[a]) / (s[b] - s[a])
+        np.testing.assert_allclose(z[a : b + 1], z[a] + t * (z[b] - z[a]), atol=1e-6)
+
+
+# ------------------------------------------------------------------ a real store, real missions
+
+
+def grid_points(store) -> np.ndarray:
+    """Every DEM grid point of the store as (x, y, z), for the brute-force clearance."""
+    ds = pipeline.open_maps(store)
+    z = ds["elevation"].values.astype(np.float64)
+    xx, yy = np.meshgrid(ds["x"].values, ds["y"].values)
+    keep = np.isfinite(z)
+    return np.column_stack([xx[keep], yy[keep], z[keep]])
+
+
+def circumradii(x, y) -> np.ndarray:
+    """The radius of the circle through every three consecutive points (inf when straight)."""
+    a = np.hypot(x[1:-1] - x[:-2], y[1:-1] - y[:-2])
+    b = np.hypot(x[2:] - x[1:-1], y[2:] - y[1:-1])
+    c = np.hypot(x[2:] - x[:-2], y[2:] - y[:-2])
+    cross = (x[1:-1] - x[:-2]) * (y[2:] - y[:-2]) - (y[1:-1] - y[:-2]) * (x[2:] - x[:-2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = a * b * c / (2 * np.abs(cross))
+    return np.where(np.abs(cross) < 1e-9 * a * b, np.inf, r)
+
+
+def densify(xyz: np.ndarray, step: float) -> np.ndarray:
+    out = [xyz[:1]]
+    for p, q in zip(xyz[:-1], xyz[1:], strict=True):
+        n = max(1, int(math.ceil(math.hypot(*(q - p)[:2]) / step)))
+        t = (np.arange(1, n + 1) / n)[:, None]
+        out.append(p + t * (q - p))
+    return np.concatenate(out)
+
+
+@pytest.fixture(scope="module")
+def ridge_store(tmp_path_factory):
+    """A 300^2 synthetic mid-ocean ridge (georeferenced), its maps, scipy's graph, the grid."""
+    import dask
+
+    path = tmp_path_factory.mktemp("flight") / "maps.zarr"
+    dem = pipeline.synthetic_dem((300, 300), cell_size=50.0, seed=3, chunks=128)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, path, clearance=150.0, min_accumulation=10, chunks=128)
+    ds = pipeline.open_maps(path)
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    return path, ok, reference_graph(surface, ok, 50.0), grid_points(path)
+
+
+@pytest.mark.parametrize(
+    "planner, omega, vehicle",
+    [
+        ("ra_star", 2.0, {}),
+        ("lagrangian", 1.5, {"max_pitch_deg": 10.0, "min_turn_radius_m": 80.0}),
+        ("astar", 1.0, {"max_pitch_deg": 30.0}),
+        ("ra_star", 1.2, {"min_turn_radius_m": 20.0}),
+    ],
+)
+def test_flown_tracks_keep_clearance_pitch_turns_and_the_bound(
+    ridge_store, planner, omega, vehicle
+):
+    path, ok, graph, pts = ridge_store
+    tree = cKDTree(pts)
+    veh = Vehicle.of(vehicle)
+    tan = math.tan(math.radians(veh.max_pitch_deg))
+    r_min = veh.turn_radius(50.0)
+    for s, g in missions(ok, 3, seed=int(omega * 10), min_cells=120):
+        t = pipeline.plan(path, s, g, planner=planner, omega=omega, client="synchronous")
+        assert t.status == "ok", t.message
+        f = pipeline.fly(path, t, veh)
+        assert f.ok, f.problems
+        # clearance: every DEM grid point at least R from the flown track and from the
+        # waypoints' straight legs, sampled every 2.5 m (ten times denser than the flight's own
+        # samples: the clearance holds between them too)
+        d, _ = tree.query(densify(np.column_stack([f.x, f.y, f.z]), 2.5))
+        assert d.min() >= 150.0 * (1 - 1e-9)
+        d, _ = tree.query(densify(f.waypoints[:, :3], 2.5))
+        assert d.min() >= 150.0 * (1 - 1e-9)
+        # pitch, on the track and on the legs
+        assert np.all(np.abs(np.diff(f.z)) <= tan * np.hypot(np.diff(f.x), np.diff(f.y)) + 1e-6)
+        w = f.waypoints
+        assert np.all(
+            np.abs(np.diff(w[:, 2])) <= tan * np.hypot(*np.diff(w[:, :2], axis=0).T) + 1e-6
+        )
+        # samples no more than one cell apart; turns no tighter than the minimum radius
+        assert np.hypot(np.diff(f.x), np.diff(f.y)).max() <= 50.0
+        assert circumradii(f.x, f.y).min() >= r_min * (1 - 1e-6)
+        # the bound against scipy's optimum on the whole fine graph
+        opt = optimum(graph, ok.shape, s, g)
+        assert f.flown_length_m <= omega * opt * (1 + 1e-9)
+        assert f.route_length_m <= omega * opt * (1 + 1e-9)
+        assert len(w) < len(t.cells) / 3
+        # the ends are the mission's
+        assert np.allclose([f.x[0], f.y[0]], t.points[0, :2])
+        assert np.allclose([f.x[-1], f.y[-1]], t.points[-1, :2])
+        assert f.duration_s == pytest.approx(f.flown_length_m / veh.speed_m_s)
+
+
+def test_turns_are_widened_where_the_corners_are_too_close(ridge_store):
+    """An out-and-back spur (the path reverses) is cut, not flown with a zero radius."""
+    from pipeline.flight import _arcs, _widen_turns
+
+    path, ok, *_ = ridge_store
+    r = np.array([10.0, 10.0, 10.0, 10.0, 30.0], dtype=np.float64)
+    c = np.array([10.0, 40.0, 45.0, 40.0, 40.0], dtype=np.float64)
+    usable = (np.ones((1, 64, 64), np.uint8), np.zeros((1, 1), np.int64), 64, 64, 64, 64, 0)
+    wr, wc = _widen_turns(r, c, 1.0, usable)
+    assert len(wr) < len(r)
+    rad = _arcs(wr, wc, 1.0, 0.25)[3]
+    assert np.all(rad[np.isfinite(rad)] >= 1.0 - 1e-9)
+
+
+def test_required_heights_equal_the_safety_layer_at_cell_centres(ridge_store):
+    """At a cell centre the required height is the safety surface (scipy's grey dilation in
+    test_safety); between centres it is the tight clearance against the grid points."""
+    from pipeline.flight import _Corridor, required_heights
+
+    path, ok, _, pts = ridge_store
+    m = pipeline.open_store(path)
+    ds = pipeline.open_maps(path)
+    cells = np.argwhere(ok)[::97]
+    cor = _Corridor(m, cells, 5)
+    h = required_heights(
+        cor.el, cor.slot, cor.tr, cor.tc, *m.shape,
+        cells[:, 0].astype(float), cells[:, 1].astype(float), 50.0, 150.0, 2, 150.0,
+    )  # fmt: skip
+    np.testing.assert_allclose(h, ds["safety"].values[cells[:, 0], cells[:, 1]], rtol=1e-6)
+    rng = np.random.default_rng(0)
+    pr = cells[:, 0] + rng.random(len(cells)) - 0.5
+    pc = cells[:, 1] + rng.random(len(cells)) - 0.5
+    h = required_heights(cor.el, cor.slot, cor.tr, cor.tc, *m.shape, pr, pc, 50.0, 150.0, 2, 150.0)
+    x, y = m.x[0] + pc * 50.0, m.y[0] - pr * 50.0
+    tree = cKDTree(pts)
+    d_at, _ = tree.query(np.column_stack([x, y, h]))
+    d_below, _ = tree.query(np.column_stack([x, y, h - 0.5]))
+    assert d_at.min() >= 150.0 * (1 - 1e-9) and d_below.max() < 150.0
+
+
+# ------------------------------------------------------------------ files, independent readers
+
+
+@pytest.fixture(scope="module")
+def flown(ridge_store, tmp_path_factory):
+    path, ok, _, _ = ridge_store
+    m = pipeline.open_store(path)
+    (s, g), *_ = missions(ok, 1, seed=7, min_cells=150)
+    t = pipeline.plan(path, s, g, planner="ra_star", omega=1.5, client="synchronous")
+    with_flight(m, t, {"speed_m_s": 2.0})
+    folder = tmp_path_factory.mktemp("files")
+    files = exports.write_mission_files(folder, "test mission", "test-1", t, m.crs_wkt, 0.0)
+    return m, t, folder, files
+
+
+def test_every_format_is_written(flown):
+    _, _, folder, files = flown
+    assert set(files) == {"track", "grid-path", "waypoints-csv", "waypoints", "qgc", "kml", "imc"}
+    assert all((folder / f[0]).stat().st_size > 0 for f in files.values())
+
+
+def test_waypoints_geojson_and_csv_read_back(flown):
+    import geopandas as gpd
+    from pyproj import Transformer
+
+    m, t, folder, _ = flown
+    f = t.flight
+    gdf = gpd.read_file(folder / "waypoints.geojson")
+    pts = gdf[gdf.geometry.geom_type == "Point"]
+    assert len(pts) == len(f.waypoints) and gdf.crs.to_epsg() == 4326
+    back = Transformer.from_crs("EPSG:4326", m.crs_wkt, always_xy=True)
+    x, y = back.transform(pts.geometry.x.values, pts.geometry.y.values)
+    np.testing.assert_allclose(x, f.waypoints[:, 0], atol=0.01)
+    np.testing.assert_allclose(y, f.waypoints[:, 1], atol=0.01)
+    np.testing.assert_allclose(pts.geometry.z.values, f.waypoints[:, 2], atol=0.01)
+    np.testing.assert_allclose(pts["depth_m"].values, -f.waypoints[:, 2], atol=0.01)
+    with open(folder / "waypoints.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["lat", "lon", "depth_m", "altitude_m", "speed_m_s", "time_s"]
+    np.testing.assert_allclose([float(r["lat"]) for r in rows], pts.geometry.y, atol=1e-8)
+    np.testing.assert_allclose([float(r["time_s"]) for r in rows], f.waypoints[:, 3], atol=0.06)
+    assert all(float(r["speed_m_s"]) == 2.0 for r in rows)
+    alt = np.array([float(r["altitude_m"]) for r in rows])
+    assert alt.min() >= 150.0 - 0.01  # above the seabed by at least the clearance
+
+
+def test_track_parquet_is_geoparquet_in_lonlat(flown):
+    import geopandas as gpd
+
+    _, t, folder, _ = flown
+    f = t.flight
+    gdf = gpd.read_parquet(folder / "track.parquet")
+    assert gdf.crs.to_epsg() == 4326 and len(gdf) == len(f.x)
+    for col in ("x", "y", "z", "altitude_m", "time_s"):
+        assert col in gdf
+    assert -180 <= gdf.geometry.x.min() and gdf.geometry.x.max() <= 180
+    grid = gpd.read_parquet(folder / "grid-path.parquet")
+    assert len(grid) == len(t.cells) and (grid["row"].values == t.cells[:, 0]).all()
+
+
+def test_qgc_wpl_loads_in_pymavlink(flown):
+    from pymavlink import mavutil, mavwp
+
+    _, t, folder, _ = flown
+    f = t.flight
+    lines = (folder / "mission.waypoints").read_text().splitlines()
+    assert lines[0] == "QGC WPL 110" and all(len(ln.split("\t")) == 12 for ln in lines[1:])
+    loader = mavwp.MAVWPLoader()
+    n = loader.load(str(folder / "mission.waypoints"))
+    assert n == len(f.waypoints) + 1  # the home position, then every waypoint
+    gj = json.loads((folder / "waypoints.geojson").read_text())["features"][:-1]
+    for k, feat in enumerate(gj):
+        w = loader.wp(k + 1)
+        assert w.command == mavutil.mavlink.MAV_CMD_NAV_WAYPOINT
+        assert w.frame == mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT
+        lon, lat, z = feat["geometry"]["coordinates"]
+        assert w.x == pytest.approx(lat, abs=1e-7) and w.y == pytest.approx(lon, abs=1e-7)
+        assert w.z == pytest.approx(z, abs=0.02)  # ArduSub: negative below the surface
+
+
+def test_kml_reads_in_fastkml(flown):
+    from fastkml import kml
+
+    _, t, folder, _ = flown
+    doc = kml.KML.parse(str(folder / "mission.kml"))
+    placemarks = []
+
+    def walk(node):
+        for ch in getattr(node, "features", []) or []:
+            if type(ch).__name__ == "Placemark":
+                placemarks.append(ch)
+            walk(ch)
+
+    walk(doc)
+    lines = [p for p in placemarks if p.geometry.geom_type == "LineString"]
+    points = [p for p in placemarks if p.geometry.geom_type == "Point"]
+    assert len(points) == len(t.flight.waypoints) and len(lines) == 2
+    assert all(p.geometry.has_z for p in points)
+    z = np.array([p.geometry.z for p in points])
+    np.testing.assert_allclose(z, t.flight.waypoints[:, 2], atol=0.06)
+
+
+def test_imc_plan_reads_in_imcpy(flown):
+    import imcpy
+    from pyproj import Geod
+
+    _, t, folder, _ = flown
+    msg = imcpy.Packet.deserialize((folder / "mission.imc").read_bytes())
+    assert msg.msg_name == "PlanSpecification" and msg.plan_id == "test-1"
+    man = msg.maneuvers[0]
+    assert msg.start_man_id == man.maneuver_id
+    fp = man.data
+    assert fp.msg_name == "FollowPath" and fp.z_units == imcpy.ZUnits.DEPTH
+    assert fp.speed == pytest.approx(2.0) and fp.speed_units == imcpy.SpeedUnits.METERS_PS
+    gj = json.loads((folder / "waypoints.geojson").read_text())["features"][:-1]
+    lon0, lat0, z0 = gj[0]["geometry"]["coordinates"]
+    assert math.degrees(fp.lat) == pytest.approx(lat0, abs=1e-8)  # GeoJSON: 8 decimals
+    assert math.degrees(fp.lon) == pytest.approx(lon0, abs=1e-8)
+    assert fp.z == pytest.approx(-z0, abs=0.01)
+    assert len(fp.points) == len(gj)
+    geod = Geod(ellps="WGS84")
+    for p, feat in zip(fp.points, gj, strict=True):
+        lon, lat, z = feat["geometry"]["coordinates"]
+        _, _, dist = geod.inv(lon0, lat0, lon, lat)
+        assert math.hypot(p.x, p.y) == pytest.approx(dist, abs=0.5)  # the geodesic, metres
+        assert fp.z + p.z == pytest.approx(-z, abs=0.02)
+
+
+# ------------------------------------------------------------------ the vehicle, jobs
+
+
+def test_vehicle_bad_values_say_what_is_wrong():
+    with pytest.raises(pipeline.InvalidParameterError, match="vehicle.max_pitch_deg"):
+        Vehicle(max_pitch_deg=0)
+    with pytest.raises(pipeline.InvalidParameterError, match="without a power"):
+        Vehicle(battery_wh=100)
+    with pytest.raises(pipeline.InvalidParameterError, match="unknown vehicle key"):
+        Vehicle.of({"speed": 2})
+    assert Vehicle().turn_radius(30.0) == 30.0 and Vehicle().turn_radius(200.0) == 50.0
+
+
+def test_synthetic_maps_are_georeferenced_on_the_mid_atlantic_ridge():
+    from pyproj import Transformer
+
+    dem = pipeline.synthetic_dem((100, 200), cell_size=30.0, chunks=None)
+    tr = Transformer.from_crs(dem.attrs["crs_wkt"], "EPSG:4326", always_xy=True)
+    lon, lat = tr.transform(200 * 30.0 / 2, 100 * 30.0 / 2)
+    assert lon == pytest.approx(-44.83, abs=1e-9) and lat == pytest.approx(26.14, abs=1e-9)
+    assert "crs_wkt" not in pipeline.synthetic_dem((10, 10), chunks=None, georeferenced=False).attrs
+
+
+JOB = """
+name = "fly"
+[dem]
+chunks = 128
+[dem.synthetic]
+shape = [300, 300]
+cell_size = 50.0
+seed = 3
+[maps]
+clearance = 150.0
+min_accumulation = 10
+[planning]
+omega = 1.5
+[vehicle]
+speed_m_s = 2.0
+hotel_power_w = 40.0
+propulsion_power_w = 100.0
+battery_wh = 100000.0
+[[missions]]
+name = "fits"
+start = [20, 20]
+goal = [280, 260]
+[[missions]]
+name = "flat-battery"
+start = [20, 20]
+goal = [280, 260]
+vehicle = { battery_wh = 50.0 }
+[output]
+catalog = "cat"
+"""
+
+
+def test_a_job_flies_its_missions_and_fails_one_over_its_endurance(tmp_path, local_client):
+    import pystac
+    from pyproj import Transformer
+
+    (tmp_path / "fly.toml").write_text(JOB)
+    res = pipeline.run_job(tmp_path / "fly.toml", scheduler=local_client)
+    assert res.failed == ["flat-battery"]
+    cat = pystac.Catalog.from_file(str(tmp_path / "cat" / "catalog.json"))
+    items = {it.id: it for it in cat.get_items(recursive=True)}
+    good, flat = items["fits"], items["flat-battery"]
+    p = good.properties
+    assert p["auv:status"] == "ok" and p["auv:waypoints"] >= 2
+    assert p["auv:energy_wh"] == pytest.approx(140.0 * p["auv:duration_s"] / 3600)
+    assert p["auv:flown_length_m"] <= 1.5 * p["auv:lower_bound_m"] * (1 + 1e-9)
+    for key in ("track", "grid-path", "waypoints", "qgc", "kml", "imc", "quicklook"):
+        assert key in good.assets, key
+    # WGS84 geometry; the projection extension gives the maps' CRS and the track's box in it
+    lon, lat = np.array(good.geometry["coordinates"]).T
+    assert -46 < lon.min() < lon.max() < -44 and 25 < lat.min() < lat.max() < 27
+    proj = p["proj:wkt2"] if p.get("proj:code") is None else p["proj:code"]
+    x0, y0, x1, y1 = p["proj:bbox"]
+    tr = Transformer.from_crs(proj, "EPSG:4326", always_xy=True)
+    blon, blat = tr.transform([x0, x1], [y0, y1])
+    assert good.bbox[0] >= min(blon) - 1e-3 and good.bbox[2] <= max(blon) + 1e-3
+    assert flat.properties["auv:status"] == "failed"
+    assert "battery" in flat.properties["auv:message"] and "track" in flat.assets
+    good.validate()  # the core schema and the projection extension's (tests/data, offline)
+    flat.validate()
+
+
+def test_a_bad_vehicle_table_is_one_clear_line(tmp_path):
+    bad = JOB.replace("speed_m_s = 2.0", "speed = 2.0")
+    (tmp_path / "bad.toml").write_text(bad)
+    proc = subprocess.run(
+        [str(Path(sys.executable).with_name("pipeline")), "run", str(tmp_path / "bad.toml")],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert "unknown key vehicle.'speed'" in proc.stderr or "vehicle.'speed'" in proc.stderr
+    bad = JOB.replace("hotel_power_w = 40.0\npropulsion_power_w = 100.0\n", "")
+    (tmp_path / "bad2.toml").write_text(bad)
+    with pytest.raises(pipeline.JobFileError, match="without a power"):
+        pipeline.jobs.load_job(tmp_path / "bad2.toml")
+
+
+def test_no_data_holes_and_no_crs(tmp_path):
+    """Terrain with no-data holes and no CRS: the flight never passes where the terrain is
+    unknown (clearance checked against the known grid points), and only the files in map
+    coordinates are written, the Item saying which were skipped."""
+    import dask
+    from conftest import metric_dataarray, random_surface
+
+    z = random_surface((160, 160), seed=4, holes=True)
+    dem = metric_dataarray(z, a=50.0)
+    dem.attrs["cell_size"] = 50.0
+    path = tmp_path / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem.chunk(64), path, clearance=120.0, min_accumulation=6)
+    ds = pipeline.open_maps(path)
+    ok = ds["passable"].values.astype(bool)
+    tree = cKDTree(grid_points(path))
+    m = pipeline.open_store(path)
+    assert m.crs_wkt is None
+    for s, g in missions(ok, 3, seed=2, min_cells=80):
+        t = pipeline.plan(path, s, g, planner="ra_star", omega=1.5, client="synchronous")
+        f = pipeline.fly(path, t)
+        assert f.ok, f.problems
+        assert np.isfinite(f.required_m).all()
+        assert tree.query(np.column_stack([f.x, f.y, f.z]))[0].min() >= 120.0 * (1 - 1e-9)
+    with_flight(m, t, {})
+    files = exports.write_mission_files(tmp_path, "m", "m", t, None, 0.0)
+    assert set(files) == {"track", "grid-path", "waypoints-csv"}
+    with open(tmp_path / "waypoints.csv") as fh:
+        assert fh.readline().strip() == "x_m,y_m,depth_m,altitude_m,speed_m_s,time_s"
