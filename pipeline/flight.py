@@ -1,30 +1,34 @@
 """From a planned grid path to a track a vehicle can fly (``fly``): any-angle shortcuts, turns
 rounded to the vehicle's radius, the lowest pitch-limited depth profile above the terrain,
-waypoints, timing and energy.
+waypoints, timing and energy (docs/flyable-missions.md).
 
 The planned path is a chain of grid cells on the safety surface. A vehicle flies neither cell
 centres nor 45-degree staircases, and it cannot climb at 70 degrees. ``fly`` turns the path
-into a track in four steps, every one checked against the terrain itself (the DEM's grid
-points, not the safety layer):
+into a track in steps, every one checked against the terrain itself (the DEM's grid points,
+not the safety layer):
 
-1. **Shortcuts** (string pulling): from each kept vertex, the farthest later vertex of the
-   path that a straight leg reaches over usable cells (passable, no corner cutting, terrain
-   known around it) becomes the next vertex.
-2. **Turns**: every corner is rounded by a circular arc of the vehicle's minimum turn radius
-   (or wider: never tighter), tangent to both legs. Where two corners are too close for the
-   radius, the arc is as wide as the legs allow and the corner is reported.
-3. **Depth profile**: along the horizontal track, sampled every half cell, the required height
+1. **Shortcuts** (string pulling): from each kept corner of the path, the farthest later one
+   that a straight leg reaches over usable cells (passable, no corner cutting, terrain known
+   around them) without flying more off the ridge cells than the path did.
+2. **Route**: the corners simplified once more (a leg may skip corners it passes within
+   ``ROUTE_TOLERANCE`` cells of): the waypoints' horizontal positions.
+3. **Turns**: corners too close for the turn radius are cut where a straight leg between
+   their neighbours is usable; every other corner is rounded by a circular arc of the
+   vehicle's minimum turn radius (never tighter), tangent to both legs: the flown track.
+4. **Depth profile**: along the flown track, sampled every half cell, the required height
    ``h(p)`` is the clearance surface of the maps' method evaluated at that exact point (for
-   the spherical method ``max{ z(q) + sqrt(R^2 - |q - p|^2) : |q - p| <= R }`` over every DEM
-   grid point ``q``). The flown height is the lowest profile above ``h`` whose slope never
-   exceeds ``tan(max_pitch)``: ``z_i = max_j (h_j - tan(max_pitch) |s_i - s_j|)``, computed
-   exactly by one forward and one backward pass (linear time).
-4. **Waypoints**: a greedy simplification of the 3-D track whose straight legs keep the
-   clearance (checked every half cell against ``h``), the pitch limit and the surface limit.
+   the spherical method ``max{ z(q) + sqrt(R'^2 - |q - p|^2) : |q - p| <= R' }`` over every DEM
+   grid point ``q``, ``R'`` slightly above ``R`` so that the clearance holds between samples
+   too). The flown height is the lowest profile above ``h`` whose slope never exceeds
+   ``tan(max_pitch)``: ``z_i = max_j (h_j - tan(max_pitch) |s_i - s_j|)``, computed exactly by
+   one forward and one backward pass (linear time).
+5. **Waypoints**: along the route's straight legs, heights in few straight pieces inside a
+   band above the route's own lowest profile (``band_profile``); the waypoints are the
+   route's corners and the pieces' ends.
 
 If the smoothed track breaks a limit (terrain unknown near a shortcut, the profile forced
 above the surface clearance, or a flown length above ``omega`` times the proven lower bound),
-``fly`` falls back to the path's own vertices, then to the grid path without arcs; what still
+``fly`` falls back to the path's own corners, then to the grid path without arcs; what still
 breaks a limit is listed in ``Flight.problems``.
 """
 
@@ -332,7 +336,7 @@ def _arcs_radii(wr, wc, radius):
 
 
 @njit(cache=True, nogil=True)
-def _arcs(wr, wc, radius, step):
+def arcs(wr, wc, radius, step):
     """Dense samples (grid units) of the polyline ``w`` with every corner rounded by an arc of
     ``radius`` (grid units; narrower where two corners share a leg too short for both).
     Returns rows, cols, the leg of each sample (-1 on an arc), the radius used at each corner
@@ -402,38 +406,40 @@ def _route_samples(wr, wc, pr, pc, leg, tan_d, step):
     samples where the two coincide (a leg's straight part between its arcs); the rest (from a
     corner to where its arc leaves the legs) sampled anew. Returns rows, cols, the track sample
     each shares (-1: new) and each corner's sample index."""
-    rows, cols, shared, vi = [], [], [], []
-    n = 0
-    for k in range(len(wr) - 1):
-        d = np.array([wr[k + 1] - wr[k], wc[k + 1] - wc[k]])
-        ln = float(np.hypot(*d))
-        u = d / ln
-        vi.append(n)
-        parts = []
-        if tan_d[k] > 0:  # from the corner to where the arc joins this leg
-            t = np.arange(int(math.ceil(tan_d[k] / step))) / math.ceil(tan_d[k] / step) * tan_d[k]
-            parts.append((t, None))
-        idx = np.nonzero(leg == k)[0]
-        parts.append((None, idx))
-        if tan_d[k + 1] > 0 and k + 1 < len(wr) - 1:  # from where the next arc leaves it
-            q = int(math.ceil(tan_d[k + 1] / step))
-            parts.append((ln - tan_d[k + 1] + np.arange(q) / q * tan_d[k + 1], None))
-        for t, idx in parts:
-            if idx is None:
-                rows.append(wr[k] + u[0] * t)
-                cols.append(wc[k] + u[1] * t)
-                shared.append(np.full(len(t), -1))
-                n += len(t)
-            else:
-                rows.append(pr[idx])
-                cols.append(pc[idx])
-                shared.append(idx)
-                n += len(idx)
-    vi.append(n)
-    shared = np.concatenate(shared + [np.array([np.nonzero(leg == len(wr) - 1)[0][0]])])
-    rows = np.concatenate(rows + [np.array([wr[-1]])])
-    cols = np.concatenate(cols + [np.array([wc[-1]])])
-    return rows, cols, shared, np.array(vi)
+    m = len(wr)
+    u = np.column_stack([np.diff(wr), np.diff(wc)])
+    ln = np.hypot(u[:, 0], u[:, 1])
+    u /= ln[:, None]
+    head = np.ceil(tan_d[:-1] / step).astype(np.int64)  # corner k -> where its arc meets leg k
+    tail = np.ceil(tan_d[1:] / step).astype(np.int64)  # where arc k + 1 leaves leg k -> corner
+    tail[-1] = 0
+    order = np.argsort(leg, kind="stable")  # the straight samples of each leg, in order
+    legs_sorted = leg[order]
+    starts = np.searchsorted(legs_sorted, np.arange(m))
+    own = np.diff(starts)[: m - 1]  # straight samples per leg
+    count = head + own + tail
+    vi = np.concatenate(([0], np.cumsum(count)))
+    n = int(vi[-1]) + 1
+    rows, cols = np.empty(n), np.empty(n)
+    shared = np.full(n, -1, dtype=np.int64)
+    for k in range(m - 1):  # a few slices per leg
+        o = vi[k]
+        if head[k]:
+            t = np.arange(head[k]) / head[k] * tan_d[k]
+            rows[o : o + head[k]] = wr[k] + u[k, 0] * t
+            cols[o : o + head[k]] = wc[k] + u[k, 1] * t
+        o += head[k]
+        idx = order[starts[k] : starts[k] + own[k]]
+        rows[o : o + own[k]], cols[o : o + own[k]] = pr[idx], pc[idx]
+        shared[o : o + own[k]] = idx
+        o += own[k]
+        if tail[k]:
+            t = ln[k] - tan_d[k + 1] + np.arange(tail[k]) / tail[k] * tan_d[k + 1]
+            rows[o : o + tail[k]] = wr[k] + u[k, 0] * t
+            cols[o : o + tail[k]] = wc[k] + u[k, 1] * t
+    rows[-1], cols[-1] = wr[-1], wc[-1]
+    shared[-1] = len(pr) - 1
+    return rows, cols, shared, vi
 
 
 @njit(cache=True, nogil=True)
@@ -662,7 +668,7 @@ def _corner_vertices(cells: np.ndarray) -> np.ndarray:
     return np.concatenate(([0], np.nonzero(turn)[0] + 1, [len(cells) - 1]))
 
 
-class _Corridor:
+class Corridor:
     """The store chunks (elevation, passable, ridge) around a path, as stacked tiles with a
     slot table, so that the kernels read the terrain near the track and nothing else."""
 
@@ -689,9 +695,12 @@ class _Corridor:
         self.slot = np.full((nti, ntj), -1, dtype=np.int64)
         self.slot[ti, tj] = np.arange(len(ti))
         complete = m.all_chunks_written
-        self.el = np.full((len(ti), tr, tc), np.nan, dtype=np.float32)
-        self.pas = np.zeros((len(ti), tr, tc), dtype=np.uint8)
-        self.rdg = np.zeros((len(ti), tr, tc), dtype=np.uint8)
+        self.el = np.empty((len(ti), tr, tc), dtype=np.float32)
+        self.pas = np.empty((len(ti), tr, tc), dtype=np.uint8)
+        self.rdg = np.empty((len(ti), tr, tc), dtype=np.uint8)
+        edge = (ti + 1) * tr > rows  # tiles at the map's edge: the rest is no terrain
+        edge |= (tj + 1) * tc > cols
+        self.el[edge], self.pas[edge], self.rdg[edge] = np.nan, 0, 0
         layers = (("elevation", self.el), ("passable", self.pas), ("ridge", self.rdg))
 
         def load(job):
@@ -708,14 +717,6 @@ class _Corridor:
         with ThreadPoolExecutor(max_workers=4, thread_name_prefix="corridor") as pool:
             list(pool.map(load, jobs))
         self.tiles = len(ti)
-
-
-@dataclass
-class _Geometry:
-    pr: np.ndarray
-    pc: np.ndarray
-    radii: np.ndarray
-    smoothing: str
 
 
 def fly(maps, traj, vehicle=None) -> Flight:
@@ -758,7 +759,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
     elem = int(math.ceil(radius / a)) + 1
     pad = elem + int(math.ceil(turn_m / a)) + 2
     cells = np.asarray(traj.cells, dtype=np.int64)
-    cor = _Corridor(m, cells, pad)
+    cor = Corridor(m, cells, pad)
     grid = (cor.el, cor.slot, cor.tr, cor.tc, rows, cols)
     terrain = (a, radius, _METHOD[method], clearance)
     usable = (cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem)
@@ -777,8 +778,8 @@ def fly(maps, traj, vehicle=None) -> Flight:
     )
     rad = turn_m / a
     tries = (
-        ("shortcuts", *_widen_turns(vr[keep], vc[keep], rad, usable), rad),
-        ("path vertices", *_widen_turns(vr, vc, rad, usable), rad),
+        ("shortcuts", *widen_turns(vr[keep], vc[keep], rad, usable), rad),
+        ("path vertices", *widen_turns(vr, vc, rad, usable), rad),
         ("grid path", vr, vc, 0.0),
     )
     band = WAYPOINT_BAND * clearance
@@ -787,8 +788,8 @@ def fly(maps, traj, vehicle=None) -> Flight:
         # ROUTE_TOLERANCE of; the flown track: the route with its turns rounded
         if rad > 0:
             rk = _route_vertices(wr, wc, ROUTE_TOLERANCE, *usable)
-            wr, wc = _widen_turns(wr[rk], wc[rk], rad, usable)
-        pr, pc, leg, radii, tan_d = _arcs(wr, wc, rad, SAMPLE_STEP)
+            wr, wc = widen_turns(wr[rk], wc[rk], rad, usable)
+        pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, SAMPLE_STEP)
         track = _profile(grid, terrain, pr, pc, slope)
         qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, SAMPLE_STEP)
         hq = np.empty(len(qr))
@@ -909,7 +910,7 @@ def _lookup(tiles, slot, tr, tc, r, c):
     return out
 
 
-def _widen_turns(wr, wc, radius, usable, passes: int = 8):
+def widen_turns(wr, wc, radius, usable, passes: int = 8):
     """Remove corners too close together for the turn radius where a straight leg between
     their neighbours is usable (an out-and-back spur, two short zigzags), tightest first."""
     wr, wc = _distinct(np.asarray(wr, dtype=np.float64), np.asarray(wc, dtype=np.float64))
@@ -940,7 +941,7 @@ def _distinct(wr, wc):
     return wr[keep], wc[keep]
 
 
-def _path_off_ridge(cells: np.ndarray, cor: _Corridor) -> np.ndarray:
+def _path_off_ridge(cells: np.ndarray, cor: Corridor) -> np.ndarray:
     """The path's off-ridge horizontal length up to each cell, and its horizontal length
     (grid units): each move counted by halves at its two cells, as ``_off_ridge`` counts a
     straight leg."""

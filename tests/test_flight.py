@@ -155,28 +155,28 @@ def test_flown_tracks_keep_clearance_pitch_turns_and_the_bound(
 
 def test_turns_are_widened_where_the_corners_are_too_close(ridge_store):
     """An out-and-back spur (the path reverses) is cut, not flown with a zero radius."""
-    from pipeline.flight import _arcs, _widen_turns
+    from pipeline.flight import arcs, widen_turns
 
     path, ok, *_ = ridge_store
     r = np.array([10.0, 10.0, 10.0, 10.0, 30.0], dtype=np.float64)
     c = np.array([10.0, 40.0, 45.0, 40.0, 40.0], dtype=np.float64)
     usable = (np.ones((1, 64, 64), np.uint8), np.zeros((1, 1), np.int64), 64, 64, 64, 64, 0)
-    wr, wc = _widen_turns(r, c, 1.0, usable)
+    wr, wc = widen_turns(r, c, 1.0, usable)
     assert len(wr) < len(r)
-    rad = _arcs(wr, wc, 1.0, 0.25)[3]
+    rad = arcs(wr, wc, 1.0, 0.25)[3]
     assert np.all(rad[np.isfinite(rad)] >= 1.0 - 1e-9)
 
 
 def test_required_heights_equal_the_safety_layer_at_cell_centres(ridge_store):
     """At a cell centre the required height is the safety surface (scipy's grey dilation in
     test_safety); between centres it is the tight clearance against the grid points."""
-    from pipeline.flight import _Corridor, required_heights
+    from pipeline.flight import Corridor, required_heights
 
     path, ok, _, pts = ridge_store
     m = pipeline.open_store(path)
     ds = pipeline.open_maps(path)
     cells = np.argwhere(ok)[::97]
-    cor = _Corridor(m, cells, 5)
+    cor = Corridor(m, cells, 5)
     h = required_heights(
         cor.el, cor.slot, cor.tr, cor.tc, *m.shape,
         cells[:, 0].astype(float), cells[:, 1].astype(float), 50.0, 150.0, 2, 150.0,
