@@ -11,7 +11,7 @@ not the safety layer):
    that a straight leg reaches over usable cells (passable, no corner cutting, terrain known
    around them) without flying more off the ridge cells than the path did.
 2. **Route**: the corners simplified once more (a leg may skip corners it passes within
-   ``ROUTE_TOLERANCE`` cells of): the waypoints' horizontal positions.
+   ``ROUTE_TOLERANCES`` cells of): the waypoints' horizontal positions.
 3. **Turns**: corners too close for the turn radius are cut where a straight leg between
    their neighbours is usable; every other corner is rounded by a circular arc of the
    vehicle's minimum turn radius (never tighter), tangent to both legs: the flown track.
@@ -57,6 +57,7 @@ class Vehicle:
     speed_m_s: float = VEHICLE.speed_m_s.default
     max_pitch_deg: float = VEHICLE.max_pitch_deg.default
     min_turn_radius_m: float | None = None  # default: min(cell side, 50 m)
+    waypoint_band_m: float | None = None  # default: R/4, R/2 or R (fly)
     hotel_power_w: float | None = None
     propulsion_power_w: float | None = None
     battery_wh: float | None = None
@@ -134,6 +135,7 @@ class Flight:
     turn_radius_m: float  # the minimum the vehicle was given
     flown_length_m: float
     route_length_m: float  # the waypoints' straight 3-D legs
+    waypoint_band_m: float  # how far above their route's lowest profile the legs may fly
     grid_length_m: float
     duration_s: float
     max_pitch_deg: float  # the steepest flown
@@ -156,13 +158,18 @@ class Flight:
         return not self.problems
 
 
-# the flown track and the waypoint legs are sampled (and checked) every SAMPLE_STEP cells
+# the flown track and the waypoint legs are sampled (and checked) every SAMPLE_STEP cells at
+# most, closer where the clearance is small against the cell (CLEARANCE_SLACK)
 SAMPLE_STEP = 0.5
-# waypoint legs may fly up to this share of the clearance above the lowest profile of their
-# route: fewer waypoints for a little more altitude
-WAYPOINT_BAND = 0.25
-# the waypoint route may leave the smoothed track by this much (cells) to skip small wiggles
-ROUTE_TOLERANCE = 2.0
+CLEARANCE_SLACK = 5e-4
+# waypoint legs may fly above the lowest profile of their route by up to a band: by default the
+# narrowest of these shares of the clearance that needs at most WAYPOINT_SHARE waypoints per
+# grid path cell (fewer waypoints for a little more altitude); [vehicle] waypoint_band_m fixes it
+WAYPOINT_BANDS = (0.25, 0.5, 1.0)
+WAYPOINT_SHARE = 0.1
+# the waypoint route may leave the shortcut path by this much (cells) to skip small wiggles:
+# the first of these that leaves at most half the waypoints to the corners
+ROUTE_TOLERANCES = (2.0, 4.0, 8.0)
 
 # the maps' clearance methods, as the kernels know them
 _METHOD = {"vertical": 0, "horizontal": 1, "spherical": 2}
@@ -749,12 +756,19 @@ def fly(maps, traj, vehicle=None) -> Flight:
     top = float(p.get("sea_level_m", 0.0)) - float(clearance if surface is None else surface)
     turn_m = veh.turn_radius(a)
     slope = math.tan(math.radians(veh.max_pitch_deg))
+    step = SAMPLE_STEP
     if method == "spherical":
         # samples clear of every grid point by R' = sqrt(R^2 + (L/2)^2), L the longest 3-D
         # step between samples: then every point of the straight step between two samples
-        # is at least R from every grid point, not only the samples
-        step_3d = SAMPLE_STEP * a * math.sqrt(1.0 + slope * slope)
+        # is at least R from every grid point, not only the samples. Samples close enough
+        # that R' exceeds R by at most CLEARANCE_SLACK * R
+        eps = CLEARANCE_SLACK * clearance
+        longest = 2.0 * math.sqrt(2.0 * clearance * eps + eps * eps)
+        step = min(SAMPLE_STEP, longest / (a * math.sqrt(1.0 + slope * slope)))
+        step_3d = step * a * math.sqrt(1.0 + slope * slope)
         radius = math.sqrt(clearance * clearance + 0.25 * step_3d * step_3d)
+    # the vehicle may be shallower than the surface limit by what R' adds to R
+    top_ok = top + (radius - clearance if method == "spherical" else 0.0) + 1e-6
     rows, cols = m.shape
     elem = int(math.ceil(radius / a)) + 1
     pad = elem + int(math.ceil(turn_m / a)) + 2
@@ -776,45 +790,99 @@ def fly(maps, traj, vehicle=None) -> Flight:
     keep = _shortcuts(
         vr, vc, off[verts], along[verts], cor.pas, cor.rdg, *usable[1:], 4 * max(rows, cols)
     )
-    rad = turn_m / a
+    r_turn = turn_m / a
+
+    # when the flight along shortcuts that keep the ridge cover is longer than the bound
+    # allows, shortcuts free of that rule (the shortest), then the path's own corners (each
+    # made only when needed)
+    def free():
+        kf = _shortcuts(
+            vr, vc, along[verts] * 2.0, along[verts], cor.pas, cor.rdg, *usable[1:],
+            4 * max(rows, cols),
+        )  # fmt: skip
+        return widen_turns(vr[kf], vc[kf], r_turn, usable)
+
     tries = (
-        ("shortcuts", *widen_turns(vr[keep], vc[keep], rad, usable), rad),
-        ("path vertices", *widen_turns(vr, vc, rad, usable), rad),
-        ("grid path", vr, vc, 0.0),
+        ("shortcuts", lambda: widen_turns(vr[keep], vc[keep], r_turn, usable), r_turn),
+        ("straight shortcuts", free, r_turn),
+        ("path vertices", lambda: widen_turns(vr, vc, r_turn, usable), r_turn),
+        ("grid path", lambda: (vr, vc), 0.0),
     )
-    band = WAYPOINT_BAND * clearance
-    for name, wr, wc, rad in tries:  # noqa: B007 - the last one tried is used below
-        # the waypoint route: the corners, a leg skipping those it passes within
-        # ROUTE_TOLERANCE of; the flown track: the route with its turns rounded
+    bands = (
+        (veh.waypoint_band_m,)
+        if veh.waypoint_band_m is not None
+        else tuple(f * clearance for f in WAYPOINT_BANDS)
+    )
+    want = max(2, int(WAYPOINT_SHARE * len(cells)))
+    results = []
+    for name, make, rad in tries:
+        wr, wc = make()
+        # the waypoint route: the corners, a leg skipping those it passes within a tolerance
+        # of; the flown track: the route with its turns rounded
         if rad > 0:
-            rk = _route_vertices(wr, wc, ROUTE_TOLERANCE, *usable)
+            for tol in ROUTE_TOLERANCES:  # the closest route with few enough corners
+                rk = _route_vertices(wr, wc, tol, *usable)
+                if len(rk) <= want // 2:
+                    break
             wr, wc = widen_turns(wr[rk], wc[rk], rad, usable)
-        pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, SAMPLE_STEP)
+        pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)
         track = _profile(grid, terrain, pr, pc, slope)
-        qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, SAMPLE_STEP)
+        qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, step)
         hq = np.empty(len(qr))
         new = shared < 0
         hq[~new] = track["h"][shared[~new]]
         hq[new] = _required_threaded(grid, terrain, qr[new], qc[new])
         route = _profile(grid, terrain, qr, qc, slope, hq)
-        zq, brk = band_profile(route["s"], route["z"], band, top, slope)
+        for band in bands:  # the narrowest band that needs few waypoints (linear time each)
+            zq, brk = band_profile(route["s"], route["z"], band, top_ok, slope)
+            wi = np.union1d(vi, brk)
+            if len(wi) <= want:
+                break
         problems = []
         if not (track["known"] and route["known"]):
             problems.append("the terrain near the track is unknown (no-data) at some samples")
-        elif max(track["z"].max(), route["z"].max()) > top + 1e-6:
+        elif max(track["z"].max(), route["z"].max()) > top_ok:
             problems.append(
                 f"the pitch limit forces the vehicle to {-track['z'].max():.0f} m depth, above "
                 f"the surface limit ({-top:.0f} m)"
             )
         route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
         longest = max(track["length"], route_length)
-        if longest > limit * (1 + 1e-9):
+        over = longest > limit * (1 + 1e-9)
+        if over:
             problems.append(
                 f"the flown length {longest:.0f} m exceeds omega x the proven lower "
                 f"bound ({limit:.0f} m)"
             )
+        results.append(
+            dict(
+                name=name,
+                pr=pr,
+                pc=pc,
+                radii=radii,
+                track=track,
+                route=route,
+                qr=qr,
+                qc=qc,
+                zq=zq,
+                wi=wi,
+                band=band,
+                route_length=route_length,
+                problems=problems,
+                only_length=over and len(problems) == 1,
+            )
+        )
         if not problems:
             break
+    # the first smoothing that keeps every limit; else the first whose only fault is a length
+    # above the proven bound (the mission is then "uncertified", as a planned path would be);
+    # else the last tried
+    pick = next((r for r in results if not r["problems"]), None)
+    pick = pick or next((r for r in results if r["only_length"]), results[-1])
+    name, pr, pc, radii = pick["name"], pick["pr"], pick["pc"], pick["radii"]
+    track, route, qr, qc = pick["track"], pick["route"], pick["qr"], pick["qc"]
+    zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
+    problems = list(pick["problems"])
     z, s, h = track["z"], track["s"], track["h"]
     turns = radii[np.isfinite(radii)] * a
     min_turn = float(turns.min()) if turns.size else math.inf
@@ -836,8 +904,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
     on_ridge = _lookup(cor.rdg, cor.slot, cor.tr, cor.tc, mid_r, mid_c).astype(bool)
     total = float(seg.sum())
     x, y = _map_xy(m, pr, pc)
-    # waypoints: every corner of the route and every break of its height profile
-    wi = np.union1d(vi, brk)
+    # waypoints: every corner of the route and every break of its height profile (wi)
     wx, wy = _map_xy(m, qr[wi], qc[wi])
     rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
     duration = float(t[-1])
@@ -862,6 +929,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         ridge_ratio=float(seg[on_ridge].sum() / total) if total > 0 else 0.0,
         energy_wh=veh.power_w * duration / 3600.0 if veh.power_w is not None else None,
         surface_limit_m=top,
+        waypoint_band_m=float(band),
         smoothing=name,
         problems=problems,
         seconds=time.perf_counter() - t0,

@@ -304,6 +304,15 @@ VEHICLE = Schema(
         "metres",
         above=0,
     ),
+    Param(
+        "waypoint_band_m",
+        "float",
+        None,
+        "how far above the lowest safe profile the waypoint legs may fly; default the "
+        "narrowest of R/4, R/2, R that needs fewer waypoints than a tenth of the path's cells",
+        "metres",
+        minimum=0,
+    ),
     Param("hotel_power_w", "float", None, "power of everything but propulsion", "W", minimum=0),
     Param("propulsion_power_w", "float", None, "propulsion power at cruise speed", "W", minimum=0),
     Param(

@@ -78,7 +78,7 @@ def circumradii(x, y) -> np.ndarray:
     cross = (x[1:-1] - x[:-2]) * (y[2:] - y[:-2]) - (y[1:-1] - y[:-2]) * (x[2:] - x[:-2])
     with np.errstate(divide="ignore", invalid="ignore"):
         r = a * b * c / (2 * np.abs(cross))
-    return np.where(np.abs(cross) < 1e-9 * a * b, np.inf, r)
+    return np.where((np.abs(cross) < 1e-9 * a * b) | (a == 0) | (b == 0), np.inf, r)
 
 
 def densify(xyz: np.ndarray, step: float) -> np.ndarray:
