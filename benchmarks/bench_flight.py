@@ -289,9 +289,9 @@ def main() -> None:
           between consecutive samples of the track and along every leg (the legs' depths are
           read from the CSV, rounded to 1 cm: a leg counts as steeper than the limit when its
           rise exceeds tan(limit) x its length by more than that rounding); the turn radius
-          as the circumradius of every three consecutive track samples; the flown 3-D length against omega x L*
-          (scipy.sparse.csgraph.dijkstra on the whole fine graph built in the script).
-          {len(flown)} missions flown of {len(rows)}.""")
+          as the circumradius of every three consecutive track samples; the flown 3-D length
+          against omega x L* (scipy.sparse.csgraph.dijkstra on the whole fine graph built in
+          the script). {len(flown)} missions flown of {len(rows)}.""")
     rep.table(
         [
             "map",
@@ -337,11 +337,25 @@ def main() -> None:
         "waypoints": sum(r["waypoints"] >= 0.1 * r["cells"] for r in flown),
     }
     share = max(r["waypoints"] / r["cells"] for r in flown)
+    over = [
+        f"{r['mission']} (omega {r['omega']:g}: flown {r['flown_over_opt']:.4f} L*, status "
+        f"{r['status']})"
+        for r in flown
+        if max(r["flown_over_opt"], r["route_over_opt"]) > r["omega"] * (1 + 1e-9)
+    ]
+    many = [
+        f"{r['mission']} ({100 * r['waypoints'] / r['cells']:.0f} %)"
+        for r in flown
+        if r["waypoints"] >= 0.1 * r["cells"]
+    ]
+    statuses = sorted({r["status"] for r in flown})
+    counts = ", ".join(f"{sum(r['status'] == st for r in flown)} {st}" for st in statuses)
     rep.p(f"""Violations over {len(flown)} missions: clearance {bad["clearance"]}, pitch
-          {bad["pitch"]}, turn radius {bad["turn"]}, length bound {bad["bound"]}; waypoints
-          at or above 10 % of the grid path's cells: {bad["waypoints"]} (largest share
-          {100 * share:.1f} %). Samples at most {max(r["spacing_cells"] for r in flown):.2f}
-          cells apart.""")
+          {bad["pitch"]}, turn radius {bad["turn"]}; flown length above omega x L*:
+          {bad["bound"]}{": " + "; ".join(over) if over else ""}. Waypoints at or above 10 %
+          of the grid path's cells: {bad["waypoints"]}{": " + ", ".join(many) if many else ""}
+          (largest share {100 * share:.1f} %). Samples at most
+          {max(r["spacing_cells"] for r in flown):.2f} cells apart. Statuses: {counts}.""")
     med = big["median"]
     rep.h(f"Cost at {big['n']}^2")
     rep.p(f"""{len(big["rows"])} missions at least half the map apart (ra_star, omega 2, MCPC,
