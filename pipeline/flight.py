@@ -11,7 +11,7 @@ not the safety layer):
    that a straight leg reaches over usable cells (passable, no corner cutting, terrain known
    around them) without flying more off the ridge cells than the path did.
 2. **Route**: the corners simplified once more (a leg may skip corners it passes within
-   ``ROUTE_TOLERANCES`` cells of): the waypoints' horizontal positions.
+   a tolerance of, ``ROUTE_SIMPLIFICATIONS``): the waypoints' horizontal positions.
 3. **Turns**: corners too close for the turn radius are cut where a straight leg between
    their neighbours is usable; every other corner is rounded by a circular arc of the
    vehicle's minimum turn radius (never tighter), tangent to both legs: the flown track.
@@ -167,9 +167,11 @@ CLEARANCE_SLACK = 5e-4
 # grid path cell (fewer waypoints for a little more altitude); [vehicle] waypoint_band_m fixes it
 WAYPOINT_BANDS = (0.25, 0.5, 1.0)
 WAYPOINT_SHARE = 0.1
-# the waypoint route may leave the shortcut path by this much (cells) to skip small wiggles:
-# the first of these that leaves at most half the waypoints to the corners
-ROUTE_TOLERANCES = (2.0, 4.0, 8.0)
+# the waypoint route may leave the shortcut path by up to a tolerance (cells) to skip small
+# wiggles, its legs flying off the ridge cells for up to a share of their length more than the
+# path: the first of these that leaves at most three quarters of the waypoints to corners, and
+# never more than the last (the ridge cover then drops by about ten points at most, measured)
+ROUTE_SIMPLIFICATIONS = ((2.0, 0.02), (2.0, 0.05), (3.0, 0.1), (4.0, 0.2), (4.0, 0.3))
 
 # the maps' clearance methods, as the kernels know them
 _METHOD = {"vertical": 0, "horizontal": 1, "spherical": 2}
@@ -250,15 +252,17 @@ def _off_ridge(rdg, slot, tr, tc, ar, ac, br, bc):
 
 
 @njit(inline="always", cache=True)
-def _leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad):
+def _leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, share=0.02):
     if not _line_usable(pas, slot, tr, tc, rows, cols, pad, pr[i], pc[i], pr[j], pc[j]):
         return False
-    # no more off-ridge length than the path between them, nor a larger off-ridge share
+    # no more off-ridge length than the path between them (half a cell of slack, more with a
+    # larger ``share``), nor an off-ridge share larger by more than ``share``
     seg = _off_ridge(rdg, slot, tr, tc, pr[i], pc[i], pr[j], pc[j])
     path = off[j] - off[i]
-    if seg > path + 0.5:
+    ln = math.hypot(pr[j] - pr[i], pc[j] - pc[i])
+    if seg > path + 0.5 + share * ln:
         return False
-    return seg / math.hypot(pr[j] - pr[i], pc[j] - pc[i]) <= path / (along[j] - along[i]) + 0.02
+    return seg / ln <= path / (along[j] - along[i]) + share
 
 
 @njit(cache=True, nogil=True)
@@ -631,10 +635,20 @@ def band_profile(s, env, band, top, slope):
 
 
 @njit(cache=True, nogil=True)
-def _route_vertices(wr, wc, tol, pas, slot, tr, tc, rows, cols, pad):
+def _route_vertices(wr, wc, tol, share, ridge, rdg, pas, slot, tr, tc, rows, cols, pad):
     """Indices of the corners kept for the waypoint route: greedy, each leg the longest usable
-    one that passes within ``tol`` (grid units) of every corner it skips."""
+    one that passes within ``tol`` (grid units) of every corner it skips and, with ``ridge``,
+    flies no more off the ridge cells than the legs it replaces but for ``share`` of its
+    length (as the shortcuts do)."""
     n = wr.size
+    off = np.zeros(n)  # off-ridge length and length of the polyline up to each corner
+    along = np.zeros(n)
+    for k in range(1, n):
+        along[k] = along[k - 1] + math.hypot(wr[k] - wr[k - 1], wc[k] - wc[k - 1])
+        if ridge:
+            off[k] = off[k - 1] + _off_ridge(rdg, slot, tr, tc, wr[k - 1], wc[k - 1], wr[k], wc[k])
+        else:
+            off[k] = 2.0 * along[k]  # no ridge rule: any leg flies less off-ridge than this
     keep = np.empty(n, dtype=np.int64)
     m = 0
     keep[m] = 0
@@ -655,8 +669,8 @@ def _route_vertices(wr, wc, tol, pas, slot, tr, tc, rows, cols, pad):
                 t = min(1.0, max(0.0, t))
                 if math.hypot(wr[i] + t * dr - wr[q], wc[i] + t * dc - wc[q]) > tol:
                     ok = False
-            if not ok or not _line_usable(
-                pas, slot, tr, tc, rows, cols, pad, wr[i], wc[i], wr[c], wc[c]
+            if not ok or not _leg_allowed(
+                wr, wc, off, along, i, c, pas, rdg, slot, tr, tc, rows, cols, pad, share
             ):
                 break
             j = c
@@ -820,9 +834,10 @@ def fly(maps, traj, vehicle=None) -> Flight:
         # the waypoint route: the corners, a leg skipping those it passes within a tolerance
         # of; the flown track: the route with its turns rounded
         if rad > 0:
-            for tol in ROUTE_TOLERANCES:  # the closest route with few enough corners
-                rk = _route_vertices(wr, wc, tol, *usable)
-                if len(rk) <= want // 2:
+            keep_ridge = name != "straight shortcuts"
+            for tol, share in ROUTE_SIMPLIFICATIONS:  # the closest route with few corners
+                rk = _route_vertices(wr, wc, tol, share, keep_ridge, cor.rdg, *usable)
+                if len(rk) <= 0.75 * want:
                     break
             wr, wc = widen_turns(wr[rk], wc[rk], rad, usable)
         pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)

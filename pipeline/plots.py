@@ -193,7 +193,7 @@ def mission_quicklook(
     plan_h = float(np.clip(plan_w * h_km / w_km, 2.5, 9.0))
     fig = plt.figure(figsize=(plan_w + 1.2, plan_h + 5.4), dpi=100)
     gs = fig.add_gridspec(
-        3, 3, height_ratios=[plan_h, 1.7, 2.7], width_ratios=[1.2, 1.2, 1.0], hspace=0.45
+        3, 3, height_ratios=[plan_h, 1.5, 2.7], width_ratios=[1.2, 1.2, 1.0], hspace=0.12
     )
     ax = fig.add_subplot(gs[0, :])
     hillshade_axes(ax, sub, colorbar=False)
@@ -318,11 +318,14 @@ def mission_quicklook(
             ls="--",
             label=f"lowest safe height ({clearance:g} m clearance, {method})",
         )
-        pr.plot(s, f.z, color="#d62728", lw=1.6, label="flown height")
+        pr.plot(s, f.z, color="#d62728", lw=1.6, label="flown height (lowest within pitch)")
         from scipy.spatial import cKDTree
 
-        # each waypoint at the distance of the nearest sample of the flown track
-        _, near = cKDTree(np.column_stack([f.x, f.y])).query(f.waypoints[:, :2])
+        # the waypoint legs and each waypoint at the distance of the nearest flown sample
+        tree = cKDTree(np.column_stack([f.x, f.y]))
+        along = s[tree.query(f.route[:, :2])[1]]
+        pr.plot(along, f.route[:, 2], color="k", lw=0.7, alpha=0.8, label="waypoint legs")
+        near = tree.query(f.waypoints[:, :2])[1]
         pr.plot(
             s[near],
             f.waypoints[:, 2],
