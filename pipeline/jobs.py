@@ -24,6 +24,7 @@ A job file::
     vehicle = { max_pitch_deg = 15 }   # any [vehicle] key, for this mission
     [output]
     catalog = "catalogs/demo"
+    quicklooks = true           # a plan view and depth profile PNG per mission (~1 s each)
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy"
 _MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS
 _DEM_KEYS = {"path", "synthetic"} | DEM.names()
 _SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
-_OUTPUT_KEYS = {"catalog"}
+_OUTPUT_KEYS = {"catalog", "quicklooks"}
 _COORD = Param("coordinate", "float", None, "")
 
 
@@ -84,6 +85,7 @@ class Job:
     maps: dict = field(default_factory=lambda: _maps_defaults({}))
     planning: dict = field(default_factory=dict)
     vehicle: dict = field(default_factory=dict)  # the [vehicle] keys given
+    quicklooks: bool = True  # [output] quicklooks: a PNG per mission
     missions: list = field(default_factory=list)
 
     def maps_fingerprint(self) -> str:
@@ -235,6 +237,10 @@ def load_job(path: str | os.PathLike) -> Job:
     if "catalog" in out:
         p = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
         job.catalog = p if p.is_absolute() else path.parent / p
+    if "quicklooks" in out:
+        if not isinstance(out["quicklooks"], bool):
+            _fail(path, f"output.quicklooks must be true or false, got {out['quicklooks']!r}")
+        job.quicklooks = out["quicklooks"]
     # relative paths are the job file's (a cron job run from elsewhere finds its results), made
     # absolute so that workers in other directories or on other machines write where the
     # client reads
@@ -676,4 +682,5 @@ class _Recorder:
             crs_wkt=self.maps.crs_wkt,
             min_clearance_m=clr,
             run_id=self.res.run_id,
+            quicklook=self.job.quicklooks,
         )

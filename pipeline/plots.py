@@ -191,9 +191,19 @@ def mission_quicklook(
     w_km, h_km = (c1 - c0) * a, (r1 - r0) * a
     plan_w = 9.0
     plan_h = float(np.clip(plan_w * h_km / w_km, 2.5, 9.0))
-    fig = plt.figure(figsize=(plan_w + 1.2, plan_h + 5.4), dpi=100)
+    fig_w, fig_h = plan_w + 1.2, plan_h + 6.0
+    fig = plt.figure(figsize=(fig_w, fig_h), dpi=100)
+    # fixed margins in inches (a tight bounding box would draw the figure twice)
     gs = fig.add_gridspec(
-        3, 3, height_ratios=[plan_h, 1.5, 2.7], width_ratios=[1.2, 1.2, 1.0], hspace=0.12
+        3,
+        3,
+        height_ratios=[plan_h, 1.5, 2.7],
+        width_ratios=[1.2, 1.2, 1.0],
+        hspace=0.12,
+        left=0.9 / fig_w,
+        right=1 - 0.25 / fig_w,
+        top=1 - 0.35 / fig_h,
+        bottom=0.95 / fig_h,
     )
     ax = fig.add_subplot(gs[0, :])
     hillshade_axes(ax, sub, colorbar=False)
@@ -336,7 +346,8 @@ def mission_quicklook(
             mew=0.5,
             label="waypoints",
         )
-        pr.set_ylim(floor, max(float(np.nanmax(f.z)), float(np.nanmax(f.seabed_m))) + 150)
+        top = max(float(np.nanmax(f.z)), float(np.nanmax(f.route[:, 2])))
+        pr.set_ylim(floor, max(top, float(np.nanmax(f.seabed_m))) + 150)
         pr.set_title(
             f"depth profile: clearance {clearance:g} m from every DEM grid point; pitch "
             f"<= {f.vehicle.max_pitch_deg:g} deg; turns >= {f.turn_radius_m:g} m",
@@ -348,7 +359,7 @@ def mission_quicklook(
     pr.set_xlabel("distance along the track (km)")
     pr.set_ylabel("height (m)")
     pr.grid(alpha=0.3)
-    pr.legend(loc="upper center", bbox_to_anchor=(0.5, -0.22), fontsize=7, frameon=False, ncols=4)
-    fig.savefig(path, bbox_inches="tight")
+    pr.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), fontsize=7, frameon=False, ncols=4)
+    fig.savefig(path)
     plt.close(fig)
     return str(path)

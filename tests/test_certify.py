@@ -406,6 +406,7 @@ rho = 4
 {missions}
 [output]
 catalog = "{catalog}"
+quicklooks = false
 """
 
 

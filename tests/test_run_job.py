@@ -46,6 +46,7 @@ omega = 2.0
 {missions}
 [output]
 catalog = "{catalog}"
+quicklooks = {quicklooks}
 """
 
 MISSIONS4 = """
@@ -72,9 +73,18 @@ planner = "astar"
 """
 
 
-def write_job(tmp_path, n=300, missions=MISSIONS4, name="t", file="job.toml"):
+def write_job(tmp_path, n=300, missions=MISSIONS4, name="t", file="job.toml", quicklooks=False):
+    """A job file; without quick-looks unless the test looks at them (each takes a second)."""
     p = tmp_path / file
-    p.write_text(JOB.format(name=name, n=n, missions=missions, catalog=tmp_path / "cat"))
+    p.write_text(
+        JOB.format(
+            name=name,
+            n=n,
+            missions=missions,
+            catalog=tmp_path / "cat",
+            quicklooks=str(quicklooks).lower(),
+        )
+    )
     return p
 
 
@@ -99,7 +109,7 @@ def with_stores(stores, tmp_path):
 def done(tmp_path_factory, stores, local_client):
     tmp = tmp_path_factory.mktemp("job")
     with_stores(stores, tmp)
-    job = write_job(tmp)
+    job = write_job(tmp, quicklooks=True)
     return job, run_job(job, scheduler=local_client)
 
 
