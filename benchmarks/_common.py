@@ -187,3 +187,21 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
     res["seconds"] = time.perf_counter() - t0
     (OUT / f"maps{n}.build.json").write_text(json.dumps(res))  # peak memory of the build
     return store
+
+
+def far_missions(ok, n: int, count: int, seed: int) -> list:
+    """``count`` missions on the n x n map whose passable layer is ``ok`` (lazy xarray): both
+    ends passable and at least half the map apart."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < count:
+        s, g = rng.integers(n, size=2), rng.integers(n, size=2)
+        if (
+            np.hypot(*(s - g)) >= 0.5 * n
+            and ok[int(s[0]), int(s[1])].values
+            and ok[int(g[0]), int(g[1])].values
+        ):
+            out.append((tuple(int(v) for v in s), tuple(int(v) for v in g)))
+    return out

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import OUT, machine, maps_store
+from _common import OUT, far_missions, machine, maps_store
 from _report import Report, figure_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -311,16 +311,7 @@ def large(n: int, k: int, client) -> dict:
     peaks = json.loads(peaks.read_text()) if peaks.exists() else {}
 
     ok = pipeline.open_maps(store)["passable"]
-    rng = np.random.default_rng(n)
-    ms = []
-    while len(ms) < k + 1:
-        s, g = rng.integers(n, size=2), rng.integers(n, size=2)
-        if (
-            np.hypot(*(s - g)) >= 0.5 * n
-            and ok[int(s[0]), int(s[1])].values
-            and ok[int(g[0]), int(g[1])].values
-        ):
-            ms.append((tuple(int(v) for v in s), tuple(int(v) for v in g)))
+    ms = far_missions(ok, n, k + 1, seed=n)
     pipeline.plan(m, *ms[0], planner="ra_star", omega=2.0, client=client)  # warm-up
     times, bound_s, status, ratios, lbs = [], [], [], [], []
     for s, g in ms[1:]:

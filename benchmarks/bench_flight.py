@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import OUT, machine, maps_store
+from _common import OUT, far_missions, machine, maps_store
 from _report import Report, figure_dir
 from bench_certify import csgraph, optimum
 
@@ -179,16 +179,7 @@ def overhead(n: int, k: int) -> dict:
     # the benchmark's maps predate the synthetic maps' CRS: the one a job gives this map now
     crs = m.crs_wkt or local_crs(-44.83, 26.14, n * 30.0 / 2, n * 30.0 / 2).to_wkt()
     ok = pipeline.open_maps(store)["passable"]
-    rng = np.random.default_rng(n + 1)
-    ms = []
-    while len(ms) < k + 1:
-        s, g = rng.integers(n, size=2), rng.integers(n, size=2)
-        if (
-            np.hypot(*(s - g)) >= 0.5 * n
-            and ok[int(s[0]), int(s[1])].values
-            and ok[int(g[0]), int(g[1])].values
-        ):
-            ms.append((tuple(int(v) for v in s), tuple(int(v) for v in g)))
+    ms = far_missions(ok, n, k + 1, seed=n + 1)
     rows = []
     with (
         LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster,
