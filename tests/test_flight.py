@@ -121,7 +121,7 @@ def test_flown_tracks_keep_clearance_pitch_turns_and_the_bound(
     veh = Vehicle.of(vehicle)
     tan = math.tan(math.radians(veh.max_pitch_deg))
     r_min = veh.turn_radius(50.0)
-    for s, g in missions(ok, 3, seed=int(omega * 10), min_cells=120):
+    for s, g in missions(ok, 2, seed=int(omega * 10), min_cells=120):
         t = pipeline.plan(path, s, g, planner=planner, omega=omega, client="synchronous")
         assert t.status == "ok", t.message
         f = pipeline.fly(path, t, veh)

@@ -25,6 +25,8 @@ chunks = 64
 shape = [150, 120]
 cell_size = 50.0
 seed = 4
+[maps]
+landmarks = 1              # the job's steps are tested here, not the bound: one layer is enough
 [output]
 catalog = "{catalog}"
 """
