@@ -16,6 +16,15 @@ from .params import DEM, MAPS, SYNTHETIC, Param
 
 def _option(param: Param, *, flag: str | None = None):
     """A click option from the parameter schema: its type, default and help text."""
+    if param.kind == "bool":
+        name = flag or "--" + param.name.replace("_", "-")
+        return click.option(
+            f"{name}/--no-{name[2:]}",
+            param.name,
+            default=param.default,
+            show_default=True,
+            help=param.help,
+        )
     if param.kind == "choice":
         kind = click.Choice(list(param.options()))
     else:
@@ -74,16 +83,21 @@ def dem() -> None:
 @_option(SYNTHETIC.cell_size)
 @_option(SYNTHETIC.seed)
 @_option(SYNTHETIC.islands)
+@_option(SYNTHETIC.origin_lon)
+@_option(SYNTHETIC.origin_lat)
+@_option(SYNTHETIC.georeferenced)
 @_option(DEM.chunks)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite):
+def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
     """Write a virtual mid-ocean-ridge DEM to the Zarr store OUT."""
     from .dem import write_dem
     from .synthetic import synthetic_dem
 
     with _errors():
         t0 = time.perf_counter()
-        d = synthetic_dem(shape, cell_size=cell_size, seed=seed, chunks=chunks, islands=islands)
+        d = synthetic_dem(
+            shape, cell_size=cell_size, seed=seed, chunks=chunks, islands=islands, **where
+        )
         with _progress(f"generating {shape[0]} x {shape[1]} cells into {out}"):
             write_dem(d, out, chunks=chunks, overwrite=overwrite)
         click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")

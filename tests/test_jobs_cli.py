@@ -155,6 +155,19 @@ def test_cli_synth_import_info(tmp_path, topobathy_tif):
     assert res.exit_code == 0 and "cells of" in res.output and "crs: set" in res.output
     res = r.invoke(main, ["dem", "info", str(out)])  # the store's own chunks, not the reader's
     assert res.exit_code == 0 and "stored in chunks (64, 64)" in res.output
+    # georeferenced where asked: the map's centre at the origin given (pyproj), or no CRS
+    from pyproj import Transformer
+
+    anchored = tmp_path / "anchored.zarr"
+    args = ["--shape", "40", "60", "--origin-lon", "-30.5", "--origin-lat", "40.2"]
+    res = r.invoke(main, ["dem", "synth", str(anchored), *args])
+    assert res.exit_code == 0, res.output
+    crs = pipeline.open_dem(anchored, chunks=None).attrs["crs_wkt"]
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(900.0, 600.0)
+    assert lon == pytest.approx(-30.5, abs=1e-9) and lat == pytest.approx(40.2, abs=1e-9)
+    plain = tmp_path / "plain.zarr"
+    res = r.invoke(main, ["dem", "synth", str(plain), "--shape", "20", "20", "--no-georeferenced"])
+    assert res.exit_code == 0 and "crs_wkt" not in pipeline.open_dem(plain, chunks=None).attrs
 
 
 def test_cli_bad_file_is_one_clear_line(tmp_path):
