@@ -137,6 +137,14 @@ def plan_missions(
             t.status = "failed"
             t.message = f"its flown track could not be made: {exc}"
             return t
+        except Exception as exc:  # noqa: BLE001 - a fault in one flight keeps the planned path
+            log.exception("mission %d: the flight failed", i)
+            t.status = "failed"
+            t.message = (
+                f"its flown track could not be made ({type(exc).__name__}: {exc}); the "
+                "planned path is kept; this is a bug, please report it with the log"
+            )
+            return t
 
     out: list[Trajectory | None] = [None] * len(items)
     workers = max(1, min(int(max_concurrent), len(items)))

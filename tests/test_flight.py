@@ -451,3 +451,28 @@ def test_no_data_holes_and_no_crs(tmp_path):
     assert set(files) == {"track", "grid-path", "waypoints-csv"}
     with open(tmp_path / "waypoints.csv") as fh:
         assert fh.readline().strip() == "x_m,y_m,depth_m,altitude_m,speed_m_s,time_s"
+
+
+def test_a_fault_in_one_flight_fails_that_mission_only(ridge_store, monkeypatch):
+    """A bug in the flight of one mission (a fault injected into it) fails that mission with
+    the reason, keeps its planned path, and the batch goes on."""
+    import pipeline.missions as pm
+
+    path, ok, *_ = ridge_store
+    real = pm.with_flight
+    calls = []
+
+    def faulty(maps, traj, vehicle=None):
+        calls.append(1)
+        if len(calls) == 1:
+            raise IndexError("injected")
+        return real(maps, traj, vehicle)
+
+    monkeypatch.setattr(pm, "with_flight", faulty)
+    (a, b), (c, d) = missions(ok, 2, seed=11, min_cells=100)
+    ts = pipeline.plan_missions(
+        path, [(a, b), (c, d)], client="synchronous", vehicle={}, max_concurrent=1
+    )
+    assert [t.status for t in ts] == ["failed", "ok"]
+    assert "IndexError: injected" in ts[0].message and len(ts[0].cells) > 1
+    assert ts[1].flight is not None and ts[0].flight is None
