@@ -83,7 +83,7 @@ def write_grid_path(path: Path, traj, crs_wkt: str | None) -> None:
 
 
 def waypoint_table(flight, sea_level: float, lonlat) -> dict:
-    """The waypoints as columns: index, lat, lon, x, y, depth_m, altitude_m, speed_m_s,
+    """The waypoints as columns: index, lat, lon, x, y, z, depth_m, altitude_m, speed_m_s,
     time_s (lat and lon None without a CRS)."""
     w = flight.waypoints
     seabed = flight.route_seabed_m[flight.waypoint_index]
@@ -93,6 +93,7 @@ def waypoint_table(flight, sea_level: float, lonlat) -> dict:
         "lon": None if lonlat is None else lonlat[0],
         "x": w[:, 0],
         "y": w[:, 1],
+        "z": w[:, 2],
         "depth_m": sea_level - w[:, 2],
         "altitude_m": w[:, 2] - seabed,
         "speed_m_s": np.full(len(w), flight.vehicle.speed_m_s),
@@ -121,7 +122,7 @@ def write_waypoints_csv(path: Path, table: dict) -> None:
             )
 
 
-def waypoints_geojson(table: dict, sea_level: float) -> dict:
+def waypoints_geojson(table: dict) -> dict:
     """RFC 7946 (WGS84 lon, lat, height in metres, positive up): one Point per waypoint with
     its depth, altitude, speed and time, and the route as a LineString."""
     feats = []
@@ -130,7 +131,7 @@ def waypoints_geojson(table: dict, sea_level: float) -> dict:
         c = [
             round(float(table["lon"][k]), 8),
             round(float(table["lat"][k]), 8),
-            round(sea_level - float(table["depth_m"][k]), 2),
+            round(float(table["z"][k]), 2),
         ]
         coords.append(c)
         feats.append(
@@ -184,17 +185,16 @@ def qgc_wpl(table: dict, acceptance_m: float) -> str:
     return "\n".join(rows) + "\n"
 
 
-def kml(name: str, flight, table: dict, lonlat_track, sea_level: float) -> bytes:
+def kml(name: str, flight, table: dict, lonlat_track) -> bytes:
     """KML 2.2 for Google Earth: the flown track and the waypoint route as 3-D lines (absolute
     heights, negative below sea level) and one placemark per waypoint."""
     # the flown track at most KML_TRACK_POINTS vertices (a line for the eye; the exact track
     # is track.parquet)
     n = len(flight.z)
     keep = np.unique(np.append(np.arange(0, n, max(1, -(-n // KML_TRACK_POINTS))), n - 1))
-    wz = sea_level - np.asarray(table["depth_m"], dtype=np.float64)
     lines = (
         ("flown track", "#track", lonlat_track[0][keep], lonlat_track[1][keep], flight.z[keep]),
-        ("waypoint route", "#route", table["lon"], table["lat"], wz),
+        ("waypoint route", "#route", table["lon"], table["lat"], table["z"]),
     )
     out = [
         '<?xml version="1.0" encoding="UTF-8"?>',
@@ -216,7 +216,7 @@ def kml(name: str, flight, table: dict, lonlat_track, sea_level: float) -> bytes
     depth, alt, tt = (
         np.asarray(table[k], dtype=np.float64).tolist() for k in ("depth_m", "altitude_m", "time_s")
     )
-    coords = _coords(table["lon"], table["lat"], wz).split(" ")
+    coords = _coords(table["lon"], table["lat"], table["z"]).split(" ")
     for k, c in enumerate(coords):
         out.append(
             f"<Placemark><name>WP{k}</name><description>depth {depth[k]:.0f} m, altitude "
@@ -337,7 +337,7 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
         return out
     import json
 
-    (folder / "waypoints.geojson").write_text(json.dumps(waypoints_geojson(table, sea_level)))
+    (folder / "waypoints.geojson").write_text(json.dumps(waypoints_geojson(table)))
     out["waypoints"] = (
         "waypoints.geojson",
         "waypoints (GeoJSON, WGS84)",
@@ -351,7 +351,7 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
         "text/plain",
         ["data"],
     )
-    (folder / "mission.kml").write_bytes(kml(name, f, table, lonlat, sea_level))
+    (folder / "mission.kml").write_bytes(kml(name, f, table, lonlat))
     out["kml"] = (
         "mission.kml",
         "Google Earth (KML)",
