@@ -145,6 +145,7 @@ class Flight:
     surface_limit_m: float
     smoothing: str  # "shortcuts", "path vertices" or "grid path"
     problems: list = field(default_factory=list)
+    over_bound: str = ""  # the problem saying the flown length exceeds the bound, if it does
     seconds: float = 0.0
     route: np.ndarray | None = None  # the waypoint route sampled: x, y, z (waypoints' legs)
     route_seabed_m: np.ndarray | None = None
@@ -863,12 +864,13 @@ def fly(maps, traj, vehicle=None) -> Flight:
             )
         route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
         longest = max(track["length"], route_length)
-        over = longest > limit * (1 + 1e-9)
-        if over:
-            problems.append(
+        over = ""
+        if longest > limit * (1 + 1e-9):
+            over = (
                 f"the flown length {longest:.0f} m exceeds omega x the proven lower "
                 f"bound ({limit:.0f} m)"
             )
+            problems.append(over)
         results.append(
             dict(
                 name=name,
@@ -884,7 +886,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
                 band=band,
                 route_length=route_length,
                 problems=problems,
-                only_length=over and len(problems) == 1,
+                over=over,
             )
         )
         if not problems:
@@ -893,7 +895,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
     # above the proven bound (the mission is then "uncertified", as a planned path would be);
     # else the last tried
     pick = next((r for r in results if not r["problems"]), None)
-    pick = pick or next((r for r in results if r["only_length"]), results[-1])
+    pick = pick or next((r for r in results if r["problems"] == [r["over"]]), results[-1])
     name, pr, pc, radii = pick["name"], pick["pr"], pick["pc"], pick["radii"]
     track, route, qr, qc = pick["track"], pick["route"], pick["qr"], pick["qc"]
     zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
@@ -947,6 +949,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         waypoint_band_m=float(band),
         smoothing=name,
         problems=problems,
+        over_bound=pick["over"],
         seconds=time.perf_counter() - t0,
         route=np.column_stack([*_map_xy(m, qr, qc), zq]),
         route_seabed_m=_bilinear(*grid, qr, qc),
@@ -1057,11 +1060,10 @@ def with_flight(maps, traj, vehicle=None):
             f"{veh.speed_m_s:g} m/s and {veh.power_w:g} W), more than the battery's "
             f"{veh.battery_wh:g} Wh: raise battery_wh or lower the powers, or split the mission"
         )
-    bound = [r for r in reasons if r.startswith("the flown length")]
-    if bound and len(bound) == len(reasons):
+    if reasons == [f.over_bound]:  # only the bound: not proven, as for a planned path
         if traj.status == "ok":
             traj.status = "uncertified"
-        traj.message = f"{traj.message}; flight: {bound[0]}" if traj.message else bound[0]
+        traj.message = f"{traj.message}; flight: {f.over_bound}" if traj.message else f.over_bound
     elif reasons:
         traj.status = "failed"
         msg = "; ".join(reasons)

@@ -476,3 +476,19 @@ def test_a_fault_in_one_flight_fails_that_mission_only(ridge_store, monkeypatch)
     assert [t.status for t in ts] == ["failed", "ok"]
     assert "IndexError: injected" in ts[0].message and len(ts[0].cells) > 1
     assert ts[1].flight is not None and ts[0].flight is None
+
+
+def test_a_flight_over_the_bound_alone_is_uncertified_with_the_reason(ridge_store):
+    """When the only fault of every smoothing is a flown length above omega x the proven bound
+    (here a bound made too small to hold), the mission is uncertified, not failed, and says
+    why; the flight is kept."""
+    from dataclasses import replace
+
+    path, ok, *_ = ridge_store
+    (s, g), *_ = missions(ok, 1, seed=5, min_cells=120)
+    t = pipeline.plan(path, s, g, planner="astar", omega=1.0, client="synchronous")
+    tight = replace(t, lower_bound_m=0.5 * t.length_m, extra=dict(t.extra))
+    with_flight(path, tight, {})
+    assert tight.status == "uncertified" and tight.flight is not None
+    assert tight.message.startswith("the flown length") and tight.flight.over_bound
+    assert tight.flight.problems == [tight.flight.over_bound]
