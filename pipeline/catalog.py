@@ -175,7 +175,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
     """Write a mission's files; returns its assets, its geometry and bbox (WGS84 when the DEM
     has a CRS: the waypoint route, or the grid path without a flight) and its flight's
     properties."""
-    from .exports import PARQUET, to_lonlat, write_grid_path, write_mission_files
+    from .exports import LONLAT_FILES, PARQUET, to_lonlat, write_grid_path, write_mission_files
 
     f = traj.flight
     props = {}
@@ -206,8 +206,8 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
             props["auv:flight_problems"] = list(f.problems)
         if crs_wkt is None:
             props["auv:skipped_files"] = (
-                "waypoints.geojson, mission.waypoints, mission.kml, mission.imc: the DEM has "
-                "no coordinate reference system, so there are no latitudes and longitudes"
+                f"{', '.join(LONLAT_FILES)}: the DEM has no coordinate reference system, so "
+                "there are no latitudes and longitudes"
             )
     ll = to_lonlat(crs_wkt, xy[:, 0], xy[:, 1])
     pts = np.column_stack(ll) if ll is not None else xy

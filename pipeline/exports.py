@@ -23,6 +23,8 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 PARQUET = "application/vnd.apache.parquet"
+# the files that need latitudes and longitudes: not written for a DEM without a CRS
+LONLAT_FILES = ("waypoints.geojson", "mission.waypoints", "mission.kml", "mission.imc")
 KML_TRACK_POINTS = 4000
 
 
@@ -320,7 +322,7 @@ def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> 
 
 def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, sea_level) -> dict:
     """Every file of a mission with a flight into ``folder``; returns ``{asset key: (file,
-    title, media type, roles)}`` and the formats skipped for want of a CRS."""
+    title, media type, roles)}``. Without a CRS the ``LONLAT_FILES`` are not written."""
     f = traj.flight
     folder = Path(folder)
     lonlat = to_lonlat(crs_wkt, f.x, f.y)
@@ -337,32 +339,38 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
         return out
     import json
 
-    (folder / "waypoints.geojson").write_text(json.dumps(waypoints_geojson(table)))
-    out["waypoints"] = (
-        "waypoints.geojson",
-        "waypoints (GeoJSON, WGS84)",
-        "application/geo+json",
-        ["data"],
-    )
-    (folder / "mission.waypoints").write_text(qgc_wpl(table, f.turn_radius_m))
-    out["qgc"] = (
-        "mission.waypoints",
-        "QGroundControl / ArduSub mission (QGC WPL 110)",
-        "text/plain",
-        ["data"],
-    )
-    (folder / "mission.kml").write_bytes(kml(name, f, table, lonlat))
-    out["kml"] = (
-        "mission.kml",
-        "Google Earth (KML)",
-        "application/vnd.google-earth.kml+xml",
-        ["visual"],
-    )
-    (folder / "mission.imc").write_bytes(imc_plan(plan_id, name[:200], table))
-    out["imc"] = (
-        "mission.imc",
-        "LSTS IMC PlanSpecification with a FollowPath (Neptus, DUNE)",
-        "application/octet-stream",
-        ["data"],
-    )
+    geojson_file, qgc_file, kml_file, imc_file = LONLAT_FILES
+    lonlat_files = {  # asset key: (file, content, title, media type, roles)
+        "waypoints": (
+            geojson_file,
+            json.dumps(waypoints_geojson(table)).encode(),
+            "waypoints (GeoJSON, WGS84)",
+            "application/geo+json",
+            ["data"],
+        ),
+        "qgc": (
+            qgc_file,
+            qgc_wpl(table, f.turn_radius_m).encode(),
+            "QGroundControl / ArduSub mission (QGC WPL 110)",
+            "text/plain",
+            ["data"],
+        ),
+        "kml": (
+            kml_file,
+            kml(name, f, table, lonlat),
+            "Google Earth (KML)",
+            "application/vnd.google-earth.kml+xml",
+            ["visual"],
+        ),
+        "imc": (
+            imc_file,
+            imc_plan(plan_id, name[:200], table),
+            "LSTS IMC PlanSpecification with a FollowPath (Neptus, DUNE)",
+            "application/octet-stream",
+            ["data"],
+        ),
+    }
+    for key, (file, content, *meta) in lonlat_files.items():
+        (folder / file).write_bytes(content)
+        out[key] = (file, *meta)
     return out

@@ -14,8 +14,8 @@ A job file::
     [planning]                  # defaults of every mission: planner, omega, mcpc, rho,
     planner = "ra_star"         # section_size, margin
     omega = 2.0
-    [vehicle]                   # speed_m_s, max_pitch_deg, min_turn_radius_m, hotel_power_w,
-    speed_m_s = 1.5             # propulsion_power_w, battery_wh
+    [vehicle]                   # speed_m_s, max_pitch_deg, min_turn_radius_m, waypoint_band_m,
+    speed_m_s = 1.5             # hotel_power_w, propulsion_power_w, battery_wh
     [[missions]]
     name = "north-ridge"
     start = [100, 120]          # a cell (row, col); or start_xy = [x, y] in map
@@ -51,6 +51,7 @@ from .params import (
     LONGITUDE,
     MAPS,
     PLANNING,
+    QUICKLOOKS,
     SYNTHETIC,
     VEHICLE,
     Param,
@@ -85,7 +86,7 @@ class Job:
     maps: dict = field(default_factory=lambda: _maps_defaults({}))
     planning: dict = field(default_factory=dict)
     vehicle: dict = field(default_factory=dict)  # the [vehicle] keys given
-    quicklooks: bool = True  # [output] quicklooks: a PNG per mission
+    quicklooks: bool = QUICKLOOKS.default  # [output] quicklooks: a PNG per mission
     missions: list = field(default_factory=list)
 
     def maps_fingerprint(self) -> str:
@@ -238,9 +239,10 @@ def load_job(path: str | os.PathLike) -> Job:
         p = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
         job.catalog = p if p.is_absolute() else path.parent / p
     if "quicklooks" in out:
-        if not isinstance(out["quicklooks"], bool):
-            _fail(path, f"output.quicklooks must be true or false, got {out['quicklooks']!r}")
-        job.quicklooks = out["quicklooks"]
+        try:
+            job.quicklooks = QUICKLOOKS.check(out["quicklooks"], "output.quicklooks")
+        except InvalidParameterError as exc:
+            _fail(path, str(exc))
     # relative paths are the job file's (a cron job run from elsewhere finds its results), made
     # absolute so that workers in other directories or on other machines write where the
     # client reads
