@@ -24,8 +24,14 @@ def _extent_km(dem):
     ]
 
 
+def _land(z: np.ndarray) -> np.ndarray:
+    """Where the grid is land (at or above 0 m), no-data excluded."""
+    return np.where(np.isfinite(z), z >= 0, False)
+
+
 def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, colorbar=True):
-    """Draw ``dem`` hillshaded and coloured by depth on ``ax`` (decimated to ``max_side``)."""
+    """Draw ``dem`` hillshaded and coloured by depth on ``ax`` (decimated to ``max_side``);
+    ``colorbar``: True (beside the axes), False, or axes to draw it in, horizontally."""
     step = max(1, int(np.ceil(max(dem.shape) / max_side)))
     sub = dem[::step, ::step]
     z = np.asarray(sub.values, dtype=np.float64)
@@ -42,10 +48,12 @@ def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, col
     )
     rgb[~np.isfinite(z)] = (0.85, 0.85, 0.85, 1.0)
     ax.imshow(rgb, extent=_extent_km(dem), origin="upper", interpolation="nearest")
-    if colorbar:
-        sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(vmin, vmax))
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(vmin, vmax))
+    if isinstance(colorbar, plt.Axes):
+        ax.figure.colorbar(sm, cax=colorbar, orientation="horizontal", label="seabed elevation (m)")
+    elif colorbar:
         plt.colorbar(sm, ax=ax, shrink=0.8, label="elevation (m)")
-    land = np.where(np.isfinite(z), z >= 0, False)
+    land = _land(z)
     if land.any():
         ax.contour(
             land.astype(float),
@@ -206,7 +214,9 @@ def mission_quicklook(
         bottom=0.95 / fig_h,
     )
     ax = fig.add_subplot(gs[0, :])
-    hillshade_axes(ax, sub, colorbar=False)
+    host = fig.add_subplot(gs[1, 2])
+    host.axis("off")
+    hillshade_axes(ax, sub, colorbar=host.inset_axes([0.05, 0.7, 0.9, 0.12]))
     ext = _extent_km(sub)
     ridge_cmap = ListedColormap([(0, 0, 0, 0), RIDGE_RGBA])
     rdg = rdg[: sub.shape[0], : sub.shape[1]]
@@ -271,8 +281,8 @@ def mission_quicklook(
         Line2D([], [], ls="", marker="o", color="lime", mec="k", ms=8, label="start"),
         Line2D([], [], ls="", marker="*", color="gold", mec="k", ms=12, label="goal"),
     ]
-    land = plt.Line2D([], [], color="k", lw=0.6, label="coastline")
-    handles.append(land)
+    if _land(sub.values).any():  # the coastline hillshade_axes draws
+        handles.append(Line2D([], [], color="k", lw=0.6, label="coastline"))
     ax.set_aspect("equal")
     leg = fig.add_subplot(gs[1, 0])
     leg.axis("off")
@@ -297,17 +307,6 @@ def mission_quicklook(
         if f.energy_wh is not None:
             lines.append(f"energy {f.energy_wh:.0f} Wh")
     side.text(0.05, 1.0, "\n".join(lines), transform=side.transAxes, fontsize=8, va="top")
-    sm = plt.cm.ScalarMappable(
-        cmap=plt.get_cmap("gist_earth"),
-        norm=plt.Normalize(
-            float(np.nanpercentile(sub.values, 0.5)),
-            float(max(np.nanpercentile(sub.values, 99.5), 0.0)),
-        ),
-    )
-    host = fig.add_subplot(gs[1, 2])
-    host.axis("off")
-    cax = host.inset_axes([0.05, 0.7, 0.9, 0.12])
-    fig.colorbar(sm, cax=cax, orientation="horizontal", label="seabed elevation (m)")
     ax.set_title(title, fontsize=11)
 
     pr = fig.add_subplot(gs[2, :])
