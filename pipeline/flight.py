@@ -636,20 +636,28 @@ def band_profile(s, env, band, top, slope):
 
 
 @njit(cache=True, nogil=True)
-def _route_vertices(wr, wc, tol, share, ridge, rdg, pas, slot, tr, tc, rows, cols, pad):
-    """Indices of the corners kept for the waypoint route: greedy, each leg the longest usable
-    one that passes within ``tol`` (grid units) of every corner it skips and, with ``ridge``,
-    flies no more off the ridge cells than the legs it replaces but for ``share`` of its
-    length (as the shortcuts do)."""
+def _polyline_off_ridge(wr, wc, ridge, rdg, slot, tr, tc):
+    """The off-ridge length and the length of the polyline ``w`` up to each corner (grid
+    units); without ``ridge`` an off-ridge length no leg can exceed (no ridge rule)."""
     n = wr.size
-    off = np.zeros(n)  # off-ridge length and length of the polyline up to each corner
+    off = np.zeros(n)
     along = np.zeros(n)
     for k in range(1, n):
         along[k] = along[k - 1] + math.hypot(wr[k] - wr[k - 1], wc[k] - wc[k - 1])
         if ridge:
             off[k] = off[k - 1] + _off_ridge(rdg, slot, tr, tc, wr[k - 1], wc[k - 1], wr[k], wc[k])
         else:
-            off[k] = 2.0 * along[k]  # no ridge rule: any leg flies less off-ridge than this
+            off[k] = 2.0 * along[k]
+    return off, along
+
+
+@njit(cache=True, nogil=True)
+def _route_vertices(wr, wc, off, along, tol, share, rdg, pas, slot, tr, tc, rows, cols, pad):
+    """Indices of the corners kept for the waypoint route: greedy, each leg the longest usable
+    one that passes within ``tol`` (grid units) of every corner it skips and flies no more off
+    the ridge cells than the legs it replaces but for ``share`` of its length (as the
+    shortcuts do; ``off``, ``along``: ``_polyline_off_ridge``)."""
+    n = wr.size
     keep = np.empty(n, dtype=np.int64)
     m = 0
     keep[m] = 0
@@ -836,8 +844,9 @@ def fly(maps, traj, vehicle=None) -> Flight:
         # of; the flown track: the route with its turns rounded
         if rad > 0:
             keep_ridge = name != "straight shortcuts"
+            woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
             for tol, share in ROUTE_SIMPLIFICATIONS:  # the closest route with few corners
-                rk = _route_vertices(wr, wc, tol, share, keep_ridge, cor.rdg, *usable)
+                rk = _route_vertices(wr, wc, woff, walong, tol, share, cor.rdg, *usable)
                 if len(rk) <= 0.75 * want:
                     break
             wr, wc = widen_turns(wr[rk], wc[rk], rad, usable)
