@@ -492,3 +492,39 @@ def test_a_flight_over_the_bound_alone_is_uncertified_with_the_reason(ridge_stor
     assert tight.status == "uncertified" and tight.flight is not None
     assert tight.message.startswith("the flown length") and tight.flight.over_bound
     assert tight.flight.problems == [tight.flight.over_bound]
+
+
+@pytest.mark.parametrize("shape, chunks", [((257, 257), 64), ((130, 200), 64), ((70, 9), 8)])
+def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, chunks):
+    """The flight reads the terrain through store chunks stacked as tiles: on chunkings with a
+    last chunk of one cell or a side modulo the chunk below the clearance radius, every layer
+    read that way equals the layer, and the required heights off the grid equal a brute force
+    over the whole elevation array (numpy)."""
+    import dask
+
+    from pipeline.flight import Corridor, _lookup, required_heights
+
+    dem = pipeline.synthetic_dem(shape, cell_size=50.0, seed=2, chunks=chunks, islands=0)
+    path = tmp_path / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, path, clearance=120.0, min_accumulation=6, chunks=chunks)
+    m = pipeline.open_store(path)
+    ds = pipeline.open_maps(path)
+    rows, cols = shape
+    cells = np.argwhere(np.ones(shape, dtype=bool))
+    cor = Corridor(m, cells, 4)
+    for tiles, var in ((cor.pas, "passable"), (cor.rdg, "ridge")):
+        got = _lookup(tiles, cor.slot, cor.tr, cor.tc, cells[:, 0], cells[:, 1])
+        np.testing.assert_array_equal(got.reshape(shape), ds[var].values.astype(np.uint8))
+    rng = np.random.default_rng(1)
+    pr = rng.uniform(-0.5, rows - 0.5, 300)
+    pc = rng.uniform(-0.5, cols - 0.5, 300)
+    pr[:4], pc[:4] = [rows - 1, rows - 1, 0, rows - 1.3], [cols - 1, 0, cols - 1, cols - 1.2]
+    h = required_heights(cor.el, cor.slot, cor.tr, cor.tc, rows, cols, pr, pc, 50.0, 120.0, 2, 0.0)
+    z = ds["elevation"].values.astype(np.float64)
+    ii, jj = np.mgrid[0:rows, 0:cols]
+    for k in range(len(pr)):
+        d2 = 2500.0 * ((ii - pr[k]) ** 2 + (jj - pc[k]) ** 2)
+        near = d2 <= 120.0**2
+        ref = np.max(z[near] + np.sqrt(120.0**2 - d2[near])) if near.any() else -np.inf
+        assert h[k] == pytest.approx(ref, rel=0, abs=1e-9)
