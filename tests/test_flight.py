@@ -502,7 +502,7 @@ def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, 
     over the whole elevation array (numpy)."""
     import dask
 
-    from pipeline.flight import Corridor, _lookup, required_heights
+    from pipeline.flight import Corridor, required_heights
 
     dem = pipeline.synthetic_dem(shape, cell_size=50.0, seed=2, chunks=chunks, islands=0)
     path = tmp_path / "maps.zarr"
@@ -513,9 +513,11 @@ def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, 
     rows, cols = shape
     cells = np.argwhere(np.ones(shape, dtype=bool))
     cor = Corridor(m, cells, 4)
-    for tiles, var in ((cor.pas, "passable"), (cor.rdg, "ridge")):
-        got = _lookup(tiles, cor.slot, cor.tr, cor.tc, cells[:, 0], cells[:, 1])
-        np.testing.assert_array_equal(got.reshape(shape), ds[var].values.astype(np.uint8))
+    i, j = cells[:, 0], cells[:, 1]
+    slot = cor.slot[i // cor.tr, j // cor.tc]
+    for tiles, var in ((cor.el, "elevation"), (cor.pas, "passable"), (cor.rdg, "ridge")):
+        got = tiles[slot, i % cor.tr, j % cor.tc].reshape(shape)
+        np.testing.assert_array_equal(got, ds[var].values.astype(tiles.dtype))
     rng = np.random.default_rng(1)
     pr = rng.uniform(-0.5, rows - 0.5, 300)
     pc = rng.uniform(-0.5, cols - 0.5, 300)
