@@ -507,7 +507,9 @@ def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, 
     dem = pipeline.synthetic_dem(shape, cell_size=50.0, seed=2, chunks=chunks, islands=0)
     path = tmp_path / "maps.zarr"
     with dask.config.set(scheduler="synchronous"):
-        pipeline.build_maps(dem, path, clearance=120.0, min_accumulation=6, chunks=chunks)
+        pipeline.build_maps(
+            dem, path, clearance=120.0, min_accumulation=6, chunks=chunks, landmarks=0
+        )
     m = pipeline.open_store(path)
     ds = pipeline.open_maps(path)
     rows, cols = shape
