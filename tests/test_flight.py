@@ -373,6 +373,7 @@ goal = [280, 260]
 vehicle = { battery_wh = 50.0 }
 [output]
 catalog = "cat"
+quicklooks = false         # the quick-look is tested with the other job tests
 """
 
 
@@ -390,7 +391,7 @@ def test_a_job_flies_its_missions_and_fails_one_over_its_endurance(tmp_path, loc
     assert p["auv:status"] == "ok" and p["auv:waypoints"] >= 2
     assert p["auv:energy_wh"] == pytest.approx(140.0 * p["auv:duration_s"] / 3600)
     assert p["auv:flown_length_m"] <= 1.5 * p["auv:lower_bound_m"] * (1 + 1e-9)
-    for key in ("track", "grid-path", "waypoints", "qgc", "kml", "imc", "quicklook"):
+    for key in ("track", "grid-path", "waypoints", "waypoints-csv", "qgc", "kml", "imc"):
         assert key in good.assets, key
     # WGS84 geometry; the projection extension gives the maps' CRS and the track's box in it
     lon, lat = np.array(good.geometry["coordinates"]).T
