@@ -444,12 +444,16 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
     from distributed import performance_report
 
     from .cluster import session
+    from .warmup import ensure_compiled
 
     with session(*cluster) as client:
         res = JobResult(
             job, dem_store, False, 0.0, maps_store=maps_store, dashboard=client.dashboard_link
         )
         log.info("dask dashboard: %s", client.dashboard_link)
+        # the first run after an install compiles the kernels on both workers at once, so that
+        # no stage (and no mission's recorded runtime) holds the compilation
+        ensure_compiled(client)
         tmp_report = job.catalog / f".performance-report.tmp-{res.run_id}.html"
         with performance_report(filename=str(tmp_report), mode="inline"):
             res.reused = _dem_store(job, dem_store, overwrite)

@@ -4,14 +4,12 @@ imported). tests/conftest.py starts this in a process of its own at the start of
 the core the tests leave idle; in a warm environment it finishes in seconds."""
 
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
 from conftest import compile_kernels  # noqa: E402
 
-with tempfile.TemporaryDirectory() as tmp:
-    compile_kernels(Path(tmp))
+compile_kernels()
 
 import pysheds.grid  # noqa: E402, F401

@@ -52,18 +52,19 @@ def pysheds_ready():
         proc.wait(timeout=900)
 
 
-def compile_kernels(tmp: Path) -> None:
-    """Run every numba kernel of the library once on tiny inputs, with the argument types the
-    tests and the workers use, so that numba compiles and caches each (tests/_warm_numba.py
-    runs this at session start; the session cluster runs it before its workers start)."""
+def compile_kernels() -> None:
+    """Compile every numba kernel the tests use into numba's on-disk cache: the pipeline's own
+    warm-up (pipeline.warmup, as a job's first run does), then the argument types only the
+    tests use (tests/_warm_numba.py runs this at session start; the session cluster runs it
+    before its workers start)."""
     import dask
 
     import pipeline
     from pipeline.ridges import accumulation_single, fill_single
+    from pipeline.warmup import ensure_compiled
 
+    ensure_compiled()
     with dask.config.set(scheduler="synchronous"):
-        dem = pipeline.synthetic_dem((48, 48), chunks=24, islands=0)
-        pipeline.build_maps(dem, tmp / "maps.zarr", clearance=60.0, min_accumulation=4)
         small = pipeline.synthetic_dem((40, 40), chunks=None)
         for method in ("vertical", "horizontal", "spherical"):
             pipeline.safety_map(small, method=method, clearance=60.0)
@@ -71,26 +72,10 @@ def compile_kernels(tmp: Path) -> None:
         accumulation_single(fill_single(small.values))
     surface = random_surface((12, 12)).astype(np.float64)
     ridge, ok = np.zeros(surface.shape, bool), np.ones(surface.shape, bool)
-    cells = np.argwhere(pipeline.open_maps(tmp / "maps.zarr")["passable"].values)
     for planner in pipeline.PLANNERS:
         pipeline.plan_window(
             surface, ridge, ok, (0, 0), (11, 11), cell_size=30.0, planner=planner, omega=1.5
         )
-        try:  # on the store's float32 maps, in sections; whether a path exists does not count
-            t = pipeline.plan(
-                tmp / "maps.zarr",
-                tuple(cells[0]),
-                tuple(cells[-1]),
-                planner=planner,
-                omega=1.5,
-                rho=2,
-                section_size=8,
-                client="synchronous",
-            )
-        except pipeline.PipelineError:
-            continue
-        if planner == "astar" and t.planned:  # the flight's kernels
-            pipeline.fly(tmp / "maps.zarr", t)
 
 
 @pytest.fixture(scope="session")
@@ -102,7 +87,7 @@ def local_client(tmp_path_factory):
 
     from pipeline.cluster import local_cluster
 
-    compile_kernels(tmp_path_factory.mktemp("warm"))
+    compile_kernels()
     cluster = local_cluster()
     client = Client(cluster, set_as_default=False)
     yield client

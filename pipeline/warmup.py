@@ -1,0 +1,245 @@
+"""Compile the numba kernels once, up front, on every core: the first run after an install.
+
+numba compiles a kernel the first time it is called and keeps the machine code in its on-disk
+cache (``__pycache__`` beside the source, or ``NUMBA_CACHE_DIR``), so only the first run on a
+machine pays: about a minute of compilation on one core. Left to itself, that minute lands
+inside the first DEM, maps and missions (whose recorded runtimes then hold it) and the two
+workers compile the same kernels side by side. :func:`ensure_compiled` instead compiles them
+in two halves at once on two workers, before the job starts, says so in the log, and leaves a
+stamp so that later runs skip it.
+
+The halves: one builds a tiny maps store (safety, ridges, components, landmarks) and plans on
+it with every planner; the other generates a tiny synthetic DEM, then, once that store exists,
+plans one mission on it and flies it (the flight's kernels). Each kernel is compiled with the
+argument types the pipeline uses, so later calls load it from the cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .dem import open_dem, write_dem
+
+log = logging.getLogger(__name__)
+
+# the parts of the warm-up, in the order one process runs them all
+PARTS = ("maps", "planners", "dem", "flight")
+# how the parts are shared between two processes (about 40 s each on this project's 2-core VM):
+# the second compiles the safety kernels before the first needs them in its maps store
+HALVES = (("maps", "planners"), ("safety", "dem", "flight"))
+# how long a part waits for the tiny maps store another process builds, before building its own
+STORE_WAIT_S = 300.0
+
+
+def _stamp_path() -> Path:
+    from numba.core import config
+
+    if config.CACHE_DIR:
+        return Path(config.CACHE_DIR) / "auv-pipeline-kernels.json"
+    return Path(__file__).parent / "__pycache__" / "kernels.json"
+
+
+def _fingerprint() -> str:
+    """What numba's cache depends on: numba, Python, the CPU and every source file's stamp."""
+    import numba
+    from numba.core import config
+
+    parts = [numba.__version__, sys.version, str(config.CPU_NAME or ""), _cpu_name()]
+    root = Path(__file__).parent
+    for p in sorted(root.rglob("*.py")):
+        st = p.stat()
+        parts.append(f"{p.relative_to(root)}:{st.st_mtime_ns}:{st.st_size}")
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _cpu_name() -> str:
+    try:
+        import llvmlite.binding as ll
+
+        return ll.get_host_cpu_name()
+    except Exception:  # noqa: BLE001 - only a part of the fingerprint
+        return ""
+
+
+def is_compiled() -> bool:
+    """Whether the kernels were compiled for this installation and these sources."""
+    try:
+        return json.loads(_stamp_path().read_text()).get("fingerprint") == _fingerprint()
+    except (OSError, ValueError):
+        return False
+
+
+def _mark_compiled(seconds: float) -> None:
+    path = _stamp_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".tmp-{os.getpid()}")
+        tmp.write_text(json.dumps({"fingerprint": _fingerprint(), "seconds": round(seconds, 1)}))
+        os.replace(tmp, path)
+    except OSError:  # a read-only installation: the warm-up runs again next time, harmlessly
+        pass
+
+
+def _tiny_dem():
+    """A 48 x 48 rough seabed with a deep basin and an island, as the DEM store gives it."""
+    import xarray as xr
+
+    n = 48
+    i, j = np.mgrid[0:n, 0:n].astype(np.float64)
+    z = -3000.0 + 400.0 * np.sin(i / 5.0) * np.cos(j / 7.0) + 30.0 * np.sin(i * j / 11.0)
+    z[30:36, 30:36] = 5.0  # land: not passable
+    a = 30.0
+    return xr.DataArray(
+        z.astype(np.float32),
+        dims=("y", "x"),
+        coords={"y": (n - 0.5 - np.arange(n)) * a, "x": (np.arange(n) + 0.5) * a},
+        name="elevation",
+        attrs={"cell_size": a, "units": "m", "positive": "up", "source": "warm-up"},
+    )
+
+
+def _safety(dem) -> None:
+    """The safety kernels of every method, and the passable layer's."""
+    from .maps import passable
+    from .safety import safety_map
+
+    for method in ("spherical", "vertical", "horizontal"):
+        passable(dem, safety_map(dem, method=method, clearance=60.0)).compute()
+
+
+def _store(tmp: Path, build: bool) -> Path:
+    """The tiny maps store: built here (``build``), or waited for (another process builds it)."""
+    store, ready = tmp / "maps.zarr", tmp / "maps.ready"
+    if build:
+        from .maps import build_maps
+
+        write_dem(_tiny_dem(), tmp / "dem.zarr", chunks=24, overwrite=True)
+        dem = open_dem(tmp / "dem.zarr", chunks=24)
+        build_maps(dem, store, clearance=60.0, min_accumulation=4, landmarks=2, overwrite=True)
+        _safety(dem)
+        ready.touch()
+        return store
+    t0 = time.monotonic()
+    while not ready.exists():
+        if time.monotonic() - t0 > STORE_WAIT_S:  # the other half is elsewhere: build one
+            return _store(tmp / "own", True)
+        time.sleep(0.2)
+    return store
+
+
+def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
+    """Run the warm-up ``parts`` (names from :data:`PARTS`) in this process, with the dask
+    scheduler synchronous; ``workdir`` is shared by the processes of one warm-up (the tiny
+    store). Returns the seconds each part took."""
+    import dask
+
+    import pipeline
+
+    took = {}
+    tmp = Path(workdir)
+    tmp.mkdir(parents=True, exist_ok=True)
+    with dask.config.set(scheduler="synchronous"):
+        for part in parts:
+            t0 = time.perf_counter()
+            if part == "dem":
+                pipeline.synthetic_dem((64, 64), chunks=32).compute()
+            elif part == "safety":
+                write_dem(_tiny_dem(), tmp / "dem-safety.zarr", chunks=24, overwrite=True)
+                _safety(open_dem(tmp / "dem-safety.zarr", chunks=24))
+            elif part == "maps":
+                _store(tmp, build=True)
+            elif part == "planners":
+                _plan_each(_store(tmp, build=False))
+            elif part == "flight":
+                store = _store(tmp, build=False)
+                t = _plan_each(store, planners=("astar",))
+                if t is not None:
+                    pipeline.fly(store, t)
+            else:
+                raise ValueError(f"unknown warm-up part {part!r}; known: {PARTS}")
+            took[part] = round(time.perf_counter() - t0, 1)
+    return took
+
+
+def _plan_each(store: Path, planners=None):
+    """Plan corner to corner on the tiny store with each planner, in sections and whole;
+    returns the last trajectory."""
+    import pipeline
+
+    cells = np.argwhere(pipeline.open_maps(store)["passable"].values)
+    last = None
+    for planner in planners or tuple(pipeline.PLANNERS)[::-1]:
+        for mcpc in (True, False):
+            try:
+                last = pipeline.plan(
+                    store,
+                    tuple(cells[0]),
+                    tuple(cells[-1]),
+                    planner=planner,
+                    omega=1.5,
+                    mcpc=mcpc,
+                    rho=2,
+                    section_size=8,
+                    client="synchronous",
+                )
+            except pipeline.PipelineError:
+                continue
+    return last
+
+
+def ensure_compiled(client=None, *, force: bool = False) -> float:
+    """Compile every kernel the pipeline uses, unless a stamp says they were compiled for this
+    installation: in two halves on two workers of ``client`` (a ``distributed.Client``), or in
+    this process when there is none or a single worker. Logs what it does; returns the seconds
+    spent (0 when skipped)."""
+    if not force and is_compiled():
+        return 0.0
+    log.info("compiling kernels, first run only (under a minute on 2 cores) ...")
+    t0 = time.perf_counter()
+    try:
+        _compile(client)
+    except Exception as exc:  # noqa: BLE001 - the kernels then compile as they are first used
+        log.warning(
+            "compiling the kernels up front failed (%s: %s); they compile as they are "
+            "first used instead",
+            type(exc).__name__,
+            exc,
+        )
+        return time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    _mark_compiled(seconds)
+    log.info("kernels compiled in %.1f s (cached for the next runs)", seconds)
+    return seconds
+
+
+def _compile(client) -> None:
+    with tempfile.TemporaryDirectory(prefix="auv-warmup-") as tmp:
+        workers = sorted(client.scheduler_info()["workers"]) if client is not None else []
+        if len(workers) >= 2:
+            futures = [
+                client.submit(
+                    compile_parts,
+                    tmp,
+                    half,
+                    workers=[w],
+                    allow_other_workers=False,
+                    pure=False,
+                    key=f"compile-kernels-{k}-{os.getpid()}",
+                )
+                for k, (w, half) in enumerate(zip(workers, HALVES, strict=False))
+            ]
+            took = client.gather(futures)
+        elif workers:
+            took = [client.submit(compile_parts, tmp, PARTS, workers=workers, pure=False).result()]
+        else:
+            took = [compile_parts(tmp, PARTS)]
+    log.debug("warm-up parts (seconds, per process): %s", took)
