@@ -48,13 +48,14 @@ def _stamp_path() -> Path:
     return Path(__file__).parent / "__pycache__" / "kernels.json"
 
 
-def _fingerprint() -> str:
-    """What numba's cache depends on: numba, Python, the CPU and every source file's stamp."""
+def _fingerprint(root: Path | None = None) -> str:
+    """What numba's cache depends on: numba, Python, the CPU and the stamp (modification time
+    and size) of every source file under ``root`` (the package)."""
     import numba
     from numba.core import config
 
     parts = [numba.__version__, sys.version, str(config.CPU_NAME or ""), _cpu_name()]
-    root = Path(__file__).parent
+    root = Path(__file__).parent if root is None else Path(root)
     for p in sorted(root.rglob("*.py")):
         st = p.stat()
         parts.append(f"{p.relative_to(root)}:{st.st_mtime_ns}:{st.st_size}")

@@ -1,0 +1,61 @@
+"""The first run's up-front compilation (pipeline.warmup): announced, run in two halves on two
+workers, stamped so that later runs skip it, and never fatal."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import pytest
+
+from pipeline import warmup
+
+
+def test_fingerprint_follows_every_source_file(tmp_path):
+    (tmp_path / "a.py").write_text("x = 1\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "b.py").write_text("y = 2\n")
+    first = warmup._fingerprint(tmp_path)
+    assert warmup._fingerprint(tmp_path) == first
+    st = (tmp_path / "sub" / "b.py").stat()
+    os.utime(tmp_path / "sub" / "b.py", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    touched = warmup._fingerprint(tmp_path)
+    assert touched != first  # numba recompiles a touched file's kernels: so do we
+    (tmp_path / "a.py").write_text("x = 10\n")
+    assert warmup._fingerprint(tmp_path) not in (first, touched)
+
+
+@pytest.fixture
+def stamp(tmp_path, monkeypatch):
+    path = tmp_path / "kernels.json"
+    monkeypatch.setattr(warmup, "_stamp_path", lambda: path)
+    return path
+
+
+def test_compiles_once_in_two_halves_on_two_workers(local_client, stamp, caplog):
+    caplog.set_level(logging.DEBUG, logger="pipeline.warmup")
+    assert not warmup.is_compiled()
+    seconds = warmup.ensure_compiled(local_client)
+    assert seconds > 0 and warmup.is_compiled() and stamp.exists()
+    text = caplog.text
+    assert "compiling kernels, first run only" in text
+    # each half ran on its own worker (the parts' timings come back per process)
+    parts = [r for r in caplog.records if r.getMessage().startswith("warm-up parts")]
+    assert len(parts) == 1
+    per_process = parts[0].args[0]
+    assert [sorted(p) for p in per_process] == [sorted(h) for h in warmup.HALVES]
+    caplog.clear()
+    assert warmup.ensure_compiled(local_client) == 0.0  # stamped: skipped, silently
+    assert "compiling" not in caplog.text
+
+
+def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
+    def broken(client):
+        raise OSError("no space left on device")
+
+    monkeypatch.setattr(warmup, "_compile", broken)
+    caplog.set_level(logging.INFO, logger="pipeline.warmup")
+    warmup.ensure_compiled(None)
+    assert "compile as they are first used instead" in caplog.text
+    assert "no space left on device" in caplog.text
+    assert not warmup.is_compiled()  # tried again next time
