@@ -25,6 +25,11 @@ Priority-Flood, 2016; parallel flow accumulation, 2017), reimplemented from the 
 
 Only perimeter data crosses between tiles, and the results equal the single-array ones cell
 for cell (integer accumulation, fill values copied from the input).
+
+A whole array in memory (``fill_single``, ``accumulation_single``) takes a faster route with
+the same results: the fill by descent basins and a minimax over the basins that touch (no
+priority queue over cells, see ``_fill``), the accumulation by walking each flow chain once
+from its sources (``_accumulate_single``).
 """
 
 from __future__ import annotations
@@ -157,13 +162,182 @@ def _outlets(z, top, left, bottom, right, at_top, at_left, at_bottom, at_right):
     return out
 
 
+@njit(inline="always", cache=True)
+def _slot(keys, key):
+    """The slot of ``key`` in an open-addressing table (linear probing; -1 marks empty)."""
+    mask = keys.size - 1
+    h = (key * np.int64(0x9E3779B97F4A7C15)) & mask
+    while keys[h] != -1 and keys[h] != key:
+        h = (h + 1) & mask
+    return h
+
+
+@njit(nogil=True, cache=True)
+def _fill(z, outlet):
+    """Depression filling of a whole array (NaN = no-data) from the ``outlet`` cells: each
+    cell's lowest level at which water from it can leave the map (the minimax height of its
+    paths to an outlet), what Priority-Flood (Barnes et al., 2014) computes, without a
+    priority queue over cells.
+
+    1. Every cell that is not an outlet descends to its lowest strictly lower neighbour; a cell
+       with none is a pit. Descending, every cell reaches a pit or an outlet: its basin.
+    2. Basins that touch get an edge weighted by the lowest ``max(z_a, z_b)`` over their
+       touching cell pairs (8-neighbours); all outlet basins are one node, the sea.
+    3. Each pit basin's spill level is its minimax distance to the sea over those edges
+       (Kruskal: edges by weight, a component takes the weight at which it joins the sea).
+    4. ``filled = max(z, spill[basin])`` (the sea's spill is -inf).
+
+    Why it is exact: inside a basin, every cell is reached from the pit by its descent path
+    reversed, whose highest cell is that cell, so crossing between basins costs at least and
+    at most the edge weight; the pit's minimax is therefore its basin's spill, and a cell's
+    minimax is the larger of its own height (its descent reaches the pit) and the spill (any
+    lower way out would be a lower way out for the pit too).
+    """
+    rows, cols = z.shape
+    n = rows * cols
+    zf = z.ravel()
+    out = outlet.ravel()
+    NONE = np.int64(-1)
+    # 1: descent and basins (node 0: the sea; pit nodes from 1)
+    down = np.full(n, -1, dtype=np.int8)  # the neighbour (D8 code) a cell descends to
+    node = np.full(n, np.int32(-1), dtype=np.int32)
+    npit = 0
+    for ci in range(rows):
+        for cj in range(cols):
+            c = ci * cols + cj
+            zc = zf[c]
+            if zc != zc:
+                continue
+            if out[c]:
+                node[c] = 0
+                continue
+            low = zc
+            best = -1
+            for k in range(8):  # a non-outlet cell has all 8 neighbours, all valid
+                m = c + DR[k] * cols + DC[k]
+                if zf[m] < low:
+                    low = zf[m]
+                    best = k
+            if best < 0:
+                npit += 1
+                node[c] = npit
+            else:
+                down[c] = best
+    path = np.empty(1024, dtype=np.int64)
+    for c in range(n):
+        if node[c] >= 0 or zf[c] != zf[c]:
+            continue
+        np_ = 0
+        x = c
+        while node[x] < 0:
+            if np_ == path.size:
+                grown = np.empty(2 * path.size, dtype=np.int64)
+                grown[:np_] = path[:np_]
+                path = grown
+            path[np_] = x
+            np_ += 1
+            x = x + DR[down[x]] * cols + DC[down[x]]
+        b = node[x]
+        for t in range(np_):
+            node[path[t]] = b
+    # 2: the lowest crossing between touching basins, in a hash table keyed by the node pair
+    nodes = np.int64(npit + 1)
+    cap = 1024
+    keys = np.full(cap, NONE, dtype=np.int64)
+    vals = np.empty(cap, dtype=np.float32)
+    used = 0
+    for ci in range(rows):
+        for cj in range(cols):
+            c = ci * cols + cj
+            a = node[c]
+            if a < 0:
+                continue
+            for k in range(4):  # E, SE, S, SW: each pair once
+                ni = ci + DR[k]
+                nj = cj + DC[k]
+                if ni >= rows or nj < 0 or nj >= cols:
+                    continue
+                m = ni * cols + nj
+                bnode = node[m]
+                if bnode < 0 or bnode == a:
+                    continue
+                lo, hi = (a, bnode) if a < bnode else (bnode, a)
+                if hi == 0:
+                    continue
+                w = max(zf[c], zf[m])
+                key = np.int64(lo) * nodes + hi
+                if 2 * (used + 1) > cap:
+                    old_k, old_v = keys, vals
+                    cap *= 2
+                    keys = np.full(cap, NONE, dtype=np.int64)
+                    vals = np.empty(cap, dtype=np.float32)
+                    for t in range(old_k.size):
+                        if old_k[t] != NONE:
+                            h = _slot(keys, old_k[t])
+                            keys[h] = old_k[t]
+                            vals[h] = old_v[t]
+                h = _slot(keys, key)
+                if keys[h] == NONE:
+                    keys[h] = key
+                    vals[h] = w
+                    used += 1
+                elif w < vals[h]:
+                    vals[h] = w
+    # 3: Kruskal towards the sea; members of a component in a linked list
+    ek = np.empty(used, dtype=np.int64)
+    ew = np.empty(used, dtype=np.float32)
+    e = 0
+    for t in range(cap):
+        if keys[t] != NONE:
+            ek[e] = keys[t]
+            ew[e] = vals[t]
+            e += 1
+    order = np.argsort(ew, kind="mergesort")
+    parent = np.arange(nodes)
+    first = np.arange(nodes)  # each component's member list: first, next, last
+    nxt = np.full(nodes, NONE, dtype=np.int64)
+    last = np.arange(nodes)
+    spill = np.full(nodes, -np.inf, dtype=np.float32)
+    for t in order:
+        u = ek[t] // nodes
+        v = ek[t] - u * nodes
+        while parent[u] != u:
+            parent[u] = parent[parent[u]]
+            u = parent[u]
+        while parent[v] != v:
+            parent[v] = parent[parent[v]]
+            v = parent[v]
+        if u == v:
+            continue
+        if v == 0:
+            u, v = v, u
+        if u == 0:  # v's component joins the sea at this level
+            x = first[v]
+            while x != NONE:
+                spill[x] = ew[t]
+                x = nxt[x]
+            parent[v] = 0
+            continue
+        parent[v] = u  # two pit components merge
+        nxt[last[u]] = first[v]
+        last[u] = last[v]
+    # 4: filled
+    filled = np.empty(n, dtype=np.float32)
+    for c in range(n):
+        b = node[c]
+        filled[c] = np.nan if b < 0 else max(zf[c], spill[b])
+    return filled.reshape(rows, cols)
+
+
 def fill_single(z: np.ndarray) -> np.ndarray:
     """Priority-flood fill of a whole array in memory (the reference for the tiled version)."""
     z = np.ascontiguousarray(z, dtype=np.float32)
-    seeds = _outlets(z, 0, 0, 0, 0, True, True, True, True)
-    labels = np.zeros(z.shape, dtype=np.int64)
-    filled, _, _, _, _ = _flood(z, seeds, labels, False)
-    return filled
+    if z.size >= 2**32 - 1:
+        raise ValueError(
+            f"fill_single takes fewer than 2^32 - 1 cells, got {z.size}; use the "
+            "chunked fill (fill_depressions on a dask-backed DEM)"
+        )
+    return _fill(z, _outlets(z, 0, 0, 0, 0, True, True, True, True))
 
 
 def _halo(bi, bj, nbr, nbc, depth):
@@ -439,13 +613,76 @@ def _accumulate(dirs, weights):
     return acc, order[:tail]
 
 
+@njit(nogil=True, cache=True)
+def _accumulate_single(filled):
+    """D8 on ``w = -filled`` (as :func:`_d8`) and the accumulation of every cell (valid cells
+    count 1), in two passes: directions with in-degrees, then each chain walked downstream
+    from its sources, a cell passing its total on once all its upstream cells have."""
+    rows, cols = filled.shape
+    n = rows * cols
+    f = filled.ravel()
+    dirs = np.full(n, -1, dtype=np.int8)
+    indeg = np.zeros(n, dtype=np.uint8)
+    off = np.empty(8, dtype=np.int64)
+    for k in range(8):
+        off[k] = DR[k] * cols + DC[k]
+    for ci in range(rows):
+        inner_row = 0 < ci < rows - 1
+        for cj in range(cols):
+            c = ci * cols + cj
+            fc = f[c]
+            if fc != fc:
+                continue
+            best = 0.0
+            code = -1
+            if inner_row and 0 < cj < cols - 1:
+                for k in range(8):
+                    v = f[c + off[k]]
+                    if v != v:
+                        continue
+                    # w_c - w_v with w = -f, in float64 as _d8 computes it
+                    drop = (np.float64(-fc) - np.float64(-v)) / DIST[k]
+                    if drop > best:
+                        best = drop
+                        code = k
+            else:
+                for k in range(8):
+                    ni = ci + DR[k]
+                    nj = cj + DC[k]
+                    if ni < 0 or ni >= rows or nj < 0 or nj >= cols:
+                        continue
+                    v = f[c + off[k]]
+                    if v != v:
+                        continue
+                    drop = (np.float64(-fc) - np.float64(-v)) / DIST[k]
+                    if drop > best:
+                        best = drop
+                        code = k
+            if code >= 0:
+                dirs[c] = code
+                indeg[c + off[code]] += 1
+    acc = np.zeros(n, dtype=np.int64)
+    for c in range(n):
+        if f[c] == f[c]:
+            acc[c] = 1
+    for c in range(n):
+        if indeg[c] != 0:
+            continue
+        x = c
+        while dirs[x] >= 0:
+            y = x + off[dirs[x]]
+            acc[y] += acc[x]
+            indeg[y] -= 1
+            if indeg[y] != 0:
+                break
+            indeg[y] = 255  # walked from here on: not a source for the raster loop
+            x = y
+    return acc.reshape(rows, cols)
+
+
 def accumulation_single(filled: np.ndarray) -> np.ndarray:
     """D8 accumulation of ``-filled`` for a whole array in memory (the reference)."""
-    w = -np.ascontiguousarray(filled, dtype=np.float32)
-    dirs = _d8(w, 0, 0, *w.shape)
-    weights = np.where(np.isnan(w), 0, 1).astype(np.int64)
-    acc, _ = _accumulate(dirs, weights)
-    return acc
+    return _accumulate_single(np.ascontiguousarray(filled, dtype=np.float32))
 
 
 def _tile_dirs(fh, halo):
