@@ -12,7 +12,7 @@ writes ``benchmarks/out/RESULTS-quick.md`` and ``benchmarks/out/quick-figures/``
 the published results are left alone. ``--only dem safety ...`` runs some scripts only (their
 parts replace the old ones; the rest are reused).
 
-    ./dev bench [--quick] [--only NAME ...]
+    ./dev bench [--quick] [--only NAME ...] [--script-args ARG ...]
 """
 
 from __future__ import annotations
@@ -107,10 +107,12 @@ def git_commit() -> str:
         return "unknown"
 
 
-def run_script(name: str, quick: bool) -> tuple[int, float]:
-    """Run bench_<name>.py, teeing its output into out/logs/<name>.log; (exit code, seconds)."""
+def run_script(name: str, quick: bool, extra: list[str] = ()) -> tuple[int, float]:
+    """Run bench_<name>.py (with ``extra`` arguments), teeing its output into
+    out/logs/<name>.log; (exit code, seconds)."""
     LOGS.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-u", str(HERE / f"bench_{name}.py")] + (["--quick"] if quick else [])
+    cmd += list(extra)
     t0 = time.perf_counter()
     with open(LOGS / f"{name}.log", "w") as log:
         proc = subprocess.Popen(
@@ -247,6 +249,13 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="smaller cases, under 10 minutes")
     ap.add_argument("--only", nargs="+", choices=SCRIPTS, help="run these scripts only")
     ap.add_argument(
+        "--script-args",
+        nargs="+",
+        default=[],
+        metavar="ARG",
+        help="arguments passed on to the scripts run (with --only), e.g. --reuse-zarr",
+    )
+    ap.add_argument(
         "--assemble",
         action="store_true",
         help="run nothing: rebuild the report from the parts of the last run",
@@ -263,7 +272,7 @@ def main() -> int:
     t0 = time.perf_counter()
     for name in names:
         print(f"\n=== bench_{name}.py ===", flush=True)
-        rc, dt = run_script(name, args.quick)
+        rc, dt = run_script(name, args.quick, args.script_args)
         times[name] = dt
         if rc != 0:
             failed.append(f"bench_{name}.py")

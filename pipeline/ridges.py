@@ -246,6 +246,10 @@ def _fill(z, outlet):
     keys = np.full(cap, NONE, dtype=np.int64)
     vals = np.empty(cap, dtype=np.float32)
     used = 0
+    # along a row, the same pair of basins comes back cell after cell: its slot is remembered
+    # per direction (and forgotten when the table grows)
+    last_key = np.full(4, NONE, dtype=np.int64)
+    last_slot = np.zeros(4, dtype=np.int64)
     for ci in range(rows):
         for cj in range(cols):
             c = ci * cols + cj
@@ -266,7 +270,13 @@ def _fill(z, outlet):
                     continue
                 w = max(zf[c], zf[m])
                 key = np.int64(lo) * nodes + hi
+                if key == last_key[k]:
+                    h = last_slot[k]
+                    if w < vals[h]:
+                        vals[h] = w
+                    continue
                 if 2 * (used + 1) > cap:
+                    last_key[:] = NONE
                     old_k, old_v = keys, vals
                     cap *= 2
                     keys = np.full(cap, NONE, dtype=np.int64)
@@ -277,6 +287,8 @@ def _fill(z, outlet):
                             keys[h] = old_k[t]
                             vals[h] = old_v[t]
                 h = _slot(keys, key)
+                last_key[k] = key
+                last_slot[k] = h
                 if keys[h] == NONE:
                     keys[h] = key
                     vals[h] = w
