@@ -39,33 +39,11 @@ from numba import njit
 
 from ._grid8 import DC, DR
 from .components import label_components
-from .planners.core import LANDMARK_MARGIN, edge_cost
+from .planners.core import LANDMARK_MARGIN, edge_length
 
 MIN_COMPONENT_FRACTION = 0.01
 REL_MARGIN = LANDMARK_MARGIN
 DEFAULT_LANDMARKS = 8
-
-
-@njit(inline="always", cache=True)
-def _push(head, nxt, node, free, b, v):
-    """Put ``v`` into bucket ``b`` (a list threaded through the pool ``nxt``/``node``);
-    returns the pool and its free slot list head."""
-    if free < 0:  # grow the pool; the new slots form the free list
-        m = node.size
-        node2 = np.empty(2 * m, dtype=np.int64)
-        nxt2 = np.empty(2 * m, dtype=np.int64)
-        node2[:m] = node
-        nxt2[:m] = nxt
-        for i in range(m, 2 * m - 1):
-            nxt2[i] = i + 1
-        nxt2[2 * m - 1] = -1
-        node, nxt, free = node2, nxt2, m
-    slot = free
-    free = nxt[slot]
-    node[slot] = v
-    nxt[slot] = head[b]
-    head[b] = slot
-    return node, nxt, free
 
 
 @njit(nogil=True, cache=True)
@@ -76,69 +54,88 @@ def dijkstra(surface, passable, a, sources):
     A bucket queue (Dial's algorithm with buckets narrower than the shortest edge, ``a``): a
     cell taken from the lowest bucket cannot be improved by any other cell of that bucket, so
     its distance is final, as in Dijkstra's algorithm, at O(1) a queue operation. The buckets
-    are circular, as many as the longest edge spans."""
+    are circular, as many as the longest edge spans; each is a contiguous array of cells
+    (entries made stale by a later improvement are skipped when taken), so that the wavefront
+    is read and written in order. An edge costs its 3-D length along the surface, as the
+    planners' ``edge_cost`` (``edge_length`` of the same squared horizontal length and rise)."""
     rows, cols = surface.shape
     n = rows * cols
+    zf = surface.ravel()
+    okf = passable.ravel()
     dist = np.full(n, np.inf)
     done = np.zeros(n, dtype=np.bool_)
     lo = np.inf
     hi = -np.inf
-    for r in range(rows):
-        for c in range(cols):
-            if passable[r, c]:
-                z = np.float64(surface[r, c])
-                lo = min(lo, z)
-                hi = max(hi, z)
+    for i in range(n):
+        if okf[i]:
+            z = np.float64(zf[i])
+            lo = min(lo, z)
+            hi = max(hi, z)
     w = a * (1.0 - 1e-7)
     longest = math.sqrt(2.0 * a * a + (hi - lo) ** 2) if hi >= lo else a
     nb = int(longest / w) + 2
-    head = np.full(nb, -1, dtype=np.int64)
-    m = 4096
-    node = np.empty(m, dtype=np.int64)
-    nxt = np.empty(m, dtype=np.int64)
-    for i in range(m - 1):
-        nxt[i] = i + 1
-    nxt[m - 1] = -1
-    free = 0
+    cap = np.full(nb, 1024, dtype=np.int64)
+    fill = np.zeros(nb, dtype=np.int64)
+    buckets = [np.empty(1024, dtype=np.int64) for _ in range(nb)]
+    off = np.empty(8, dtype=np.int64)
+    h2 = np.empty(8)  # each move's squared horizontal length, as edge_cost computes it
+    for k in range(8):
+        off[k] = DR[k] * cols + DC[k]
+        h2[k] = a * a * (DR[k] * DR[k] + DC[k] * DC[k])
     queued = 0
     for s in sources:
         dist[s] = 0.0
-        node, nxt, free = _push(head, nxt, node, free, 0, s)
+        bk = buckets[0]
+        if fill[0] == cap[0]:
+            grown = np.empty(2 * cap[0], dtype=np.int64)
+            grown[: fill[0]] = bk[: fill[0]]
+            buckets[0] = grown
+            cap[0] *= 2
+            bk = grown
+        bk[fill[0]] = s
+        fill[0] += 1
         queued += 1
     cur = 0  # the bucket index (not wrapped) being emptied
     while queued > 0:
         cb = cur % nb
-        slot = head[cb]
-        if slot < 0:
-            cur += 1
-            continue
-        head[cb] = nxt[slot]
-        u = node[slot]
-        nxt[slot] = free
-        free = slot
-        queued -= 1
-        if done[u]:
-            continue
-        done[u] = True
-        du = dist[u]
-        r = u // cols
-        c = u - r * cols
-        for k in range(8):
-            nr = r + DR[k]
-            nc = c + DC[k]
-            if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
+        i = 0
+        while i < fill[cb]:  # cells pushed into this bucket meanwhile are taken too
+            u = buckets[cb][i]
+            i += 1
+            queued -= 1
+            if done[u]:
                 continue
-            v = nr * cols + nc
-            if done[v] or not passable[nr, nc]:
-                continue
-            if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
-                continue
-            nd = du + edge_cost(surface, a, r, c, nr, nc)  # the planners' edge, one definition
-            if nd < dist[v]:
-                dist[v] = nd
-                b = max(int(nd / w), cur)
-                node, nxt, free = _push(head, nxt, node, free, b % nb, v)
-                queued += 1
+            done[u] = True
+            du = dist[u]
+            zu = np.float64(zf[u])
+            r = u // cols
+            c = u - r * cols
+            inner = 0 < r < rows - 1 and 0 < c < cols - 1
+            for k in range(8):
+                if not inner:
+                    nr = r + DR[k]
+                    nc = c + DC[k]
+                    if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
+                        continue
+                v = u + off[k]
+                if done[v] or not okf[v]:
+                    continue
+                if k & 1 and not (okf[u + DC[k]] and okf[u + DR[k] * cols]):
+                    continue  # no corner cutting
+                nd = du + edge_length(h2[k], np.float64(zf[v]) - zu)  # the planners' edge
+                if nd < dist[v]:
+                    dist[v] = nd
+                    b = max(int(nd / w), cur) % nb
+                    if fill[b] == cap[b]:
+                        grown = np.empty(2 * cap[b], dtype=np.int64)
+                        grown[: fill[b]] = buckets[b][: fill[b]]
+                        buckets[b] = grown
+                        cap[b] *= 2
+                    buckets[b][fill[b]] = v
+                    fill[b] += 1
+                    queued += 1
+        fill[cb] = 0
+        cur += 1
     return dist.reshape(rows, cols)
 
 

@@ -56,11 +56,18 @@ class Trajectory:
 
 
 @njit(inline="always", cache=True)
+def edge_length(h2, dz):
+    """The 3-D length of a move: ``h2`` its squared horizontal length, ``dz`` its rise."""
+    return math.sqrt(h2 + dz * dz)
+
+
+@njit(inline="always", cache=True)
 def edge_cost(surface, a, r, c, nr, nc):
+    """The cost of the move (r, c) -> (nr, nc): its 3-D length along the surface."""
     dr = nr - r
     dc = nc - c
     dz = np.float64(surface[nr, nc]) - np.float64(surface[r, c])
-    return math.sqrt(a * a * (dr * dr + dc * dc) + dz * dz)
+    return edge_length(a * a * (dr * dr + dc * dc), dz)
 
 
 # ties in f go to the state nearer the goal: the heap key is g + weight * (1 + TIE) * h. A* with
