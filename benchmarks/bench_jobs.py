@@ -10,7 +10,6 @@ compilation timed apart.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import os
 import re
 import subprocess
@@ -63,10 +62,6 @@ def demo() -> dict:
     return d
 
 
-def _stamp(line: str) -> float:
-    return dt.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-
-
 def cold_start() -> dict:
     """``./dev demo`` in a fresh clone of HEAD: total wall time, install, kernel compilation,
     the job, and the missions' recorded runtimes (from the log's timestamps)."""
@@ -81,22 +76,23 @@ def cold_start() -> dict:
         out = subprocess.run(["./dev", "demo"], cwd=clone, capture_output=True, text=True, env=env)
         wall = time.time() - t0
     log = out.stdout + out.stderr
-    lines = [ln for ln in log.splitlines() if re.match(r"\d{4}-\d\d-\d\d \d", ln)]
-    first = _stamp(lines[0]) if lines else t0
     compiled = re.search(r"kernels compiled in ([\d.]+) s", log)
     runtimes = [float(v) for v in re.findall(r"\[\d+/\d+\] .*\(([\d.]+) s\); flown", log)]
     job = re.search(r"catalog .*\(([\d.]+) s\)$", log, re.M)
+    job_s = float(job.group(1)) if job else None
+    said = out.stdout.strip().splitlines()
     return dict(
         exit=out.returncode,
         commit=commit,
         wall_s=wall,
-        install_s=first - t0,
+        # everything before the job: the virtual environment, the install, Python's start
+        install_s=wall - job_s if job_s is not None else None,
         compile_s=float(compiled.group(1)) if compiled else None,
         announced="compiling kernels, first run only" in log,
-        job_s=float(job.group(1)) if job else None,
+        job_s=job_s,
         mission_max_s=max(runtimes) if runtimes else None,
         missions=len(runtimes),
-        tail=log.strip().splitlines()[-1] if log.strip() else "",
+        tail=said[-1] if said else "",
     )
 
 
@@ -132,8 +128,9 @@ def main() -> None:
         rep.p(f"""`git clone` of commit {c["commit"]} into an empty directory, then `./dev demo`
               there: a new virtual environment (the library and its dependencies only, installed
               by uv), numba's cache empty. Exit {c["exit"]}; **{c["wall_s"]:.0f} s** in all:
-              installing {c["install_s"]:.0f} s, then the job {c["job_s"]} s, of which the
-              kernels' compilation, up front on both workers,
+              {c["install_s"]:.0f} s before the job (virtual environment, install, start), then
+              the job {c["job_s"]} s, of which the kernels' compilation, up front on both
+              workers,
               {c["compile_s"]} s (announced in the log: {"yes" if c["announced"] else "no"}).
               The {c["missions"]} missions' recorded runtimes are at most
               {c["mission_max_s"]} s (compilation excluded). Its last line: `{c["tail"]}`.""")
