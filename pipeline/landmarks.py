@@ -98,6 +98,8 @@ def dijkstra(surface, passable, a, sources):
     cur = 0  # the bucket index (not wrapped) being emptied
     while queued > 0:
         cb = cur % nb
+        if fill[cb] > 64:  # taken in memory order: the wavefront's rows are read in sequence
+            buckets[cb][: fill[cb]].sort()
         i = 0
         while i < fill[cb]:  # cells pushed into this bucket meanwhile are taken too
             u = buckets[cb][i]
