@@ -117,7 +117,8 @@ def main() -> None:
           under `/usr/bin/time -v`: exit {d["exit"]}, **{d["wall_s"]:.1f} s** wall, client
           process peak RSS **{d["client_peak_gib"]:.2f} GiB** (the 2 workers are separate
           processes). It generates the 2000 x 2000 DEM store, builds the maps store, plans eight
-          missions (four at a time), writes the catalog and starts and stops its cluster.
+          missions (each a task, one per worker at a time), writes the catalog and starts and
+          stops its cluster.
           Its last line: `{d["summary"]}`.""")
     for line in d["stages"]:
         rep.p(f"- {line}")
