@@ -207,7 +207,7 @@ def _on_cluster(client, m, items, defaults, vehicle, done) -> None:
         ): i
         for i in range(len(items))
     }
-    for fut in finished(futures):
+    for fut in finished(futures, loop=client.loop):
         i = futures[fut]
         try:
             t = fut.result()

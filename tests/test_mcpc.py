@@ -190,3 +190,28 @@ def test_same_result_on_every_scheduler(store, real_cluster):
     for name, t in runs.items():
         assert np.array_equal(t.cells, ref.cells), name
         assert t.length_m == ref.length_m, name
+
+
+def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
+    """On a cluster (a client that is not the default one), plan_missions runs every mission
+    as one task (its sections in turn inside it, no task per section), and each result equals
+    plan() of that mission on its own; a mission that cannot be planned fails alone, with its
+    reason."""
+    from distributed import get_task_stream
+
+    missions = [
+        {**MISSION, **SMALL},
+        {"start": MISSION["goal"], "goal": MISSION["start"], **SMALL, "omega": 1.5},
+        {"start": (0, 0), "goal": (5000, 5000)},  # outside the map: fails with its reason
+    ]
+    with get_task_stream(client=local_client) as ts:
+        got = pipeline.plan_missions(store, missions, client=local_client)
+    keys = [str(t["key"]) for t in ts.data]
+    assert sum(k.startswith("mission-") for k in keys) == len(missions), keys
+    assert not any("section" in k for k in keys), keys
+    for m, t in zip(missions[:2], got[:2], strict=True):
+        opts = {k: v for k, v in m.items() if k not in ("start", "goal")}
+        ref = pipeline.plan(store, m["start"], m["goal"], client="synchronous", **opts)
+        assert t.status == ref.status == "ok"
+        assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
+    assert got[2].status == "failed" and "goal" in got[2].message
