@@ -195,10 +195,7 @@ def test_console_script_runs_a_job(tmp_path, local_client):
         and "writing the DEM store" in proc.stderr
         and "dask dashboard: http" in proc.stderr
     )
-    proc = subprocess.run(
-        [str(exe), "run", str(job), *on], capture_output=True, text=True, timeout=300, env=env
-    )
-    assert proc.returncode == 0 and "is up to date: reusing it" in proc.stderr
+    # reusing the stores is test_run_job_builds_then_reuses_the_dem_store's; here the flag
     proc = subprocess.run(
         [str(exe), "run", str(job), *on, "--overwrite"],
         capture_output=True,
