@@ -551,6 +551,13 @@ def _fill_dask(z: da.Array, *, eager_solve: bool) -> da.Array:
 # --------------------------------------------------------------------------- D8 + accumulation
 
 
+@njit(inline="always", cache=True)
+def _drop(wc, wv, k):
+    """D8's drop per distance from a cell of height ``wc`` to its neighbour ``k`` of height
+    ``wv`` (float32 values, computed in float64)."""
+    return (np.float64(wc) - np.float64(wv)) / DIST[k]
+
+
 @njit(nogil=True, cache=True)
 def _d8(w, top, left, rows, cols):
     """D8 codes (0..7, -1 sink/no-data) of the ``rows x cols`` cells of ``w`` starting at
@@ -574,7 +581,7 @@ def _d8(w, top, left, rows, cols):
                 v = w[ni, nj]
                 if v != v:
                     continue
-                drop = (np.float64(c) - np.float64(v)) / DIST[k]
+                drop = _drop(c, v, k)
                 if drop > best:
                     best = drop
                     code = k
@@ -647,29 +654,20 @@ def _accumulate_single(filled):
                 continue
             best = 0.0
             code = -1
-            if inner_row and 0 < cj < cols - 1:
-                for k in range(8):
-                    v = f[c + off[k]]
-                    if v != v:
-                        continue
-                    # w_c - w_v with w = -f, in float64 as _d8 computes it
-                    drop = (np.float64(-fc) - np.float64(-v)) / DIST[k]
-                    if drop > best:
-                        best = drop
-                        code = k
-            else:
-                for k in range(8):
+            inner = inner_row and 0 < cj < cols - 1
+            for k in range(8):
+                if not inner:
                     ni = ci + DR[k]
                     nj = cj + DC[k]
                     if ni < 0 or ni >= rows or nj < 0 or nj >= cols:
                         continue
-                    v = f[c + off[k]]
-                    if v != v:
-                        continue
-                    drop = (np.float64(-fc) - np.float64(-v)) / DIST[k]
-                    if drop > best:
-                        best = drop
-                        code = k
+                v = f[c + off[k]]
+                if v != v:
+                    continue
+                drop = _drop(-fc, -v, k)  # on w = -f
+                if drop > best:
+                    best = drop
+                    code = k
             if code >= 0:
                 dirs[c] = code
                 indeg[c + off[code]] += 1
