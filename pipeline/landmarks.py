@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._grid8 import DC, DR
+from ._grid8 import DC, DR, flat_offsets, inside
 from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
 
@@ -77,10 +77,9 @@ def dijkstra(surface, passable, a, sources):
     cap = np.full(nb, 1024, dtype=np.int64)
     fill = np.zeros(nb, dtype=np.int64)
     buckets = [np.empty(1024, dtype=np.int64) for _ in range(nb)]
-    off = np.empty(8, dtype=np.int64)
+    off = flat_offsets(cols)
     h2 = np.empty(8)  # each move's squared horizontal length, as edge_cost computes it
     for k in range(8):
-        off[k] = DR[k] * cols + DC[k]
         h2[k] = a * a * (DR[k] * DR[k] + DC[k] * DC[k])
     queued = 0
     for s in sources:
@@ -114,11 +113,8 @@ def dijkstra(surface, passable, a, sources):
             c = u - r * cols
             inner = 0 < r < rows - 1 and 0 < c < cols - 1
             for k in range(8):
-                if not inner:
-                    nr = r + DR[k]
-                    nc = c + DC[k]
-                    if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
-                        continue
+                if not inner and not inside(r, c, k, rows, cols):
+                    continue
                 v = u + off[k]
                 if done[v] or not okf[v]:
                     continue

@@ -44,7 +44,7 @@ import xarray as xr
 import zarr
 from numba import njit
 
-from ._grid8 import DC, DIST, DR
+from ._grid8 import DC, DIST, DR, flat_offsets, inside
 from ._heap import heap_pop, heap_push
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
@@ -199,6 +199,7 @@ def _fill(z, outlet):
     out = outlet.ravel()
     NONE = np.int64(-1)
     # 1: descent and basins (node 0: the sea; pit nodes from 1)
+    off = flat_offsets(cols)
     down = np.full(n, -1, dtype=np.int8)  # the neighbour (D8 code) a cell descends to
     node = np.full(n, np.int32(-1), dtype=np.int32)
     npit = 0
@@ -214,7 +215,7 @@ def _fill(z, outlet):
             low = zc
             best = -1
             for k in range(8):  # a non-outlet cell has all 8 neighbours, all valid
-                m = c + DR[k] * cols + DC[k]
+                m = c + off[k]
                 if zf[m] < low:
                     low = zf[m]
                     best = k
@@ -236,7 +237,7 @@ def _fill(z, outlet):
                 path = grown
             path[np_] = x
             np_ += 1
-            x = x + DR[down[x]] * cols + DC[down[x]]
+            x = x + off[down[x]]
         b = node[x]
         for t in range(np_):
             node[path[t]] = b
@@ -642,9 +643,7 @@ def _accumulate_single(filled):
     f = filled.ravel()
     dirs = np.full(n, -1, dtype=np.int8)
     indeg = np.zeros(n, dtype=np.uint8)
-    off = np.empty(8, dtype=np.int64)
-    for k in range(8):
-        off[k] = DR[k] * cols + DC[k]
+    off = flat_offsets(cols)
     for ci in range(rows):
         inner_row = 0 < ci < rows - 1
         for cj in range(cols):
@@ -656,11 +655,8 @@ def _accumulate_single(filled):
             code = -1
             inner = inner_row and 0 < cj < cols - 1
             for k in range(8):
-                if not inner:
-                    ni = ci + DR[k]
-                    nj = cj + DC[k]
-                    if ni < 0 or ni >= rows or nj < 0 or nj >= cols:
-                        continue
+                if not inner and not inside(ci, cj, k, rows, cols):
+                    continue
                 v = f[c + off[k]]
                 if v != v:
                     continue

@@ -9,8 +9,9 @@ in two halves at once on two workers, before the job starts, says so in the log,
 stamp so that later runs skip it.
 
 The halves: one builds a tiny maps store (safety, ridges, components, landmarks) and plans on
-it with every planner; the other generates a tiny synthetic DEM, then, once that store exists,
-plans one mission on it and flies it (the flight's kernels). Each kernel is compiled with the
+it with every planner; the other compiles the safety kernels first (the store needs them),
+generates a tiny synthetic DEM, then, once that store exists, plans one mission on it and
+flies it (the flight's kernels). Each kernel is compiled with the
 argument types the pipeline uses, so later calls load it from the cache.
 """
 
