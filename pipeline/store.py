@@ -48,6 +48,56 @@ def damaged(path, what: str) -> PipelineError:
 COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine cells are
 
 
+def _direct_reader(arr, store: str, var: str):
+    """A reader of whole chunks of ``arr`` (``read(index) -> ndarray``, clipped to the array)
+    that opens the chunk's file and decodes it with numcodecs, or None when the array is not
+    laid out the way the maps stores are (Zarr 3 on a local directory, no sharding, the
+    ``bytes`` codec then one blosc or zstd compressor). zarr-python's own read costs about
+    1.5-2 ms a chunk more than the decode itself (benchmarks/RESULTS.md, "one mission"): a
+    mission reads 16 landmark chunks for its bound and a few per section."""
+    import numcodecs
+    from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
+    from zarr.storage import LocalStore
+
+    meta = arr.metadata
+    codecs = getattr(meta, "codecs", ())
+    if (
+        not isinstance(arr.store, LocalStore)
+        or len(codecs) != 2
+        or not isinstance(codecs[0], BytesCodec)
+        or getattr(codecs[0].endian, "value", "little") != "little"
+        or arr.dtype.byteorder == ">"
+        or arr.dtype.hasobject
+    ):
+        return None
+    if isinstance(codecs[1], BloscCodec):
+        decoder = numcodecs.Blosc()
+    elif isinstance(codecs[1], ZstdCodec):
+        decoder = numcodecs.Zstd()
+    else:
+        return None
+    root = os.path.join(str(arr.store.root), arr.path)
+    chunks, shape, dtype = tuple(arr.chunks), tuple(arr.shape), arr.dtype
+
+    def read(index: tuple):
+        key = meta.encode_chunk_key(index)
+        try:
+            with open(os.path.join(root, key), "rb") as f:
+                raw = f.read()
+        except FileNotFoundError:
+            return None
+        try:
+            block = np.frombuffer(decoder.decode(raw), dtype=dtype).reshape(chunks)
+        except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError, ValueError, ...
+            raise damaged(
+                store, f"chunk {key} of its layer {var!r} cannot be decoded ({exc})"
+            ) from None
+        clip = zip(index, chunks, shape, strict=True)
+        return block[tuple(slice(0, min(c, n - i * c)) for i, c, n in clip)]
+
+    return read
+
+
 class ChunkCache:
     """Decoded Zarr chunks of the maps stores this process has read (LRU, bounded in bytes).
 
@@ -59,6 +109,7 @@ class ChunkCache:
         self.used = 0
         self.items: OrderedDict = OrderedDict()
         self.arrays: dict = {}
+        self.readers: dict = {}
         self.lock = threading.Lock()
 
     def array(self, store: str, var: str):
@@ -69,7 +120,24 @@ class ChunkCache:
 
             arr = zarr.open_array(os.path.join(store, var), mode="r")
             self.arrays[key] = arr
+            self.readers[key] = _direct_reader(arr, store, var)
         return arr
+
+    def _read(self, store: str, var: str, index: tuple, selection: tuple, complete: bool):
+        """The chunk ``index`` of ``var`` (``selection``: the same as slices), decoded directly
+        where the layout allows, else through zarr; a missing chunk of a complete store is
+        damage."""
+        arr = self.array(store, var)
+        read = self.readers.get((store, var))
+        block = read(index) if read is not None else None
+        if block is not None:
+            return block
+        if complete:
+            path = os.path.join(store, var, arr.metadata.encode_chunk_key(index))
+            if not os.path.exists(path):
+                what = ", ".join(str(i) for i in index)
+                raise damaged(store, f"chunk ({what}) of its layer {var!r} is missing")
+        return arr[selection]
 
     def _cached(self, key, load) -> np.ndarray:
         """The block under ``key``, or ``load()`` kept under it (least recently used first
@@ -90,11 +158,9 @@ class ChunkCache:
 
     def chunk(self, store: str, var: str, ci: int, cj: int, complete: bool = False) -> np.ndarray:
         def load():
-            if complete and not os.path.exists(os.path.join(store, var, "c", str(ci), str(cj))):
-                raise damaged(store, f"chunk ({ci}, {cj}) of its layer {var!r} is missing")
-            arr = self.array(store, var)
-            ch, cw = arr.chunks
-            return arr[ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
+            ch, cw = self.array(store, var).chunks
+            sel = (slice(ci * ch, (ci + 1) * ch), slice(cj * cw, (cj + 1) * cw))
+            return self._read(store, var, (ci, cj), sel, complete)
 
         return self._cached((store, var, ci, cj), load)
 
@@ -124,10 +190,15 @@ class ChunkCache:
         ci, cj = r // ch, c // cw
 
         def load():
-            for i in range(arr.shape[0] if complete else 0):
-                if not os.path.exists(os.path.join(store, var, "c", str(i), str(ci), str(cj))):
-                    raise damaged(store, f"chunk ({i}, {ci}, {cj}) of its layer {var!r} is missing")
-            return arr[:, ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
+            rows, cols = slice(ci * ch, (ci + 1) * ch), slice(cj * cw, (cj + 1) * cw)
+            cl = arr.chunks[0]
+            parts = [
+                self._read(
+                    store, var, (k, ci, cj), (slice(k * cl, (k + 1) * cl), rows, cols), complete
+                )
+                for k in range(-(-arr.shape[0] // cl))
+            ]
+            return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
         return self._cached((store, var, "stack", ci, cj), load), ci * ch, cj * cw
 
@@ -135,6 +206,7 @@ class ChunkCache:
         with self.lock:
             self.items.clear()
             self.arrays.clear()
+            self.readers.clear()
             self.used = 0
 
 

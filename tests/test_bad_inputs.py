@@ -213,6 +213,10 @@ JOB_CASES = [
     ("extra:[planning]\nomega = inf", "planning.omega must be"),
     ("extra:[planning]\nplanner = 'rrt'", "planning.planner must be 'dijkstra'"),
     ("extra:[planning]\ncoarse_planner = 'rrt'", "planning.coarse_planner must be"),
+    (
+        "extra:[planning]\ncoarse_weight = 0.5",
+        "planning.coarse_weight must be a finite number >= 1",
+    ),
     ("extra:[planning]\nmcpc = 'yes'", "planning.mcpc must be true or false"),
     ("extra:[planning]\nrho = 0", "planning.rho must be an integer >= 1"),
     ("extra:[planning]\nsection_size = 1", "planning.section_size must be"),
@@ -396,6 +400,10 @@ TAMPER = [
     (lambda s: shutil.rmtree(s / "ridge"), "damaged: it is incomplete"),
     (lambda s: os.remove(s / "zarr.json"), "is not a Zarr store"),
     (lambda s: os.remove(s / "safety" / "c" / "0" / "1"), "chunk (0, 1) of its layer 'safety'"),
+    (
+        lambda s: (s / "safety" / "c" / "0" / "1").write_bytes(b"\x00" * 40),
+        "chunk c/0/1 of its layer 'safety' cannot be decoded",
+    ),
     (lambda s: _tamper_attr(s, "landmarks", "[[1, 2]]"), "damaged: its attributes"),
     (lambda s: shutil.rmtree(s / "landmark_distance"), "damaged: its landmark layers"),
     (

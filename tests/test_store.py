@@ -1,0 +1,100 @@
+"""The maps store's chunk reads: the direct decode (chunk file + numcodecs) against zarr's own
+reads, for every layout the stores use and awkward shapes; zarr for every other layout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+from zarr.codecs import BloscCodec, ZstdCodec
+
+import pipeline
+from pipeline.store import ChunkCache, _direct_reader
+
+CODECS = {
+    "blosc-lz4-shuffle": BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),
+    "blosc-zstd-bitshuffle": BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"),
+    "zstd": ZstdCodec(level=0),
+}
+# shapes with a last chunk of one cell, and a side modulo the chunk below any window
+SHAPES = [((65, 33), (16, 16)), ((40, 41), (40, 8)), ((7, 300), (3, 256))]
+
+
+def _array(path, data, chunks, codec, **kw):
+    a = zarr.create_array(
+        path, shape=data.shape, chunks=chunks, dtype=data.dtype, compressors=codec, **kw
+    )
+    a[...] = data
+    return zarr.open_array(path, mode="r")
+
+
+@pytest.mark.parametrize("codec", list(CODECS))
+@pytest.mark.parametrize("shape, chunks", SHAPES)
+@pytest.mark.parametrize("dtype", ["float32", "bool", "int32"])
+def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, dtype):
+    rng = np.random.default_rng(3)
+    data = rng.normal(size=shape).astype(np.float32) * 100
+    if dtype == "float32":
+        data[0, 0] = np.nan
+    data = data.astype(dtype) if dtype != "bool" else data > 0
+    arr = _array(tmp_path / "a", data, chunks, CODECS[codec])
+    assert _direct_reader(arr, str(tmp_path), "a") is not None  # the direct path is taken
+    cache = ChunkCache(2**30)
+    for _ in range(25):
+        r0, c0 = rng.integers(shape[0]), rng.integers(shape[1])
+        r1, c1 = rng.integers(r0, shape[0]) + 1, rng.integers(c0, shape[1]) + 1
+        got = cache.window(str(tmp_path), "a", r0, r1, c0, c1, complete=True)
+        np.testing.assert_array_equal(got, arr[r0:r1, c0:c1])
+        assert got.dtype == arr.dtype
+    np.testing.assert_array_equal(
+        cache.window(str(tmp_path), "a", 0, *shape[:1], 0, shape[1]), data
+    )
+
+
+def test_the_stack_of_landmark_layers_equals_zarr(tmp_path):
+    rng = np.random.default_rng(4)
+    data = rng.uniform(0, 1e5, size=(3, 70, 45)).astype(np.float32)
+    data[1, 60:, :] = np.inf
+    for chunks in ((1, 32, 32), (3, 16, 40), (2, 64, 64)):
+        arr = _array(tmp_path / f"l{chunks[0]}", data, chunks, CODECS["blosc-zstd-bitshuffle"])
+        cache = ChunkCache(2**30)
+        for r, c in ((0, 0), (69, 44), (33, 17), (64, 40)):
+            block, r0, c0 = cache.stack_block(str(tmp_path), f"l{chunks[0]}", r, c, True)
+            np.testing.assert_array_equal(block[:, r - r0, c - c0], arr[:, r, c])
+
+
+def test_other_layouts_are_read_by_zarr(tmp_path):
+    data = np.arange(40 * 40, dtype=np.float32).reshape(40, 40)
+    sharded = _array(tmp_path / "s", data, (8, 8), CODECS["zstd"], shards=(16, 16))
+    plain = _array(tmp_path / "p", data, (8, 8), None)  # no compressor
+    for name, arr in (("s", sharded), ("p", plain)):
+        assert _direct_reader(arr, str(tmp_path), name) is None
+        got = ChunkCache(2**30).window(str(tmp_path), name, 3, 29, 5, 40)
+        np.testing.assert_array_equal(got, data[3:29, 5:40])
+
+
+def test_a_missing_chunk_reads_as_the_fill_value_unless_the_store_is_complete(tmp_path):
+    a = zarr.create_array(
+        tmp_path / "m",
+        shape=(20, 20),
+        chunks=(10, 10),
+        dtype="float32",
+        fill_value=-7.0,
+        compressors=CODECS["blosc-lz4-shuffle"],
+    )
+    a[:10, :10] = 1.0  # the other three chunks are never written
+    cache = ChunkCache(2**30)
+    got = cache.window(str(tmp_path), "m", 5, 15, 5, 15)
+    assert (got[:5, :5] == 1.0).all() and (got[5:, :] == -7.0).all()
+    with pytest.raises(pipeline.PipelineError, match=r"chunk \(0, 1\) of its layer 'm' is missing"):
+        ChunkCache(2**30).window(str(tmp_path), "m", 5, 15, 5, 15, complete=True)
+
+
+def test_a_corrupt_chunk_is_damage_not_a_traceback(tmp_path):
+    data = np.ones((20, 20), dtype=np.float32)
+    _array(tmp_path / "c", data, (10, 10), CODECS["blosc-lz4-shuffle"])
+    (tmp_path / "c" / "c" / "1" / "0").write_bytes(b"not a blosc frame at all")
+    with pytest.raises(
+        pipeline.PipelineError, match=r"damaged: chunk c/1/0 of its layer 'c' cannot be decoded"
+    ):
+        ChunkCache(2**30).window(str(tmp_path), "c", 0, 20, 0, 20, complete=True)
