@@ -1,4 +1,4 @@
-"""A binary min-heap over two parallel arrays (keys, items), for numba kernels.
+"""A 4-ary min-heap over two parallel arrays (keys, items), for numba kernels.
 
 Generic over dtypes (numba compiles one version per signature): the fill uses float32 keys
 and int32 items, the searches float64 keys and int64 items. Ties pop in no set order.
@@ -15,7 +15,7 @@ def heap_push(keys, items, n, key, item):
     """Insert (key, item) into the heap of size ``n``; returns the new size."""
     k = n
     while k > 0:
-        p = (k - 1) >> 1
+        p = (k - 1) >> 2
         if key < keys[p]:
             keys[k] = keys[p]
             items[k] = items[p]
@@ -37,15 +37,19 @@ def heap_pop(keys, items, n):
     last_i = items[n]
     k = 0
     while True:
-        c = 2 * k + 1
+        c = 4 * k + 1
         if c >= n:
             break
-        if c + 1 < n and keys[c + 1] < keys[c]:
-            c += 1
-        if keys[c] < last_k:
-            keys[k] = keys[c]
-            items[k] = items[c]
-            k = c
+        m = c
+        mk = keys[c]
+        for j in range(c + 1, min(c + 4, n)):
+            if keys[j] < mk:
+                mk = keys[j]
+                m = j
+        if mk < last_k:
+            keys[k] = mk
+            items[k] = items[m]
+            k = m
         else:
             break
     keys[k] = last_k
