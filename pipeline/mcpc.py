@@ -22,7 +22,9 @@ Defaults (all in fine cells; ``a`` is the cell size in metres):
 from __future__ import annotations
 
 import math
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from numbers import Integral
 
@@ -255,13 +257,14 @@ def _section_batch(store: MapsStore, sections: list, planner: str, omega: float)
 
 
 def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -> list:
-    """Plan ``sections``; on a cluster as about two tasks per worker thread, each a run of
-    consecutive sections (a task costs a few milliseconds of scheduling, a small section
-    about as much to plan)."""
+    """Plan ``sections``; on a cluster as one task per worker thread, each a run of
+    consecutive sections (they share chunks, which the worker then decodes once). Measured
+    on 2 workers (benchmarks/RESULTS.md, "One mission"): two tasks per thread cost 30-40 %
+    more than one per thread (more round trips, and chunks decoded by both workers)."""
     if client == "synchronous":
         return _section_batch(store, sections, planner, omega)
     slots = max(1, sum(client.nthreads().values()))
-    k = min(len(sections), 2 * slots)
+    k = min(len(sections), slots)
     bounds = np.linspace(0, len(sections), k + 1).round().astype(int)
     batches = [sections[bounds[i] : bounds[i + 1]] for i in range(k)]
     futures = client.map(
@@ -371,6 +374,7 @@ def plan(
     section_size: int | None = None,
     margin: int | None = None,
     coarse_planner: str = PLANNING.coarse_planner.default,
+    coarse_weight: float = PLANNING.coarse_weight.default,
     repair_max_cells: int = PLANNING.repair_max_cells.default,
     client=None,
 ) -> Trajectory:
@@ -405,6 +409,14 @@ def plan(
     coarse_planner : str
         Planner of the coarse path (A*, the paper's choice). Coarse ridge cells are those whose
         block is at least half ridge.
+    coarse_weight : float
+        For the bounded planners (wastar, ra_star, lagrangian) the coarse A* is weighted A* of
+        weight ``min(coarse_weight, omega)`` (1: exact A*, as in the paper): the coarse path
+        only guides the sections, and at 1.05 it expands about 1/20 of the cells (1-4 ms
+        instead of 20-30 ms on a coarse grid of 1000^2) for a path at most 5 % longer than the
+        coarse optimum (0.1-2 % measured). The optimal planners (astar, dijkstra) keep the
+        exact coarse A*: their stitched paths follow the coarse route, and a 5 % detour there
+        is 5 % on the result. Other coarse planners run with the mission's omega.
     repair_max_cells : int
         The largest map (rows x cols) on which an uncertified MCPC path is planned again on
         the whole map; 0 never does.
@@ -429,6 +441,7 @@ def plan(
         planner, omega, m, rho, section_size, margin
     )
     check_planner(coarse_planner, omega, "coarse_planner")
+    coarse_weight = PLANNING.coarse_weight.check(coarse_weight)
     mcpc = PLANNING.mcpc.check(mcpc)
     repair_max_cells = PLANNING.repair_max_cells.check(repair_max_cells)
     start, goal = _check_endpoints(m, start, goal)
@@ -446,11 +459,9 @@ def plan(
         "section_size": section_size,
         "margin": margin,
         "coarse_planner": coarse_planner,
+        "coarse_weight": coarse_weight,
     }
-    tb = time.perf_counter()
-    bound = m.lower_bound(start, goal)
-    extra["landmark_bound_m"] = bound
-    extra["bound_s"] = time.perf_counter() - tb
+    bound = _Bound(m, start, goal, extra)
     if not mcpc:
         return _certify(_plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
     try:
@@ -467,6 +478,7 @@ def plan(
             section_size,
             margin,
             coarse_planner,
+            coarse_weight,
             bound,
         )
     except UnreachableGoalError as exc:
@@ -493,6 +505,34 @@ def plan(
     whole = _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound)
     repair["seconds"] = time.perf_counter() - tr
     return _certify(whole)
+
+
+class _Bound:
+    """The landmark bound of a mission (:meth:`MapsStore.lower_bound`), read in a thread while
+    the coarse path and the sections are planned (it decodes one chunk of every landmark layer
+    at each end, 16 chunks: about as long as the coarse search); ``value()`` waits for it and
+    records it and its time in ``extra``."""
+
+    _pool = None
+    _pool_lock = threading.Lock()
+
+    def __init__(self, m: MapsStore, start, goal, extra: dict):
+        with self._pool_lock:
+            if _Bound._pool is None:
+                _Bound._pool = ThreadPoolExecutor(2, thread_name_prefix="pipeline-bound")
+        self.extra = extra
+        self.future = _Bound._pool.submit(self._read, m, start, goal)
+
+    @staticmethod
+    def _read(m, start, goal):
+        t0 = time.perf_counter()
+        return m.lower_bound(start, goal), time.perf_counter() - t0
+
+    def value(self) -> float:
+        bound, seconds = self.future.result()
+        self.extra["landmark_bound_m"] = bound
+        self.extra["bound_s"] = seconds
+        return bound
 
 
 # ``length <= omega * lower`` is checked up to this relative tolerance: the floating point of
@@ -540,7 +580,7 @@ def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Tra
         raise UnreachableGoalError(f"no path on the whole map: {res.message}")
     extra["sections"] = [_section_summary(res, whole)]
     # a search of the whole map proves its own bound on L*
-    lower = max(bound, res.lower_bound_m)
+    lower = max(bound.value(), res.lower_bound_m)
     return _finish(m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower)
 
 
@@ -557,6 +597,7 @@ def _plan_mcpc(
     section_size,
     margin,
     coarse_planner,
+    coarse_weight,
     bound,
 ) -> Trajectory:
     # 1-2: compression (cached) and the coarse path
@@ -570,6 +611,12 @@ def _plan_mcpc(
             f"no passable coarse cell near the {which} at rho={rho}; "
             "try a smaller rho or mcpc=False"
         )
+    # the coarse A* is weighted A* (see ``coarse_weight``); other planners take omega
+    weight = 1.0 if PLANNERS[planner].optimal else min(coarse_weight, omega)
+    if coarse_planner == "astar" and weight > 1.0:
+        coarse_planner, coarse_omega = "wastar", weight
+    else:
+        coarse_omega = omega
     try:
         ct = plan_window(
             co["safety"],
@@ -579,7 +626,7 @@ def _plan_mcpc(
             cg,
             cell_size=m.cell_size * rho,
             planner=coarse_planner,
-            omega=omega,
+            omega=coarse_omega,
         )
     except UnreachableGoalError:
         raise UnreachableGoalError(
@@ -618,7 +665,7 @@ def _plan_mcpc(
     extra["sections"] = [_section_summary(r, sec) for r, sec in zip(results, sections, strict=True)]
     expansions = ct.expansions + sum(r.expansions for r in results)
     # the sections' own bounds hold on their windows only: the landmark bound is the proof
-    return _finish(m, results, planner, omega, start, goal, expansions, t0, extra, bound)
+    return _finish(m, results, planner, omega, start, goal, expansions, t0, extra, bound.value())
 
 
 def plan_sections(

@@ -274,6 +274,15 @@ PLANNING = Schema(
         "coarse_planner", "choice", "astar", "planner of the coarse path", choices=_planner_names
     ),
     Param(
+        "coarse_weight",
+        "float",
+        1.05,
+        "weight of the coarse A* for the bounded planners (weighted A*, at most omega; 1: "
+        "exact A*, which astar and dijkstra always use): the coarse path, a guide for the "
+        "sections, is within this factor of the coarse optimum",
+        minimum=1,
+    ),
+    Param(
         "repair_max_cells",
         "int",
         25_000_000,

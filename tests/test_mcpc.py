@@ -123,6 +123,44 @@ def test_one_window_equals_scipy_and_bounds_mcpc(store, arrays):
     assert opt * (1 - 1e-9) <= mc.length_m <= 1.5 * opt  # MCPC costs some optimality
 
 
+@pytest.mark.parametrize(
+    ("planner", "coarse_weight", "omega", "weight"),
+    [
+        ("ra_star", 1.0, 1.5, 1.0),
+        ("ra_star", 1.3, 1.5, 1.3),
+        ("lagrangian", 1.3, 1.1, 1.1),
+        ("astar", 1.3, 1.5, 1.0),  # the optimal planners keep the exact coarse A*
+    ],
+)
+def test_the_coarse_path_is_within_its_weight_of_the_coarse_optimum(
+    store, planner, coarse_weight, omega, weight
+):
+    """The coarse A* is weighted A* of weight min(coarse_weight, omega) for the bounded
+    planners, exact A* for the optimal ones: its path is at most that factor longer than the
+    coarse map's optimum (scipy on the coarse graph), and equal to it at weight 1."""
+    from pipeline.planners.core import path_metrics
+
+    m = pipeline.open_store(store)
+    t = pipeline.plan(
+        store,
+        **MISSION,
+        planner=planner,
+        omega=omega,
+        client="synchronous",
+        coarse_weight=coarse_weight,
+        **SMALL,
+    )
+    co = m.coarse(SMALL["rho"])
+    cells = np.array(t.extra["coarse_cells"])
+    z = co["safety"][cells[:, 0], cells[:, 1]]
+    length, _, _ = path_metrics(cells, z, np.zeros(len(cells), bool), A * SMALL["rho"])
+    opt = reference_length(co["safety"], co["passable"], A * SMALL["rho"], cells[0], cells[-1])
+    assert opt * (1 - 1e-9) <= length <= weight * opt * (1 + 1e-9)
+    if weight == 1.0:
+        assert math.isclose(length, opt, rel_tol=1e-9)
+    assert t.extra["coarse_weight"] == coarse_weight
+
+
 # ------------------------------------------------------------------ fallbacks and errors
 
 
@@ -164,6 +202,8 @@ def test_unreachable_goal_is_a_clear_error_not_a_hang(store, arrays):
         (dict(section_size=3), InvalidParameterError, "section_size"),
         (dict(margin=-1), InvalidParameterError, "margin"),
         (dict(planner="rrt"), InvalidParameterError, "planner"),
+        (dict(coarse_weight=0.99), InvalidParameterError, "coarse_weight"),
+        (dict(coarse_weight=float("nan")), InvalidParameterError, "coarse_weight"),
         (dict(client=42), InvalidParameterError, "client"),
     ],
 )

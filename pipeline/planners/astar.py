@@ -31,8 +31,12 @@ def _weighted(weight_of):
     return search
 
 
-DIJKSTRA = Planner("dijkstra", _weighted(lambda omega: 0.0), "optimal, no heuristic")
+DIJKSTRA = Planner("dijkstra", _weighted(lambda omega: 0.0), "optimal, no heuristic", optimal=True)
 ASTAR = Planner(
-    "astar", _weighted(lambda omega: 1.0), "optimal, octile or landmark heuristic", True
+    "astar",
+    _weighted(lambda omega: 1.0),
+    "optimal, octile or landmark heuristic",
+    True,
+    optimal=True,
 )
 WASTAR = Planner("wastar", _weighted(float), "weighted A*: length <= omega * L*", True)

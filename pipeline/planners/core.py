@@ -407,3 +407,4 @@ class Planner:
     search: Callable[..., Search]
     summary: str
     uses_landmarks: bool = False  # whether ``landmarks`` serves its heuristic
+    optimal: bool = False  # whether it returns a shortest path (omega plays no part)
