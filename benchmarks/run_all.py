@@ -34,7 +34,18 @@ ROOT = HERE.parent
 OUT = HERE / "out"
 LOGS = OUT / "logs"
 # the order the scripts run in and their parts appear in
-SCRIPTS = ["dem", "safety", "ridges", "planners", "mcpc", "jobs", "realdata", "certify", "flight"]
+SCRIPTS = [
+    "dem",
+    "safety",
+    "ridges",
+    "planners",
+    "mcpc",
+    "latency",
+    "jobs",
+    "realdata",
+    "certify",
+    "flight",
+]
 
 PAPER_INDEX = [
     (

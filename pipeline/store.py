@@ -48,7 +48,7 @@ def damaged(path, what: str) -> PipelineError:
 COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine cells are
 
 
-def _direct_reader(arr, store: str, var: str):
+def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index) -> ndarray``, clipped to the array)
     that opens the chunk's file and decodes it with numcodecs, or None when the array is not
     laid out the way the maps stores are (Zarr 3 on a local directory, no sharding, the
@@ -120,7 +120,7 @@ class ChunkCache:
 
             arr = zarr.open_array(os.path.join(store, var), mode="r")
             self.arrays[key] = arr
-            self.readers[key] = _direct_reader(arr, store, var)
+            self.readers[key] = direct_reader(arr, store, var)
         return arr
 
     def _read(self, store: str, var: str, index: tuple, selection: tuple, complete: bool):

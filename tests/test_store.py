@@ -9,7 +9,7 @@ import zarr
 from zarr.codecs import BloscCodec, ZstdCodec
 
 import pipeline
-from pipeline.store import ChunkCache, _direct_reader
+from pipeline.store import ChunkCache, direct_reader
 
 CODECS = {
     "blosc-lz4-shuffle": BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),
@@ -38,7 +38,7 @@ def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, dtype):
         data[0, 0] = np.nan
     data = data.astype(dtype) if dtype != "bool" else data > 0
     arr = _array(tmp_path / "a", data, chunks, CODECS[codec])
-    assert _direct_reader(arr, str(tmp_path), "a") is not None  # the direct path is taken
+    assert direct_reader(arr, str(tmp_path), "a") is not None  # the direct path is taken
     cache = ChunkCache(2**30)
     for _ in range(25):
         r0, c0 = rng.integers(shape[0]), rng.integers(shape[1])
@@ -68,7 +68,7 @@ def test_other_layouts_are_read_by_zarr(tmp_path):
     sharded = _array(tmp_path / "s", data, (8, 8), CODECS["zstd"], shards=(16, 16))
     plain = _array(tmp_path / "p", data, (8, 8), None)  # no compressor
     for name, arr in (("s", sharded), ("p", plain)):
-        assert _direct_reader(arr, str(tmp_path), name) is None
+        assert direct_reader(arr, str(tmp_path), name) is None
         got = ChunkCache(2**30).window(str(tmp_path), name, 3, 29, 5, 40)
         np.testing.assert_array_equal(got, data[3:29, 5:40])
 

@@ -1,0 +1,158 @@
+"""Issue 17: one mission at a time against pyastar2d, on the benchmark maps stores.
+
+Per side (2000^2, 4000^2, 10000^2; benchmarks/out/maps{n}.zarr, built once): 20 missions at
+least half the side apart, planned one at a time by
+
+- ``plan()`` with ra_star, omega 2, MCPC defaults, on a LocalCluster of 2 single-threaded
+  workers (sections as tasks) and in this process (``client="synchronous"``);
+- ``plan()`` with lagrangian, omega 2, on the cluster;
+- pyastar2d (C++ A*, uniform cost, no 3-D surface, no ridges) on the whole grid, its weight
+  grid (1 passable, inf otherwise) built before the clock.
+
+Each tool runs its missions back to back after one warm-up mission (for pyastar2d too: its
+first call on a large grid pays for the memory it allocates; interleaving the tools would
+charge that again and again). The fixed cost of a mission: the in-process wall time less the
+time of its sections' searches (the coarse search, window reads, snapping, the landmark
+bound, stitching).
+
+    .venv/bin/python benchmarks/bench_latency.py [--quick] [--sides 2000 4000 ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+from _common import OUT, machine, maps_store
+from _report import Report, faster
+
+RUNS = (
+    ("ra_star, cluster", "ra_star", "cluster"),
+    ("ra_star, in-process", "ra_star", "synchronous"),
+    ("lagrangian, cluster", "lagrangian", "cluster"),
+)
+
+
+def missions(ok: np.ndarray, k: int, seed: int):
+    from bench_mcpc import missions as pick
+
+    return pick(ok, k, seed)
+
+
+def run_side(client, n: int, k: int) -> dict:
+    import pyastar2d
+
+    import pipeline
+    from pipeline.store import open_store
+
+    m = open_store(maps_store(n))
+    ok = m.window("passable", 0, n, 0, n)
+    ms = missions(ok, k + 1, seed=1000 + n)
+    out = {}
+    for name, planner, where in RUNS:
+        run_on = client if where == "cluster" else "synchronous"
+        pipeline.plan(m, *ms[0], planner=planner, omega=2.0, client=run_on)  # warm-up
+        times, fixed, search, read = [], [], [], []
+        for s, g in ms[1:]:
+            t0 = time.perf_counter()
+            t = pipeline.plan(m, s, g, planner=planner, omega=2.0, client=run_on)
+            dt = time.perf_counter() - t0
+            times.append(dt)
+            secs = t.extra["sections"]
+            search.append(sum(sec["runtime_s"] or 0.0 for sec in secs))
+            read.append(sum(sec["read_s"] or 0.0 for sec in secs))
+            fixed.append(dt - search[-1])
+        out[name] = float(np.median(times))
+        if where == "synchronous":
+            out.update(
+                fixed=float(np.median(fixed)),
+                search=float(np.median(search)),
+                read=float(np.median(read)),
+            )
+    w = np.where(ok, np.float32(1.0), np.float32(np.inf))
+    pyastar2d.astar_path(w, ms[0][0], ms[0][1], allow_diagonal=True)  # warm-up
+    times = []
+    for s, g in ms[1:]:
+        t0 = time.perf_counter()
+        pyastar2d.astar_path(w, s, g, allow_diagonal=True)
+        times.append(time.perf_counter() - t0)
+    out["pyastar2d"] = float(np.median(times))
+    print(n, {key: round(v * 1e3, 1) for key, v in out.items()}, "ms", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="2000^2 only, 5 missions")
+    ap.add_argument("--sides", type=int, nargs="*")
+    args = ap.parse_args()
+    sides = args.sides or ([2000] if args.quick else [2000, 4000, 10000])
+    k = 5 if args.quick else 20
+    print(machine(), flush=True)
+    for n in sides:
+        maps_store(n)
+    rep = Report(
+        "mission-latency",
+        5,
+        "One mission against pyastar2d",
+        ".venv/bin/python benchmarks/bench_latency.py",
+        args.quick,
+    )
+    from distributed import Client, LocalCluster
+
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl,
+        Client(cl) as client,
+    ):
+        rows = {n: run_side(client, n, k) for n in sides}
+    (OUT / "latency.json").write_text(json.dumps({str(n): r for n, r in rows.items()}, indent=1))
+    rep.p(f"""{k} missions per side (start-goal >= side / 2, both passable), omega 2, MCPC with
+          its defaults, one `plan()` at a time: on a LocalCluster of 2 workers (sections as
+          tasks) and in this process (`client="synchronous"`, sections in turn). pyastar2d
+          (C++ A*, uniform cost, no 3-D surface, no ridges: an easier problem) on the whole
+          grid, its weight grid built before the clock. Each tool runs its missions back to
+          back after one warm-up mission. Medians in milliseconds. Fixed cost: the in-process
+          mission's wall time less its sections' searches (coarse search, window reads, in
+          their own column, snapping, the landmark bound, stitching).""")
+    names = [name for name, *_ in RUNS]
+    rep.table(
+        [
+            "side",
+            *[f"{nm} ms" for nm in names],
+            "pyastar2d ms",
+            "ra_star (cluster) against pyastar2d",
+            "lagrangian (cluster) against pyastar2d",
+            "fixed cost ms (reads)",
+            "sections' search ms",
+        ],
+        [
+            [
+                f"{n}^2",
+                *[1e3 * r[nm] for nm in names],
+                1e3 * r["pyastar2d"],
+                faster(r["pyastar2d"], r["ra_star, cluster"]),
+                faster(r["pyastar2d"], r["lagrangian, cluster"]),
+                f"{1e3 * r['fixed']:.1f} ({1e3 * r['read']:.1f})",
+                1e3 * r["search"],
+            ]
+            for n, r in rows.items()
+        ],
+    )
+    big = max(rows)
+    rep.headline(
+        "latency",
+        54,
+        f"one mission against pyastar2d, {', '.join(f'{n}^2' for n in rows)} (ra_star + MCPC)",
+        ", ".join(f"{1e3 * r['ra_star, cluster']:.0f} ms" for r in rows.values())
+        + f"; fixed cost {1e3 * rows[big]['fixed']:.0f} ms at {big}^2",
+        peer="pyastar2d: "
+        + ", ".join(faster(r["pyastar2d"], r["ra_star, cluster"]) for r in rows.values()),
+        target="faster at 2000^2 and 4000^2, 3x at 10000^2; fixed cost < 10 ms",
+    )
+    rep.save()
+
+
+if __name__ == "__main__":
+    main()
