@@ -4,6 +4,7 @@
 Layout under the catalog directory::
 
     catalog.json                      root catalog
+    index.html, report/hillshade.png  the offline report for a browser (pipeline.report)
     missions/collection.json          the job's Collection; asset missions.parquet
     missions/missions.parquet         one row per mission (LineString, auv: properties)
     missions/<id>/<id>.json           one Item per mission (failed ones too)

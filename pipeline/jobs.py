@@ -365,11 +365,25 @@ class JobResult:
     ran: int = 0  # missions this run planned or tried
     replanned: int = 0  # finished missions planned again because they changed
     crs_wkt: str | None = None
+    report: Path | None = None  # the catalog's index.html
     run_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
 
     @property
     def ok(self) -> bool:
         return not self.failed
+
+
+def _report(job: Job, maps_store: Path) -> Path:
+    """The catalog's offline report, ``index.html`` (:mod:`pipeline.report`)."""
+    from .report import write_report
+    from .store import open_store
+
+    maps = open_store(maps_store) if (maps_store / "zarr.json").exists() else None
+    path = write_report(
+        job.catalog, maps, title=job.name, mission_names=[m["name"] for m in job.missions]
+    )
+    log.info("job %s: report %s (open it in a browser; it needs no network)", job.name, path)
+    return path
 
 
 def run_job(
@@ -425,6 +439,7 @@ def run_job(
             description=f"Missions of job {job.name} ({job.path})",
             lonlat=bool(res.crs_wkt),
         )
+        res.report = _report(job, maps_store)
     res.seconds = time.perf_counter() - t0
     log.info(
         "job %s: %d planned, %d skipped (finished before), %d failed; catalog %s (%.1f s)",

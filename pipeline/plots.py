@@ -29,6 +29,31 @@ def _land(z: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(z), z >= 0, False)
 
 
+RELIEF_CMAP = "gist_earth"
+
+
+def shaded_relief(z: np.ndarray, a: float, *, vert_exag: float = 3.0):
+    """The hillshaded, depth-coloured picture of the grid ``z`` (cells of ``a`` metres, rows as
+    drawn): RGBA floats, no-data light grey, and the colour scale's ``vmin``, ``vmax`` (the
+    0.5 and 99.5 percentiles, the top at least sea level) of :data:`RELIEF_CMAP`."""
+    z = np.asarray(z, dtype=np.float64)
+    ls = LightSource(azdeg=315, altdeg=40)
+    zf = np.where(np.isfinite(z), z, np.nanmin(z))
+    vmin, vmax = float(np.nanpercentile(z, 0.5)), float(max(np.nanpercentile(z, 99.5), 0.0))
+    rgb = ls.shade(
+        zf,
+        cmap=plt.get_cmap(RELIEF_CMAP),
+        blend_mode="soft",
+        vert_exag=vert_exag,
+        dx=a,
+        dy=a,
+        vmin=vmin,
+        vmax=vmax,
+    )
+    rgb[~np.isfinite(z)] = (0.85, 0.85, 0.85, 1.0)
+    return rgb, vmin, vmax
+
+
 def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, colorbar=True):
     """Draw ``dem`` hillshaded and coloured by depth on ``ax`` (decimated to ``max_side``);
     ``colorbar``: True (beside the axes), False, or axes to draw it in, horizontally."""
@@ -39,14 +64,8 @@ def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, col
     y = np.asarray(sub["y"].values)
     if y[0] < y[-1]:  # draw north up
         z = z[::-1]
-    ls = LightSource(azdeg=315, altdeg=40)
-    zf = np.where(np.isfinite(z), z, np.nanmin(z))
-    vmin, vmax = float(np.nanpercentile(z, 0.5)), float(max(np.nanpercentile(z, 99.5), 0.0))
-    cmap = plt.get_cmap("gist_earth")
-    rgb = ls.shade(
-        zf, cmap=cmap, blend_mode="soft", vert_exag=vert_exag, dx=a, dy=a, vmin=vmin, vmax=vmax
-    )
-    rgb[~np.isfinite(z)] = (0.85, 0.85, 0.85, 1.0)
+    rgb, vmin, vmax = shaded_relief(z, a, vert_exag=vert_exag)
+    cmap = plt.get_cmap(RELIEF_CMAP)
     ax.imshow(rgb, extent=_extent_km(dem), origin="upper", interpolation="nearest")
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(vmin, vmax))
     if isinstance(colorbar, plt.Axes):

@@ -165,6 +165,88 @@ def test_geoparquet_and_pngs(done):
     assert (root / "performance-report.html").stat().st_size > 1000
 
 
+def _report_data(page) -> dict:
+    return json.loads(page.evaluate("document.getElementById('report-data').textContent"))
+
+
+def test_the_report_opens_offline_in_chromium(done, tmp_path):
+    """index.html in headless Chromium with the network off: the hillshade, every track with
+    its waypoints, start and goal, the table; a click on a track opens its properties, the
+    profile hides no close pass (against track.parquet), every file link resolves, the table
+    sorts; no failed request, no request off the disk, no console error."""
+    from _browser import offline_page
+
+    job, res = done
+    root = res.catalog.parent
+    assert res.report == root / "index.html"
+    items = {
+        it.id: it for it in pystac.Catalog.from_file(str(res.catalog)).get_items(recursive=True)
+    }
+    with offline_page(res.report) as (page, problems):
+        widths = page.evaluate(
+            "Array.from(document.querySelectorAll('img.leaflet-image-layer'))"
+            ".map(i => [i.naturalWidth, i.naturalHeight])"
+        )
+        assert len(widths) == 1 and min(widths[0]) > 100  # the hillshade, loaded from disk
+        ds = pipeline.open_maps(res.maps_store)
+        data = _report_data(page)
+        a = float(ds.attrs["cell_size"])
+        np.testing.assert_allclose(
+            data["hillshade"]["extent"],
+            [
+                ds.x.min() - a / 2,
+                ds.y.min() - a / 2,
+                ds.x.max() + a / 2,
+                ds.y.max() + a / 2,
+            ],
+        )
+        assert page.locator("path.track").count() == len(items)
+        wp = sum(it.properties["auv:waypoints"] for it in items.values())
+        assert page.locator("path.waypoint").count() == wp
+        assert page.locator("path.start").count() == page.locator("path.goal").count() == 4
+        rows = page.locator("#missions tbody tr")
+        assert rows.count() == len(items)
+        names = sorted(rows.nth(i).locator("td").first.inner_text() for i in range(4))
+        assert names == sorted(items)
+        # a click on a track: its properties in a popup and in the side panel
+        page.locator("path.track-xy").dispatch_event("click")
+        popup = page.locator(".leaflet-popup-content").inner_text()
+        p = items["xy"].properties
+        assert "lagrangian, 1.50" in popup and f"{p['auv:certified_ratio']:.4f}" in popup
+        assert f"{p['auv:length_m'] / 1e3:.2f} km" in popup
+        assert page.locator("#details-title").inner_text() == "xy"
+        for series in ("seabed", "required", "flown"):
+            assert page.locator(f"#profile svg .series-{series}").count() == 1
+        legend = page.locator("#profile-legend").inner_text()
+        assert "seabed" in legend and "lowest safe height" in legend and "flown" in legend
+        # every file of the mission is linked, and every link resolves on disk
+        hrefs = page.locator("#files a").evaluate_all("as => as.map(a => a.getAttribute('href'))")
+        assert {h.split("/")[-1] for h in hrefs} >= {
+            Path(v.href).name for v in items["xy"].assets.values()
+        }
+        assert all((root / h).is_file() for h in hrefs)
+        # sorting by length: ascending, then descending
+        head = page.locator("#missions th", has_text="length km")
+        for order in ("ascending", "descending"):
+            head.click()
+            got = rows.evaluate_all("rs => rs.map(r => Number(r.cells[4].dataset.value))")
+            assert got == sorted(got, reverse=order == "descending")
+            assert head.get_attribute("aria-sort") == order
+        page.screenshot(path=str(tmp_path / "report.png"), full_page=True)
+    assert problems == {"failed": [], "external": [], "errors": []}
+    # the profile keeps each track's highest seabed and lowest flown height (thinned by runs)
+    for m in data["missions"]:
+        t = gpd.read_parquet(root / "missions" / m["id"] / "track.parquet")
+        assert len(m["profile"]["flown"]) <= 1501
+        assert max(m["profile"]["seabed"]) == pytest.approx(t["seabed_m"].max(), abs=0.01)
+        assert min(m["profile"]["flown"]) == pytest.approx(t["z"].min(), abs=0.01)
+        assert min(m["profile"]["s_km"]) == 0 and m["profile"]["s_km"][-1] == pytest.approx(
+            t["s_m"].iloc[-1] / 1e3
+        )
+    shot = image.imread(tmp_path / "report.png")
+    assert shot.shape[0] > 1000 and shot[..., :3].std() > 0.05  # a page, not a blank
+
+
 def test_min_clearance_against_brute_force(done):
     """The reported clearance, against every grid point of the DEM (3-D distances)."""
     job, res = done
@@ -295,6 +377,22 @@ def test_bad_missions_job_reports_failed_items_and_exits_1(tmp_path, local_clien
     assert "off the map" in status["off-the-map"][1]
     assert "no coordinate reference system" in status["lonlat-without-crs"][1]
     assert items["start-on-land"].geometry is None
+    # the report: every mission in the table, the failed ones with their reasons
+    from _browser import offline_page
+
+    with offline_page(root / "index.html") as (page, problems):
+        rows = page.locator("#missions tbody tr")
+        assert rows.count() == len(items)
+        failed = page.locator("#missions tbody tr.failed")
+        assert failed.count() == 4
+        text = {
+            failed.nth(i).locator("td").first.inner_text(): failed.nth(i).inner_text()
+            for i in range(4)
+        }
+        assert set(text) == {k for k, (st, _) in status.items() if st == "failed"}
+        assert "on land" in text["start-on-land"] and "off the map" in text["off-the-map"]
+        assert page.locator("path.track").count() == 1  # only the good mission has a track
+    assert problems == {"failed": [], "external": [], "errors": []}
 
 
 # ------------------------------------------------------------------ kill, resume, lose a worker
@@ -430,7 +528,15 @@ def test_a_changed_mission_or_maps_is_planned_again(tmp_path, stores, local_clie
         assert item["properties"]["auv:min_clearance_m"] >= 200.0 - 1e-2
 
 
-NAMES = ["collection.json", "missions.parquet", "a#b?c\\\\d", "x" * 300, "nul\\u0000in", "ok"]
+NAMES = [
+    "collection.json",
+    "missions.parquet",
+    "a#b?c\\\\d",
+    "x" * 300,
+    "nul\\u0000in",
+    "ok",
+    "</script><b>bold</b>",
+]
 
 
 def test_any_mission_name_gives_a_catalog_pystac_loads(tmp_path, stores, local_client):
@@ -452,6 +558,14 @@ def test_any_mission_name_gives_a_catalog_pystac_loads(tmp_path, stores, local_c
     assert len({it.id for it in items}) == len(NAMES)
     table = gpd.read_parquet(res.catalog.parent / "missions" / "missions.parquet")
     assert len(table) == len(NAMES)
+    # the report shows every name as text: nothing in a name is taken as markup
+    from _browser import offline_page
+
+    with offline_page(res.report) as (page, problems):
+        shown = page.locator("#missions tbody tr td:first-child").all_inner_texts()
+        assert "</script><b>bold</b>" in shown and "ok" in shown and "x" * 300 in shown
+        assert page.locator("#missions b").count() == 0
+    assert problems == {"failed": [], "external": [], "errors": []}
 
 
 def test_a_second_run_on_a_busy_catalog_refuses(tmp_path, local_client):

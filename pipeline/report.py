@@ -1,0 +1,274 @@
+"""The catalog's report: ``index.html`` at the catalog's root, a page that opens with no
+network (from a USB stick, on a ship), in any current browser.
+
+What it shows, read from the catalog's own files (so it can be written again at any time):
+
+- a map (Leaflet, pan and zoom) of every mission's flown track over a hillshade of the DEM, in
+  the maps' own coordinates (kilometres), coloured by mission, with start, goal and waypoints;
+  clicking a track opens its properties;
+- per mission: its properties, the depth profile along the flown track (seabed, the lowest safe
+  height, the flown height) and links to every file the catalog holds for it;
+- a sortable table of all missions, failed ones with their reasons.
+
+Layout: ``index.html`` (Leaflet's script and style inlined, the missions' data as JSON inside
+it) and ``report/hillshade.png`` beside it; the mission files are linked where they are. The
+page's template, style and script are ``pipeline/static/report.{html,css,js}``; Leaflet 1.9.4
+ships with the package (``pipeline/static/leaflet``, BSD 2-Clause).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import html
+import json
+import math
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from .catalog import COLLECTION, finished
+
+STATIC = Path(__file__).parent / "static"  # the page, its style and script
+LEAFLET = STATIC / "leaflet"
+HILLSHADE_SIDE = 1600  # the hillshade picture's longer side at most, in pixels
+TRACK_POINTS = 1500  # points per track on the map and in the profile at most
+PALETTE = (
+    "#e41a1c",
+    "#377eb8",
+    "#4daf4a",
+    "#984ea3",
+    "#ff7f00",
+    "#a65628",
+    "#f781bf",
+    "#17becf",
+    "#bcbd22",
+    "#6a3d9a",
+)
+
+
+def write_report(root, maps=None, *, title: str, mission_names: list[str]) -> Path:
+    """Write ``index.html`` (and ``report/hillshade.png``) at the catalog ``root`` from the
+    Items and files of the missions ``mission_names``; ``maps`` (a :class:`MapsStore`, or
+    None) gives the hillshade and the coordinate system. Returns the page's path."""
+    root = Path(root)
+    side = root / "report"
+    side.mkdir(parents=True, exist_ok=True)
+    crs_wkt = getattr(maps, "crs_wkt", None)
+    data = {
+        "title": title,
+        "written": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "hillshade": _hillshade(maps, side / "hillshade.png") if maps is not None else None,
+        "missions": [],
+        "performance_report": (root / "performance-report.html").exists(),
+    }
+    for k, name in enumerate(mission_names):
+        item = finished(root, name)
+        if item is None:
+            continue
+        data["missions"].append(_mission(root, item, k, crs_wkt))
+    page = _page(data)
+    out = root / "index.html"
+    tmp = root / f".index.html.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.write_text(page, encoding="utf-8")
+    os.replace(tmp, out)
+    return out
+
+
+# --------------------------------------------------------------------------- data
+
+
+def _hillshade(maps, png: Path) -> dict:
+    """The DEM hillshaded (:func:`pipeline.plots.shaded_relief`), north up, at most
+    ``HILLSHADE_SIDE`` pixels a side; its extent in map metres and its colour scale."""
+    import matplotlib.pyplot as plt
+
+    from .plots import RELIEF_CMAP, shaded_relief
+
+    rows, cols = maps.shape
+    step = max(1, math.ceil(max(rows, cols) / HILLSHADE_SIDE))
+    z = np.asarray(maps.dataset["elevation"][::step, ::step].values, dtype=np.float64)
+    if maps.y[0] < maps.y[-1]:  # rows run south to north: draw north up
+        z = z[::-1]
+    rgb, vmin, vmax = shaded_relief(z, maps.cell_size * step)
+    from PIL import Image
+
+    tmp = png.with_name(f".{png.name}.tmp-{uuid.uuid4().hex[:8]}.png")
+    pixels = (np.clip(rgb[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)
+    Image.fromarray(pixels, "RGB").save(tmp, compress_level=3)  # level 6: 3x the time
+    os.replace(tmp, png)
+    a = maps.cell_size
+    cmap = plt.get_cmap(RELIEF_CMAP)
+    stops = [
+        "#{:02x}{:02x}{:02x}".format(*(int(round(255 * c)) for c in cmap(t)[:3]))
+        for t in np.linspace(0, 1, 11)
+    ]
+    return {
+        "href": f"report/{png.name}",
+        "extent": [
+            float(min(maps.x[0], maps.x[-1]) - a / 2),
+            float(min(maps.y[0], maps.y[-1]) - a / 2),
+            float(max(maps.x[0], maps.x[-1]) + a / 2),
+            float(max(maps.y[0], maps.y[-1]) + a / 2),
+        ],
+        "vmin": vmin,
+        "vmax": vmax,
+        "stops": stops,
+        "cells": [rows, cols],
+        "cell_size": a,
+    }
+
+
+def _mission(root: Path, item: dict, k: int, crs_wkt: str | None) -> dict:
+    p = item["properties"]
+    mid = item["id"]
+    folder = root / COLLECTION / mid
+    m = {
+        "id": mid,
+        "name": p.get("auv:name", mid),
+        "colour": PALETTE[k % len(PALETTE)],
+        "status": p.get("auv:status"),
+        "message": p.get("auv:message") or "",
+        "planner": p.get("auv:planner"),
+        "omega": p.get("auv:omega"),
+        "length_m": p.get("auv:length_m"),
+        "flown_length_m": p.get("auv:flown_length_m"),
+        "lower_bound_m": p.get("auv:lower_bound_m"),
+        "certified_ratio": p.get("auv:certified_ratio"),
+        "ridge_ratio": p.get("auv:ridge_ratio"),
+        "flown_ridge_ratio": p.get("auv:flown_ridge_ratio"),
+        "duration_s": p.get("auv:duration_s"),
+        "waypoint_count": p.get("auv:waypoints"),
+        "min_clearance_m": p.get("auv:min_clearance_m"),
+        "max_pitch_deg": p.get("auv:max_pitch_deg"),
+        "energy_wh": p.get("auv:energy_wh"),
+        "runtime_s": p.get("auv:runtime_s"),
+        "sections": p.get("auv:sections"),
+        "files": [{"href": f"{COLLECTION}/{mid}/{mid}.json", "title": "STAC Item (JSON)"}],
+        "track": None,
+        "profile": None,
+        "waypoints": [],
+    }
+    for key, asset in sorted(item.get("assets", {}).items()):
+        href = asset["href"][2:] if asset["href"].startswith("./") else asset["href"]
+        m["files"].append(
+            {"href": f"{COLLECTION}/{mid}/{href}", "title": asset.get("title") or key}
+        )
+    track = folder / "track.parquet"
+    grid = folder / "grid-path.parquet"
+    if track.exists():
+        t = _columns(track, ("x", "y", "z", "seabed_m", "required_m", "s_m"))
+        m["track"] = _thin_xy(t["x"], t["y"])
+        m["profile"] = _profile(t["s_m"], t["seabed_m"], t["required_m"], t["z"])
+    elif grid.exists():  # planned, not flown: the grid path on the safety surface
+        t = _columns(grid, ("x", "y", "z"))
+        s = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(t["x"]), np.diff(t["y"])))))
+        m["track"] = _thin_xy(t["x"], t["y"])
+        m["profile"] = _profile(s, None, t["z"], None)
+    wpt = folder / "waypoints.csv"
+    if wpt.exists():
+        m["waypoints"] = _waypoints(wpt, crs_wkt)
+    return m
+
+
+def _columns(path: Path, names) -> dict:
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(path, columns=list(names))
+    return {n: np.asarray(table.column(n).to_numpy(), dtype=np.float64) for n in names}
+
+
+def _buckets(n: int) -> np.ndarray:
+    """Bucket starts that cut ``n`` samples into at most ``TRACK_POINTS`` runs."""
+    return np.unique(np.linspace(0, n, min(n, TRACK_POINTS) + 1).astype(int))[:-1]
+
+
+def _thin_xy(x, y) -> list:
+    """A track thinned to at most ``TRACK_POINTS`` points (every k-th, the last kept)."""
+    idx = np.unique(np.append(_buckets(len(x)), len(x) - 1))
+    return [[round(float(x[i]), 2), round(float(y[i]), 2)] for i in idx]
+
+
+def _profile(s, seabed, required, z) -> dict:
+    """The profile thinned to at most ``TRACK_POINTS`` runs, without hiding a close pass: per
+    run the highest seabed and safe height and the lowest flown height."""
+    starts = _buckets(len(s))
+
+    def red(v, how):
+        if v is None:
+            return None
+        v = np.asarray(v, dtype=np.float64)
+        out = how.reduceat(v, starts)
+        return [round(float(u), 2) if math.isfinite(u) else None for u in out]
+
+    return {
+        "s_km": [round(float(v) / 1e3, 4) for v in np.asarray(s)[starts]] + [float(s[-1]) / 1e3],
+        "seabed": _end(red(seabed, np.fmax), seabed),
+        "required": _end(red(required, np.fmax), required),
+        "flown": _end(red(z, np.fmin), z),
+    }
+
+
+def _end(values, full):
+    """``values`` with the last sample appended (the profile reaches the goal)."""
+    if values is None:
+        return None
+    last = float(np.asarray(full)[-1])
+    return values + [round(last, 2) if math.isfinite(last) else None]
+
+
+def _waypoints(path: Path, crs_wkt: str | None) -> list:
+    """The waypoints in map coordinates: the CSV's x_m, y_m, or its lat, lon projected back
+    to the maps' coordinate system."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return []
+    if "x_m" in rows[0]:
+        return [[float(r["x_m"]), float(r["y_m"])] for r in rows]
+    if not crs_wkt:
+        return []
+    from pyproj import CRS, Transformer
+
+    tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(crs_wkt), always_xy=True)
+    x, y = tr.transform([float(r["lon"]) for r in rows], [float(r["lat"]) for r in rows])
+    return [[round(float(a), 2), round(float(b), 2)] for a, b in zip(x, y, strict=True)]
+
+
+# --------------------------------------------------------------------------- the page
+
+
+def _clean(v):
+    """JSON without NaN or infinity (None instead)."""
+    if isinstance(v, dict):
+        return {k: _clean(u) for k, u in v.items()}
+    if isinstance(v, list | tuple):
+        return [_clean(u) for u in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, np.generic):
+        return _clean(v.item())
+    return v
+
+
+def _page(data: dict) -> str:
+    """The page: ``static/report.html`` with Leaflet, the report's style and script
+    (``static/report.css``, ``static/report.js``) and the data inlined."""
+    payload = json.dumps(_clean(data), allow_nan=False, separators=(",", ":"))
+    payload = payload.replace("</", "<\\/")  # nothing in the data can close the script element
+
+    def read(path: Path) -> str:
+        return path.read_text(encoding="utf-8")
+
+    leaflet = read(LEAFLET / "leaflet.js").replace("//# sourceMappingURL=leaflet.js.map", "")
+    return (
+        read(STATIC / "report.html")
+        .replace("__TITLE__", html.escape(data["title"]))
+        .replace("/*__LEAFLET_CSS__*/", read(LEAFLET / "leaflet.css"))
+        .replace("/*__STYLE__*/", read(STATIC / "report.css"))
+        .replace("__DATA__", payload)
+        .replace("/*__LEAFLET_JS__*/", leaflet)  # no request for its source map
+        .replace("/*__APP__*/", read(STATIC / "report.js"))
+    )
