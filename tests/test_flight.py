@@ -236,7 +236,11 @@ def test_waypoints_geojson_and_csv_read_back(flown):
     np.testing.assert_allclose([float(r["time_s"]) for r in rows], f.waypoints[:, 3], atol=0.06)
     assert all(float(r["speed_m_s"]) == 2.0 for r in rows)
     alt = np.array([float(r["altitude_m"]) for r in rows])
-    assert alt.min() >= 150.0 - 0.01  # above the seabed by at least the clearance
+    # the guarantee is 3-D: at least R from every DEM grid point. Above the bilinear seabed
+    # under a waypoint that gives at least sqrt(R^2 - (a / sqrt 2)^2): the highest of the four
+    # grid points round it is at most a / sqrt 2 away horizontally (R 150 m, a 30 m: 148.49 m)
+    a, r = m.cell_size, 150.0
+    assert alt.min() >= math.sqrt(r * r - a * a / 2) - 0.01
 
 
 def test_track_parquet_is_geoparquet_in_lonlat(flown):
