@@ -25,6 +25,15 @@ def _option(param: Param, *, flag: str | None = None):
             show_default=True,
             help=param.help,
         )
+    if param.kind == "box":
+        return click.option(
+            flag or "--" + param.name.replace("_", "-"),
+            param.name,
+            type=float,
+            nargs=4,
+            default=None,
+            help=f"{param.help}: {param.unit}",
+        )
     if param.kind == "choice":
         kind = click.Choice(list(param.options()))
     else:
@@ -110,18 +119,19 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
 @_option(DEM.variable)
 @_option(DEM.cell_size)
 @_option(DEM.resolution)
+@_option(DEM.bbox)
+@_option(DEM.bbox_xy)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def dem_import(source, out, chunks, variable, cell_size, resolution, overwrite):
-    """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT."""
+def dem_import(source, out, overwrite, **options):
+    """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT
+    (options: those of open_dem, by the parameter schema)."""
     from .dem import open_dem, write_dem
 
     with _errors():
         t0 = time.perf_counter()
-        d = open_dem(
-            source, chunks=chunks, variable=variable, cell_size=cell_size, resolution=resolution
-        )
+        d = open_dem(source, **options)
         with _progress(f"importing {source} ({d.shape[0]} x {d.shape[1]} cells) into {out}"):
-            write_dem(d, out, chunks=chunks, overwrite=overwrite)
+            write_dem(d, out, chunks=options["chunks"], overwrite=overwrite)
         click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
 
 

@@ -79,6 +79,8 @@ def open_dem(
     cell_size: float | None = None,
     resolution: float | None = None,
     validate: bool = True,
+    bbox=None,
+    bbox_xy=None,
 ) -> xr.DataArray:
     """Open a DEM file as the canonical elevation DataArray.
 
@@ -101,6 +103,13 @@ def open_dem(
     validate : bool
         Check that the grid holds at least one valid cell (one pass over the data). Stores
         written by :func:`write_dem` were checked when written and skip this pass.
+    bbox : (lon_min, lat_min, lon_max, lat_max), optional
+        Read only this region (WGS84 degrees; a projected file needs a CRS): the cells whose
+        centres lie within it, and one more on each side. Nothing outside it is read, as the
+        file is read in chunks (a GeoTIFF in tiles, a NetCDF or Zarr file in its chunks).
+    bbox_xy : (x_min, y_min, x_max, y_max), optional
+        The same in the file's own coordinates (its units: metres, or degrees for a lon/lat
+        grid). At most one of ``bbox`` and ``bbox_xy``.
 
     Examples
     --------
@@ -115,17 +124,20 @@ def open_dem(
         cell_size = DEM.cell_size.check(cell_size)
     if resolution is not None:
         resolution = DEM.resolution.check(resolution)
+    region = _region(bbox, bbox_xy)
     kind = _kind_of(path)
     raw = _read(path, kind, chunks, variable)
     if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION and resolution is None:
-        dem = raw
+        dem = _crop(raw, path, _crs_of(raw), False, region)
         if chunks is None:
             dem = dem.load()
         else:
             dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
         return dem
     with reading(path):
-        dem = _canonicalise(raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution)
+        dem = _canonicalise(
+            raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution, region=region
+        )
         if validate:
             require_valid_cells(
                 dem,
@@ -197,10 +209,19 @@ def import_dem(
     cell_size: float | None = None,
     resolution: float | None = None,
     overwrite: bool = False,
+    bbox=None,
+    bbox_xy=None,
 ) -> Path:
-    """Open ``source`` with :func:`open_dem` and write it as the canonical Zarr store."""
+    """Open ``source`` with :func:`open_dem` (``bbox`` or ``bbox_xy``: only that region) and
+    write it as the canonical Zarr store."""
     dem = open_dem(
-        source, chunks=chunks, variable=variable, cell_size=cell_size, resolution=resolution
+        source,
+        chunks=chunks,
+        variable=variable,
+        cell_size=cell_size,
+        resolution=resolution,
+        bbox=bbox,
+        bbox_xy=bbox_xy,
     )
     return write_dem(dem, store, chunks=chunks, overwrite=overwrite)
 
@@ -353,6 +374,7 @@ def _canonicalise(
     chunks,
     cell_size: float | None,
     resolution: float | None = None,
+    region: tuple | None = None,
 ) -> xr.DataArray:
     if arr.dtype.kind not in "iuf":
         raise InvalidDEMError(f"DEM file {path}: values are of type {arr.dtype}, not numbers")
@@ -368,6 +390,7 @@ def _canonicalise(
     if "x" not in arr.coords or "y" not in arr.coords:
         arr = _synthesise_coords(arr, path, cell_size)
     geographic = _is_geographic(arr, crs, xdim, ydim)
+    arr = _crop(arr, path, crs, geographic, region)  # before anything reads a value
     if geographic:
         lat, lon = np.asarray(arr["y"].values, float), np.asarray(arr["x"].values, float)
         if np.abs(lat).max() > 90 or lon.min() < -360 or lon.max() > 360:
@@ -399,6 +422,79 @@ def _canonicalise(
     if chunks is None:
         return out.load() if isinstance(out.data, da.Array) else out
     return out.chunk(dict(zip(("y", "x"), chunks2d(chunks, out.shape), strict=True)))
+
+
+def _region(bbox, bbox_xy) -> tuple | None:
+    """``("lonlat" | "xy", box)`` from open_dem's ``bbox`` / ``bbox_xy``, checked, or None."""
+    if bbox is not None and bbox_xy is not None:
+        raise InvalidParameterError(
+            "give one of `bbox` (longitude and latitude) and `bbox_xy` (the file's own "
+            "coordinates), not both"
+        )
+    if bbox_xy is not None:
+        return "xy", DEM.bbox_xy.check(bbox_xy)
+    if bbox is None:
+        return None
+    box = DEM.bbox.check(bbox)
+    if not (-90 <= box[1] and box[3] <= 90 and -180 <= box[0] and box[2] <= 360):
+        raise InvalidParameterError(
+            f"`bbox` {list(bbox)} is not [lon_min, lat_min, lon_max, lat_max]: latitudes from "
+            "-90 to 90, longitudes from -180 to 360"
+        )
+    return "lonlat", box
+
+
+def _crop(arr: xr.DataArray, path: Path, crs, geographic: bool, region) -> xr.DataArray:
+    """The cells of ``arr`` (dims y, x with 1-D coordinates) whose centres lie in the region,
+    and one more on each side, selected lazily (only their chunks are ever read)."""
+    if region is None:
+        return arr
+    form, box = region
+    x = np.asarray(arr["x"].values, dtype=np.float64)
+    y = np.asarray(arr["y"].values, dtype=np.float64)
+    name = "bbox_xy" if form == "xy" else "bbox"
+    if form == "lonlat" and geographic:
+        lon0, lat0, lon1, lat1 = box
+        if x.max() > 180 and lon1 <= 0:  # a grid of longitudes 0..360: the same meridians
+            lon0, lon1 = lon0 + 360, lon1 + 360
+        elif x.max() > 180 and lon0 < 0:
+            raise InvalidParameterError(
+                f"`bbox` {list(box)} crosses longitude 0, where DEM file {path} (longitudes "
+                f"{x.min():g} to {x.max():g}) wraps; give longitudes from 0 to 360"
+            )
+        box = (lon0, lat0, lon1, lat1)
+    elif form == "lonlat":
+        if crs is None:
+            raise InvalidParameterError(
+                f"`bbox` is longitude and latitude, but DEM file {path} has no coordinate "
+                "reference system; give the region in the file's coordinates (bbox_xy)"
+            )
+        from pyproj import CRS, Transformer
+
+        tr = Transformer.from_crs("EPSG:4326", CRS.from_user_input(crs), always_xy=True)
+        box = tr.transform_bounds(*box, densify_pts=21)
+    ax = abs(x[1] - x[0]) if len(x) > 1 else 0.0
+    ay = abs(y[1] - y[0]) if len(y) > 1 else 0.0
+    cols = np.nonzero((x >= box[0] - ax) & (x <= box[2] + ax))[0]
+    rows = np.nonzero((y >= box[1] - ay) & (y <= box[3] + ay))[0]
+    if len(cols) < 2 or len(rows) < 2:
+        raise InvalidParameterError(
+            f"`{name}` {[round(v, 6) for v in box]} does not overlap DEM file {path} by 2 x 2 "
+            f"cells: its cell centres span x {x.min():g} to {x.max():g}, y {y.min():g} to "
+            f"{y.max():g}"
+        )
+    out = arr.isel(x=slice(cols[0], cols[-1] + 1), y=slice(rows[0], rows[-1] + 1))
+    log.info(
+        "DEM %s: reading the region %s = %s, %d x %d of %d x %d cells",
+        path,
+        name,
+        list(region[1]),
+        out.shape[0],
+        out.shape[1],
+        arr.shape[0],
+        arr.shape[1],
+    )
+    return out
 
 
 def _squeeze_to_2d(arr: xr.DataArray, path: Path) -> xr.DataArray:

@@ -5,14 +5,17 @@ missing file is one :class:`~pipeline.exceptions.JobFileError` naming the key an
 A job file::
 
     name = "demo"
-    [dem]                       # path = "survey.tif" (+ variable, cell_size, resolution), or:
+    [dem]                       # path = "survey.tif" (+ variable, cell_size, resolution, and
+                                # bbox = [lon_min, lat_min, lon_max, lat_max] or bbox_xy = [...]
+                                # in the file's coordinates: read only that region), or:
     chunks = 512
     [dem.synthetic]
     shape = [2000, 2000]        # cell_size, seed, islands
     [maps]                      # method, clearance, horizontal_clearance, sea_level,
     clearance = 300.0           # surface_clearance, min_accumulation
     [planning]                  # defaults of every mission: planner, omega, mcpc, rho,
-    planner = "ra_star"         # section_size, margin
+    planner = "ra_star"         # section_size, margin, coarse_planner, coarse_weight,
+                                # repair_max_cells
     omega = 2.0
     [vehicle]                   # speed_m_s, max_pitch_deg, min_turn_radius_m, waypoint_band_m,
     speed_m_s = 1.5             # hotel_power_w, propulsion_power_w, battery_wh
@@ -82,6 +85,8 @@ class Job:
     variable: str | None = None
     cell_size: float | None = None
     resolution: float | None = None
+    bbox: tuple | None = None  # [dem] bbox (lon/lat) or bbox_xy: the region read
+    bbox_xy: tuple | None = None
     synthetic: dict = field(default_factory=dict)
     maps: dict = field(default_factory=lambda: _maps_defaults({}))
     planning: dict = field(default_factory=dict)
@@ -124,6 +129,9 @@ class Job:
             }
             if self.resolution is not None:
                 what["resolution"] = self.resolution
+            for key in ("bbox", "bbox_xy"):
+                if getattr(self, key) is not None:
+                    what[key] = list(getattr(self, key))
         else:
             from .synthetic import GENERATOR_VERSION
 
@@ -207,8 +215,18 @@ def load_job(path: str | os.PathLike) -> Job:
         job.variable = given.get("variable")
         job.cell_size = given.get("cell_size")
         job.resolution = given.get("resolution")
+        job.bbox, job.bbox_xy = given.get("bbox"), given.get("bbox_xy")
+        if job.bbox is not None and job.bbox_xy is not None:
+            _fail(path, "give one of dem.bbox (longitude, latitude) and dem.bbox_xy, not both")
         cell = job.resolution  # the cell side the maps are built on, when the job says it
     else:
+        for key in ("bbox", "bbox_xy"):
+            if key in dem:
+                _fail(
+                    path,
+                    f"dem.{key} selects a region of a DEM file (dem.path), not of a "
+                    "synthetic DEM: set dem.synthetic.shape instead",
+                )
         syn = dem["synthetic"]
         if not isinstance(syn, dict):
             _fail(path, "dem.synthetic must be a table")
@@ -549,6 +567,8 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
                 variable=job.variable,
                 cell_size=job.cell_size,
                 resolution=job.resolution,
+                bbox=job.bbox,
+                bbox_xy=job.bbox_xy,
             )
         else:
             dem = synthetic_dem(chunks=job.chunks, **job.synthetic)

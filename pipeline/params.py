@@ -46,6 +46,8 @@ class Param:
         """What a valid value is, in words (the middle of every error message)."""
         if self.kind == "bool":
             return "true or false"
+        if self.kind == "box":
+            return f"four finite numbers {self.unit}, each minimum below its maximum"
         if self.kind == "str":
             return "a string"
         if self.kind == "choice":
@@ -84,6 +86,17 @@ class Param:
             if not isinstance(value, str) or value not in self.options():
                 raise bad()
             return value
+        if self.kind == "box":
+            try:
+                box = [float(v) for v in value]
+                ok = all(not isinstance(v, bool | str) for v in value)
+            except (TypeError, ValueError):
+                raise bad() from None
+            if not ok or len(box) != 4 or not all(math.isfinite(v) for v in box):
+                raise bad()
+            if not (box[0] < box[2] and box[1] < box[3]):
+                raise bad()
+            return tuple(box)
         if isinstance(value, bool) or not isinstance(
             value, Integral if self.kind == "int" else Real
         ):
@@ -194,6 +207,20 @@ DEM = Schema(
     Param("variable", "str", None, "variable to read from a NetCDF or Zarr file"),
     Param("cell_size", "float", None, "cell side of a grid without coordinates", "metres", above=0),
     Param("resolution", "float", None, "resample to square cells of this side", "metres", above=0),
+    Param(
+        "bbox",
+        "box",
+        None,
+        "read only this region of the file: longitude and latitude (WGS84) of its corners",
+        "[lon_min, lat_min, lon_max, lat_max] in degrees",
+    ),
+    Param(
+        "bbox_xy",
+        "box",
+        None,
+        "read only this region of the file, in the file's own coordinates",
+        "[x_min, y_min, x_max, y_max] in the file's units",
+    ),
 )
 
 MAPS = Schema(

@@ -192,6 +192,16 @@ JOB_CASES = [
     ("tables:[dem]\npath = 3", "dem.path must be a file path"),
     ("tables:[dem]\npath = '.'\nresolution = -1.0", "dem.resolution must be"),
     ("tables:[dem]\npath = '.'\ncell_size = 'big'", "dem.cell_size must be"),
+    ("tables:[dem]\npath = '.'\nbbox = [1, 2, 3]", "dem.bbox must be four finite numbers"),
+    ("tables:[dem]\npath = '.'\nbbox_xy = [5, 0, 1, 1]", "each minimum below its maximum"),
+    (
+        "tables:[dem]\npath = '.'\nbbox = [0, 0, 1, 1]\nbbox_xy = [0, 0, 1, 1]",
+        "one of dem.bbox (longitude, latitude) and dem.bbox_xy, not both",
+    ),
+    (
+        "tables:[dem]\nbbox = [0, 0, 1, 1]\n[dem.synthetic]\nshape = [4, 4]",
+        "dem.bbox selects a region of a DEM file",
+    ),
     ("extra:[maps]\nmethod = 'round'", "maps.method must be"),
     ("extra:[maps]\nclearance = 0", "maps.clearance must be a finite number of metres > 0"),
     ("extra:[maps]\nclearance = -5", "maps.clearance must be"),

@@ -425,3 +425,111 @@ def test_a_geotiff_is_read_in_chunks_not_whole(tmp_path):
     dem = pipeline.open_dem(tmp_path / "big.tif", chunks=64)
     assert dem.data.chunksize == (64, 64)
     assert pipeline.dem.file_chunks(tmp_path / "big.tif") == (64, 64)
+
+
+# ------------------------------------------------------------------ a region of a file (bbox)
+
+
+def _rchar() -> int:
+    """Bytes this process has read through read() calls so far (Linux /proc/self/io)."""
+    with open("/proc/self/io") as fh:
+        return int(next(v for k, v in (line.split(": ") for line in fh) if k == "rchar"))
+
+
+def test_bbox_xy_reads_only_its_window_of_a_tiled_geotiff(tmp_path):
+    """The region equals the cells of the array whose centres lie in the box, one cell more on
+    each side (indices computed here from the coordinates), and reading it reads the tiles it
+    touches, not the file (bytes read by this process, /proc/self/io)."""
+    import rioxarray  # noqa: F401
+
+    z = random_surface((2048, 2048), seed=4).astype(np.float32) * 100 - 3000
+    arr = metric_dataarray(z, a=50.0).rio.write_crs("EPSG:32610")
+    path = tmp_path / "big.tif"
+    arr.rio.to_raster(path, tiled=True, blockxsize=256, blockysize=256)
+    x, y = arr.x.values, arr.y.values
+    box = (x[700] + 10.0, y[1400] - 10.0, x[1000] - 10.0, y[1100] + 10.0)  # x0, y0, x1, y1
+    # the first read in a process imports modules (read() calls too): do it on another file
+    small = arr[:300, :300]
+    small.rio.to_raster(tmp_path / "small.tif", tiled=True, blockxsize=256, blockysize=256)
+    warm = (x[10], y[200], x[100], y[50])
+    pipeline.open_dem(tmp_path / "small.tif", chunks=256, bbox_xy=warm).values.sum()
+    before = _rchar()
+    dem = pipeline.open_dem(path, chunks=256, bbox_xy=box)
+    got = dem.values
+    read = _rchar() - before
+    cols = np.nonzero((x >= box[0] - 50) & (x <= box[2] + 50))[0]
+    rows = np.nonzero((y >= box[1] - 50) & (y <= box[3] + 50))[0]
+    np.testing.assert_array_equal(got, z[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1])
+    np.testing.assert_array_equal(dem.x.values, x[cols[0] : cols[-1] + 1])
+    assert got.shape == (
+        303,
+        301,
+    )  # rows 1099..1401 (the box edges lie 10 m outside), cols 700..1000
+    size = path.stat().st_size
+    assert read < 0.15 * size, (read, size)  # 3 x 3 of 8 x 8 tiles touched, and the header
+    before = _rchar()
+    whole = pipeline.open_dem(path, chunks=256).values  # the whole file, for scale
+    assert _rchar() - before > 0.9 * size and whole.shape == (2048, 2048)
+
+
+def test_bbox_in_lon_lat_on_a_projected_file_covers_the_box(tmp_path):
+    z = random_surface((400, 300), seed=5).astype(np.float32) * 50 - 2000
+    arr = metric_dataarray(z, a=50.0)
+    path = _write_tif(arr, tmp_path / "utm.tif")
+    to_ll = Transformer.from_crs("EPSG:32610", "EPSG:4326", always_xy=True)
+    lon0, lat0 = to_ll.transform(float(arr.x[60]), float(arr.y[300]))
+    lon1, lat1 = to_ll.transform(float(arr.x[200]), float(arr.y[100]))
+    dem = pipeline.open_dem(path, chunks=128, bbox=(lon0, lat0, lon1, lat1))
+    assert dem.shape[0] < 400 and dem.shape[1] < 300
+    # every point of the box's outline, in map coordinates, lies inside the region read
+    to_xy = Transformer.from_crs("EPSG:4326", "EPSG:32610", always_xy=True)
+    t = np.linspace(0, 1, 50)
+    ring = [
+        *zip(lon0 + t * (lon1 - lon0), np.full(50, lat0), strict=True),
+        *zip(lon0 + t * (lon1 - lon0), np.full(50, lat1), strict=True),
+        *zip(np.full(50, lon0), lat0 + t * (lat1 - lat0), strict=True),
+        *zip(np.full(50, lon1), lat0 + t * (lat1 - lat0), strict=True),
+    ]
+    bx, by = to_xy.transform(*np.array(ring).T)
+    assert dem.x.min() <= bx.min() and bx.max() <= dem.x.max()
+    assert dem.y.min() <= by.min() and by.max() <= dem.y.max()
+    # and it is the box, not much more: at most two cells beyond the outline on each side
+    assert dem.x.min() >= bx.min() - 100.5 and dem.x.max() <= bx.max() + 100.5
+    np.testing.assert_array_equal(dem.values, arr.sel(x=dem.x, y=dem.y).values)
+
+
+@pytest.mark.parametrize("fixture", ["topobathy_tif", "topobathy_nc"])
+def test_bbox_on_a_lon_lat_grid_either_longitude_convention(request, fixture):
+    """The real lon/lat grid, as a GeoTIFF (longitudes -180..180) and as a NetCDF file
+    (0..360): the same western-longitude box selects the same region, reprojected."""
+    path = request.getfixturevalue(fixture)
+    whole = pipeline.open_dem(path, chunks=None)
+    box = (-124.0, 48.3, -123.2, 48.9)
+    dem = pipeline.open_dem(path, chunks=None, bbox=box)
+    assert dem.size < 0.5 * whole.size
+    to_ll = Transformer.from_crs(CRS.from_wkt(dem.attrs["crs_wkt"]), "EPSG:4326", always_xy=True)
+    xx, yy = np.meshgrid(dem.x.values[[0, -1]], dem.y.values[[0, -1]])
+    lon, lat = to_ll.transform(xx.ravel(), yy.ravel())
+    assert lon.min() <= box[0] + 0.02 and lon.max() >= box[2] - 0.02  # it covers the box
+    assert lat.min() <= box[1] + 0.02 and lat.max() >= box[3] - 0.02
+    assert lon.min() >= box[0] - 0.1 and lat.max() <= box[3] + 0.1  # and not much more
+
+
+def test_bbox_errors_are_one_clear_line(tmp_path, topobathy_nc):
+    arr = metric_dataarray(random_surface((40, 40)), a=50.0)
+    plain = tmp_path / "plain.nc"
+    arr.to_dataset(name="elevation").to_netcdf(plain)  # no CRS
+    tif = _write_tif(arr, tmp_path / "a.tif")
+    cases = [
+        (dict(bbox=(-124, 48, -123, 49), bbox_xy=(0, 0, 1, 1)), tif, "not both"),
+        (dict(bbox=(-124, 48, -123)), tif, "bbox` must be four finite numbers"),
+        (dict(bbox=(-123, 48, -124, 49)), tif, "each minimum below its maximum"),
+        (dict(bbox_xy=("a", 0, 1, 1)), tif, "bbox_xy` must be four finite numbers"),
+        (dict(bbox=(-124, 48, -123, 95)), tif, "latitudes from -90 to 90"),
+        (dict(bbox=(10, 10, 11, 11)), tif, "does not overlap DEM file"),
+        (dict(bbox=(-124, 48, -123, 49)), plain, "has no coordinate reference system"),
+        (dict(bbox=(-1, 48, 1, 49)), topobathy_nc, "crosses longitude 0"),
+    ]
+    for kwargs, path, match in cases:
+        with pytest.raises(pipeline.PipelineError, match=match):
+            pipeline.open_dem(path, chunks=None, **kwargs)

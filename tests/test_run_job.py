@@ -622,3 +622,37 @@ def test_a_mission_that_cannot_be_written_fails_alone(tmp_path, stores, local_cl
     res = run_job(job, scheduler=local_client)
     assert res.failed == ["east"] and res.planned == 1
     assert _items(tmp_path / "cat").keys() == {"south"}  # the other one is written
+
+
+def test_a_job_reads_only_its_bbox_of_a_dem_file(tmp_path, topobathy_tif, local_client):
+    """[dem] bbox: the DEM store holds the region (its lon/lat corners cover the box), the
+    region is part of the DEM's definition (another box is another store)."""
+    from pyproj import CRS, Transformer
+
+    box = [-124.0, 48.3, -123.2, 48.9]
+    job = tmp_path / "job.toml"
+    text = f"""
+name = "crop"
+[dem]
+path = "{topobathy_tif}"
+bbox = {box}
+[maps]
+clearance = 2500.0
+landmarks = 0
+[output]
+catalog = "{tmp_path / "cat"}"
+"""
+    job.write_text(text)
+    res = run_job(job, scheduler=local_client)
+    assert res.ok and res.planned == 0
+    dem = pipeline.open_dem(res.dem_store, chunks=None)
+    whole = pipeline.open_dem(topobathy_tif, chunks=None)
+    assert dem.size < 0.5 * whole.size
+    to_ll = Transformer.from_crs(CRS.from_wkt(dem.attrs["crs_wkt"]), "EPSG:4326", always_xy=True)
+    xx, yy = np.meshgrid(dem.x.values[[0, -1]], dem.y.values[[0, -1]])
+    lon, lat = to_ll.transform(xx.ravel(), yy.ravel())
+    assert lon.min() <= box[0] + 0.02 and lon.max() >= box[2] - 0.02
+    assert lat.min() <= box[1] + 0.02 and lat.max() >= box[3] - 0.02
+    other = load_job(job)
+    job.write_text(text.replace(str(box), str([-124.0, 48.3, -123.3, 48.9])))
+    assert load_job(job).dem_fingerprint() != other.dem_fingerprint()
