@@ -404,7 +404,7 @@ def _canonicalise(
     values = arr.astype(np.float32) * np.float32(sign) if sign != 1 else arr.astype(np.float32)
     values = _regularise(values.where(np.isfinite(values)), path)
     if geographic:
-        values, crs = _reproject_geographic(values, path, crs, resolution)
+        values, crs = _reproject_geographic(values, path, crs, resolution, chunks)
     else:
         dx, dy = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
         if not math.isclose(dx, dy, rel_tol=1e-4) or (
@@ -627,11 +627,17 @@ def _depth_sign(arr: xr.DataArray, path: Path) -> int:
     return 1
 
 
-def _reproject_geographic(values: xr.DataArray, path: Path, crs, resolution: float | None = None):
-    """Reproject a lon/lat grid to an azimuthal equidistant projection centred on the grid."""
-    import rioxarray  # noqa: F401  (registers .rio)
+def _reproject_geographic(
+    values: xr.DataArray, path: Path, crs, resolution: float | None = None, chunks=None
+):
+    """Reproject a lon/lat grid to an azimuthal equidistant projection centred on the grid,
+    bilinearly, chunk by chunk when ``values`` is a dask array (odc-geo's ``xr_reproject``:
+    each output chunk warps the source window it needs, so memory stays bounded whatever the
+    grid's size). The output grid is rasterio's default one for that projection and cell."""
+    from odc.geo.geobox import GeoBox
+    from odc.geo.xr import assign_crs, xr_reproject
     from pyproj import CRS
-    from rasterio.enums import Resampling
+    from rasterio.warp import calculate_default_transform
 
     src_crs = crs if crs is not None else CRS.from_epsg(4326)
     lon = np.asarray(values["x"].values, dtype=np.float64)
@@ -654,10 +660,31 @@ def _reproject_geographic(values: xr.DataArray, path: Path, crs, resolution: flo
         lat0,
         a,
     )
-    src = values.load().rio.set_spatial_dims(x_dim="x", y_dim="y").rio.write_crs(src_crs)
-    src = src.rio.write_nodata(np.nan, encoded=False)
-    out = src.rio.reproject(dst, resolution=a, resampling=Resampling.bilinear, nodata=np.nan)
+    transform, width, height = calculate_default_transform(
+        src_crs,
+        dst,
+        values.sizes["x"],
+        values.sizes["y"],
+        left=lon.min() - dlon / 2,
+        bottom=lat.min() - dlat / 2,
+        right=lon.max() + dlon / 2,
+        top=lat.max() + dlat / 2,
+        resolution=a,
+    )
+    geobox = GeoBox((height, width), transform, dst)
+    lazy = isinstance(values.data, da.Array)
+    side = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, (height, width))
+    out = xr_reproject(
+        assign_crs(values, crs=src_crs),
+        geobox,
+        resampling="bilinear",
+        src_nodata=np.nan,
+        dst_nodata=np.nan,
+        **({"chunks": side} if lazy else {}),
+    )
     out = out.drop_vars([c for c in out.coords if c not in ("x", "y")])
+    out.attrs = {}
+    out.encoding = {}
     return out, dst
 
 
