@@ -126,7 +126,15 @@ def open_dem(
         resolution = DEM.resolution.check(resolution)
     region = _region(bbox, bbox_xy)
     kind = _kind_of(path)
-    raw = _read(path, kind, chunks, variable)
+    read_chunks = chunks
+    if region is not None and chunks is not None and kind == "tiff":
+        # a region is read in the file's own tiles (rechunked to ``chunks`` afterwards): a
+        # dask chunk is read whole, so chunks of 1024^2 would read up to four times the tiles
+        # a small region touches
+        tile = file_chunks(path)
+        if tile is not None and max(tile) < max(chunks2d(chunks, (2**31, 2**31))):
+            read_chunks = max(tile)
+    raw = _read(path, kind, read_chunks, variable)
     if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION and resolution is None:
         dem = _crop(raw, path, _crs_of(raw), False, region)
         if chunks is None:
