@@ -173,7 +173,9 @@ def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
 
 
 def start_dask_cluster(directory: Path, workers: int = 2):
-    """A real `dask scheduler` and single-threaded `dask worker` processes on loopback.
+    """A real `dask scheduler` and single-threaded `dask worker` processes on loopback, the
+    workers started in a working directory of their own (``directory/workers``: not the
+    test's nor the job's, as on a cluster whose workers start elsewhere).
 
     Returns (address, scheduler process, worker processes)."""
     import json
@@ -203,6 +205,8 @@ def start_dask_cluster(directory: Path, workers: int = 2):
     deadline = time.time() + 60
     while not sched_file.exists() and time.time() < deadline:
         time.sleep(0.2)
+    elsewhere = directory / "workers"
+    elsewhere.mkdir(exist_ok=True)
     procs = [
         subprocess.Popen(
             [
@@ -213,10 +217,11 @@ def start_dask_cluster(directory: Path, workers: int = 2):
                 "--no-nanny",
                 "--no-dashboard",
                 "--scheduler-file",
-                sched_file,
+                sched_file.resolve(),
             ],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            cwd=elsewhere,
         )
         for _ in range(workers)
     ]
