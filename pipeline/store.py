@@ -123,10 +123,9 @@ class ChunkCache:
             self.readers[key] = direct_reader(arr, store, var)
         return arr
 
-    def _read(self, store: str, var: str, index: tuple, selection: tuple, complete: bool):
-        """The chunk ``index`` of ``var`` (``selection``: the same as slices), decoded directly
-        where the layout allows, else through zarr; a missing chunk of a complete store is
-        damage."""
+    def _read(self, store: str, var: str, index: tuple, complete: bool):
+        """The chunk ``index`` of ``var``, decoded directly where the layout allows, else
+        through zarr; a missing chunk of a complete store is damage."""
         arr = self.array(store, var)
         read = self.readers.get((store, var))
         block = read(index) if read is not None else None
@@ -137,7 +136,7 @@ class ChunkCache:
             if not os.path.exists(path):
                 what = ", ".join(str(i) for i in index)
                 raise damaged(store, f"chunk ({what}) of its layer {var!r} is missing")
-        return arr[selection]
+        return arr[tuple(slice(i * c, (i + 1) * c) for i, c in zip(index, arr.chunks, strict=True))]
 
     def _cached(self, key, load) -> np.ndarray:
         """The block under ``key``, or ``load()`` kept under it (least recently used first
@@ -158,9 +157,7 @@ class ChunkCache:
 
     def chunk(self, store: str, var: str, ci: int, cj: int, complete: bool = False) -> np.ndarray:
         def load():
-            ch, cw = self.array(store, var).chunks
-            sel = (slice(ci * ch, (ci + 1) * ch), slice(cj * cw, (cj + 1) * cw))
-            return self._read(store, var, (ci, cj), sel, complete)
+            return self._read(store, var, (ci, cj), complete)
 
         return self._cached((store, var, ci, cj), load)
 
@@ -190,14 +187,8 @@ class ChunkCache:
         ci, cj = r // ch, c // cw
 
         def load():
-            rows, cols = slice(ci * ch, (ci + 1) * ch), slice(cj * cw, (cj + 1) * cw)
-            cl = arr.chunks[0]
-            parts = [
-                self._read(
-                    store, var, (k, ci, cj), (slice(k * cl, (k + 1) * cl), rows, cols), complete
-                )
-                for k in range(-(-arr.shape[0] // cl))
-            ]
+            layers = range(-(-arr.shape[0] // arr.chunks[0]))  # chunks along the layer axis
+            parts = [self._read(store, var, (k, ci, cj), complete) for k in layers]
             return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
         return self._cached((store, var, "stack", ci, cj), load), ci * ch, cj * cw
