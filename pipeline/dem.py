@@ -22,7 +22,7 @@ import xarray as xr
 
 from ._io import atomic_path
 from .exceptions import InvalidDEMError, InvalidParameterError
-from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, chunks2d
+from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +124,7 @@ def open_dem(
         cell_size = DEM.cell_size.check(cell_size)
     if resolution is not None:
         resolution = DEM.resolution.check(resolution)
-    region = _region(bbox, bbox_xy)
+    region = check_region(bbox, bbox_xy)
     kind = _kind_of(path)
     read_chunks = chunks
     if region is not None and chunks is not None and kind == "tiff":
@@ -430,26 +430,6 @@ def _canonicalise(
     if chunks is None:
         return out.load() if isinstance(out.data, da.Array) else out
     return out.chunk(dict(zip(("y", "x"), chunks2d(chunks, out.shape), strict=True)))
-
-
-def _region(bbox, bbox_xy) -> tuple | None:
-    """``("lonlat" | "xy", box)`` from open_dem's ``bbox`` / ``bbox_xy``, checked, or None."""
-    if bbox is not None and bbox_xy is not None:
-        raise InvalidParameterError(
-            "give one of `bbox` (longitude and latitude) and `bbox_xy` (the file's own "
-            "coordinates), not both"
-        )
-    if bbox_xy is not None:
-        return "xy", DEM.bbox_xy.check(bbox_xy)
-    if bbox is None:
-        return None
-    box = DEM.bbox.check(bbox)
-    if not (-90 <= box[1] and box[3] <= 90 and -180 <= box[0] and box[2] <= 360):
-        raise InvalidParameterError(
-            f"`bbox` {list(bbox)} is not [lon_min, lat_min, lon_max, lat_max]: latitudes from "
-            "-90 to 90, longitudes from -180 to 360"
-        )
-    return "lonlat", box
 
 
 def _crop(arr: xr.DataArray, path: Path, crs, geographic: bool, region) -> xr.DataArray:

@@ -59,6 +59,7 @@ from .params import (
     VEHICLE,
     Param,
     Schema,
+    check_region,
     shape2d,
 )
 
@@ -216,8 +217,10 @@ def load_job(path: str | os.PathLike) -> Job:
         job.cell_size = given.get("cell_size")
         job.resolution = given.get("resolution")
         job.bbox, job.bbox_xy = given.get("bbox"), given.get("bbox_xy")
-        if job.bbox is not None and job.bbox_xy is not None:
-            _fail(path, "give one of dem.bbox (longitude, latitude) and dem.bbox_xy, not both")
+        try:  # the library's own check, so that --dry-run refuses what a run would
+            check_region(job.bbox, job.bbox_xy, "dem.")
+        except InvalidParameterError as exc:
+            _fail(path, str(exc))
         cell = job.resolution  # the cell side the maps are built on, when the job says it
     else:
         for key in ("bbox", "bbox_xy"):

@@ -369,6 +369,31 @@ def check_planner(planner, omega, name: str = "planner") -> tuple[str, float]:
     return planner, PLANNING.omega.check(omega)
 
 
+def check_region(bbox, bbox_xy, where: str = "") -> tuple | None:
+    """``("lonlat" | "xy", box)`` from a DEM's ``bbox`` (WGS84 degrees) or ``bbox_xy`` (the
+    file's own coordinates), checked, or None (no region). ``where`` prefixes the names in the
+    errors (``"dem."`` in a job file, which names its keys that way)."""
+
+    def name(key: str) -> str:
+        return f"{where}{key}" if where else f"`{key}`"
+
+    if bbox is not None and bbox_xy is not None:
+        raise InvalidParameterError(
+            f"give one of {name('bbox')} (longitude, latitude) and {name('bbox_xy')}, not both"
+        )
+    if bbox_xy is not None:
+        return "xy", DEM.bbox_xy.check(bbox_xy, name("bbox_xy"))
+    if bbox is None:
+        return None
+    box = DEM.bbox.check(bbox, name("bbox"))
+    if not (-90 <= box[1] and box[3] <= 90 and -180 <= box[0] and box[2] <= 360):
+        raise InvalidParameterError(
+            f"{name('bbox')} {list(box)} is not [lon_min, lat_min, lon_max, lat_max]: "
+            "latitudes from -90 to 90, longitudes from -180 to 360"
+        )
+    return "lonlat", box
+
+
 def shape2d(name: str, value, *, minimum: int = 2, label: str | None = None) -> tuple[int, int]:
     """A (rows, cols) pair of integers >= ``minimum`` (a map has at least 2 x 2 cells)."""
     try:

@@ -195,6 +195,10 @@ JOB_CASES = [
     ("tables:[dem]\npath = '.'\nbbox = [1, 2, 3]", "dem.bbox must be four finite numbers"),
     ("tables:[dem]\npath = '.'\nbbox_xy = [5, 0, 1, 1]", "each minimum below its maximum"),
     (
+        "tables:[dem]\npath = '.'\nbbox = [-10, 40, -9, 95]",
+        "dem.bbox [-10.0, 40.0, -9.0, 95.0] is not [lon_min, lat_min, lon_max, lat_max]",
+    ),
+    (
         "tables:[dem]\npath = '.'\nbbox = [0, 0, 1, 1]\nbbox_xy = [0, 0, 1, 1]",
         "one of dem.bbox (longitude, latitude) and dem.bbox_xy, not both",
     ),
