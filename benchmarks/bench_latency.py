@@ -27,18 +27,13 @@ import time
 import numpy as np
 from _common import OUT, machine, maps_store
 from _report import Report, faster
+from bench_mcpc import missions
 
 RUNS = (
     ("ra_star, cluster", "ra_star", "cluster"),
     ("ra_star, in-process", "ra_star", "synchronous"),
     ("lagrangian, cluster", "lagrangian", "cluster"),
 )
-
-
-def missions(ok: np.ndarray, k: int, seed: int):
-    from bench_mcpc import missions as pick
-
-    return pick(ok, k, seed)
 
 
 def run_side(client, n: int, k: int) -> dict:

@@ -116,8 +116,6 @@ def _hillshade(maps, png: Path) -> dict:
         "vmin": vmin,
         "vmax": vmax,
         "stops": stops,
-        "cells": [rows, cols],
-        "cell_size": a,
     }
 
 
@@ -145,7 +143,6 @@ def _mission(root: Path, item: dict, k: int, crs_wkt: str | None) -> dict:
         "max_pitch_deg": p.get("auv:max_pitch_deg"),
         "energy_wh": p.get("auv:energy_wh"),
         "runtime_s": p.get("auv:runtime_s"),
-        "sections": p.get("auv:sections"),
         "files": [{"href": f"{COLLECTION}/{mid}/{mid}.json", "title": "STAC Item (JSON)"}],
         "track": None,
         "profile": None,

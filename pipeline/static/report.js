@@ -121,17 +121,20 @@
     ];
     return rows.filter((r) => r[1] !== "" && r[1] !== " km");
   }
-  function popup(m) {
-    const box = el("div");
-    box.appendChild(el("strong", m.name));
-    const t = el("table", undefined, "props");
+  function fillProps(t, m) {  // the properties table, in the popup and in the side panel
+    t.textContent = "";
     props(m).forEach(([k, v]) => {
       const tr = el("tr");
       tr.appendChild(el("td", k));
-      tr.appendChild(el("td", v));
+      tr.appendChild(el("td", v, k === "status" ? "status-" + m.status : undefined));
       t.appendChild(tr);
     });
-    box.appendChild(t);
+    return t;
+  }
+  function popup(m) {
+    const box = el("div");
+    box.appendChild(el("strong", m.name));
+    box.appendChild(fillProps(el("table", undefined, "props"), m));
     return box;
   }
 
@@ -202,16 +205,7 @@
     document.querySelectorAll("#missions tbody tr").forEach((tr) => tr.classList.toggle("selected", tr.dataset.id === id));
     document.getElementById("details-title").textContent = m.name;
     document.getElementById("details-hint").hidden = true;
-    const t = document.getElementById("details-props");
-    t.textContent = "";
-    props(m).forEach(([k, v]) => {
-      const tr = el("tr");
-      tr.appendChild(el("td", k));
-      const td = el("td", v);
-      if (k === "status") td.className = "status-" + m.status;
-      tr.appendChild(td);
-      t.appendChild(tr);
-    });
+    fillProps(document.getElementById("details-props"), m);
     document.getElementById("profile-title").textContent = "Depth profile: " + m.name;
     const fig = document.getElementById("profile-figure");
     const box = document.getElementById("profile");
