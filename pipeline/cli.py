@@ -121,6 +121,8 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
 @_option(DEM.resolution)
 @_option(DEM.bbox)
 @_option(DEM.bbox_xy)
+@_option(DEM.uncertainty_k)
+@_option(DEM.uncertainty)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def dem_import(source, out, overwrite, **options):
     """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT

@@ -9,6 +9,7 @@ canonical chunked Zarr (v3) store, atomically.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -43,8 +44,13 @@ _ELEVATION_NAMES = (
     "altitude",
     "elev",
 )
+# names of a survey's vertical uncertainty (one standard deviation, metres), matched
+# case-insensitively: a BAG's second band is "uncertainty"
+_UNCERTAINTY_NAMES = ("uncertainty", "sigma", "stdev", "std", "tvu", "elevation_uncertainty")
 _NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".grd", ".netcdf")
-_TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff")
+# GDAL reads these through rasterio: GeoTIFF, and BAG (the Bathymetric Attributed Grid, HDF5:
+# an elevation band and an uncertainty band)
+_TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff", ".bag")
 
 
 # --------------------------------------------------------------------------- public API
@@ -81,6 +87,8 @@ def open_dem(
     validate: bool = True,
     bbox=None,
     bbox_xy=None,
+    uncertainty_k: float | None = None,
+    uncertainty: str | None = None,
 ) -> xr.DataArray:
     """Open a DEM file as the canonical elevation DataArray.
 
@@ -110,6 +118,15 @@ def open_dem(
     bbox_xy : (x_min, y_min, x_max, y_max), optional
         The same in the file's own coordinates (its units: metres, or degrees for a lon/lat
         grid). At most one of ``bbox`` and ``bbox_xy``.
+    uncertainty_k : float, optional
+        Plan on the shoal side of the survey's uncertainty band: the grid returned is
+        ``elevation + k * sigma``, the highest the seabed can be at ``k`` standard deviations,
+        so a clearance kept from it is at least ``clearance + k * sigma`` above the surveyed
+        seabed at every cell. ``sigma`` is a BAG's uncertainty band, a GeoTIFF band or a
+        NetCDF / Zarr variable named ``uncertainty`` (or sigma, stdev, std, tvu), or the one
+        named by ``uncertainty``; a cell without sigma is no-data (never passable).
+    uncertainty : str, optional
+        The band description or variable name of sigma, when it is not one of those.
 
     Examples
     --------
@@ -125,6 +142,10 @@ def open_dem(
     if resolution is not None:
         resolution = DEM.resolution.check(resolution)
     region = check_region(bbox, bbox_xy)
+    if uncertainty_k is not None:
+        uncertainty_k = DEM.uncertainty_k.check(uncertainty_k)
+    if uncertainty is not None:
+        uncertainty = DEM.uncertainty.check(uncertainty)
     kind = _kind_of(path)
     read_chunks = chunks
     if region is not None and chunks is not None and kind == "tiff":
@@ -134,8 +155,29 @@ def open_dem(
         tile = file_chunks(path)
         if tile is not None and max(tile) < max(chunks2d(chunks, (2**31, 2**31))):
             read_chunks = max(tile)
-    raw = _read(path, kind, read_chunks, variable)
-    if raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION and resolution is None:
+    raw, sigma = _read(path, kind, read_chunks, variable, uncertainty)
+    canonical = raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION
+    if canonical and uncertainty_k is not None:
+        raise InvalidParameterError(
+            f"DEM store {path} is already a pipeline DEM store (one elevation layer): apply "
+            "uncertainty_k when importing the survey file that holds the uncertainty band"
+        )
+    if uncertainty_k is not None:
+        if sigma is None:
+            raise InvalidDEMError(
+                f"DEM file {path} has no uncertainty band or variable (looked for "
+                f"{', '.join(_UNCERTAINTY_NAMES)}): name it with uncertainty=... "
+                "(--uncertainty), or drop uncertainty_k"
+            )
+        raw = _shoal_surface(raw, sigma, uncertainty_k, path)
+    elif sigma is not None:
+        log.info(
+            "DEM %s has an uncertainty band %r, not used: set uncertainty_k to plan on "
+            "elevation + k * sigma",
+            path,
+            sigma.name,
+        )
+    if canonical and resolution is None:
         dem = _crop(raw, path, _crs_of(raw), False, region)
         if chunks is None:
             dem = dem.load()
@@ -152,7 +194,40 @@ def open_dem(
                 f"DEM file {path} holds no valid elevation: every cell is "
                 "no-data (NaN or the file's nodata value)",
             )
+    if uncertainty_k is not None:
+        dem.attrs.update(
+            uncertainty_k=uncertainty_k,
+            surface=f"elevation + {uncertainty_k:g} * {sigma.name} (the shoal side of the survey)",
+        )
     return dem
+
+
+def _shoal_surface(elev: xr.DataArray, sigma: xr.DataArray, k: float, path) -> xr.DataArray:
+    """``elevation + k * sigma`` (positive up), lazily; sigma must lie on the same grid and be
+    non-negative (checked chunk by chunk as the grid is read)."""
+    try:
+        elev, sigma = xr.align(elev, sigma, join="exact")
+    except ValueError:
+        raise InvalidDEMError(
+            f"DEM file {path}: the uncertainty {sigma.name!r} is not on the elevation's grid "
+            f"({dict(sigma.sizes)} against {dict(elev.sizes)})"
+        ) from None
+    sign = _depth_sign(elev, path)
+    s = sigma.astype(np.float32)
+    check = functools.partial(_nonnegative_sigma, path=str(path), name=str(sigma.name))
+    s = s.copy(data=s.data.map_blocks(check) if isinstance(s.data, da.Array) else check(s.data))
+    out = elev.astype(np.float32) * np.float32(sign) + np.float32(k) * s
+    out.attrs = {**elev.attrs, "positive": "up"}
+    return out
+
+
+def _nonnegative_sigma(block: np.ndarray, path: str, name: str) -> np.ndarray:
+    if np.any(block < 0):
+        raise InvalidDEMError(
+            f"DEM file {path}: the uncertainty {name!r} holds negative values (down to "
+            f"{float(np.nanmin(block)):g}); sigma is a standard deviation, >= 0"
+        )
+    return block
 
 
 def write_dem(
@@ -261,7 +336,10 @@ def _kind_of(path: Path) -> str:
     )
 
 
-def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
+def _read(
+    path: Path, kind: str, chunks, variable: str | None, uncertainty: str | None = None
+) -> tuple[xr.DataArray, xr.DataArray | None]:
+    """The elevation of the file, and its uncertainty band or variable when it has one."""
     # read in chunks, never a whole large file at once: a GeoTIFF in chunks of the requested
     # side, a NetCDF file in dask's automatic chunks (about 128 MiB), a Zarr store in its own
     dask_chunks = None if chunks is None else {}
@@ -277,7 +355,7 @@ def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
                     f"DEM file {path} holds several subdatasets; "
                     "export the elevation band to its own GeoTIFF"
                 )
-            return arr
+            return _split_bands(arr, path, variable, uncertainty)
         if kind == "netcdf":
             ds = xr.open_dataset(path, chunks=None if chunks is None else "auto")
         else:
@@ -287,8 +365,61 @@ def _read(path: Path, kind: str, chunks, variable: str | None) -> xr.DataArray:
     except Exception as exc:  # the readers raise many types; one clear message for all
         raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
     if _is_old_gmt(ds):
-        return _from_old_gmt(ds, path)
-    return _pick_variable(ds, path, variable)
+        if uncertainty is not None:
+            raise InvalidDEMError(f"DEM file {path} (a 1-D GMT grid) has no {uncertainty!r}")
+        return _from_old_gmt(ds, path), None
+    gridded = [str(k) for k, v in ds.data_vars.items() if v.ndim >= 2]
+    name = _uncertainty_name(gridded, uncertainty, path, "variable")
+    elev = _pick_variable(ds, path, variable, exclude=name)
+    return elev, (None if name is None else ds[name])
+
+
+def _uncertainty_name(names, wanted: str | None, path: Path, what: str) -> str | None:
+    """Which of ``names`` (bands or variables) holds sigma: ``wanted`` (it must exist), else
+    the first of the usual names, else None."""
+    if wanted is not None:
+        if wanted not in names:
+            raise InvalidDEMError(
+                f"DEM file {path} has no {what} {wanted!r} (uncertainty); it has {list(names)}"
+            )
+        return wanted
+    lower = {n.lower(): n for n in names if n}
+    return next((lower[n] for n in _UNCERTAINTY_NAMES if n in lower), None)
+
+
+def _split_bands(arr: xr.DataArray, path: Path, variable, uncertainty):
+    """The elevation band of a raster and its uncertainty band (by their descriptions: a BAG's
+    are "elevation" and "uncertainty"); a one-band raster is its elevation."""
+    if "band" not in arr.dims or arr.sizes["band"] == 1:
+        if uncertainty is not None:
+            raise InvalidDEMError(
+                f"DEM file {path} has one band, so no uncertainty band {uncertainty!r}"
+            )
+        return arr, None
+    desc = arr.attrs.get("long_name")
+    names = [str(d) for d in desc] if isinstance(desc, tuple | list) else []
+    names += [""] * (arr.sizes["band"] - len(names))
+    names = [n or f"band{i + 1}" for i, n in enumerate(names)]  # undescribed bands
+    su = _uncertainty_name(names, uncertainty, path, "band")
+    if variable is not None:
+        if variable not in names:
+            raise InvalidDEMError(f"DEM file {path} has no band {variable!r}; it has {names}")
+        ei = names.index(variable)
+    else:
+        lower = [n.lower() for n in names]
+        ei = next((lower.index(n) for n in _ELEVATION_NAMES if n in lower), None)
+        if ei is None:
+            raise InvalidDEMError(
+                f"DEM file {path} has {len(names)} bands (described {names}) and none is "
+                "named elevation: name the elevation band with variable=... (--variable)"
+            )
+
+    def band(i):
+        out = arr.isel(band=i, drop=True)
+        out.attrs = {**arr.attrs, "long_name": names[i]}
+        return out.rename(names[i])
+
+    return band(ei), (None if su is None else band(names.index(su)))
 
 
 def file_chunks(path: str | os.PathLike) -> tuple[int, int] | None:
@@ -319,7 +450,9 @@ def file_chunks(path: str | os.PathLike) -> tuple[int, int] | None:
     return None
 
 
-def _pick_variable(ds: xr.Dataset, path: Path, variable: str | None) -> xr.DataArray:
+def _pick_variable(
+    ds: xr.Dataset, path: Path, variable: str | None, exclude: str | None = None
+) -> xr.DataArray:
     if variable is not None:
         if variable not in ds.data_vars:
             raise InvalidDEMError(
@@ -327,7 +460,7 @@ def _pick_variable(ds: xr.Dataset, path: Path, variable: str | None) -> xr.DataA
                 f"it has {sorted(map(str, ds.data_vars))}"
             )
         return ds[variable]
-    gridded = [k for k, v in ds.data_vars.items() if v.ndim >= 2]
+    gridded = [k for k, v in ds.data_vars.items() if v.ndim >= 2 and k != exclude]
     if not gridded:
         raise InvalidDEMError(
             f"DEM file {path} has no 2-D variable "
@@ -589,14 +722,21 @@ def _crs_of(arr: xr.DataArray):
     except Exception:  # rioxarray may not know this array's layout
         crs = None
     if crs is not None:
-        return CRS.from_user_input(crs)
+        return _horizontal(CRS.from_user_input(crs))
     for key in ("crs_wkt", "crs", "spatial_ref"):
         if key in arr.attrs:
             try:
-                return CRS.from_user_input(arr.attrs[key])
+                return _horizontal(CRS.from_user_input(arr.attrs[key]))
             except Exception:
                 continue
     return None
+
+
+def _horizontal(crs):
+    """The horizontal part of a compound CRS (a BAG's is projected + a vertical datum)."""
+    if crs.is_compound:
+        return next((c for c in crs.sub_crs_list if not c.is_vertical), crs)
+    return crs
 
 
 def _is_geographic(arr: xr.DataArray, crs, xdim: str, ydim: str) -> bool:

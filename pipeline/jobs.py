@@ -7,7 +7,8 @@ A job file::
     name = "demo"
     [dem]                       # path = "survey.tif" (+ variable, cell_size, resolution, and
                                 # bbox = [lon_min, lat_min, lon_max, lat_max] or bbox_xy = [...]
-                                # in the file's coordinates: read only that region), or:
+                                # in the file's coordinates: read only that region;
+                                # uncertainty_k = 2: plan on elevation + 2 sigma), or:
     chunks = 512
     [dem.synthetic]
     shape = [2000, 2000]        # cell_size, seed, islands
@@ -88,6 +89,8 @@ class Job:
     resolution: float | None = None
     bbox: tuple | None = None  # [dem] bbox (lon/lat) or bbox_xy: the region read
     bbox_xy: tuple | None = None
+    uncertainty_k: float | None = None  # [dem] uncertainty_k: plan on elevation + k sigma
+    uncertainty: str | None = None
     synthetic: dict = field(default_factory=dict)
     maps: dict = field(default_factory=lambda: _maps_defaults({}))
     planning: dict = field(default_factory=dict)
@@ -133,6 +136,9 @@ class Job:
             for key in ("bbox", "bbox_xy"):
                 if getattr(self, key) is not None:
                     what[key] = list(getattr(self, key))
+            for key in ("uncertainty_k", "uncertainty"):
+                if getattr(self, key) is not None:
+                    what[key] = getattr(self, key)
         else:
             from .synthetic import GENERATOR_VERSION
 
@@ -217,6 +223,7 @@ def load_job(path: str | os.PathLike) -> Job:
         job.cell_size = given.get("cell_size")
         job.resolution = given.get("resolution")
         job.bbox, job.bbox_xy = given.get("bbox"), given.get("bbox_xy")
+        job.uncertainty_k, job.uncertainty = given.get("uncertainty_k"), given.get("uncertainty")
         try:  # the library's own check, so that --dry-run refuses what a run would
             check_region(job.bbox, job.bbox_xy, "dem.")
         except InvalidParameterError as exc:
@@ -229,6 +236,13 @@ def load_job(path: str | os.PathLike) -> Job:
                     path,
                     f"dem.{key} selects a region of a DEM file (dem.path), not of a "
                     "synthetic DEM: set dem.synthetic.shape instead",
+                )
+        for key in ("uncertainty_k", "uncertainty"):
+            if key in dem:
+                _fail(
+                    path,
+                    f"dem.{key} reads a survey's uncertainty band from a DEM file (dem.path); "
+                    "a synthetic DEM has none",
                 )
         syn = dem["synthetic"]
         if not isinstance(syn, dict):
@@ -572,6 +586,8 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
                 resolution=job.resolution,
                 bbox=job.bbox,
                 bbox_xy=job.bbox_xy,
+                uncertainty_k=job.uncertainty_k,
+                uncertainty=job.uncertainty,
             )
         else:
             dem = synthetic_dem(chunks=job.chunks, **job.synthetic)

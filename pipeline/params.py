@@ -221,6 +221,23 @@ DEM = Schema(
         "read only this region of the file, in the file's own coordinates",
         "[x_min, y_min, x_max, y_max] in the file's units",
     ),
+    Param(
+        "uncertainty_k",
+        "float",
+        None,
+        "plan on the shoal side of the survey's uncertainty band: the seabed is taken as "
+        "elevation + k * sigma, so every clearance grows by k * sigma (a BAG's uncertainty "
+        "band, or the variable named by `uncertainty`)",
+        "multiples of the vertical uncertainty sigma",
+        minimum=0,
+    ),
+    Param(
+        "uncertainty",
+        "str",
+        None,
+        "the band or variable holding sigma when its name is not one of uncertainty, sigma, "
+        "stdev, std, tvu",
+    ),
 )
 
 MAPS = Schema(

@@ -172,6 +172,32 @@ def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
     return z.astype(np.float32)
 
 
+def write_bag(tmp_path, z, sigma, a=30.0):
+    """A BAG (GDAL's driver: an elevation and an uncertainty band) from a two-band GeoTIFF;
+    NaN cells are written as the BAG's no-data."""
+    import rasterio
+    from rasterio.shutil import copy
+    from rasterio.transform import from_origin
+
+    nodata = 1.0e6
+    tif = tmp_path / "two-band.tif"
+    profile = dict(
+        driver="GTiff",
+        width=z.shape[1],
+        height=z.shape[0],
+        count=2,
+        dtype="float32",
+        crs="EPSG:32610",
+        transform=from_origin(500_000.0, 5_000_000.0, a, a),
+        nodata=nodata,
+    )
+    with rasterio.open(tif, "w", **profile) as dst:
+        dst.write(np.where(np.isnan(z), nodata, z).astype(np.float32), 1)
+        dst.write(np.where(np.isnan(sigma), nodata, sigma).astype(np.float32), 2)
+    copy(tif, tmp_path / "survey.bag", driver="BAG")
+    return tmp_path / "survey.bag"
+
+
 def start_dask_cluster(directory: Path, workers: int = 2):
     """A real `dask scheduler` and single-threaded `dask worker` processes on loopback, the
     workers started in a working directory of their own (``directory/workers``: not the

@@ -206,6 +206,12 @@ JOB_CASES = [
         "tables:[dem]\nbbox = [0, 0, 1, 1]\n[dem.synthetic]\nshape = [4, 4]",
         "dem.bbox selects a region of a DEM file",
     ),
+    ("tables:[dem]\npath = '.'\nuncertainty_k = -1", "dem.uncertainty_k must be"),
+    ("tables:[dem]\npath = '.'\nuncertainty_k = 'two'", "dem.uncertainty_k must be"),
+    (
+        "tables:[dem]\nuncertainty_k = 2\n[dem.synthetic]\nshape = [4, 4]",
+        "dem.uncertainty_k reads a survey's uncertainty band from a DEM file",
+    ),
     ("extra:[maps]\nmethod = 'round'", "maps.method must be"),
     ("extra:[maps]\nclearance = 0", "maps.clearance must be a finite number of metres > 0"),
     ("extra:[maps]\nclearance = -5", "maps.clearance must be"),

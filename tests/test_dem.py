@@ -10,7 +10,7 @@ import dask.array as da
 import numpy as np
 import pytest
 import xarray as xr
-from conftest import lonlat_dataarray, metric_dataarray, random_surface
+from conftest import lonlat_dataarray, metric_dataarray, random_surface, write_bag
 from pyproj import CRS, Transformer
 from scipy.interpolate import RegularGridInterpolator
 
@@ -372,7 +372,7 @@ def _bad_one_row(p):
 @pytest.mark.parametrize(
     "make, match",
     [
-        (_bad_multiband, r"3-D \(band=3.*select one band"),
+        (_bad_multiband, r"3 bands .*none is named elevation.*variable=\.\.\."),
         (_bad_3d_netcdf, r"3-D \(time=2"),
         (_bad_all_nan, "holds no valid elevation"),
         (_bad_nodata_everywhere, "holds no valid elevation"),
@@ -567,3 +567,109 @@ def test_a_lon_lat_grid_is_reprojected_chunk_by_chunk(tmp_path):
     assert ok.mean() > 0.9
     assert np.percentile(np.abs(v[ok] - whole[ok]), 99) < 5.0  # metres, on a 1600 m relief
     assert np.median(np.abs(v[ok] - ref[ok])) < 0.5
+
+
+# ------------------------------------------------------------------ survey uncertainty (BAG)
+
+
+def _survey(shape=(50, 61), seed=3):
+    z = random_surface(shape, seed=seed)
+    sigma = np.random.default_rng(seed).uniform(0.0, 20.0, shape).astype(np.float32)
+    z[7, 9] = np.nan  # no elevation
+    sigma[11, 13] = np.nan  # an elevation without an uncertainty
+    return z, sigma
+
+
+def test_a_bag_plans_on_elevation_plus_k_sigma(tmp_path, caplog):
+    """The grid of a BAG read with uncertainty_k is elevation + k sigma of the two bands as
+    rasterio reads them; chunked (a last chunk of one row) equals in memory; a cell without
+    sigma is no-data; without uncertainty_k the elevation band alone, and the log says why."""
+    import rasterio
+
+    z, sigma = _survey()
+    path = write_bag(tmp_path, z, sigma)
+    with rasterio.open(path) as src:
+        assert src.descriptions == ("elevation", "uncertainty")
+        rz, rs = (src.read(i, masked=True).filled(np.nan) for i in (1, 2))
+    np.testing.assert_array_equal(rz, z)  # the BAG holds what the test wrote
+    expected = (rz + np.float32(2.5) * rs).astype(np.float32)
+    assert np.isnan(expected[11, 13]) and np.isnan(expected[7, 9])
+    for chunks in (None, 49, (17, 60)):
+        dem = pipeline.open_dem(path, chunks=chunks, uncertainty_k=2.5)
+        np.testing.assert_array_equal(dem.values, expected)
+    assert dem.attrs["uncertainty_k"] == 2.5 and "uncertainty" in dem.attrs["surface"]
+    assert dem.attrs["cell_size"] == 30.0
+    assert CRS.from_wkt(dem.attrs["crs_wkt"]).to_epsg() == 32610  # the horizontal part
+    with caplog.at_level("INFO", logger="pipeline"):
+        plain = pipeline.open_dem(path, chunks=None)
+    np.testing.assert_array_equal(plain.values, rz)
+    assert "uncertainty band 'uncertainty', not used" in caplog.text
+
+
+def test_netcdf_depths_with_a_named_uncertainty_variable(tmp_path):
+    """A positive-down NetCDF with its sigma in a variable of its own name: the surface is
+    -depth + k sigma; the variable is found by the usual names or by `uncertainty`."""
+    z, sigma = _survey((30, 40), seed=4)
+    c = metric_dataarray(z, a=25.0).coords
+    ds = xr.Dataset({"depth": (("y", "x"), -z), "tvu_95": (("y", "x"), sigma)}, coords=c)
+    ds["depth"].attrs["positive"] = "down"
+    path = tmp_path / "survey.nc"
+    ds.to_netcdf(path)
+    with pytest.raises(InvalidDEMError, match="no uncertainty band or variable"):
+        pipeline.open_dem(path, variable="depth", uncertainty_k=1.0)
+    dem = pipeline.open_dem(
+        path, chunks=7, variable="depth", uncertainty_k=1.5, uncertainty="tvu_95"
+    )
+    np.testing.assert_array_equal(dem.values, (z + np.float32(1.5) * sigma).astype(np.float32))
+    ds.rename({"tvu_95": "TVU"}).to_netcdf(tmp_path / "named.nc")
+    dem = pipeline.open_dem(tmp_path / "named.nc", chunks=None, uncertainty_k=1.0)  # found
+    np.testing.assert_array_equal(dem.values, (z + sigma).astype(np.float32))
+
+
+def test_uncertainty_errors_are_one_clear_line(tmp_path):
+    z, sigma = _survey((20, 20))
+    bag = write_bag(tmp_path, z, np.where(np.arange(20) == 5, -1.0, sigma).astype(np.float32))
+    tif = _write_tif(metric_dataarray(z), tmp_path / "plain.tif")
+    store = pipeline.write_dem(pipeline.open_dem(tif), tmp_path / "dem.zarr")
+    cases = [
+        (lambda: pipeline.open_dem(bag, uncertainty_k=1.0), "holds negative values"),
+        (lambda: pipeline.open_dem(tif, uncertainty_k=1.0), "no uncertainty band or variable"),
+        (lambda: pipeline.open_dem(tif, uncertainty="tvu"), "has one band"),
+        (lambda: pipeline.open_dem(bag, uncertainty="tvu"), "has no band 'tvu'"),
+        (lambda: pipeline.open_dem(bag, uncertainty_k=-1.0), "uncertainty_k` must be"),
+        (lambda: pipeline.open_dem(store, uncertainty_k=1.0), "already a pipeline DEM store"),
+    ]
+    for call, match in cases:
+        with pytest.raises(pipeline.PipelineError, match=match) as info:
+            call()
+        assert "\n" not in str(info.value)
+
+
+def test_a_mission_on_a_bag_keeps_clearance_plus_k_sigma_from_the_survey(tmp_path):
+    """Maps built on the shoal surface: every cell of a planned path lies at least
+    clearance + k sigma above the surveyed seabed below it, and at least the clearance away
+    (in 3-D) from the shoal surface at every cell within reach: checked by brute force on the
+    bands as rasterio reads them."""
+    import rasterio
+
+    k, R = 2.0, 60.0
+    z = random_surface((60, 60), seed=5)
+    sigma = np.random.default_rng(5).uniform(0.0, 25.0, z.shape).astype(np.float32)
+    path = write_bag(tmp_path, z, sigma)
+    with rasterio.open(path) as src:
+        rz, rs = (src.read(i).astype(np.float64) for i in (1, 2))
+    dem = pipeline.open_dem(path, uncertainty_k=k)
+    store = tmp_path / "maps.zarr"
+    pipeline.build_maps(dem, store, clearance=R, landmarks=0)
+    t = pipeline.plan(store, (3, 3), (56, 55), planner="astar", mcpc=False, client="synchronous")
+    assert t.status == "ok" and len(t.cells) > 50
+    a, h = 30.0, t.points[:, 2]
+    shoal = rz + k * rs
+    reach = int(R // a)
+    for (r, c), hp in zip(t.cells, h, strict=True):
+        assert hp >= rz[r, c] + R + k * rs[r, c] - 1e-3
+        for dr in range(-reach, reach + 1):
+            for dc in range(-reach, reach + 1):
+                d = a * np.hypot(dr, dc)
+                if d <= R and 0 <= r + dr < 60 and 0 <= c + dc < 60:
+                    assert hp >= shoal[r + dr, c + dc] + np.sqrt(R * R - d * d) - 1e-3

@@ -17,7 +17,7 @@ import geopandas as gpd
 import numpy as np
 import pystac
 import pytest
-from conftest import start_dask_cluster, stop_dask_cluster
+from conftest import random_surface, start_dask_cluster, stop_dask_cluster, write_bag
 from matplotlib import image
 
 import pipeline
@@ -656,3 +656,36 @@ catalog = "{tmp_path / "cat"}"
     other = load_job(job)
     job.write_text(text.replace(str(box), str([-124.0, 48.3, -123.3, 48.9])))
     assert load_job(job).dem_fingerprint() != other.dem_fingerprint()
+
+
+def test_a_job_plans_on_the_shoal_side_of_a_bag(tmp_path, local_client):
+    """[dem] uncertainty_k: the job's DEM store holds elevation + k sigma of the BAG's bands
+    (read here by rasterio), and k is part of the DEM's definition (another k, another store)."""
+    import rasterio
+
+    z = random_surface((40, 50), seed=2)
+    sigma = np.random.default_rng(2).uniform(0.0, 10.0, z.shape).astype(np.float32)
+    bag = write_bag(tmp_path, z, sigma)
+    job = tmp_path / "job.toml"
+    text = f"""
+name = "survey"
+[dem]
+path = "{bag}"
+uncertainty_k = 3.0
+[maps]
+clearance = 60.0
+landmarks = 0
+[output]
+catalog = "{tmp_path / "cat"}"
+"""
+    job.write_text(text)
+    res = run_job(job, scheduler=local_client)
+    assert res.ok
+    with rasterio.open(bag) as src:
+        rz, rs = src.read(1), src.read(2)
+    dem = pipeline.open_dem(res.dem_store, chunks=None)
+    np.testing.assert_array_equal(dem.values, rz + np.float32(3.0) * rs)
+    assert dem.attrs["uncertainty_k"] == 3.0
+    first = load_job(job).dem_fingerprint()
+    job.write_text(text.replace("uncertainty_k = 3.0", "uncertainty_k = 2.0"))
+    assert load_job(job).dem_fingerprint() != first
