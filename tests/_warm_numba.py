@@ -1,15 +1,44 @@
-"""Compile the numba kernels the tests use into numba's on-disk cache: the library's (with
-the argument types the tests use), then pysheds' (which compiles about 80 functions when it is
-imported). tests/conftest.py starts this in a process of its own at the start of a session, on
-the core the tests leave idle; in a warm environment it finishes in seconds."""
+"""Compile the numba kernels the tests use into numba's on-disk cache, one half in each of two
+processes (tests/conftest.py starts both at the start of a session; in a warm environment they
+finish in seconds):
+
+    python tests/_warm_numba.py first|second MARKS
+
+- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``), then pysheds
+  (which compiles about 80 functions when it is imported); writes MARKS/first, MARKS/pysheds.
+- second: the other half, the argument types only the tests use, then (once the first half
+  is done) the library's whole warm-up from the cache, which stamps it compiled; writes
+  MARKS/library, which every test process waits for.
+"""
 
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from conftest import compile_kernels  # noqa: E402
+from conftest import compile_test_kernels  # noqa: E402
 
-compile_kernels()
+from pipeline.warmup import HALVES, compile_parts, ensure_compiled  # noqa: E402
 
-import pysheds.grid  # noqa: E402, F401
+half, marks = sys.argv[1], Path(sys.argv[2])
+work = marks / "work"
+if half == "first":
+    try:
+        compile_parts(work, HALVES[0])
+    finally:
+        (marks / "first").touch()
+    try:
+        import pysheds.grid  # noqa: F401
+    finally:
+        (marks / "pysheds").touch()
+else:
+    try:
+        compile_parts(work, HALVES[1])
+        compile_test_kernels()
+        deadline = time.monotonic() + 600
+        while not (marks / "first").exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        ensure_compiled()
+    finally:
+        (marks / "library").touch()

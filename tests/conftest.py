@@ -3,8 +3,11 @@ LocalCluster for the session, real scheduler and worker processes."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -14,19 +17,56 @@ import xarray as xr
 # chunkings every chunked function is checked with: tiny uneven, power of two, ragged, single
 CHUNKINGS = [(7, 5), (64, 64), (100, 37), None]
 
-_WARM: dict = {}
+_WARM: list = []  # the warm-up processes (tests/_warm_numba.py)
+_WARM_DIR = "PIPELINE_TEST_WARM_DIR"  # where they write a file per step done
 
 
 def pytest_sessionstart(session):
-    """In a fresh environment numba compiles every kernel on first use (about a minute for the
-    library's, over a minute for the ~80 that pysheds compiles when imported), then caches it
-    on disk. Most tests use one core: compile both on the other one while the first tests run
-    (tests/_warm_numba.py), so that later tests, and the cluster's workers, load them."""
-    _WARM["numba"] = subprocess.Popen(
-        [sys.executable, str(Path(__file__).with_name("_warm_numba.py"))],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    """In a fresh environment numba compiles every kernel on first use (about a minute of one
+    core for the library's, over a minute for the ~80 that pysheds compiles when imported),
+    then caches it on disk. Two processes (tests/_warm_numba.py) compile the library's kernels
+    in the two halves of ``pipeline.warmup`` at once, then one compiles pysheds while the tests
+    run. Under pytest-xdist (``./dev test`` runs one test process per core, up to 4) only the
+    controller starts them; every test process waits for the library's kernels (the cores are
+    busy compiling them meanwhile), the pysheds comparisons for pysheds'."""
+    if hasattr(session.config, "workerinput"):  # an xdist worker: the controller started them
+        return
+    from pipeline.warmup import is_compiled
+
+    marks = Path(tempfile.mkdtemp(prefix="pipeline-warm-"))
+    os.environ[_WARM_DIR] = str(marks)  # inherited by the xdist workers started after this
+    if is_compiled():  # a warm environment: nothing to wait for
+        (marks / "library").touch()
+    script = str(Path(__file__).with_name("_warm_numba.py"))
+    for half in ("first", "second"):
+        _WARM.append(
+            subprocess.Popen(
+                [sys.executable, script, half, str(marks)],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
+
+
+def pytest_unconfigure(config):
+    for proc in _WARM:  # a warm-up still running when the tests are done (a short selection)
+        if proc.poll() is None:
+            proc.terminate()
+
+
+def _wait_for_warm_up(step: str, timeout: float = 900.0) -> None:
+    marks = os.environ.get(_WARM_DIR)
+    deadline = time.monotonic() + timeout
+    while marks and not (Path(marks) / step).exists() and time.monotonic() < deadline:
+        if _WARM and all(p.poll() is not None for p in _WARM):
+            return  # the warm-up died: the tests compile what they need themselves
+        time.sleep(0.2)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def library_kernels_compiled():
+    """The library's kernels are in numba's cache before the first test (a cold start)."""
+    _wait_for_warm_up("library")
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -47,23 +87,26 @@ def offline_stac_schemas():
 @pytest.fixture(scope="session")
 def pysheds_ready():
     """The warm-up has compiled pysheds (its comparisons then take seconds, not a minute)."""
-    proc = _WARM.get("numba")
-    if proc is not None:
-        proc.wait(timeout=900)
+    _wait_for_warm_up("pysheds")
 
 
 def compile_kernels() -> None:
     """Compile every numba kernel the tests use into numba's on-disk cache: the pipeline's own
     warm-up (pipeline.warmup, as a job's first run does), then the argument types only the
-    tests use (tests/_warm_numba.py runs this at session start; the session cluster runs it
-    before its workers start)."""
+    tests use (the session cluster runs this before its workers start)."""
+    from pipeline.warmup import ensure_compiled
+
+    ensure_compiled()
+    compile_test_kernels()
+
+
+def compile_test_kernels() -> None:
+    """The kernels with the argument types only the tests use."""
     import dask
 
     import pipeline
     from pipeline.ridges import accumulation_single, fill_single
-    from pipeline.warmup import ensure_compiled
 
-    ensure_compiled()
     with dask.config.set(scheduler="synchronous"):
         small = pipeline.synthetic_dem((40, 40), chunks=None)
         for method in ("vertical", "horizontal", "spherical"):
