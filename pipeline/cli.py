@@ -125,15 +125,15 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
 @_option(DEM.uncertainty)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def dem_import(source, out, overwrite, **options):
-    """Import a GeoTIFF, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT
-    (options: those of open_dem, by the parameter schema)."""
-    from .dem import open_dem, write_dem
+    """Import a GeoTIFF, BAG, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT
+    (options: those of open_dem, by the parameter schema), in one pass over the file."""
+    from .dem import import_dem, open_dem
 
     with _errors():
         t0 = time.perf_counter()
-        d = open_dem(source, **options)
+        d = open_dem(source, validate=False, **options)  # lazy: only the size, for the log
         with _progress(f"importing {source} ({d.shape[0]} x {d.shape[1]} cells) into {out}"):
-            write_dem(d, out, chunks=options["chunks"], overwrite=overwrite)
+            import_dem(source, out, overwrite=overwrite, **options)
         click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
 
 

@@ -155,21 +155,24 @@ def session(scheduler=None, scheduler_file=None, dashboard_address=None):
         raise InvalidParameterError("give a scheduler address or a scheduler file, not both")
     if scheduler_file is not None:
         scheduler = address_of(scheduler_file)
-    if isinstance(scheduler, Client):
-        import dask
+    import dask
 
+    if isinstance(scheduler, Client):
         # the default for dask collections in every thread (missions plan in threads)
         with scheduler.as_current(), dask.config.set(scheduler=scheduler):
             yield scheduler
         return
     cluster = None
     if scheduler:
-        client = connect(scheduler, set_as_default=True)
+        client = connect(scheduler, set_as_default=False)
     else:
         cluster = local_cluster(dashboard_address or _free_dashboard_address())
-        client = Client(cluster)
+        client = Client(cluster, set_as_default=False)
     try:
-        yield client
+        # the default only inside the block (a context that is always undone), never the
+        # process-wide default: a client closed later cannot stay anyone's scheduler
+        with client.as_current(), dask.config.set(scheduler=client):
+            yield client
     finally:
         client.close()
         if cluster is not None:

@@ -189,11 +189,7 @@ def open_dem(
             raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution, region=region
         )
         if validate:
-            require_valid_cells(
-                dem,
-                f"DEM file {path} holds no valid elevation: every cell is "
-                "no-data (NaN or the file's nodata value)",
-            )
+            require_valid_cells(dem, _no_valid_cells(path))
     if uncertainty_k is not None:
         dem.attrs.update(
             uncertainty_k=uncertainty_k,
@@ -230,6 +226,13 @@ def _nonnegative_sigma(block: np.ndarray, path: str, name: str) -> np.ndarray:
     return block
 
 
+def _no_valid_cells(path) -> str:
+    return (
+        f"DEM file {path} holds no valid elevation: every cell is no-data (NaN or the file's "
+        "nodata value)"
+    )
+
+
 def write_dem(
     dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK, overwrite: bool = False
 ) -> Path:
@@ -239,6 +242,13 @@ def write_dem(
     default to 1024 (a multiple of 64, so that coarsening by 2, 4, 8, 16, 32 or 64 needs no
     rechunk). Computation streams chunk by chunk on the current dask scheduler.
     """
+    return _write_dem(dem, store, chunks, overwrite)
+
+
+def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) -> Path:
+    """:func:`write_dem`; with ``empty``, the grid is also checked to hold a valid cell in the
+    same pass (each chunk read, reprojected and checked once), else InvalidDEMError(empty) and
+    nothing is left behind."""
     _check_canonical(dem)
     ch = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, dem.shape)
     for side in ch:
@@ -256,7 +266,22 @@ def write_dem(
     encoding = {"elevation": {"chunks": ch}}
     with atomic_path(store, overwrite=overwrite) as tmp:
         with reading(dem.attrs.get("source", "")):
-            ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
+            if empty is None:
+                ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
+            else:
+                import dask
+
+                stored = ds.to_zarr(
+                    tmp,
+                    mode="w",
+                    zarr_format=3,
+                    consolidated=False,
+                    encoding=encoding,
+                    compute=False,
+                )
+                _, valid = dask.compute(stored, da.isfinite(data).any())
+                if not bool(valid):
+                    raise InvalidDEMError(empty)
     log.info(
         "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
         store,
@@ -294,9 +319,13 @@ def import_dem(
     overwrite: bool = False,
     bbox=None,
     bbox_xy=None,
+    uncertainty_k: float | None = None,
+    uncertainty: str | None = None,
 ) -> Path:
-    """Open ``source`` with :func:`open_dem` (``bbox`` or ``bbox_xy``: only that region) and
-    write it as the canonical Zarr store."""
+    """Open ``source`` with :func:`open_dem` (``bbox`` or ``bbox_xy``: only that region;
+    ``uncertainty_k``: the shoal side of its uncertainty band) and write it as the canonical
+    Zarr store, in one pass over the file (the check that it holds a valid cell is made on the
+    chunks as they are written)."""
     dem = open_dem(
         source,
         chunks=chunks,
@@ -305,8 +334,11 @@ def import_dem(
         resolution=resolution,
         bbox=bbox,
         bbox_xy=bbox_xy,
+        uncertainty_k=uncertainty_k,
+        uncertainty=uncertainty,
+        validate=False,
     )
-    return write_dem(dem, store, chunks=chunks, overwrite=overwrite)
+    return _write_dem(dem, store, chunks, overwrite, _no_valid_cells(source))
 
 
 # --------------------------------------------------------------------------- reading

@@ -47,7 +47,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .exceptions import CatalogBusyError, InvalidParameterError, JobFileError, PipelineError
+from .exceptions import (
+    CatalogBusyError,
+    InvalidDEMError,
+    InvalidParameterError,
+    JobFileError,
+    PipelineError,
+)
 from .params import (
     DEFAULT_CHUNK,
     DEM,
@@ -570,16 +576,18 @@ def remove_temporaries(catalog: Path) -> list[Path]:
 
 
 def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
-    from .dem import open_dem, write_dem
+    from .dem import import_dem, write_dem
     from .synthetic import synthetic_dem
 
     if store.exists() and not overwrite:
         log.info("DEM store %s is up to date: reusing it", store)
         return True
+    log.info("writing the DEM store %s", store)
     try:
-        if job.dem_path is not None:
-            dem = open_dem(
+        if job.dem_path is not None:  # read, checked and written in one pass over the file
+            import_dem(
                 job.dem_path,
+                store,
                 chunks=job.chunks,
                 variable=job.variable,
                 cell_size=job.cell_size,
@@ -588,12 +596,12 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
                 bbox_xy=job.bbox_xy,
                 uncertainty_k=job.uncertainty_k,
                 uncertainty=job.uncertainty,
+                overwrite=True,
             )
-        else:
-            dem = synthetic_dem(chunks=job.chunks, **job.synthetic)
-    except PipelineError as exc:
+            return False
+        dem = synthetic_dem(chunks=job.chunks, **job.synthetic)
+    except (InvalidDEMError, InvalidParameterError) as exc:
         raise JobFileError(f"job file {job.path}: {exc}") from exc
-    log.info("writing the DEM store %s", store)
     write_dem(dem, store, chunks=job.chunks, overwrite=True)
     return False
 

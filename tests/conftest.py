@@ -324,3 +324,22 @@ def real_cluster(tmp_path_factory):
     yield addr
     pipeline.cluster.shutdown()  # the clients plan() opened, before their scheduler goes
     stop_dask_cluster(sched, procs)
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_default_scheduler():
+    """A test leaves dask's default scheduler as it found it: a client left as the default
+    (a closed one, or one whose cluster is gone) would make every later in-process compute in
+    this test process wait forever."""
+    import dask
+
+    before = dask.config.get("scheduler", None)
+    yield
+    from distributed.client import _global_clients
+
+    after = dask.config.get("scheduler", None)
+    live = [c for c in list(_global_clients.values()) if c.status != "closed"]
+    assert after == before and not _global_clients, (
+        f"the test left dask's default scheduler {after!r} (was {before!r}) and clients "
+        f"{list(_global_clients.values())} ({len(live)} open)"
+    )
