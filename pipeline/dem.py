@@ -226,6 +226,21 @@ def _nonnegative_sigma(block: np.ndarray, path: str, name: str) -> np.ndarray:
     return block
 
 
+def _holds_a_valid_cell(array: Path) -> bool:
+    """Whether the Zarr array just written holds a valid (non-NaN) cell: written without its
+    empty chunks and with NaN as its fill value, it does exactly when a chunk was stored (no
+    pass over the data); otherwise it is read back."""
+    import zarr
+
+    fill = zarr.open_array(array, mode="r").metadata.fill_value
+    if fill is None or not np.isnan(fill):
+        return bool(np.isfinite(da.from_zarr(str(array))).any().compute())
+    for _root, _dirs, files in os.walk(array / "c"):
+        if files:
+            return True
+    return False
+
+
 def _no_valid_cells(path) -> str:
     return (
         f"DEM file {path} holds no valid elevation: every cell is no-data (NaN or the file's "
@@ -246,8 +261,8 @@ def write_dem(
 
 
 def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) -> Path:
-    """:func:`write_dem`; with ``empty``, the grid is also checked to hold a valid cell in the
-    same pass (each chunk read, reprojected and checked once), else InvalidDEMError(empty) and
+    """:func:`write_dem`; with ``empty``, the grid written is also checked to hold a valid cell
+    (from the chunks stored: no second pass over the file), else InvalidDEMError(empty) and
     nothing is left behind."""
     _check_canonical(dem)
     ch = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, dem.shape)
@@ -266,22 +281,17 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     encoding = {"elevation": {"chunks": ch}}
     with atomic_path(store, overwrite=overwrite) as tmp:
         with reading(dem.attrs.get("source", "")):
-            if empty is None:
-                ds.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False, encoding=encoding)
-            else:
-                import dask
-
-                stored = ds.to_zarr(
-                    tmp,
-                    mode="w",
-                    zarr_format=3,
-                    consolidated=False,
-                    encoding=encoding,
-                    compute=False,
-                )
-                _, valid = dask.compute(stored, da.isfinite(data).any())
-                if not bool(valid):
-                    raise InvalidDEMError(empty)
+            # chunks that are all no-data (the fill value, NaN) are not stored
+            ds.to_zarr(
+                tmp,
+                mode="w",
+                zarr_format=3,
+                consolidated=False,
+                encoding=encoding,
+                write_empty_chunks=False,
+            )
+        if empty is not None and not _holds_a_valid_cell(tmp / "elevation"):
+            raise InvalidDEMError(empty)
     log.info(
         "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
         store,

@@ -6,6 +6,8 @@ for reprojection, pyproj plus scipy's RegularGridInterpolator on the source lon/
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import dask.array as da
 import numpy as np
 import pytest
@@ -470,6 +472,35 @@ def test_bbox_xy_reads_only_its_window_of_a_tiled_geotiff(tmp_path):
     before = _rchar()
     whole = pipeline.open_dem(path, chunks=256).values  # the whole file, for scale
     assert _rchar() - before > 0.9 * size and whole.shape == (2048, 2048)
+
+
+def test_import_reads_the_file_once_and_skips_no_data_chunks(tmp_path):
+    """import_dem reads a tiled GeoTIFF once (its check for a valid cell is made on what it
+    writes, not in a pass of its own), stores no chunk that is all no-data, and the store reads
+    back as the file (NaN where the file has no data)."""
+    import rioxarray  # noqa: F401
+
+    z = random_surface((1024, 1024), seed=6).astype(np.float32) * 100 - 3000
+    z[:256, :512] = np.nan  # two whole chunks of 256^2 without data
+    arr = metric_dataarray(z, a=50.0).rio.write_crs("EPSG:32610").rio.write_nodata(np.nan)
+    path = tmp_path / "tiled.tif"
+    arr.rio.to_raster(path, tiled=True, blockxsize=256, blockysize=256)
+    small = tmp_path / "small.tif"  # the first read in a process imports modules
+    arr[:300, :300].rio.to_raster(small, tiled=True, blockxsize=256, blockysize=256)
+    pipeline.import_dem(small, tmp_path / "small.zarr", chunks=256)
+    import rasterio
+
+    before = _rchar()
+    with rasterio.Env(GDAL_CACHEMAX=1):  # 1 MB of GDAL's block cache: a second pass re-reads
+        store = pipeline.import_dem(path, tmp_path / "dem.zarr", chunks=256)
+    read = _rchar() - before
+    size = path.stat().st_size
+    assert 0.9 * size < read < 1.4 * size, (read, size)
+    stored = sorted(
+        p.relative_to(store) for p in (store / "elevation" / "c").rglob("*") if p.is_file()
+    )
+    assert len(stored) == 16 - 2 and Path("elevation/c/0/0") not in stored
+    np.testing.assert_array_equal(pipeline.open_dem(store, chunks=None).values, z)
 
 
 def test_bbox_in_lon_lat_on_a_projected_file_covers_the_box(tmp_path):
