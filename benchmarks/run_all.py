@@ -38,6 +38,7 @@ SCRIPTS = [
     "dem",
     "safety",
     "ridges",
+    "scale",
     "planners",
     "mcpc",
     "latency",
