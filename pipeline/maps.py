@@ -35,8 +35,8 @@ from numba import njit
 from ._io import atomic_path, remove_settled
 from .components import components_staged
 from .dem import cell_size, open_dem, require_valid_cells
-from .exceptions import StoreExistsError
-from .landmarks import landmarks_staged
+from .exceptions import InvalidParameterError, StoreExistsError
+from .landmarks import landmarks_staged, memory_per_landmark
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
 from .ridges import default_min_accumulation, ridge_layers_staged
 from .safety import passable, safety_map
@@ -156,6 +156,8 @@ def build_maps(
         min_accumulation = default_min_accumulation(a)
     min_accumulation = MAPS.min_accumulation.check(min_accumulation)
     landmarks = MAPS.landmarks.check(landmarks)
+    if landmarks:
+        _check_landmark_memory(dem.shape)
     require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
     params = {
         "method": method,
@@ -263,6 +265,35 @@ def build_maps(
         time.perf_counter() - t0,
     )
     return open_maps(store)
+
+
+def _check_landmark_memory(shape) -> None:
+    """Refuse, before any compute, landmark layers whose exact whole-map searches cannot fit:
+    each search holds the map (:func:`pipeline.landmarks.memory_per_landmark`) and would
+    otherwise fail only after every other layer was built. A search runs on one dask worker
+    (the smallest worker's memory limit counts) or, without a distributed client, two at a
+    time in this process (half of this machine's memory each)."""
+    import psutil
+
+    need = memory_per_landmark(shape)
+    have = psutil.virtual_memory().total // 2
+    try:
+        from distributed import get_client
+
+        workers = get_client().scheduler_info()["workers"].values()
+        limits = [w.get("memory_limit") or 0 for w in workers]
+        if limits and min(limits) > 0:
+            have = min(limits)
+    except (ImportError, ValueError):  # no distributed client
+        pass
+    if need > 0.9 * have:
+        raise InvalidParameterError(
+            f"the landmark layers need about {need / 2**30:.1f} GiB per landmark search (an "
+            f"exact search of the whole {shape[0]} x {shape[1]} map, 18 bytes a cell), more "
+            f"than the {have / 2**30:.1f} GiB one search can have here; set landmarks = 0 "
+            "(--landmarks 0): missions are then certified by the octile bound or say they "
+            "are not"
+        )
 
 
 def layer_codec():

@@ -163,3 +163,32 @@ def test_cli_build_maps(tmp_path, local_client):
         main, ["build-maps", str(dem_store), str(tmp_path / "m2.zarr"), "--clearance", "5"]
     )
     assert res.exit_code == 2 and "smaller than half a cell" in res.output
+
+
+def test_landmarks_too_large_for_the_machine_are_refused_before_any_compute(tmp_path):
+    """A map whose landmark searches (18 bytes a cell, each holding the whole map) cannot fit
+    in half of this machine's memory is refused in one line naming the fix, at once (the map
+    here is a lazy array, never computed), and nothing is written."""
+    import time
+
+    import dask.array as da
+    import psutil
+    import xarray as xr
+
+    cells = psutil.virtual_memory().total / 18  # one search would need all the memory
+    side = int(np.ceil(np.sqrt(cells)))
+    z = da.full((side, side), -3000.0, dtype=np.float32, chunks=4096)
+    a = 30.0
+    dem = xr.DataArray(
+        z,
+        dims=("y", "x"),
+        coords={"y": (side - 0.5 - np.arange(side)) * a, "x": (np.arange(side) + 0.5) * a},
+        name="elevation",
+        attrs={"cell_size": a},
+    )
+    t0 = time.perf_counter()
+    with pytest.raises(pipeline.InvalidParameterError, match="set landmarks = 0") as info:
+        pipeline.build_maps(dem, tmp_path / "m.zarr", landmarks=2)
+    assert time.perf_counter() - t0 < 30 and "\n" not in str(info.value)
+    assert f"{side} x {side} map" in str(info.value)
+    assert not (tmp_path / "m.zarr").exists()
