@@ -206,6 +206,10 @@ def build_maps(
                 }
             )
             partials = _write(ds, tmp, ch, also=dem_hash(dem))
+            log.info(
+                "maps %s: layers written (elevation, safety, passable, accumulation, ridge)",
+                store,
+            )
             # pass 4: connected components of the passable layer just written
             component = components_staged(da.from_zarr(str(tmp / "passable")), labels)
             xr.Dataset(
