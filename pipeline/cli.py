@@ -131,10 +131,10 @@ def dem_import(source, out, overwrite, **options):
 
     with _errors():
         t0 = time.perf_counter()
-        d = open_dem(source, validate=False, **options)  # lazy: only the size, for the log
-        with _progress(f"importing {source} ({d.shape[0]} x {d.shape[1]} cells) into {out}"):
+        with _progress(f"importing {source} into {out}"):
             import_dem(source, out, overwrite=overwrite, **options)
-        click.echo(f"wrote {out} in {time.perf_counter() - t0:.1f} s")
+        rows, cols = open_dem(out).shape  # the store's metadata: the file is read once
+        click.echo(f"wrote {out} ({rows} x {cols} cells) in {time.perf_counter() - t0:.1f} s")
 
 
 @dem.command("info")
