@@ -1,4 +1,10 @@
-"""Atomic writes: a store or file is written beside its destination, then moved into place."""
+"""Where stores live, and atomic writes.
+
+A store is a local path (a shared directory on a cluster) or an fsspec URL (``s3://bucket/key``
+and the like): object storage every worker can reach. Local stores are written beside their
+destination and moved into place; object storage has no rename, so a store there is written in
+place and is complete only once its final attributes are written (a reader refuses it until
+then), and a failed build removes what it wrote."""
 
 from __future__ import annotations
 
@@ -10,7 +16,133 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from .exceptions import StoreExistsError
+from .exceptions import PipelineError, StoreExistsError
+
+
+def is_url(p) -> bool:
+    """Whether ``p`` names object storage (an fsspec URL such as ``s3://bucket/key``) rather
+    than a local or shared path; ``file://`` URLs are local paths."""
+    return isinstance(p, str) and "://" in p and not p.startswith("file://")
+
+
+def location(p) -> str:
+    """The canonical name of a store: a URL as given (no trailing ``/``), else the absolute
+    path. Workers open stores by this name."""
+    if is_url(p):
+        return p.rstrip("/")
+    if isinstance(p, str) and p.startswith("file://"):
+        p = p[len("file://") :]
+    return str(Path(p).resolve())
+
+
+def join(base: str, *parts: str) -> str:
+    """``base`` / ``parts`` for a path or a URL."""
+    return "/".join([str(base).rstrip("/"), *parts]) if is_url(base) else os.path.join(base, *parts)
+
+
+def filesystem(url: str):
+    """The fsspec filesystem of ``url`` and the path in it; one line if its package is not
+    installed."""
+    import fsspec
+
+    try:
+        return fsspec.core.url_to_fs(url)
+    except (ImportError, ValueError) as exc:
+        raise PipelineError(
+            f"{url}: this kind of storage needs a package that is not installed ({exc}); for "
+            "s3:// install s3fs (pip install 'auv-pipeline[s3]')"
+        ) from None
+
+
+def unreachable(url: str, exc: BaseException) -> PipelineError:
+    """The one line for object storage that cannot be reached or read."""
+    what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return PipelineError(
+        f"{url} cannot be reached ({type(exc).__name__}: {what}); check the URL, that the bucket "
+        "exists, and the endpoint and credentials (AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, "
+        "AWS_SECRET_ACCESS_KEY, or ~/.aws) on this machine and every worker"
+    )
+
+
+def exists(p) -> bool:
+    """Whether the file or store ``p`` (a path or a URL) exists."""
+    if not is_url(p):
+        return os.path.exists(p)
+    fs, path = filesystem(p)
+    try:
+        return fs.exists(path)
+    except PipelineError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - botocore, aiohttp, ... each raise their own
+        raise unreachable(p, exc) from None
+
+
+def stamp(p):
+    """A value that changes when the file ``p`` is rewritten (its mtime, an object's ETag), or
+    None when it is absent."""
+    if not is_url(p):
+        try:
+            return os.stat(p).st_mtime_ns
+        except OSError:
+            return None
+    fs, path = filesystem(p)
+    try:
+        fs.invalidate_cache(path)
+        info = fs.info(path)
+    except FileNotFoundError:
+        return None
+    except Exception as exc:  # noqa: BLE001
+        raise unreachable(p, exc) from None
+    return info.get("ETag") or info.get("LastModified") or info.get("mtime") or info.get("size")
+
+
+def remove_tree(p) -> None:
+    """Remove the store ``p`` (a path or a URL) if it exists."""
+    if not is_url(p):
+        _remove(Path(p))
+        return
+    fs, path = filesystem(p)
+    try:
+        if fs.exists(path):
+            fs.rm(path, recursive=True)
+    except FileNotFoundError:
+        pass
+
+
+def require_writable(url: str) -> None:
+    """Write and remove one small object under ``url``, before a long computation that ends by
+    writing there: a wrong bucket, endpoint or credential is then one line at once."""
+    fs, path = filesystem(url)
+    probe = f"{path.rstrip('/')}.write-probe"
+    try:
+        fs.pipe(probe, b"")
+        fs.rm(probe)
+    except Exception as exc:  # noqa: BLE001
+        raise unreachable(url, exc) from None
+
+
+@contextmanager
+def target(path, *, overwrite: bool = False) -> Iterator[str]:
+    """:func:`atomic_path` for a local path; for a URL, the URL itself (removed first when
+    ``overwrite``, and removed again if the block fails)."""
+    if not is_url(path):
+        with atomic_path(path, overwrite=overwrite) as tmp:
+            yield str(tmp)
+        return
+    url = location(path)
+    if exists(join(url, "zarr.json")):
+        if not overwrite:
+            raise StoreExistsError(
+                f"{url} exists already; pass overwrite=True (--overwrite) to replace it"
+            )
+    require_writable(url)
+    if overwrite:
+        remove_tree(url)
+    try:
+        yield url
+    except BaseException:
+        remove_tree(url)
+        raise
 
 
 @contextmanager

@@ -59,7 +59,16 @@ def _setup_logging(verbose: bool) -> None:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    for noisy in ("distributed", "numba", "rasterio", "fsspec", "asyncio"):
+    for noisy in (
+        "distributed",
+        "numba",
+        "rasterio",
+        "fsspec",
+        "asyncio",
+        "s3fs",
+        "botocore",
+        "aiobotocore",
+    ):
         logging.getLogger(noisy).setLevel(logging.WARNING)
 
 
@@ -178,6 +187,7 @@ def dem_info(path):
 def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, **params):
     """Build the maps store OUT (elevation, safety, passable, accumulation, ridge, component,
     landmark distances) from the DEM at DEM_PATH."""
+    from ._io import is_url, require_writable
     from .cluster import session
     from .dem import open_dem
     from .maps import build_maps
@@ -185,6 +195,8 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     with _errors():
         t0 = time.perf_counter()
         dem = open_dem(dem_path, chunks=chunks or DEM.chunks.default)
+        if is_url(out):  # a wrong bucket or credential before a cluster is started
+            require_writable(out)
         with (
             session(scheduler, scheduler_file),
             _progress(f"building {params['method']} maps of {dem_path} into {out}"),

@@ -38,7 +38,7 @@ def _label_tile(block, r0: int, c0: int, ncols: int, scratch: str):
     row-major index of each label's first cell, and its borders."""
     labels, n = label_components(block)
     rows, cols = labels.shape
-    zarr.open_array(scratch, mode="r+")[r0 : r0 + rows, c0 : c0 + cols] = labels
+    zarr.open_array(scratch, mode="r+", zarr_format=3)[r0 : r0 + rows, c0 : c0 + cols] = labels
     flat = (r0 + np.arange(rows))[:, None] * ncols + (c0 + np.arange(cols))[None, :]
     first = np.asarray(ndimage.minimum(flat, labels, index=np.arange(1, n + 1)), np.int64)
     return (
@@ -135,7 +135,7 @@ def components_staged(passable: da.Array, scratch) -> da.Array:
     # the tables travel as graph keys (sent once to each worker), not in closures
     table_key = dask.delayed(table, pure=True)
     offsets_key = dask.delayed(offsets, pure=True)
-    local = da.from_zarr(zarr.open_array(str(scratch), mode="r")).rechunk(ok.chunks)
+    local = da.from_zarr(zarr.open_array(str(scratch), mode="r", zarr_format=3)).rechunk(ok.chunks)
     return da.map_blocks(
         _relabel,
         local,

@@ -708,7 +708,7 @@ class Corridor:
         from .store import CACHE
 
         rows, cols = m.shape
-        arr = zarr.open_array(f"{m.path}/elevation", mode="r")
+        arr = zarr.open_array(f"{m.path}/elevation", mode="r", zarr_format=3)
         tr, tc = (int(v) for v in arr.chunks)
         self.tr, self.tc, self.rows, self.cols = tr, tc, rows, cols
         nti, ntj = -(-rows // tr), -(-cols // tc)

@@ -268,9 +268,9 @@ def memory_per_landmark(shape) -> int:
 def _layer_task(store: str, i: int, cell, a: float) -> None:
     import zarr
 
-    g = zarr.open_group(store, mode="r")
+    g = zarr.open_group(store, mode="r", zarr_format=3)
     d = landmark_layer(g["safety"][:], g["passable"][:], a, cell)
-    zarr.open_array(f"{store}/{VARIABLE}", mode="r+")[i] = d
+    zarr.open_array(f"{store}/{VARIABLE}", mode="r+", zarr_format=3)[i] = d
 
 
 def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]:
@@ -288,8 +288,8 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     import zarr
 
     store = str(store)
-    comp = da.from_zarr(zarr.open_array(f"{store}/component", mode="r"))
-    safety = da.from_zarr(zarr.open_array(f"{store}/safety", mode="r"))
+    comp = da.from_zarr(zarr.open_array(f"{store}/component", mode="r", zarr_format=3))
+    safety = da.from_zarr(zarr.open_array(f"{store}/safety", mode="r", zarr_format=3))
     nmax = int(comp.max().compute())
     if k <= 0 or nmax == 0:
         return []
@@ -310,7 +310,7 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     cells: list[tuple[int, int]] = []
     for cr, cc in place_coarse(mean, ok, a * f, k):
         block = np.isin(
-            zarr.open_array(f"{store}/component", mode="r")[
+            zarr.open_array(f"{store}/component", mode="r", zarr_format=3)[
                 cr * f : (cr + 1) * f, cc * f : (cc + 1) * f
             ],
             big,
@@ -320,7 +320,7 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
             cells.append(cell)
     if log:
         log("placing %d landmarks: %s", len(cells), cells)
-    group = zarr.open_group(store, mode="r+")
+    group = zarr.open_group(store, mode="r+", zarr_format=3)
     if not cells:
         return cells
     group.create_array(

@@ -942,7 +942,7 @@ def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
     """Pass 1 for one tile: flood, write local fill and label indices, return spill edges."""
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     rows, cols = filled.shape
-    g = zarr.open_group(scratch, mode="r+")
+    g = zarr.open_group(scratch, mode="r+", zarr_format=3)
     g["floc"][r0 : r0 + rows, c0 : c0 + cols] = filled
     g["plab"][r0 : r0 + rows, c0 : c0 + cols] = label
     return edges

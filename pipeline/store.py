@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._io import exists, filesystem, is_url, join, location, stamp, unreachable
 from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
 from .params import LATITUDE, LONGITUDE, PLANNING
 
@@ -50,19 +51,35 @@ COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine 
 
 def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index) -> ndarray``, clipped to the array)
-    that opens the chunk's file and decodes it with numcodecs, or None when the array is not
-    laid out the way the maps stores are (Zarr 3 on a local directory, no sharding, the
-    ``bytes`` codec then one blosc or zstd compressor). zarr-python's own read costs about
+    that fetches the chunk's file or object and decodes it with numcodecs (None for a chunk
+    that is not there), or None when the array is not laid out the way the maps stores are
+    (Zarr 3 on a local directory or object storage, no sharding, the ``bytes`` codec then one
+    blosc or zstd compressor). zarr-python's own read costs about
     1.5-2 ms a chunk more than the decode itself (benchmarks/RESULTS.md, "one mission"): a
     mission reads 16 landmark chunks for its bound and a few per section."""
     import numcodecs
     from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
-    from zarr.storage import LocalStore
+    from zarr.storage import FsspecStore, LocalStore
 
     meta = arr.metadata
     codecs = getattr(meta, "codecs", ())
+    if isinstance(arr.store, LocalStore):
+        root = os.path.join(str(arr.store.root), arr.path)
+
+        def fetch(key: str) -> bytes:
+            with open(os.path.join(root, key), "rb") as f:
+                return f.read()
+
+    elif isinstance(arr.store, FsspecStore) and is_url(store):
+        fs, root = filesystem(join(store, var))  # a synchronous instance, for this thread
+
+        def fetch(key: str) -> bytes:
+            return fs.cat_file(f"{root}/{key}")
+
+    else:
+        return None
     if (
-        not isinstance(arr.store, LocalStore)
+        len(codecs) != 2
         or len(codecs) != 2
         or not isinstance(codecs[0], BytesCodec)
         or getattr(codecs[0].endian, "value", "little") != "little"
@@ -76,14 +93,12 @@ def direct_reader(arr, store: str, var: str):
         decoder = numcodecs.Zstd()
     else:
         return None
-    root = os.path.join(str(arr.store.root), arr.path)
     chunks, shape, dtype = tuple(arr.chunks), tuple(arr.shape), arr.dtype
 
     def read(index: tuple):
         key = meta.encode_chunk_key(index)
         try:
-            with open(os.path.join(root, key), "rb") as f:
-                raw = f.read()
+            raw = fetch(key)
         except FileNotFoundError:
             return None
         try:
@@ -118,7 +133,7 @@ class ChunkCache:
         if arr is None:
             import zarr
 
-            arr = zarr.open_array(os.path.join(store, var), mode="r")
+            arr = zarr.open_array(join(store, var), mode="r", zarr_format=3)
             self.arrays[key] = arr
             self.readers[key] = direct_reader(arr, store, var)
         return arr
@@ -131,11 +146,12 @@ class ChunkCache:
         block = read(index) if read is not None else None
         if block is not None:
             return block
-        if complete:
-            path = os.path.join(store, var, arr.metadata.encode_chunk_key(index))
-            if not os.path.exists(path):
-                what = ", ".join(str(i) for i in index)
-                raise damaged(store, f"chunk ({what}) of its layer {var!r} is missing")
+        # the direct reader found no chunk there; else ask the storage
+        if complete and (
+            read is not None or not exists(join(store, var, arr.metadata.encode_chunk_key(index)))
+        ):
+            what = ", ".join(str(i) for i in index)
+            raise damaged(store, f"chunk ({what}) of its layer {var!r} is missing")
         return arr[tuple(slice(i * c, (i + 1) * c) for i, c in zip(index, arr.chunks, strict=True))]
 
     def _cached(self, key, load) -> np.ndarray:
@@ -213,12 +229,15 @@ class MapsStore:
     def __init__(self, path: str | os.PathLike):
         import zarr
 
-        path = Path(path)
+        path = location(path)
         _require_store(path)
-        group = zarr.open_group(path, mode="r")
+        try:
+            group = zarr.open_group(path, mode="r", zarr_format=3)
+        except Exception as exc:  # noqa: BLE001 - object storage raises its own errors
+            raise unreachable(path, exc) from None
         attrs = dict(group.attrs)
         _require_version(path, attrs)
-        self.path = str(path.resolve())
+        self.path = path
         try:
             params = attrs.get("parameters")
             self.parameters = json.loads(params) if isinstance(params, str) else params
@@ -345,8 +364,8 @@ class MapsStore:
             got = self._coarse.get(rho)
         if got is not None:
             return got
-        group = Path(self.path) / f"coarse-rho{rho}"
-        if not (group / "zarr.json").exists():
+        name = f"coarse-rho{rho}"
+        if not _coarse_written(self.path, name):
             ds = self.dataset[["safety", "ridge", "passable"]]
             cs = ds.astype("float32").coarsen(y=rho, x=rho, boundary="pad").mean()
             out = xr.Dataset(
@@ -357,13 +376,10 @@ class MapsStore:
                 }
             ).compute()
             out.attrs.update(rho=rho, source="block means of the fine maps (SPEC section 6)")
-            tmp = Path(self.path) / f".coarse-rho{rho}.tmp-{uuid.uuid4().hex[:8]}"
-            out.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
-            try:
-                os.rename(tmp, group)
-            except OSError:  # another process wrote it first: keep theirs
-                shutil.rmtree(tmp, ignore_errors=True)
-        ds = xr.open_zarr(self.path, group=f"coarse-rho{rho}", consolidated=False).load()
+            _write_coarse(out, self.path, name)
+        ds = xr.open_zarr(
+            self.path, group=f"coarse-rho{rho}", consolidated=False, zarr_format=3
+        ).load()
         res = {
             "safety": ds["safety"].values,
             "ridge": ds["ridge"].values,
@@ -421,7 +437,42 @@ class MapsStore:
         return row, col
 
 
-def _require_store(path: Path) -> None:
+def _write_coarse(out, store: str, name: str) -> None:
+    """Write the coarse maps ``out`` as group ``name`` of ``store``: locally beside it and
+    renamed into place; on object storage (no rename) in place, then marked complete."""
+    if is_url(store):
+        out.to_zarr(join(store, name), mode="w", zarr_format=3, consolidated=False)
+        import zarr
+
+        zarr.open_group(join(store, name), mode="r+", zarr_format=3).attrs["complete"] = True
+        return
+    tmp = Path(store) / f".{name}.tmp-{uuid.uuid4().hex[:8]}"
+    out.to_zarr(tmp, mode="w", zarr_format=3, consolidated=False)
+    try:
+        os.rename(tmp, Path(store) / name)
+    except OSError:  # another process wrote it first: keep theirs
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _coarse_written(store: str, name: str) -> bool:
+    if not is_url(store):
+        return (Path(store) / name / "zarr.json").exists()
+    if not exists(join(store, name, "zarr.json")):
+        return False
+    import zarr
+
+    return bool(zarr.open_group(join(store, name), mode="r", zarr_format=3).attrs.get("complete"))
+
+
+def _require_store(path) -> None:
+    if is_url(path):
+        if not exists(join(path, "zarr.json")):
+            raise PipelineError(
+                f"maps store {path} does not exist (no zarr.json there); build it with "
+                "pipeline.build_maps or `pipeline build-maps`"
+            )
+        return
+    path = Path(path)
     if not (path / "zarr.json").is_file():
         what = "is not a Zarr store" if path.exists() else "does not exist"
         raise PipelineError(
@@ -429,7 +480,12 @@ def _require_store(path: Path) -> None:
         )
 
 
-def _require_version(path: Path, attrs) -> None:
+def _require_version(path, attrs) -> None:
+    if is_url(path) and "maps_version" not in attrs:
+        raise PipelineError(
+            f"maps store {path} is incomplete (its build did not finish: the attributes a "
+            "build writes last are missing); rebuild it with overwrite=True (--overwrite)"
+        )
     if attrs.get("maps_version") != MAPS_VERSION:
         raise InvalidParameterError(
             f"{path} is not a maps store of this version "
@@ -462,15 +518,14 @@ def open_store(maps) -> MapsStore:
             "`maps` must be a maps store path, a MapsStore or a Dataset"
             f" from pipeline.open_maps, got {type(maps).__name__}"
         )
-    p = Path(maps).resolve()
-    try:
-        stamp = (p / "zarr.json").stat().st_mtime_ns
-    except OSError:
+    p = location(maps)
+    when = stamp(join(p, "zarr.json"))
+    if when is None:
         return MapsStore(maps)  # it says what is wrong
     with _STORES_LOCK:
         got = _STORES.get(p)
-    if got is None or got[0] != stamp:
-        got = (stamp, MapsStore(p))
+    if got is None or got[0] != when:
+        got = (when, MapsStore(p))
         with _STORES_LOCK:
             _STORES[p] = got
     return got[1]
@@ -482,11 +537,21 @@ def open_maps(store: str | os.PathLike, chunks="store"):
     Dataset too."""
     import xarray as xr
 
-    store = Path(store)
+    store = location(store)
     _require_store(store)
-    ds = xr.open_zarr(store, consolidated=False, chunks={} if chunks == "store" else chunks)
+    try:
+        ds = xr.open_zarr(
+            store,
+            consolidated=False,
+            zarr_format=3,
+            chunks={} if chunks == "store" else chunks,
+        )
+    except Exception as exc:  # noqa: BLE001 - object storage raises its own errors
+        if not is_url(store):
+            raise
+        raise unreachable(store, exc) from None
     _require_version(store, ds.attrs)
-    ds.attrs["store"] = str(store.resolve())
+    ds.attrs["store"] = store
     ds.attrs["parameters"] = (
         json.loads(ds.attrs["parameters"])
         if isinstance(ds.attrs.get("parameters"), str)
