@@ -283,15 +283,12 @@ def _check_landmark_memory(shape) -> None:
 
     need = memory_per_landmark(shape)
     have = psutil.virtual_memory().total // 2
-    try:
-        from distributed import get_client
-
-        workers = get_client().scheduler_info()["workers"].values()
+    client = _computing_client()
+    if client is not None:
+        workers = client.scheduler_info()["workers"].values()
         limits = [w.get("memory_limit") or 0 for w in workers]
         if limits and min(limits) > 0:
             have = min(limits)
-    except (ImportError, ValueError):  # no distributed client
-        pass
     if need > 0.9 * have:
         raise InvalidParameterError(
             f"the landmark layers need about {need / 2**30:.1f} GiB per landmark search (an "
@@ -300,6 +297,22 @@ def _check_landmark_memory(shape) -> None:
             "(--landmarks 0): missions are then certified by the octile bound or say they "
             "are not"
         )
+
+
+def _computing_client():
+    """The distributed client dask computes on here, or None for a local scheduler. Never
+    makes one: inside a task, ``distributed.get_client()`` creates the worker's client and
+    makes it the process's default scheduler, so that a build run in a task under
+    ``scheduler="synchronous"`` (the first run's kernel warm-up) then sent its computations to
+    the cluster whose threads its own tasks held, and waited (minutes, or for ever)."""
+    from dask.base import get_scheduler
+
+    try:
+        get = get_scheduler()
+    except (RuntimeError, ValueError):
+        return None
+    owner = getattr(get, "__self__", None)
+    return owner if hasattr(owner, "scheduler_info") else None
 
 
 def layer_codec():

@@ -199,3 +199,27 @@ def test_landmarks_too_large_for_the_machine_are_refused_before_any_compute(tmp_
     assert time.perf_counter() - t0 < 30 and "\n" not in str(info.value)
     assert f"{side} x {side} map" in str(info.value)
     assert not (tmp_path / "m.zarr").exists()
+
+
+def _build_in_a_task(path):
+    """On a worker: build a small store under the synchronous scheduler (as the first run's
+    kernel warm-up does), and say which scheduler dask would use afterwards in that block."""
+    import dask
+    from dask.base import get_scheduler
+    from dask.local import get_sync
+
+    with dask.config.set(scheduler="synchronous"):
+        dem = pipeline.synthetic_dem((48, 40), cell_size=30.0, seed=1, chunks=16)
+        pipeline.build_maps(dem, path, clearance=60.0, min_accumulation=4, landmarks=1)
+        return get_scheduler() is get_sync
+
+
+def test_a_build_inside_a_task_stays_on_the_scheduler_it_was_given(tmp_path, local_client):
+    """build_maps in a dask task under ``scheduler="synchronous"`` computes in that task: it
+    does not make the worker's client the process's default scheduler (which sent the warm-up's
+    computations to a cluster whose two threads its own tasks held: a first `./dev demo` that
+    waited minutes)."""
+    assert local_client.submit(_build_in_a_task, str(tmp_path / "m.zarr"), pure=False).result(
+        timeout=120
+    )
+    assert pipeline.open_maps(tmp_path / "m.zarr")["passable"].shape == (48, 40)
