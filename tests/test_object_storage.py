@@ -87,6 +87,13 @@ def test_a_store_on_s3_is_built_and_planned_on_by_the_workers(s3, tmp_path, loca
         check_path(t, ref["passable"].values, MISSION["start"], MISSION["goal"])
         assert np.array_equal(t.cells, u.cells)
         assert t.length_m == u.length_m and t.status == u.status
+        # many missions at once, each a task on the workers, from S3
+        back = ((225, 30), (20, 20))
+        many = pipeline.plan_missions(
+            url, [(MISSION["start"], MISSION["goal"]), back], client=local_client, defaults=SMALL
+        )
+        assert np.array_equal(many[0].cells, u.cells)
+        check_path(many[1], ref["passable"].values, *back)
         # the coarse maps the mission planned on were kept in the store, marked complete
         coarse = zarr.open_group(f"{url}/coarse-rho{SMALL['rho']}", mode="r")
         assert coarse.attrs["complete"] is True
