@@ -71,8 +71,6 @@ def exists(p) -> bool:
     fs, path = filesystem(p)
     try:
         return fs.exists(path)
-    except PipelineError:
-        raise
     except Exception as exc:  # noqa: BLE001 - botocore, aiohttp, ... each raise their own
         raise unreachable(p, exc) from None
 
@@ -94,6 +92,12 @@ def stamp(p):
     except Exception as exc:  # noqa: BLE001
         raise unreachable(p, exc) from None
     return info.get("ETag") or info.get("LastModified") or info.get("mtime") or info.get("size")
+
+
+def store_exists(p) -> bool:
+    """Whether a store is at ``p``: for a URL its ``zarr.json`` (object storage has no
+    directories), for a path anything there."""
+    return exists(join(p, "zarr.json")) if is_url(p) else os.path.exists(p)
 
 
 def remove_tree(p) -> None:
@@ -130,18 +134,17 @@ def target(path, *, overwrite: bool = False) -> Iterator[str]:
             yield str(tmp)
         return
     url = location(path)
-    if exists(join(url, "zarr.json")):
-        if not overwrite:
-            raise StoreExistsError(
-                f"{url} exists already; pass overwrite=True (--overwrite) to replace it"
-            )
+    if store_exists(url) and not overwrite:
+        raise StoreExistsError(
+            f"{url} exists already; pass overwrite=True (--overwrite) to replace it"
+        )
     require_writable(url)
     if overwrite:
         remove_tree(url)
     try:
         yield url
     except BaseException:
-        remove_tree(url)
+        remove_settled(url)
         raise
 
 
@@ -174,8 +177,9 @@ def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator
         raise
 
 
-def remove_settled(p: Path, *, settle_s: float = 1.0, give_up_s: float = 30.0) -> None:
-    """Remove ``p`` and keep removing it until it has stayed absent for ``settle_s``.
+def remove_settled(p, *, settle_s: float = 1.0, give_up_s: float = 30.0) -> None:
+    """Remove ``p`` (a path or a URL) and keep removing it until it has stayed absent for
+    ``settle_s``.
 
     When one task of a dask computation fails, tasks already running on other threads or
     workers still finish and write their chunks, which can recreate the temporary store after a
@@ -184,8 +188,8 @@ def remove_settled(p: Path, *, settle_s: float = 1.0, give_up_s: float = 30.0) -
     deadline = time.monotonic() + give_up_s
     quiet_since = None
     while time.monotonic() < deadline:
-        if p.exists() or p.is_symlink():
-            _remove(p)
+        if exists(p) if is_url(p) else (Path(p).exists() or Path(p).is_symlink()):
+            remove_tree(p)
             quiet_since = None
         elif quiet_since is None:
             quiet_since = time.monotonic()

@@ -31,7 +31,7 @@ import xarray as xr
 import zarr
 from numba import njit
 
-from ._io import exists, is_url, join, location, remove_settled, remove_tree, target
+from ._io import is_url, join, location, remove_settled, remove_tree, store_exists, target
 from .components import components_staged
 from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError, StoreExistsError
@@ -137,7 +137,7 @@ def build_maps(
     if not isinstance(dem, xr.DataArray):
         dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = location(store) if is_url(store) else Path(store)
-    if (exists(join(store, "zarr.json")) if is_url(store) else store.exists()) and not overwrite:
+    if store_exists(store) and not overwrite:
         raise StoreExistsError(
             f"maps store {store} exists already; pass overwrite=True (--overwrite) to rebuild it"
         )
@@ -237,10 +237,7 @@ def build_maps(
             log.info("maps %s: %d landmarks written (%.1f s)", store, len(cells), landmarks_s)
         except BaseException:
             for p in (scratch, labels):  # tasks still running may write after a failure
-                if is_url(p):
-                    remove_tree(p)
-                else:
-                    remove_settled(Path(p))
+                remove_settled(p)
             raise
         remove_tree(scratch)
         remove_tree(labels)

@@ -80,7 +80,6 @@ def direct_reader(arr, store: str, var: str):
         return None
     if (
         len(codecs) != 2
-        or len(codecs) != 2
         or not isinstance(codecs[0], BytesCodec)
         or getattr(codecs[0].endian, "value", "little") != "little"
         or arr.dtype.byteorder == ">"
@@ -455,10 +454,11 @@ def _write_coarse(out, store: str, name: str) -> None:
 
 
 def _coarse_written(store: str, name: str) -> bool:
-    if not is_url(store):
-        return (Path(store) / name / "zarr.json").exists()
+    """Whether group ``name`` is there, and on object storage also marked complete."""
     if not exists(join(store, name, "zarr.json")):
         return False
+    if not is_url(store):
+        return True  # renamed into place whole
     import zarr
 
     return bool(zarr.open_group(join(store, name), mode="r", zarr_format=3).attrs.get("complete"))
