@@ -376,8 +376,8 @@ class MapsStore:
             ).compute()
             out.attrs.update(rho=rho, source="block means of the fine maps (SPEC section 6)")
             _write_coarse(out, self.path, name)
-        ds = xr.open_zarr(
-            self.path, group=f"coarse-rho{rho}", consolidated=False, zarr_format=3
+        ds = xr.open_zarr(  # numpy, not dask: read in the caller's thread (a mission task's)
+            self.path, group=f"coarse-rho{rho}", consolidated=False, zarr_format=3, chunks=None
         ).load()
         res = {
             "safety": ds["safety"].values,

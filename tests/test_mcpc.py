@@ -255,3 +255,42 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
         assert t.status == ref.status == "ok"
         assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
     assert got[2].status == "failed" and "goal" in got[2].message
+
+
+def test_missions_on_a_fresh_store_run_one_per_worker_thread(store, local_client, tmp_path):
+    """On a store whose coarse level is not written yet, plan_missions writes it once before
+    the missions start, and each mission task runs alone on its worker's one thread: a dask
+    computation inside a task (the coarse level) would otherwise go to the worker's client,
+    which secedes the task from the worker's thread limit, so that every queued mission starts
+    at once and records the others' time as its own."""
+    import shutil
+
+    from distributed import get_task_stream
+
+    fresh = tmp_path / "maps.zarr"
+    shutil.copytree(store, fresh)
+    for p in fresh.glob("coarse-rho*"):
+        shutil.rmtree(p)
+    missions = [
+        {"start": (20 + 6 * i, 20), "goal": (225 - 4 * i, 30 + 10 * i), **SMALL} for i in range(6)
+    ]
+    with get_task_stream(client=local_client) as ts:
+        got = pipeline.plan_missions(fresh, missions, client=local_client)
+    assert all(t.status == "ok" for t in got), [t.message for t in got]
+    written = (fresh / f"coarse-rho{SMALL['rho']}" / "zarr.json").stat().st_mtime
+    spans: dict = {}
+    for rec in ts.data:
+        if not str(rec["key"]).startswith("mission-"):
+            continue
+        (run,) = [s for s in rec["startstops"] if s["action"] == "compute"]
+        spans.setdefault(rec["worker"], []).append((run["start"], run["stop"]))
+    assert sum(len(v) for v in spans.values()) == len(missions)
+    assert written < min(start for runs in spans.values() for start, _ in runs)
+    for worker, runs in spans.items():
+        runs.sort()
+        # the task stream's stamps may differ by a few ms from the true order
+        for (_, stop), (start, _) in zip(runs, runs[1:], strict=False):
+            assert start >= stop - 0.01, f"two missions ran at once on {worker}: {runs}"
+    # each mission's recorded runtime is its own: within its task's time
+    took = sorted(stop - start for runs in spans.values() for start, stop in runs)
+    assert sorted(t.runtime_s for t in got)[-1] <= took[-1] + 1e-3
