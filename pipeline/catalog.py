@@ -83,10 +83,12 @@ def write_mission(
     min_clearance_m: float,
     run_id: str,
     quicklook: bool = True,
+    quicklook_png: bytes | None = None,
 ) -> dict:
     """Write the Item and assets of the mission ``name`` atomically; returns the Item as a
     dict. ``mission["fingerprint"]``, when given, is kept as ``auv:fingerprint`` (what a re-run
-    compares to decide whether the mission changed)."""
+    compares to decide whether the mission changed). ``quicklook_png``: the quick-look already
+    drawn (``plan_missions(quicklooks=True)``), else it is drawn here."""
     import pystac
 
     mid = mission_id(name)
@@ -103,10 +105,15 @@ def write_mission(
             for key, (href, title, media, roles) in files.items():
                 assets[key] = pystac.Asset(f"./{href}", title=title, media_type=media, roles=roles)
             if quicklook:
-                from .plots import mission_quicklook
+                if quicklook_png:  # drawn where the mission was planned
+                    (tmp / "quicklook.png").write_bytes(quicklook_png)
+                else:
+                    from .plots import mission_quicklook
 
-                title = "".join(c if c.isprintable() else "?" for c in name)
-                mission_quicklook(maps, traj, tmp / "quicklook.png", title=title, crs_wkt=crs_wkt)
+                    title = "".join(c if c.isprintable() else "?" for c in name)
+                    mission_quicklook(
+                        maps, traj, tmp / "quicklook.png", title=title, crs_wkt=crs_wkt
+                    )
                 assets["quicklook"] = pystac.Asset(
                     "./quicklook.png",
                     title="plan view and depth profile",

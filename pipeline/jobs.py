@@ -679,6 +679,7 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
             client=client,
             defaults=job.planning,
             vehicle=job.vehicle,
+            quicklooks=job.quicklooks,  # drawn on the workers, side by side
             on_done=lambda i, mission, traj: record(mission, traj),
         )
 
@@ -698,9 +699,10 @@ class _Recorder:
         self.count += 1
         self.res.ran += 1
         name = mission["name"]
+        png = traj.extra.pop("quicklook_png", None)  # written now, not kept with the results
         try:
             clr = min_clearance(self.maps, traj, self.clearance) if traj.planned else math.nan
-            self._write(mission, traj, clr)
+            self._write(mission, traj, clr, png)
         except (OSError, PipelineError, ValueError) as exc:
             reason = f"its result could not be written: {type(exc).__name__}: {exc}"
             log.error("[%d/%d] %s: FAILED: %s", self.count, self.total, name, reason)
@@ -738,7 +740,7 @@ class _Recorder:
             self.res.failed.append(name)
             log.warning("[%d/%d] %s: FAILED: %s", self.count, self.total, name, traj.message)
 
-    def _write(self, mission, traj, clr=math.nan):
+    def _write(self, mission, traj, clr=math.nan, png=None):
         from .catalog import write_mission
 
         write_mission(
@@ -751,4 +753,5 @@ class _Recorder:
             min_clearance_m=clr,
             run_id=self.res.run_id,
             quicklook=self.job.quicklooks,
+            quicklook_png=png,
         )

@@ -77,6 +77,7 @@ def plan_missions(
     max_concurrent: int = 4,
     on_done: Callable[[int, dict, Trajectory], None] | None = None,
     vehicle=None,
+    quicklooks: bool = False,
 ) -> list[Trajectory]:
     """Plan many missions on one maps store; trajectories come back in mission order.
 
@@ -103,6 +104,11 @@ def plan_missions(
         planned trajectory gets its flown track and waypoints (``trajectory.flight``,
         :func:`pipeline.fly`); a flight that breaks a vehicle limit or needs more energy than
         the battery holds fails the mission with the reason.
+    quicklooks : bool
+        Draw each planned mission's quick-look PNG (:func:`pipeline.plots.mission_quicklook`,
+        titled with the mission's ``name``) where the mission was planned, on the worker that
+        planned it: its bytes are ``trajectory.extra["quicklook_png"]`` (about 1 MB each; a
+        caller that keeps many trajectories should take them out in ``on_done``).
 
     Returns
     -------
@@ -139,12 +145,12 @@ def plan_missions(
             on_done(i, items[i], t)
 
     if run_on != "synchronous" and len(items) > 1:
-        _on_cluster(run_on, m, items, defaults, veh, done)
+        _on_cluster(run_on, m, items, defaults, veh, quicklooks, done)
         return out  # type: ignore[return-value]
     workers = max(1, min(int(max_concurrent), len(items)))
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mission") as pool:
         futures = {
-            pool.submit(_plan_one, m, items[i], defaults, veh, run_on, i): i
+            pool.submit(_plan_one, m, items[i], defaults, veh, run_on, i, quicklooks): i
             for i in range(len(items))
         }
         for fut in as_completed(futures):
@@ -177,10 +183,31 @@ def _prepare_coarse(m, items, defaults) -> None:
             log.debug("coarse level rho=%r not prepared: %s", rho, exc)
 
 
-def _plan_one(m, mission: dict, defaults: dict, vehicle, run_on, i: int = 0) -> Trajectory:
+def _plan_one(
+    m, mission: dict, defaults: dict, vehicle, run_on, i: int = 0, quicklook: bool = False
+) -> Trajectory:
     """One mission of :func:`plan_missions`: planned (its sections on ``run_on``), then flown
-    when a vehicle is given; a mission that cannot be planned or flown comes back failed with
-    the reason."""
+    when a vehicle is given, then drawn (``quicklook``); a mission that cannot be planned or
+    flown comes back failed with the reason."""
+    t = _plan_and_fly(m, mission, defaults, vehicle, run_on, i)
+    if quicklook and len(t.cells) > 1:
+        try:
+            t.extra["quicklook_png"] = _quicklook_png(m, t, mission.get("name", f"mission {i}"))
+        except Exception as exc:  # noqa: BLE001 - the mission stands; its writer draws it again
+            log.warning("mission %d: its quick-look could not be drawn here: %s", i, exc)
+    return t
+
+
+def _quicklook_png(m, t: Trajectory, name) -> bytes:
+    import io
+
+    from .plots import mission_quicklook
+
+    title = "".join(c if c.isprintable() else "?" for c in str(name))
+    return mission_quicklook(m, t, io.BytesIO(), title=title, crs_wkt=m.crs_wkt).getvalue()
+
+
+def _plan_and_fly(m, mission: dict, defaults: dict, vehicle, run_on, i: int) -> Trajectory:
     opts = {**defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
     try:
         t = plan(m, mission["start"], mission["goal"], client=run_on, **opts)
@@ -204,7 +231,9 @@ def _plan_one(m, mission: dict, defaults: dict, vehicle, run_on, i: int = 0) -> 
         return t
 
 
-def _mission_task(path: str, mission: dict, defaults: dict, vehicle, i: int) -> Trajectory:
+def _mission_task(
+    path: str, mission: dict, defaults: dict, vehicle, i: int, quicklook: bool = False
+) -> Trajectory:
     """A whole mission as one task on a worker, its sections in turn in this process.
 
     Any dask computation inside it (a coarse level not in the store yet) runs here too: in a
@@ -214,10 +243,10 @@ def _mission_task(path: str, mission: dict, defaults: dict, vehicle, i: int) -> 
     import dask
 
     with dask.config.set(scheduler="synchronous"):
-        return _plan_one(open_store(path), mission, defaults, vehicle, "synchronous", i)
+        return _plan_one(open_store(path), mission, defaults, vehicle, "synchronous", i, quicklook)
 
 
-def _on_cluster(client, m, items, defaults, vehicle, done) -> None:
+def _on_cluster(client, m, items, defaults, vehicle, quicklooks, done) -> None:
     """Every mission as a task; ``done(i, trajectory)`` as each finishes. A task that raises
     (a bug) or whose workers keep dying fails its mission only."""
     from distributed import as_completed as finished
@@ -231,6 +260,7 @@ def _on_cluster(client, m, items, defaults, vehicle, done) -> None:
             defaults,
             vehicle,
             i,
+            quicklooks,
             pure=False,
             key=f"mission-{i}-{token}",
         ): i

@@ -76,7 +76,7 @@ def hillshade_axes(ax, dem, *, vert_exag: float = 3.0, max_side: int = 2000, col
     if isinstance(colorbar, plt.Axes):
         ax.figure.colorbar(sm, cax=colorbar, orientation="horizontal", label="seabed elevation (m)")
     elif colorbar:
-        plt.colorbar(sm, ax=ax, shrink=0.8, label="elevation (m)")
+        ax.figure.colorbar(sm, ax=ax, shrink=0.8, label="elevation (m)")
     land = _land(z)
     if land.any():
         ax.contour(
@@ -187,17 +187,22 @@ def _block_max(a: np.ndarray, step: int) -> np.ndarray:
 def mission_quicklook(
     maps,
     traj,
-    path: str | os.PathLike,
+    path,
     *,
     title: str = "",
     crs_wkt: str | None = None,
     max_side: int = 700,
-) -> str:
+):
     """A mission's quick look: a plan view (hillshade, ridge network, the grid path faint, the
     flown track bold, waypoints, start and goal; a lon/lat graticule when the maps have a
     CRS) above the depth profile along the flown track (seabed, the lowest safe height, the
-    flown height, waypoints), with the clearance and the vehicle's limits stated."""
+    flown height, waypoints), with the clearance and the vehicle's limits stated.
+
+    ``path``: a file path (returned as a string) or a binary file object (returned as is),
+    written as PNG. The figure does not go through pyplot's global state, so quick-looks may
+    be drawn in several threads at once (a worker with several threads)."""
     from matplotlib.colors import ListedColormap
+    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
     f = traj.flight
@@ -224,7 +229,7 @@ def mission_quicklook(
     plan_w = 9.0
     plan_h = float(np.clip(plan_w * h_km / w_km, 2.5, 9.0))
     fig_w, fig_h = plan_w + 1.2, plan_h + 6.0
-    fig = plt.figure(figsize=(fig_w, fig_h), dpi=100)
+    fig = Figure(figsize=(fig_w, fig_h), dpi=100)
     # fixed margins in inches (a tight bounding box would draw the figure twice)
     gs = fig.add_gridspec(
         3,
@@ -383,6 +388,5 @@ def mission_quicklook(
     pr.set_ylabel("height (m)")
     pr.grid(alpha=0.3)
     pr.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), fontsize=7, frameon=False, ncols=4)
-    fig.savefig(path, pil_kwargs=FAST_PNG)
-    plt.close(fig)
-    return str(path)
+    fig.savefig(path, format="png", pil_kwargs=FAST_PNG)
+    return str(path) if isinstance(path, str | os.PathLike) else path

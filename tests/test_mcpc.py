@@ -245,7 +245,7 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
         {"start": (0, 0), "goal": (5000, 5000)},  # outside the map: fails with its reason
     ]
     with get_task_stream(client=local_client) as ts:
-        got = pipeline.plan_missions(store, missions, client=local_client)
+        got = pipeline.plan_missions(store, missions, client=local_client, quicklooks=True)
     keys = [str(t["key"]) for t in ts.data]
     assert sum(k.startswith("mission-") for k in keys) == len(missions), keys
     assert not any("section" in k for k in keys), keys
@@ -255,6 +255,21 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
         assert t.status == ref.status == "ok"
         assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
     assert got[2].status == "failed" and "goal" in got[2].message
+    # quicklooks=True: each planned mission's quick-look drawn by its task, the same picture
+    # as drawn here; none for the failed one
+    import io
+
+    from matplotlib import image
+
+    from pipeline.plots import mission_quicklook
+
+    assert "quicklook_png" not in got[2].extra
+    for i, t in enumerate(got[:2]):
+        on_worker = image.imread(io.BytesIO(t.extra["quicklook_png"]))
+        m = pipeline.open_store(store)
+        here = mission_quicklook(m, t, io.BytesIO(), title=f"mission {i}", crs_wkt=m.crs_wkt)
+        here.seek(0)
+        assert on_worker.shape[0] > 500 and np.array_equal(on_worker, image.imread(here))
 
 
 def test_missions_on_a_fresh_store_run_one_per_worker_thread(store, local_client, tmp_path):
