@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import uuid
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -198,13 +199,19 @@ def _plan_one(
     return t
 
 
+# matplotlib makes no promise for figures drawn in several threads of a process at once (the
+# missions' threads here, the threads of a multi-threaded worker): one at a time per process
+_DRAWING = threading.Lock()
+
+
 def _quicklook_png(m, t: Trajectory, name) -> bytes:
     import io
 
     from .plots import mission_quicklook
 
     title = "".join(c if c.isprintable() else "?" for c in str(name))
-    return mission_quicklook(m, t, io.BytesIO(), title=title, crs_wkt=m.crs_wkt).getvalue()
+    with _DRAWING:
+        return mission_quicklook(m, t, io.BytesIO(), title=title, crs_wkt=m.crs_wkt).getvalue()
 
 
 def _plan_and_fly(m, mission: dict, defaults: dict, vehicle, run_on, i: int) -> Trajectory:

@@ -199,8 +199,7 @@ def mission_quicklook(
     flown height, waypoints), with the clearance and the vehicle's limits stated.
 
     ``path``: a file path (returned as a string) or a binary file object (returned as is),
-    written as PNG. The figure does not go through pyplot's global state, so quick-looks may
-    be drawn in several threads at once (a worker with several threads)."""
+    written as PNG. The figure is made outside pyplot (no figure manager, nothing to close)."""
     from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D

@@ -270,6 +270,11 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
         here = mission_quicklook(m, t, io.BytesIO(), title=f"mission {i}", crs_wkt=m.crs_wkt)
         here.seek(0)
         assert on_worker.shape[0] > 500 and np.array_equal(on_worker, image.imread(here))
+    # in this process's threads (no cluster), drawn one at a time: the same pictures
+    local = pipeline.plan_missions(store, missions[:2], client="synchronous", quicklooks=True)
+    for t, u in zip(got[:2], local, strict=True):
+        a, b = (image.imread(io.BytesIO(x.extra["quicklook_png"])) for x in (t, u))
+        assert np.array_equal(a, b)
 
 
 def test_missions_on_a_fresh_store_run_one_per_worker_thread(store, local_client, tmp_path):
