@@ -25,7 +25,7 @@ from _common import OUT, machine, maps_store, run_isolated
 from _report import Report, faster, figure_dir
 
 OMEGAS = (2.5, 2.0, 1.8, 1.0)
-PAPER = {  # SPEC section 7: (length km, ridge ratio %) per omega
+PAPER = {  # docs/method.md section 7: (length km, ridge ratio %) per omega
     "no safety map (Table 2)": {
         2.5: (8.194, 78.4),
         2.0: (8.001, 71.9),
@@ -41,7 +41,7 @@ PAPER = {  # SPEC section 7: (length km, ridge ratio %) per omega
 }
 # the 200 x 200 case: a 6 km window of the demo's 2000 x 2000 synthetic DEM (seed 0, no islands)
 # with 30 m relief (a whole ridge scene generated on 200^2 is far steeper than the paper's map);
-# the ridge threshold is SPEC's floor of 8 cells; one long diagonal mission
+# the ridge threshold is the floor of 8 cells of docs/method.md section 3; one long diagonal mission
 CASE200 = dict(
     seed=0, window=(800, 1000), min_acc=8, start=(10, 10), goal=(190, 170), clearance=300.0
 )
@@ -349,7 +349,8 @@ def tables_part(rep: Report, figs: Path) -> None:
     rep.p(f"""A 200 x 200 window (rows {CASE200["window"][0]}-{CASE200["window"][0] + 199}, cols
           {CASE200["window"][1]}-{CASE200["window"][1] + 199}) of the demo's 2000 x 2000
           synthetic DEM (seed 0, no islands, 30 m cells), ridge threshold
-          {CASE200["min_acc"]} cells (SPEC's floor; {res["ridge_cells_pct"]} % ridge cells), one
+          {CASE200["min_acc"]} cells (the floor of docs/method.md section 3;
+          {res["ridge_cells_pct"]} % ridge cells), one
           mission {CASE200["start"]} -> {CASE200["goal"]}; the spherical safety map with
           R = 300 m for Table 3. The paper's map is its own survey: its numbers are beside ours
           to compare the shape (how ridge ratio and length move with omega and with the safety
@@ -394,7 +395,8 @@ def tables_part(rep: Report, figs: Path) -> None:
     rep.p(f"""RA*'s ridge ratio against the paper's, omega 2.5 / 2.0 / 1.8 / 1.0:
           {" / ".join(f"{v:.1f}" for v in ra)} % against 78.4 / 71.9 / 67.7 / 37.2 %. Our RA*
           spends more of its budget (at omega 2.5 its path is
-          {t2["ra_star 2.5"]["length_km"] / opt:.2f}x the optimum, the paper's 1.56x): SPEC's RA*
+          {t2["ra_star 2.5"]["length_km"] / opt:.2f}x the optimum, the paper's 1.56x): RA* as
+          docs/method.md section 5 states it
           accepts any path below `omega * f_min` and its greedy ridge search wanders until the
           budget stops it. The Lagrangian planner reaches {lg["ratio_pct"]:.1f} % ridge with a
           path {lg["length_km"] / opt:.2f}x the optimum. At omega 1 both return the shortest
@@ -527,7 +529,8 @@ def core_part(rep: Report, n: int) -> None:
           optimum of the 8-connected grid with true diagonal lengths (MCP's can be a little
           shorter: it cuts corners between blocked cells too); pyastar2d charges a
           diagonal step as much as a straight one (its paths are longer) and cuts corners
-          between blocked cells, which SPEC forbids. Our search state is 9 bytes per cell (g as
+          between blocked cells, which our graph forbids (docs/method.md section 4). Our search
+          state is 9 bytes per cell (g as
           float64, touched only where searched, and one byte for the entering move and flags)
           plus 16 bytes per heap entry.""")
     rep.headline(

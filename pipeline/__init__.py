@@ -1,6 +1,6 @@
 """Bounded near-bottom cruise trajectory planning (RA* + MCPC) for AUVs over large seabed grids.
 
-The public API (SPEC section 8); later stages are added as they land.
+The public API (docs/method.md section 8); later stages are added as they land.
 """
 
 from __future__ import annotations

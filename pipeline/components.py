@@ -1,4 +1,4 @@
-"""Connected components of the passable graph, chunk-wise and exact (SPEC section 9:
+"""Connected components of the passable graph, chunk-wise and exact (docs/method.md section 9:
 "unreachable" is said only when proven).
 
 The planners' graph joins passable cells by the 8 moves, a diagonal only when both cells it

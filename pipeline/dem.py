@@ -1,4 +1,4 @@
-"""Open, validate, reproject and write digital elevation models (SPEC section 1).
+"""Open, validate, reproject and write digital elevation models (docs/method.md section 1).
 
 The canonical DEM is an ``xarray.DataArray`` named ``elevation``: dims ``(y, x)``, float32
 metres positive up (seabed negative), NaN for no-data, square cells in a metric CRS, with

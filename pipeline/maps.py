@@ -1,4 +1,4 @@
-"""The maps store: one Zarr (v3) store per DEM and parameter set (SPEC section 1).
+"""The maps store: one Zarr (v3) store per DEM and parameter set (docs/method.md section 1).
 
 It holds ``elevation``, ``safety``, ``passable``, ``accumulation``, ``ridge`` and
 ``component``, chunked identically, every chunk written, with the parameters, a content hash

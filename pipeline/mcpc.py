@@ -1,4 +1,4 @@
-"""MCPC: map compression and parallel computing (SPEC section 6, the paper's Algorithm 3).
+"""MCPC: map compression and parallel computing (docs/method.md section 6, the paper's Algorithm 3).
 
 ``plan`` compresses the maps by ``rho`` (block means, cached in the maps store), plans a coarse
 path, restores it to fine cells, cuts it into square sections with a margin, snaps the joints
@@ -73,7 +73,7 @@ def default_parameters(shape, a: float) -> dict:
 
 
 def restore(coarse_cells: np.ndarray, rho: int, shape, start, goal) -> np.ndarray:
-    """Coarse cells to fine points (SPEC section 6 step 3): ``(i, j) -> (i rho + rho // 2,
+    """Coarse cells to fine points (docs/method.md section 6 step 3): ``(i, j) -> (i rho + rho // 2,
     j rho + rho // 2)`` clipped to the map; the real start and goal replace the first and last
     point (a path of one coarse cell becomes start, goal)."""
     pts = np.asarray(coarse_cells, dtype=np.int64) * rho + rho // 2
@@ -100,7 +100,7 @@ def _window(rmin, rmax, cmin, cmax, margin, shape):
 
 
 def segment(points: np.ndarray, section_size: int, margin: int, shape) -> list:
-    """Cut a restored path into sections (SPEC section 6 step 4).
+    """Cut a restored path into sections (docs/method.md section 6 step 4).
 
     Points are added to a section until its bounding box has a side ``>= section_size``; the
     section spans those points and the next section starts at its last point. Returns a list
@@ -671,11 +671,11 @@ def _plan_mcpc(
 def plan_sections(
     run_on, m: MapsStore, sections: list, planner: str, omega: float, margin: int
 ) -> tuple[list, list]:
-    """Plan ``sections`` (:class:`Section`) as tasks on ``run_on`` (SPEC section 6 steps 6-7):
-    a section with no path is retried once with its window grown by ``margin`` more cells on
-    each side (the margin doubled), then merged with a neighbour into one section over the
-    union of their windows grown by ``margin``; if the merged section fails too the mission
-    fails. Returns the final sections and their :class:`SectionResult`.
+    """Plan ``sections`` (:class:`Section`) as tasks on ``run_on`` (docs/method.md section 6,
+    steps 6-7): a section with no path is retried once with its window grown by ``margin``
+    more cells on each side (the margin doubled), then merged with a neighbour into one section
+    over the union of their windows grown by ``margin``; if the merged section fails too the
+    mission fails. Returns the final sections and their :class:`SectionResult`.
     """
     sections = list(sections)
     results = _run(run_on, m, sections, planner, omega)

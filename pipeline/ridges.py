@@ -1,4 +1,5 @@
-"""Ridge maps by flow accumulation on the inverted DEM (SPEC section 3, the paper's 4.2.2).
+"""Ridge maps by flow accumulation on the inverted DEM (docs/method.md section 3; the paper's
+4.2.2).
 
 Esri's ridge-line recipe, made exact and chunk-wise:
 
@@ -862,8 +863,8 @@ def flow_accumulation(
 ) -> xr.DataArray:
     """Cells draining through each cell (itself included) on the inverted filled DEM.
 
-    This is the ridge network of SPEC section 3: high accumulation of ``-filled`` marks ridge
-    lines of ``z``. Exact, cell for cell, for any chunking; lazy for dask input.
+    This is the ridge network of docs/method.md section 3: high accumulation of ``-filled``
+    marks ridge lines of ``z``. Exact, cell for cell, for any chunking; lazy for dask input.
 
     Examples
     --------
@@ -899,7 +900,7 @@ def flow_directions(filled: np.ndarray) -> np.ndarray:
 
 
 def default_min_accumulation(a: float) -> int:
-    """Cells of a 1 km^2 contributing area, at least 8 (SPEC section 3)."""
+    """Cells of a 1 km^2 contributing area, at least 8 (docs/method.md section 3)."""
     return max(8, int(math.ceil(1e6 / (a * a))))
 
 

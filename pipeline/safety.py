@@ -1,4 +1,5 @@
-"""Safety maps (SPEC section 2, the paper's 4.2.1 with its formulas corrected) and passability.
+"""Safety maps (docs/method.md section 2; the paper's 4.2.1 with its formulas corrected) and
+passability.
 
 With clearance ``R``, horizontal clearance ``R_h`` and ``|q - p|`` the horizontal distance
 between cell centres:
@@ -11,7 +12,7 @@ between cell centres:
 
 The structuring element (the disc ``|q - p| <= R``, or ``R_h``) is clipped at the map edge.
 Where it holds a no-data cell the terrain is unknown, so ``S`` is NaN there (and such cells are
-not passable, as SPEC requires).
+not passable, as docs/method.md section 2 requires).
 
 The kernels are exact. The spherical one splits the disc by row offset ``d``: every input row
 is dilated once per offset by the 1-D spherical cap of that offset (contiguous loops that the
@@ -344,7 +345,7 @@ def passable(
     sea_level: float = MAPS.sea_level.default,
     surface_clearance: float | None = None,
 ) -> xr.DataArray:
-    """Cells the vehicle may occupy (SPEC section 2).
+    """Cells the vehicle may occupy (docs/method.md section 2).
 
     A cell is passable when its elevation is known and below ``sea_level`` (not land), no
     no-data cell lies within the safety map's structuring element (``safety`` is finite), and

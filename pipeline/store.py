@@ -348,7 +348,7 @@ class MapsStore:
         return lower_bound(self.landmark_distances(start), self.landmark_distances(goal))
 
     def coarse(self, rho: int) -> dict:
-        """The maps compressed by ``rho`` (SPEC section 6 step 1), as numpy arrays.
+        """The maps compressed by ``rho`` (docs/method.md section 6 step 1), as numpy arrays.
 
         ``safety`` is the block mean of the finite fine values, ``ridge`` the fraction of ridge
         cells, ``passable`` true where at least half the fine cells are passable (and the mean
@@ -374,7 +374,9 @@ class MapsStore:
                     "passable": (cs["passable"] >= 0.5) & np.isfinite(cs["safety"]),
                 }
             ).compute()
-            out.attrs.update(rho=rho, source="block means of the fine maps (SPEC section 6)")
+            out.attrs.update(
+                rho=rho, source="block means of the fine maps (docs/method.md section 6)"
+            )
             _write_coarse(out, self.path, name)
         ds = xr.open_zarr(  # numpy, not dask: read in the caller's thread (a mission task's)
             self.path, group=f"coarse-rho{rho}", consolidated=False, zarr_format=3, chunks=None

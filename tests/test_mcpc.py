@@ -1,6 +1,7 @@
-"""MCPC (SPEC section 6): Algorithm 3 against hand-worked examples, stitched trajectories on a
-real Zarr maps store, the fallbacks, and the same result on the synchronous scheduler, the
-default LocalCluster and real `dask scheduler` / `dask worker` processes on loopback."""
+"""MCPC (docs/method.md section 6): Algorithm 3 against hand-worked examples, stitched
+trajectories on a real Zarr maps store, the fallbacks, and the same result on the synchronous
+scheduler, the default LocalCluster and real `dask scheduler` / `dask worker` processes on
+loopback."""
 
 from __future__ import annotations
 

@@ -23,14 +23,15 @@ MOVES = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
 
 
 def reference_length(surface, passable, a, start, goal):
-    """SPEC section 4's graph built edge by edge, solved by scipy.sparse.csgraph.dijkstra."""
+    """The graph of docs/method.md section 4 built edge by edge, solved by
+    scipy.sparse.csgraph.dijkstra."""
     d = reference_distances(surface, passable, a, start)
     return float(d[goal[0] * surface.shape[1] + goal[1]])
 
 
 def reference_graph(surface, passable, a):
-    """SPEC section 4's graph built edge by edge (8 moves, no corner cutting, 3-D lengths) as
-    a scipy sparse matrix over row-major cell indices."""
+    """The graph of docs/method.md section 4 built edge by edge (8 moves, no corner cutting,
+    3-D lengths) as a scipy sparse matrix over row-major cell indices."""
     rows, cols = surface.shape
     src, dst, w = [], [], []
     for r in range(rows):

@@ -132,7 +132,7 @@ def test_real_bathymetry_against_pysheds(topobathy, pysheds_ready):
 
 
 def brute_d8(F):
-    """SPEC section 3, step 3, transcribed: steepest strictly positive drop of -F per
+    """docs/method.md section 3, step 3, transcribed: steepest strictly positive drop of -F per
     distance, first in the order E, SE, S, SW, W, NW, N, NE on ties; -1 otherwise."""
     w = -F.astype(np.float64)
     rows, cols = w.shape

@@ -34,7 +34,8 @@ def assert_correctly_rounded(got, ref64):
 
 
 def brute_force(z, a, method, R, Rh=None):
-    """Direct transcription of SPEC section 2, in float64, NaN if the disc holds no-data."""
+    """Direct transcription of docs/method.md section 2, in float64, NaN if the disc holds
+    no-data."""
     Rh = R if Rh is None else Rh
     rows, cols = z.shape
     radius = R if method == "spherical" else Rh

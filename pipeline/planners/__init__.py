@@ -1,4 +1,4 @@
-"""Planners on one in-memory window (SPEC sections 4, 5).
+"""Planners on one in-memory window (docs/method.md sections 4, 5).
 
 ``core``: the graph, edge cost, heuristic, search state, A*, tracing, path metrics, endpoint
 checks and ``Trajectory``; one module per planner (``astar``: dijkstra, astar, wastar;

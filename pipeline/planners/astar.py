@@ -1,6 +1,6 @@
-"""Dijkstra, A* and weighted A* (SPEC section 5): the grid core's A* search with weight 0, 1
-and ``omega`` on the octile heuristic (or the landmark bound where it is larger), ties broken
-towards the goal."""
+"""Dijkstra, A* and weighted A* (docs/method.md section 5): the grid core's A* search with
+weight 0, 1 and ``omega`` on the octile heuristic (or the landmark bound where it is larger),
+ties broken towards the goal."""
 
 from __future__ import annotations
 

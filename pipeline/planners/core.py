@@ -1,7 +1,7 @@
 """The grid core shared by every planner: the graph, the edge cost, the heuristic, the search
 state, A*'s relaxation and search, path tracing and metrics, endpoint checks, ``Trajectory``.
 
-Graph (SPEC section 4): 8-connected over passable cells; a diagonal move only when both
+Graph (docs/method.md section 4): 8-connected over passable cells; a diagonal move only when both
 orthogonal cells it passes between are passable (no corner cutting). Edge cost: the 3-D length
 along the safety surface ``sqrt(a^2 (dr^2 + dc^2) + (S(q) - S(p))^2)``; heuristic: the
 horizontal straight-line distance to the goal (admissible and consistent, since every edge is
@@ -24,7 +24,7 @@ from ..exceptions import InvalidEndpointError, InvalidParameterError
 
 @dataclass
 class Trajectory:
-    """A planned path and its metrics (SPEC section 8); lengths in metres."""
+    """A planned path and its metrics (docs/method.md section 8); lengths in metres."""
 
     cells: np.ndarray
     points: np.ndarray
@@ -78,8 +78,9 @@ TIE = 1e-10
 @njit(inline="always", cache=True)
 def heuristic(a, r, c, gr, gc, octile):
     """A lower bound on the length from (r, c) to the goal: the octile distance (the exact
-    horizontal length on the open 8-connected grid) or SPEC's straight line; both are admissible
-    and consistent, since no edge is shorter than its horizontal projection."""
+    horizontal length on the open 8-connected grid) or the straight line of docs/method.md
+    section 4; both are admissible and consistent, since no edge is shorter than its
+    horizontal projection."""
     dr = abs(r - gr)
     dc = abs(c - gc)
     if octile:

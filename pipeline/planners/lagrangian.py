@@ -1,4 +1,4 @@
-"""The Lagrangian ridge planner (SPEC section 5, beyond the paper).
+"""The Lagrangian ridge planner (docs/method.md section 5, beyond the paper).
 
 Maximising ridge length under ``length <= omega * L*`` is a constrained shortest path problem:
 minimise the off-ridge length subject to the length bound. Lagrangian relaxation turns it into

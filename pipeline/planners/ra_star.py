@@ -1,4 +1,4 @@
-"""RA* (the paper's Algorithms 1-2) as the focal search SPEC section 5 makes precise.
+"""RA* (the paper's Algorithms 1-2) as the focal search docs/method.md section 5 makes precise.
 
 - OPEN_cost is plain A* (``f = g + h``, its own ``g`` and best predecessor); its smallest
   ``f``, ``f_min``, never decreases and is a lower bound on the optimum ``L*``.
@@ -187,7 +187,8 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
 
 
 def _search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
-    # the landmark bound is not used: RA*'s two lists keep SPEC's straight-line heuristic
+    # the landmark bound is not used: RA*'s two lists keep the straight-line heuristic
+    # (docs/method.md section 4)
     st_cost, st_nor, expansions, status, f_min = _ra_star(
         surface, ridge, passable, a, s[0], s[1], t[0], t[1], float(omega)
     )
