@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 
 import numpy as np
+from numba import njit
 
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError
@@ -309,15 +310,31 @@ def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
         cc, zz = cells[k : k + 512], z[k : k + 512]
         r0, r1 = max(int(cc[:, 0].min()) - r, 0), min(int(cc[:, 0].max()) + r + 1, rows)
         c0, c1 = max(int(cc[:, 1].min()) - r, 0), min(int(cc[:, 1].max()) + r + 1, cols)
-        elev = m.window("elevation", r0, r1, c0, c1).astype(np.float64)
-        rr = cc[:, 0:1] + dr[None, :]
-        cl = cc[:, 1:2] + dc[None, :]
-        inside = (rr >= 0) & (rr < rows) & (cl >= 0) & (cl < cols)
-        ze = np.full(rr.shape, np.nan)
-        ze[inside] = elev[rr[inside] - r0, cl[inside] - c0]
-        d2 = h2[None, :] + (zz[:, None] - ze) ** 2
-        d2 = np.where(np.isfinite(d2), d2, np.inf)
-        out[k : k + 512] = np.sqrt(d2.min(axis=1))
+        elev = m.window("elevation", r0, r1, c0, c1)
+        rc = np.ascontiguousarray(cc, dtype=np.int64)
+        out[k : k + 512] = _nearest_grid_point(rc, zz, elev, r0, c0, dr, dc, h2, rows, cols)
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _nearest_grid_point(cells, z, elev, r0, c0, dr, dc, h2, rows, cols):
+    """For each cell ``(row, col)`` with height ``z``: the 3-D distance to the nearest grid
+    point among its offsets ``(dr, dc)`` (squared horizontal distances ``h2``) inside the map;
+    ``elev`` is the elevation window whose corner is ``(r0, c0)``; no-data is skipped, and a
+    cell with no grid point gets ``inf``."""
+    out = np.empty(cells.shape[0])
+    for i in range(cells.shape[0]):
+        best = np.inf
+        for k in range(dr.shape[0]):
+            r = cells[i, 0] + dr[k]
+            c = cells[i, 1] + dc[k]
+            if r < 0 or r >= rows or c < 0 or c >= cols:
+                continue
+            d = z[i] - np.float64(elev[r - r0, c - c0])
+            d2 = h2[k] + d * d
+            if d2 < best:  # False for NaN (no-data)
+                best = d2
+        out[i] = math.sqrt(best)
     return out
 
 

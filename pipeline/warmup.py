@@ -10,9 +10,9 @@ stamp so that later runs skip it.
 
 The halves: one builds a tiny maps store (safety, ridges, components, landmarks) and plans on
 it with every planner; the other compiles the safety kernels first (the store needs them),
-generates a tiny synthetic DEM, then, once that store exists, plans one mission on it and
-flies it (the flight's kernels). Each kernel is compiled with the
-argument types the pipeline uses, so later calls load it from the cache.
+generates a tiny synthetic DEM, then, once that store exists, plans one mission on it, flies
+it (the flight's kernels) and checks its clearance as a job does. Each kernel is compiled with
+the argument types the pipeline uses, so later calls load it from the cache.
 """
 
 from __future__ import annotations
@@ -165,7 +165,10 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 store = _store(tmp, build=False)
                 t = _plan_each(store, planners=("astar",))
                 if t is not None:
+                    from .missions import min_clearance
+
                     pipeline.fly(store, t)
+                    min_clearance(store, t, 60.0)  # a job's independent check of each mission
             else:
                 raise ValueError(f"unknown warm-up part {part!r}; known: {PARTS}")
             took[part] = round(time.perf_counter() - t0, 1)
