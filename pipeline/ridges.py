@@ -1045,8 +1045,13 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
     po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
     nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
-    # large constants travel as single graph keys (sent once to each worker), not in closures
-    geometry = dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
+    # large constants travel as single graph keys (sent once to each worker), not in closures;
+    # on a cluster they are kept there (persisted), so that each later computation that reads
+    # them (the layers are written band by band) names them instead of carrying them again
+    # (12.6 MiB a band at 20000^2, and distributed's "Sending large graph" warning each time)
+    (geometry,) = dask.persist(
+        dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
+    )
     fd, pd = fo.to_delayed(), po.to_delayed()
     flow = dask.compute(
         *[
@@ -1055,7 +1060,7 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
             for bj in range(nbc)
         ]
     )
-    solution = dask.delayed(_solve_flow(*flow), pure=True)
+    (solution,) = dask.persist(dask.delayed(_solve_flow(*flow), pure=True))
     if log:
         log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
     acc = da.map_blocks(
