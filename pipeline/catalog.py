@@ -110,9 +110,8 @@ def write_mission(
                 else:
                     from .plots import mission_quicklook
 
-                    title = "".join(c if c.isprintable() else "?" for c in name)
                     mission_quicklook(
-                        maps, traj, tmp / "quicklook.png", title=title, crs_wkt=crs_wkt
+                        maps, traj, tmp / "quicklook.png", title=name, crs_wkt=crs_wkt
                     )
                 assets["quicklook"] = pystac.Asset(
                     "./quicklook.png",

@@ -52,6 +52,7 @@ __all__ = [
     "Section",
     "SectionResult",
     "certified",
+    "coarse_rho",
     "default_parameters",
     "plan",
     "plan_section",
@@ -276,14 +277,23 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
 # --------------------------------------------------------------------------- plan
 
 
-def _check_args(planner, omega, m: MapsStore, rho, section_size, margin):
-    planner, omega = check_planner(planner, omega)
-    d = default_parameters(m.shape, m.cell_size)
-    rho = d["rho"] if rho is None else PLANNING.rho.check(rho)
+def coarse_rho(m: MapsStore, rho=None) -> int:
+    """The compression factor a mission on ``m`` uses: ``rho``, checked, or the map's default
+    (:func:`default_parameters`)."""
+    rho = (
+        default_parameters(m.shape, m.cell_size)["rho"] if rho is None else PLANNING.rho.check(rho)
+    )
     if rho > min(m.shape):
         raise InvalidParameterError(
             f"`rho` ({rho}) must not exceed the map's shorter side ({min(m.shape)} cells)"
         )
+    return rho
+
+
+def _check_args(planner, omega, m: MapsStore, rho, section_size, margin):
+    planner, omega = check_planner(planner, omega)
+    d = default_parameters(m.shape, m.cell_size)
+    rho = coarse_rho(m, rho)
     if section_size is None:
         section_size = max(4 * rho, d["section_size"])
     section_size = PLANNING.section_size.check(section_size)

@@ -25,7 +25,7 @@ from numba import njit
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
-from .mcpc import default_parameters, plan
+from .mcpc import coarse_rho, plan
 from .params import PLANNING
 from .planners.core import Trajectory
 from .store import open_store
@@ -176,9 +176,11 @@ def _prepare_coarse(m, items, defaults) -> None:
         opts = {**defaults, **mission}
         if not opts.get("mcpc", PLANNING.mcpc.default):
             continue
-        rho = opts.get("rho")
-        rhos.add(default_parameters(m.shape, m.cell_size)["rho"] if rho is None else rho)
-    for rho in sorted(rhos, key=str):
+        try:
+            rhos.add(coarse_rho(m, opts.get("rho")))
+        except PipelineError:  # the mission says why
+            continue
+    for rho in sorted(rhos):
         try:
             m.coarse(rho)
         except Exception as exc:  # noqa: BLE001 - the missions then meet it and say why
@@ -210,9 +212,8 @@ def _quicklook_png(m, t: Trajectory, name) -> bytes:
 
     from .plots import mission_quicklook
 
-    title = "".join(c if c.isprintable() else "?" for c in str(name))
     with _DRAWING:
-        return mission_quicklook(m, t, io.BytesIO(), title=title, crs_wkt=m.crs_wkt).getvalue()
+        return mission_quicklook(m, t, io.BytesIO(), title=name, crs_wkt=m.crs_wkt).getvalue()
 
 
 def _plan_and_fly(m, mission: dict, defaults: dict, vehicle, run_on, i: int) -> Trajectory:

@@ -335,7 +335,8 @@ def mission_quicklook(
         if f.energy_wh is not None:
             lines.append(f"energy {f.energy_wh:.0f} Wh")
     side.text(0.05, 1.0, "\n".join(lines), transform=side.transAxes, fontsize=8, va="top")
-    ax.set_title(title, fontsize=11)
+    # a mission's name as its title; a character that cannot be printed shows as "?"
+    ax.set_title("".join(c if c.isprintable() else "?" for c in str(title)), fontsize=11)
 
     pr = fig.add_subplot(gs[2, :])
     p = maps.parameters

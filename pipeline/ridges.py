@@ -489,7 +489,7 @@ def _spill_levels(n, start, ia, ib, w):
 def _solve_fill(*summaries):
     """The spill level of every perimeter label: ``(ids, spill)``, ``ids`` sorted. The edges
     of every tile are held once as compact arrays (int32 node indices, float32 heights: the
-    DEM's own values, so exact), about 20 bytes an edge at the peak, not 200: this solve runs
+    DEM's own values, so exact), about 40 bytes an edge at the peak, not 150: this solve runs
     in the client and its edges grow with the number of tiles times the tile side."""
     count = sum(sm[0].size for sm in summaries)
     ab = np.empty(2 * count + 1, dtype=np.int64)

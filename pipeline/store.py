@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import exists, filesystem, is_url, join, location, stamp, unreachable
+from ._io import exists, filesystem, is_url, join, location, stamp, store_exists, unreachable
 from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
 from .params import LATITUDE, LONGITUDE, PLANNING
 
@@ -379,7 +379,7 @@ class MapsStore:
             )
             _write_coarse(out, self.path, name)
         ds = xr.open_zarr(  # numpy, not dask: read in the caller's thread (a mission task's)
-            self.path, group=f"coarse-rho{rho}", consolidated=False, zarr_format=3, chunks=None
+            self.path, group=name, consolidated=False, zarr_format=3, chunks=None
         ).load()
         res = {
             "safety": ds["safety"].values,
@@ -468,7 +468,7 @@ def _coarse_written(store: str, name: str) -> bool:
 
 def _require_store(path) -> None:
     if is_url(path):
-        if not exists(join(path, "zarr.json")):
+        if not store_exists(path):
             raise PipelineError(
                 f"maps store {path} does not exist (no zarr.json there); build it with "
                 "pipeline.build_maps or `pipeline build-maps`"
