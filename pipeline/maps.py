@@ -7,7 +7,7 @@ by every mission (:mod:`pipeline.store`).
 
 The build runs as streaming passes, each a dask computation that reads its input chunk by
 chunk, so that no worker holds more than a chunk or two plus perimeter data: (1) every tile
-is flooded once, its local fill and label indices go to a scratch store, and the spill edges
+is filled once, its local fill and label indices go to a scratch store, and the spill edges
 to a small global solve; (2) the fill is finished elementwise per tile (plus a one-cell halo)
 and the flow summaries go to the second global solve; (3) every layer is written; (4) the
 passable layer is labelled tile by tile, the labels that touch across tile borders joined in a

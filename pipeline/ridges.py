@@ -3,8 +3,8 @@
 
 Esri's ridge-line recipe, made exact and chunk-wise:
 
-1. fill the depressions of ``z`` (priority-flood, Barnes et al. 2014); map edges and cells next
-   to no-data are outlets;
+1. fill the depressions of ``z`` (what priority-flood computes, Barnes et al. 2014); map edges
+   and cells next to no-data are outlets;
 2. invert: ``w = -filled`` (not filled again: flow ends at summits);
 3. D8 on ``w``: the neighbour with the steepest strictly positive drop per distance, ties to
    the first in a fixed neighbour order (E, SE, S, SW, W, NW, N, NE); no lower neighbour means a
@@ -15,22 +15,25 @@ Esri's ridge-line recipe, made exact and chunk-wise:
 Steps 1 and 4 are global. For chunked input they follow R. Barnes' tiled algorithms (parallel
 Priority-Flood, 2016; parallel flow accumulation, 2017), reimplemented from the papers:
 
-- fill: every tile floods itself from its perimeter cells (each labelled with its global cell
-  index) and its true outlets, recording the spill height wherever two labels meet and across
-  tile borders. One small global minimax search over those labels gives each label's spill
-  level; each tile then finishes with ``max(local fill, spill[label])``.
+- fill: every tile fills itself towards its perimeter cells (each a terminal labelled with its
+  global cell index) and its true outlets (``_basin_fill``): each cell gets its local fill and
+  the terminal its water reaches at that level, and the tile records the minimax height
+  between its terminals (a spanning tree of them) and across its borders. One small global
+  minimax search over those labels gives each label's spill level; each tile then finishes
+  with ``max(local fill, spill[label])`` (exact: the label's local minimax is the cell's, and
+  the spanning tree keeps every minimax between the tile's terminals).
 - accumulation: every tile computes D8 (with a one-cell halo of the filled DEM) and its local
   accumulation, the links where flow leaves it, and for each border cell the link its flow
-  leaves through. A global pass over the links (a forest of chains) gives the inflow at every
-  entry cell; each tile re-accumulates with weights ``1 + inflow``.
+  leaves through (walked downstream, each cell once). A global pass over the links (a forest
+  of chains) gives the inflow at every entry cell; each tile re-accumulates with weights
+  ``1 + inflow``.
 
 Only perimeter data crosses between tiles, and the results equal the single-array ones cell
 for cell (integer accumulation, fill values copied from the input).
 
-A whole array in memory (``fill_single``, ``accumulation_single``) takes a faster route with
-the same results: the fill by descent basins and a minimax over the basins that touch (no
-priority queue over cells, see ``_fill``), the accumulation by walking each flow chain once
-from its sources (``_accumulate_single``).
+Fills, whole-array and per tile, use descent basins and a minimax over the basins that touch
+(no priority queue over cells, ``_basin_fill``); accumulations walk each flow chain once from
+its sources (``_accumulate_single`` for a whole array in memory, ``_accumulate`` per tile).
 """
 
 from __future__ import annotations
@@ -46,7 +49,6 @@ import zarr
 from numba import njit
 
 from ._grid8 import DC, DIST, DR, flat_offsets, inside
-from ._heap import heap_pop, heap_push
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
 from .params import MAPS
@@ -55,83 +57,6 @@ OUTLET = -1
 
 
 # --------------------------------------------------------------------------- fill
-
-
-@njit(nogil=True, cache=True)
-def _flood(z, is_seed, seed_label, want_edges):
-    """Priority-flood of ``z`` (NaN = no-data) from the cells marked ``is_seed``.
-
-    Barnes et al. (2014): cells at or below the current level go through a FIFO (pit) queue,
-    the others through a binary heap. Returns the filled surface, the label each cell was
-    flooded from (-3 for no-data), and (if ``want_edges``) the spill edges
-    ``(label_a, label_b, height)`` where two labels meet.
-    """
-    rows, cols = z.shape
-    n = rows * cols
-    filled = np.full((rows, cols), np.nan, dtype=np.float32)
-    label = np.full((rows, cols), -2, dtype=seed_label.dtype)  # -2: not reached, -3: no-data
-    hv = np.empty(n, dtype=np.float32)
-    hi = np.empty(n, dtype=np.int32)
-    pit = np.empty(n, dtype=np.int32)
-    hn = 0
-    cap = 1024
-    ea = np.empty(cap, dtype=np.int64)
-    eb = np.empty(cap, dtype=np.int64)
-    ew = np.empty(cap, dtype=np.float32)
-    ne = 0
-    for i in range(rows):
-        for j in range(cols):
-            if z[i, j] != z[i, j]:
-                label[i, j] = -3
-            elif is_seed[i, j]:
-                filled[i, j] = z[i, j]
-                label[i, j] = seed_label[i, j]
-                hn = heap_push(hv, hi, hn, z[i, j], np.int32(i * cols + j))
-    pit_head = 0
-    pit_tail = 0
-    while hn > 0 or pit_head < pit_tail:
-        if pit_head < pit_tail:
-            c = pit[pit_head]
-            pit_head += 1
-        else:
-            _, c = heap_pop(hv, hi, hn)
-            hn -= 1
-        ci = c // cols
-        cj = c - ci * cols
-        fc = filled[ci, cj]
-        lc = label[ci, cj]
-        for k in range(8):
-            ni = ci + DR[k]
-            nj = cj + DC[k]
-            if ni < 0 or ni >= rows or nj < 0 or nj >= cols:
-                continue
-            ln = label[ni, nj]
-            if ln != -2:
-                if want_edges and ln != lc and ln != -3:
-                    if ne == cap:
-                        cap *= 2
-                        ea2 = np.empty(cap, dtype=np.int64)
-                        eb2 = np.empty(cap, dtype=np.int64)
-                        ew2 = np.empty(cap, dtype=np.float32)
-                        ea2[:ne] = ea[:ne]
-                        eb2[:ne] = eb[:ne]
-                        ew2[:ne] = ew[:ne]
-                        ea, eb, ew = ea2, eb2, ew2
-                    ea[ne] = lc
-                    eb[ne] = ln
-                    ew[ne] = max(fc, filled[ni, nj])
-                    ne += 1
-                continue
-            label[ni, nj] = lc
-            zn = z[ni, nj]
-            if zn <= fc:
-                filled[ni, nj] = fc
-                pit[pit_tail] = ni * cols + nj
-                pit_tail += 1
-            else:
-                filled[ni, nj] = zn
-                hn = heap_push(hv, hi, hn, zn, np.int32(ni * cols + nj))
-    return filled, label, ea[:ne], eb[:ne], ew[:ne]
 
 
 @njit(nogil=True, cache=True)
@@ -174,57 +99,67 @@ def _slot(keys, key):
 
 
 @njit(nogil=True, cache=True)
-def _fill(z, outlet):
-    """Depression filling of a whole array (NaN = no-data) from the ``outlet`` cells: each
-    cell's lowest level at which water from it can leave the map (the minimax height of its
-    paths to an outlet), what Priority-Flood (Barnes et al., 2014) computes, without a
-    priority queue over cells.
+def _basin_fill(z, seed, want_labels):
+    """Depression filling (NaN = no-data) towards the terminal cells marked in ``seed``: each
+    cell's lowest level at which water from it reaches a terminal (the minimax height of its
+    paths to one), what Priority-Flood (Barnes et al., 2014) computes, without a priority
+    queue over cells. ``seed``: -1 an outlet (all outlets are one terminal), ``p >= 0`` the
+    terminal ``p`` (a tile's perimeter cell), -2 any other cell; every non-terminal valid cell
+    must have 8 valid neighbours in the array (cells next to no-data are outlets).
 
-    1. Every cell that is not an outlet descends to its lowest strictly lower neighbour; a cell
-       with none is a pit. Descending, every cell reaches a pit or an outlet: its basin.
+    1. Every non-terminal cell descends to its lowest strictly lower neighbour; a cell with
+       none is a pit. Descending, every cell reaches a pit or a terminal: its basin.
     2. Basins that touch get an edge weighted by the lowest ``max(z_a, z_b)`` over their
-       touching cell pairs (8-neighbours); all outlet basins are one node, the sea.
-    3. Each pit basin's spill level is its minimax distance to the sea over those edges
-       (Kruskal: edges by weight, a component takes the weight at which it joins the sea).
-    4. ``filled = max(z, spill[basin])`` (the sea's spill is -inf).
+       touching cell pairs (8-neighbours).
+    3. Kruskal: edges by weight, joined with a union-find. A pit basin's level is the weight
+       at which its component first holds a terminal (its minimax to the nearest terminal),
+       and that terminal is its label; when two components that hold terminals join at
+       weight ``w``, the edge (label a, label b, w) is recorded: these edges keep the minimax
+       between any two terminals (they are a minimum spanning tree of the terminals).
+    4. ``filled = max(z, level[basin])`` (a terminal's basin has level -inf).
 
-    Why it is exact: inside a basin, every cell is reached from the pit by its descent path
+    Why it is exact: inside a basin, every cell is reached from its root by its descent path
     reversed, whose highest cell is that cell, so crossing between basins costs at least and
-    at most the edge weight; the pit's minimax is therefore its basin's spill, and a cell's
-    minimax is the larger of its own height (its descent reaches the pit) and the spill (any
-    lower way out would be a lower way out for the pit too).
+    at most the edge weight; the pit's minimax is therefore its basin's level, and a cell's
+    minimax is the larger of its own height (its descent reaches the root) and that level.
+
+    Returns the filled surface, each cell's label (the terminal its water reaches at its
+    level: -1 outlet, ``p``, -3 no-data; an empty array unless ``want_labels``), and the
+    terminal edges ``(a, b, w)``.
     """
     rows, cols = z.shape
     n = rows * cols
     zf = z.ravel()
-    out = outlet.ravel()
+    sf = seed.ravel()
     NONE = np.int64(-1)
-    # 1: descent and basins (node 0: the sea; pit nodes from 1)
+    # 1: descent and basins. Nodes: 0 the outlets, 1 + p terminal p, then the pits
+    nterm = 0
+    for c in range(n):
+        if sf[c] >= nterm:
+            nterm = sf[c] + 1
     off = flat_offsets(cols)
     down = np.full(n, -1, dtype=np.int8)  # the neighbour (D8 code) a cell descends to
     node = np.full(n, np.int32(-1), dtype=np.int32)
     npit = 0
-    for ci in range(rows):
-        for cj in range(cols):
-            c = ci * cols + cj
-            zc = zf[c]
-            if zc != zc:
-                continue
-            if out[c]:
-                node[c] = 0
-                continue
-            low = zc
-            best = -1
-            for k in range(8):  # a non-outlet cell has all 8 neighbours, all valid
-                m = c + off[k]
-                if zf[m] < low:
-                    low = zf[m]
-                    best = k
-            if best < 0:
-                npit += 1
-                node[c] = npit
-            else:
-                down[c] = best
+    for c in range(n):
+        zc = zf[c]
+        if zc != zc:
+            continue
+        if sf[c] >= -1:
+            node[c] = sf[c] + 1
+            continue
+        low = zc
+        best = -1
+        for k in range(8):
+            m = c + off[k]
+            if zf[m] < low:
+                low = zf[m]
+                best = k
+        if best < 0:
+            node[c] = 1 + nterm + npit
+            npit += 1
+        else:
+            down[c] = best
     path = np.empty(1024, dtype=np.int64)
     for c in range(n):
         if node[c] >= 0 or zf[c] != zf[c]:
@@ -243,7 +178,7 @@ def _fill(z, outlet):
         for t in range(np_):
             node[path[t]] = b
     # 2: the lowest crossing between touching basins, in a hash table keyed by the node pair
-    nodes = np.int64(npit + 1)
+    nodes = np.int64(1 + nterm + npit)
     cap = 1024
     keys = np.full(cap, NONE, dtype=np.int64)
     vals = np.empty(cap, dtype=np.float32)
@@ -268,8 +203,6 @@ def _fill(z, outlet):
                 if bnode < 0 or bnode == a:
                     continue
                 lo, hi = (a, bnode) if a < bnode else (bnode, a)
-                if hi == 0:
-                    continue
                 w = max(zf[c], zf[m])
                 key = np.int64(lo) * nodes + hi
                 if key == last_key[k]:
@@ -297,7 +230,8 @@ def _fill(z, outlet):
                     used += 1
                 elif w < vals[h]:
                     vals[h] = w
-    # 3: Kruskal towards the sea; members of a component in a linked list
+    # 3: Kruskal; a component's terminal label (-2: none yet) and, while it has none, its
+    # members in a linked list
     ek = np.empty(used, dtype=np.int64)
     ew = np.empty(used, dtype=np.float32)
     e = 0
@@ -308,10 +242,18 @@ def _fill(z, outlet):
             e += 1
     order = np.argsort(ew, kind="mergesort")
     parent = np.arange(nodes)
-    first = np.arange(nodes)  # each component's member list: first, next, last
+    first = np.arange(nodes)
     nxt = np.full(nodes, NONE, dtype=np.int64)
     last = np.arange(nodes)
-    spill = np.full(nodes, -np.inf, dtype=np.float32)
+    label = np.full(nodes, -2, dtype=np.int64)
+    label[0] = -1
+    for p in range(nterm):
+        label[1 + p] = p
+    level = np.full(nodes, -np.inf, dtype=np.float32)
+    ta = np.empty(nterm + 1, dtype=np.int64)
+    tb = np.empty(nterm + 1, dtype=np.int64)
+    tw = np.empty(nterm + 1, dtype=np.float32)
+    nt = 0
     for t in order:
         u = ek[t] // nodes
         v = ek[t] - u * nodes
@@ -323,35 +265,50 @@ def _fill(z, outlet):
             v = parent[v]
         if u == v:
             continue
-        if v == 0:
-            u, v = v, u
-        if u == 0:  # v's component joins the sea at this level
+        if label[v] == -1 or (label[u] == -2 and label[v] != -2):
+            u, v = v, u  # u keeps a terminal if either has one, the outlets if either has
+        if label[v] >= 0:  # both hold terminals: record the edge
+            ta[nt] = label[u]
+            tb[nt] = label[v]
+            tw[nt] = ew[t]
+            nt += 1
+        elif label[u] != -2:  # v's pits reach a terminal at this level
             x = first[v]
             while x != NONE:
-                spill[x] = ew[t]
+                level[x] = ew[t]
+                label[x] = label[u]
                 x = nxt[x]
-            parent[v] = 0
-            continue
-        parent[v] = u  # two pit components merge
-        nxt[last[u]] = first[v]
-        last[u] = last[v]
-    # 4: filled
+        else:  # two components without a terminal merge
+            nxt[last[u]] = first[v]
+            last[u] = last[v]
+        parent[v] = u
+    # 4: filled, and each cell's terminal
     filled = np.empty(n, dtype=np.float32)
+    lab2 = np.empty((rows, cols) if want_labels else (0, 0), dtype=np.int32)
+    lab = lab2.reshape(-1)
     for c in range(n):
         b = node[c]
-        filled[c] = np.nan if b < 0 else max(zf[c], spill[b])
-    return filled.reshape(rows, cols)
+        if b < 0:
+            filled[c] = np.nan
+            if want_labels:
+                lab[c] = -3
+            continue
+        filled[c] = max(zf[c], level[b])
+        if want_labels:
+            lab[c] = label[b]
+    return filled.reshape(rows, cols), lab2, ta[:nt], tb[:nt], tw[:nt]
 
 
 def fill_single(z: np.ndarray) -> np.ndarray:
-    """Priority-flood fill of a whole array in memory (the reference for the tiled version)."""
+    """The depression fill of a whole array in memory (the reference for the tiled version)."""
     z = np.ascontiguousarray(z, dtype=np.float32)
     if z.size >= 2**32 - 1:
         raise ValueError(
             f"fill_single takes fewer than 2^32 - 1 cells, got {z.size}; use the "
             "chunked fill (fill_depressions on a dask-backed DEM)"
         )
-    return _fill(z, _outlets(z, 0, 0, 0, 0, True, True, True, True))
+    outlet = _outlets(z, 0, 0, 0, 0, True, True, True, True)
+    return _basin_fill(z, np.where(outlet, np.int32(-1), np.int32(-2)), False)[0]
 
 
 def _halo(bi, bj, nbr, nbc, depth):
@@ -379,7 +336,8 @@ def _to_global(local, glabels):
 
 
 def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
-    """Flood one tile: ``zh`` is the tile with a halo of 2 (none at map edges).
+    """Fill one tile towards its perimeter and outlets: ``zh`` is the tile with a halo of 2
+    (none at map edges).
 
     Returns the local fill, the tile-local label of every cell (int32: the index of its
     perimeter seed in row-major order, -1 for a true outlet, -3 for no-data), the perimeter's
@@ -396,9 +354,7 @@ def _tile_flood(zh, r0, c0, ncols, halo, want_edges):
     seed_label = np.full((rows, cols), -2, dtype=np.int32)
     seed_label[pi, pj] = np.arange(pi.size, dtype=np.int32)
     seed_label[outlet] = -1
-    is_seed = outlet.copy()
-    is_seed[pi, pj] = True
-    filled, label, ea, eb, ew = _flood(z, is_seed, seed_label, want_edges)
+    filled, label, ea, eb, ew = _basin_fill(z, seed_label, True)
     if not want_edges:
         return filled, label, glabels, None
     # edges across the tile border: perimeter cell c and neighbour n in the next tile
@@ -626,45 +582,35 @@ def _d8(w, top, left, rows, cols):
 
 @njit(nogil=True, cache=True)
 def _accumulate(dirs, weights):
-    """Weighted accumulation inside a block (flow leaving it is dropped), in Kahn order.
-
-    Returns the accumulation and the processing order (upstream before downstream)."""
+    """Weighted accumulation inside a block (flow leaving it is dropped): in-degrees, then
+    each chain walked downstream from its sources, a cell passing its total on once all its
+    upstream cells have (as :func:`_accumulate_single`)."""
     rows, cols = dirs.shape
-    indeg = np.zeros((rows, cols), dtype=np.int32)
+    indeg = np.zeros((rows, cols), dtype=np.uint8)
     for i in range(rows):
         for j in range(cols):
             k = dirs[i, j]
-            if k >= 0:
-                ni = i + DR[k]
-                nj = j + DC[k]
-                if 0 <= ni < rows and 0 <= nj < cols:
-                    indeg[ni, nj] += 1
+            if k >= 0 and inside(i, j, k, rows, cols):
+                indeg[i + DR[k], j + DC[k]] += 1
     acc = weights.copy()
-    order = np.empty(rows * cols, dtype=np.int64)
-    head = 0
-    tail = 0
     for i in range(rows):
         for j in range(cols):
-            if indeg[i, j] == 0:
-                order[tail] = i * cols + j
-                tail += 1
-    while head < tail:
-        c = order[head]
-        head += 1
-        i = c // cols
-        j = c % cols
-        k = dirs[i, j]
-        if k < 0:
-            continue
-        ni = i + DR[k]
-        nj = j + DC[k]
-        if 0 <= ni < rows and 0 <= nj < cols:
-            acc[ni, nj] += acc[i, j]
-            indeg[ni, nj] -= 1
-            if indeg[ni, nj] == 0:
-                order[tail] = ni * cols + nj
-                tail += 1
-    return acc, order[:tail]
+            if indeg[i, j] != 0:
+                continue
+            x, y = i, j
+            while True:
+                k = dirs[x, y]
+                if k < 0 or not inside(x, y, k, rows, cols):
+                    break
+                nx = x + DR[k]
+                ny = y + DC[k]
+                acc[nx, ny] += acc[x, y]
+                indeg[nx, ny] -= 1
+                if indeg[nx, ny] != 0:
+                    break
+                indeg[nx, ny] = 255  # walked from here on: not a source for the raster loop
+                x, y = nx, ny
+    return acc
 
 
 @njit(nogil=True, cache=True)
@@ -736,41 +682,74 @@ def _tile_dirs(fh, halo):
 def _tile_flow_summary(fh, r0, c0, ncols, halo):
     """Links leaving the tile, with local amounts, and the link each border cell exits by."""
     dirs, nodata = _tile_dirs(fh, halo)
-    rows, cols = dirs.shape
-    acc, order = _accumulate(dirs, (~nodata).astype(np.int64))
-    k = dirs.astype(np.int64)
-    valid = k >= 0
-    ti = np.where(valid, np.arange(rows)[:, None] + DR[np.maximum(k, 0)], -1)
-    tj = np.where(valid, np.arange(cols)[None, :] + DC[np.maximum(k, 0)], -1)
-    leaves = valid & ((ti < 0) | (ti >= rows) | (tj < 0) | (tj >= cols))
-    li, lj = np.nonzero(leaves)
-    link_src = (r0 + li) * ncols + (c0 + lj)
-    link_dst = (r0 + ti[li, lj]) * ncols + (c0 + tj[li, lj])
-    link_amount = acc[li, lj]
-    link_id = np.full((rows, cols), -1, dtype=np.int64)
-    link_id[li, lj] = np.arange(li.size)
-    exit_link = _exit_links(dirs, order, link_id)
-    bi, bj, border_cell = _perimeter_glabels(r0, c0, rows, cols, ncols)
-    valid_border = ~nodata[bi, bj]
-    bi, bj, border_cell = bi[valid_border], bj[valid_border], border_cell[valid_border]
-    return link_src, link_dst, link_amount, border_cell, exit_link[bi, bj]
+    acc = _accumulate(dirs, (~nodata).astype(np.int64))
+    return _flow_links(dirs, acc, nodata, r0, c0, ncols)
 
 
 @njit(nogil=True, cache=True)
-def _exit_links(dirs, order, link_id):
-    """For each cell, the id of the link its flow leaves the block by (-1: ends inside)."""
+def _flow_links(dirs, acc, nodata, r0, c0, ncols):
+    """A tile's flow summary: the links where flow leaves it (a cell whose D8 move ends
+    outside: its global index, the target's, its local accumulation; in row-major order) and,
+    for each valid border cell in row-major order, its global index and the id of the link its
+    flow leaves by (-1: it ends inside)."""
     rows, cols = dirs.shape
-    out = np.full((rows, cols), -1, dtype=np.int64)
-    for t in range(order.size - 1, -1, -1):  # downstream before upstream
-        c = order[t]
-        i = c // cols
-        j = c % cols
+    link_id = np.full((rows, cols), -1, dtype=np.int32)
+    nl = 0
+    for i in range(rows):
+        for j in range(cols):
+            k = dirs[i, j]
+            if k >= 0 and not inside(i, j, k, rows, cols):
+                link_id[i, j] = nl
+                nl += 1
+    src = np.empty(nl, dtype=np.int64)
+    dst = np.empty(nl, dtype=np.int64)
+    amount = np.empty(nl, dtype=np.int64)
+    for i in range(rows):
+        for j in range(cols):
+            e = link_id[i, j]
+            if e >= 0:
+                k = dirs[i, j]
+                src[e] = (r0 + i) * ncols + (c0 + j)
+                dst[e] = (r0 + i + DR[k]) * ncols + (c0 + j + DC[k])
+                amount[e] = acc[i, j]
+    memo = np.full((rows, cols), -2, dtype=np.int32)
+    path = np.empty(rows * cols, dtype=np.int64)
+    nb = 0
+    cell = np.empty(2 * (rows + cols), dtype=np.int64)
+    exits = np.empty(2 * (rows + cols), dtype=np.int64)
+    for i in range(rows):
+        # the border's cells in row-major order: whole first and last rows, else both ends
+        step = 1 if i == 0 or i == rows - 1 else max(cols - 1, 1)
+        for j in range(0, cols, step):
+            if not nodata[i, j]:
+                cell[nb] = (r0 + i) * ncols + (c0 + j)
+                exits[nb] = _exit_link(dirs, link_id, memo, path, i, j)
+                nb += 1
+    return src, dst, amount, cell[:nb], exits[:nb]
+
+
+@njit(inline="always", cache=True)
+def _exit_link(dirs, link_id, memo, path, i, j):
+    """The id of the link the flow from cell (i, j) leaves its block by (-1: it ends inside),
+    walking downstream and remembering the answer for every cell walked (``memo``, -2 where
+    not known yet; ``path`` a scratch array of the block's size)."""
+    rows, cols = dirs.shape
+    n = 0
+    while memo[i, j] == -2:
         if link_id[i, j] >= 0:
-            out[i, j] = link_id[i, j]
-            continue
+            memo[i, j] = link_id[i, j]
+            break
         k = dirs[i, j]
-        if k >= 0:
-            out[i, j] = out[i + DR[k], j + DC[k]]
+        if k < 0:
+            memo[i, j] = -1
+            break
+        path[n] = i * cols + j
+        n += 1
+        i += DR[k]
+        j += DC[k]
+    out = memo[i, j]
+    for t in range(n):
+        memo[path[t] // cols, path[t] % cols] = out
     return out
 
 
@@ -847,8 +826,7 @@ def _flow_finish(fh, solution, block_info=None):
     r, c = np.divmod(targets[lo:hi], ncols)
     mine = (c >= c0) & (c < c1)
     np.add.at(weights, (r[mine] - r0, c[mine] - c0), inflow[lo:hi][mine])
-    acc, _ = _accumulate(dirs, weights)
-    return acc
+    return _accumulate(dirs, weights)
 
 
 def _accumulation_dask(filled: da.Array, *, eager_solve: bool) -> da.Array:
@@ -874,7 +852,8 @@ def _wrap(data, dem, name, attrs):
 
 
 def fill_depressions(dem: xr.DataArray, *, eager_solve: bool = False) -> xr.DataArray:
-    """Priority-flood fill of ``dem`` (map edges and cells next to no-data are outlets).
+    """Depression fill of ``dem`` (map edges and cells next to no-data are outlets): the
+    minimal surface without pits, what priority-flood computes.
 
     Exact for any chunking; lazy for dask input (the small global step is a task of the graph,
     or computed at once with ``eager_solve=True`` so that the graph left holds no summaries).
@@ -966,14 +945,14 @@ def ridge_map(
 
 
 # --------------------------------------------------------------------------- staged build
-# For maps built into a store (build_maps), each tile is flooded once: its local fill and, for
+# For maps built into a store (build_maps), each tile is filled once: its local fill and, for
 # every cell, the index of its label in the tile's perimeter list go to a scratch Zarr store.
 # The later passes finish the fill elementwise (max(local fill, spill[label])) on a tile plus
-# a one-cell halo, and run the flow passes from it, so the fill is never flooded twice.
+# a one-cell halo, and run the flow passes from it, so no tile is filled twice.
 
 
 def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
-    """Pass 1 for one tile: flood, write local fill and label indices, return spill edges."""
+    """Pass 1 for one tile: fill, write local fill and label indices, return spill edges."""
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     rows, cols = filled.shape
     g = zarr.open_group(scratch, mode="r+", zarr_format=3)
