@@ -180,7 +180,7 @@ def main() -> None:
     rep.h("Large maps, Zarr to Zarr")
     rep.p("""Fill + D8 + accumulation + ridge threshold (default 1 km^2: 1112 cells of 30 m)
           from the DEM's Zarr store (chunks 1024) to a Zarr store on a LocalCluster of 2 workers
-          x 1 thread: the path `build_maps` takes (each tile flooded once into a scratch store,
+          x 1 thread: the path `build_maps` takes (each tile filled once into a scratch store,
           two small global solves on the client, the fill finished elementwise with one-cell
           halos). The paper builds its ridge map in ArcGIS and reports no time.""")
     if reused is not None:
@@ -191,7 +191,7 @@ def main() -> None:
         [
             "map",
             "total s",
-            "tiles flooded + fill solve s",
+            "tiles filled + fill solve s",
             "flow summaries + solve s",
             "accumulation + ridge written s",
             "ridge cells %",

@@ -896,10 +896,17 @@ def check_dem(dem, *, floating: bool = False) -> float:
 
 
 def require_valid_cells(dem: xr.DataArray, message: str) -> None:
-    """Raise InvalidDEMError(message) when every cell of ``dem`` is NaN (one pass if lazy)."""
-    anyvalid = np.isfinite(dem.data).any()
-    if isinstance(anyvalid, da.Array):
-        anyvalid = anyvalid.compute()
+    """Raise InvalidDEMError(message) when every cell of ``dem`` is NaN. A lazy DEM is read
+    chunk by chunk only as far as needed: its first chunk, then (only when that one is all
+    NaN) the rest in one pass."""
+    data = dem.data
+    if isinstance(data, da.Array):
+        first = data.blocks[(0,) * data.ndim]
+        if bool(np.isfinite(first).any().compute()):
+            return
+        anyvalid = np.isfinite(data).any().compute()
+    else:
+        anyvalid = np.isfinite(data).any()
     if not bool(anyvalid):
         raise InvalidDEMError(message)
 

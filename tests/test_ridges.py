@@ -273,6 +273,18 @@ def test_all_nodata_dem():
         pipeline.ridge_map(d.chunk({"y": 5, "x": 5}))
 
 
+def test_valid_cells_beyond_the_first_chunk_count():
+    """The no-data check reads the first chunk, then the rest only when that one is all NaN."""
+    from pipeline.dem import require_valid_cells
+
+    z = np.full((10, 10), np.nan, np.float32)
+    z[9, 9] = -100.0  # in the last chunk only
+    require_valid_cells(_dem(z).chunk({"y": 5, "x": 5}), "entirely no-data")
+    z[9, 9] = np.nan
+    with pytest.raises(InvalidDEMError, match="entirely no-data"):
+        require_valid_cells(_dem(z).chunk({"y": 5, "x": 5}), "entirely no-data")
+
+
 def test_not_a_dataarray():
     with pytest.raises(InvalidParameterError, match="xarray.DataArray"):
         pipeline.flow_accumulation(np.zeros((4, 4)))
