@@ -255,14 +255,9 @@ def _basin_fill(z, seed, want_labels):
     tw = np.empty(nterm + 1, dtype=np.float32)
     nt = 0
     for t in order:
-        u = ek[t] // nodes
-        v = ek[t] - u * nodes
-        while parent[u] != u:
-            parent[u] = parent[parent[u]]
-            u = parent[u]
-        while parent[v] != v:
-            parent[v] = parent[parent[v]]
-            v = parent[v]
+        a = ek[t] // nodes
+        u = _find(parent, a)
+        v = _find(parent, ek[t] - a * nodes)
         if u == v:
             continue
         if label[v] == -1 or (label[u] == -2 and label[v] != -2):
