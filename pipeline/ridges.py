@@ -98,6 +98,36 @@ def _slot(keys, key):
     return h
 
 
+_CACHE = 4096  # entries of the basin fill's pair cache (48 KiB: it stays in L2)
+
+
+@njit(inline="always", cache=True)
+def _new_table(cap):
+    return np.full(cap, np.int64(-1), dtype=np.int64), np.empty(cap, dtype=np.float32)
+
+
+@njit(inline="always", cache=True)
+def _table_min(keys, vals, used, key, w):
+    """``table[key] = min(table[key], w)`` in the open-addressing table (keys, vals), grown
+    (doubled) when half full; returns the table and its count."""
+    if 2 * (used + 1) > keys.size:
+        old_k, old_v = keys, vals
+        keys, vals = _new_table(2 * keys.size)
+        for t in range(old_k.size):
+            if old_k[t] != -1:
+                h = _slot(keys, old_k[t])
+                keys[h] = old_k[t]
+                vals[h] = old_v[t]
+    h = _slot(keys, key)
+    if keys[h] == -1:
+        keys[h] = key
+        vals[h] = w
+        used += 1
+    elif w < vals[h]:
+        vals[h] = w
+    return keys, vals, used
+
+
 @njit(nogil=True, cache=True)
 def _basin_fill(z, seed, want_labels):
     """Depression filling (NaN = no-data) towards the terminal cells marked in ``seed``: each
@@ -160,6 +190,20 @@ def _basin_fill(z, seed, want_labels):
             npit += 1
         else:
             down[c] = best
+    # most cells descend to a neighbour already labelled in a raster pass one way or the
+    # other: two sequential passes label those (fewer cache misses), the walks the rest
+    for c in range(n):
+        d = down[c]
+        if d >= 0:
+            b = node[c + off[d]]
+            if b >= 0:
+                node[c] = b
+    for c in range(n - 1, -1, -1):
+        d = down[c]
+        if d >= 0 and node[c] < 0:
+            b = node[c + off[d]]
+            if b >= 0:
+                node[c] = b
     path = np.empty(1024, dtype=np.int64)
     for c in range(n):
         if node[c] >= 0 or zf[c] != zf[c]:
@@ -177,16 +221,15 @@ def _basin_fill(z, seed, want_labels):
         b = node[x]
         for t in range(np_):
             node[path[t]] = b
-    # 2: the lowest crossing between touching basins, in a hash table keyed by the node pair
+    # 2: the lowest crossing between touching basins, in a hash table keyed by the node pair.
+    # The table is far larger than the processor's caches and most crossings repeat a pair
+    # met a few cells or a row before, so a small direct-mapped table (a write-back cache)
+    # takes them first: a pair goes to the big table only when evicted, and at the end
     nodes = np.int64(1 + nterm + npit)
-    cap = 1024
-    keys = np.full(cap, NONE, dtype=np.int64)
-    vals = np.empty(cap, dtype=np.float32)
+    keys, vals = _new_table(1024)
     used = 0
-    # along a row, the same pair of basins comes back cell after cell: its slot is remembered
-    # per direction (and forgotten when the table grows)
-    last_key = np.full(4, NONE, dtype=np.int64)
-    last_slot = np.zeros(4, dtype=np.int64)
+    ck = np.full(_CACHE, NONE, dtype=np.int64)
+    cv = np.empty(_CACHE, dtype=np.float32)
     for ci in range(rows):
         for cj in range(cols):
             c = ci * cols + cj
@@ -205,31 +248,19 @@ def _basin_fill(z, seed, want_labels):
                 lo, hi = (a, bnode) if a < bnode else (bnode, a)
                 w = max(zf[c], zf[m])
                 key = np.int64(lo) * nodes + hi
-                if key == last_key[k]:
-                    h = last_slot[k]
-                    if w < vals[h]:
-                        vals[h] = w
+                h = ((key * np.int64(0x9E3779B97F4A7C15)) >> 40) & (_CACHE - 1)
+                if ck[h] == key:
+                    if w < cv[h]:
+                        cv[h] = w
                     continue
-                if 2 * (used + 1) > cap:
-                    last_key[:] = NONE
-                    old_k, old_v = keys, vals
-                    cap *= 2
-                    keys = np.full(cap, NONE, dtype=np.int64)
-                    vals = np.empty(cap, dtype=np.float32)
-                    for t in range(old_k.size):
-                        if old_k[t] != NONE:
-                            h = _slot(keys, old_k[t])
-                            keys[h] = old_k[t]
-                            vals[h] = old_v[t]
-                h = _slot(keys, key)
-                last_key[k] = key
-                last_slot[k] = h
-                if keys[h] == NONE:
-                    keys[h] = key
-                    vals[h] = w
-                    used += 1
-                elif w < vals[h]:
-                    vals[h] = w
+                if ck[h] != NONE:
+                    keys, vals, used = _table_min(keys, vals, used, ck[h], cv[h])
+                ck[h] = key
+                cv[h] = w
+    for h in range(_CACHE):
+        if ck[h] != NONE:
+            keys, vals, used = _table_min(keys, vals, used, ck[h], cv[h])
+    cap = keys.size
     # 3: Kruskal; a component's terminal label (-2: none yet) and, while it has none, its
     # members in a linked list
     ek = np.empty(used, dtype=np.int64)
@@ -975,11 +1006,35 @@ def _finish_from_scratch(floc, plab, tables, bases, r_off, c_off, gr0, gc0):
     rows, cols = floc.shape
     ti = np.searchsorted(r_off, gr0 + np.arange(rows), side="right") - 1
     tj = np.searchsorted(c_off, gc0 + np.arange(cols), side="right") - 1
-    ntc = len(c_off) - 1
-    base = bases[ti[:, None] * ntc + tj[None, :]]
-    idx = plab.astype(np.int64)
-    lev = np.where(idx >= 0, tables[base + np.maximum(idx, 0)], np.float32(-np.inf))
-    return np.where(np.isnan(floc), floc, np.maximum(floc, lev)).astype(np.float32)
+    return _raise_to_levels(
+        np.ascontiguousarray(floc, dtype=np.float32),
+        np.ascontiguousarray(plab, dtype=np.int32),
+        tables,
+        bases,
+        ti,
+        tj,
+        len(c_off) - 1,
+    )
+
+
+@njit(nogil=True, cache=True)
+def _raise_to_levels(floc, plab, tables, bases, ti, tj, ntc):
+    """``max(floc, level of the cell's terminal)``: the terminal ``plab`` (-1 or less: none)
+    of the tile ``(ti[i], tj[j])`` has its level at ``tables[bases[tile] + plab]``; NaN stays
+    NaN (as numpy's ``maximum``)."""
+    rows, cols = floc.shape
+    out = np.empty((rows, cols), dtype=np.float32)
+    for i in range(rows):
+        row_base = ti[i] * ntc
+        for j in range(cols):
+            f = floc[i, j]
+            p = plab[i, j]
+            if f != f or p < 0:
+                out[i, j] = f
+                continue
+            lev = tables[bases[row_base + tj[j]] + p]
+            out[i, j] = lev if (lev > f or lev != lev) else f
+    return out
 
 
 def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
