@@ -19,6 +19,19 @@ from pathlib import Path
 from .exceptions import PipelineError, StoreExistsError
 
 
+def layer_codec():
+    """The codec of every Zarr layer the pipeline keeps (DEM stores, maps layers, landmark
+    distances): blosc LZ4 with byte shuffle. Builds read the DEM several times and missions
+    read windows of the maps layers and the landmark chunks at both ends. Measured on 1024^2
+    float32 blocks of the benchmark maps: synthetic elevation decodes 3.3x faster than with
+    zarr's default (zstd level 0: 0.87 ms against 2.88), encodes 4.5x faster and compresses
+    more (1.74:1 against 1.24:1); landmark distances decode 5.2x faster than with blosc zstd
+    and bit shuffle (0.68 ms against 3.53) at the same ratio (2.88:1)."""
+    from zarr.codecs import BloscCodec
+
+    return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
+
+
 def is_url(p) -> bool:
     """Whether ``p`` names object storage (an fsspec URL such as ``s3://bucket/key``) rather
     than a local or shared path; ``file://`` URLs are local paths."""

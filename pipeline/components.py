@@ -22,6 +22,7 @@ import dask
 import dask.array as da
 import numpy as np
 import zarr
+from numba import njit
 from scipy import ndimage
 
 CROSS = ndimage.generate_binary_structure(2, 1)
@@ -39,13 +40,30 @@ def _label_tile(block, r0: int, c0: int, ncols: int, scratch: str):
     labels, n = label_components(block)
     rows, cols = labels.shape
     zarr.open_array(scratch, mode="r+", zarr_format=3)[r0 : r0 + rows, c0 : c0 + cols] = labels
-    flat = (r0 + np.arange(rows))[:, None] * ncols + (c0 + np.arange(cols))[None, :]
-    first = np.asarray(ndimage.minimum(flat, labels, index=np.arange(1, n + 1)), np.int64)
+    first = _first_cells(labels, n)  # local row-major indices
+    first = (r0 + first // cols) * ncols + (c0 + first % cols)
     return (
         n,
-        first.reshape(n),
+        first,
         (labels[0].copy(), labels[-1].copy(), labels[:, 0].copy(), labels[:, -1].copy()),
     )
+
+
+@njit(nogil=True, cache=True)
+def _first_cells(labels, n):
+    """The row-major index of the first cell of each label 1..n: ``scipy.ndimage.label``
+    numbers labels in the order their first cells come in that order, so label ``k``'s first
+    cell is the first cell holding ``k`` once ``1..k-1`` have all been seen."""
+    flat = labels.ravel()
+    first = np.empty(n, dtype=np.int64)
+    want = 1
+    for i in range(flat.size):
+        if flat[i] == want:
+            first[want - 1] = i
+            want += 1
+            if want > n:
+                break
+    return first
 
 
 def _solve(counts, firsts, borders, nbr: int, nbc: int) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._io import atomic_path
+from ._io import atomic_path, layer_codec
 from .exceptions import InvalidDEMError, InvalidParameterError
 from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
 
@@ -278,7 +278,7 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     out.encoding = {}
     ds = out.to_dataset(name="elevation")
     ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
-    encoding = {"elevation": {"chunks": ch}}
+    encoding = {"elevation": {"chunks": ch, "compressors": layer_codec()}}
     with atomic_path(store, overwrite=overwrite) as tmp:
         with reading(dem.attrs.get("source", "")):
             # chunks that are all no-data (the fill value, NaN) are not stored

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from ._grid8 import DC, DR, flat_offsets, inside
+from ._io import layer_codec
 from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
 
@@ -331,7 +332,7 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
         # no distance is negative, so no chunk equals the fill value and every chunk is
         # written (also those all inf, outside the landmark's component)
         fill_value=-1.0,
-        compressors=zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"),
+        compressors=layer_codec(),
         dimension_names=("landmark",) + dims,
         attributes={
             "long_name": "shortest safe path length from each landmark (inf: not reached)",
