@@ -708,6 +708,11 @@ def _tile_dirs(fh, halo):
 def _tile_flow_summary(fh, r0, c0, ncols, halo):
     """Links leaving the tile, with local amounts, and the link each border cell exits by."""
     dirs, nodata = _tile_dirs(fh, halo)
+    return _dirs_flow_summary(dirs, nodata, r0, c0, ncols)
+
+
+def _dirs_flow_summary(dirs, nodata, r0, c0, ncols):
+    """:func:`_tile_flow_summary` from the tile's D8 codes and no-data mask."""
     acc = _accumulate(dirs, (~nodata).astype(np.int64))
     return _flow_links(dirs, acc, nodata, r0, c0, ncols)
 
@@ -840,12 +845,18 @@ def _solve_flow(*summaries):
 
 
 def _flow_finish(fh, solution, block_info=None):
-    targets, inflow = solution
     (bi, bj) = block_info[0]["chunk-location"]
     nbr, nbc = block_info[0]["num-chunks"]
+    dirs, nodata = _tile_dirs(fh, _halo(bi, bj, nbr, nbc, 1))
+    return _flow_finish_dirs(dirs, nodata, solution, block_info)
+
+
+def _flow_finish_dirs(dirs, nodata, solution, block_info):
+    """A block's accumulation from its D8 codes and no-data mask, with the inflow the global
+    solve sends into it."""
+    targets, inflow = solution
     (r0, r1), (c0, c1) = block_info[None]["array-location"]
     ncols = block_info[None]["shape"][1]
-    dirs, nodata = _tile_dirs(fh, _halo(bi, bj, nbr, nbc, 1))
     weights = (~nodata).astype(np.int64)
     lo = np.searchsorted(targets, r0 * ncols)
     hi = np.searchsorted(targets, (r1 - 1) * ncols + c1)
@@ -973,8 +984,10 @@ def ridge_map(
 # --------------------------------------------------------------------------- staged build
 # For maps built into a store (build_maps), each tile is filled once: its local fill and, for
 # every cell, the index of its label in the tile's perimeter list go to a scratch Zarr store.
-# The later passes finish the fill elementwise (max(local fill, spill[label])) on a tile plus
-# a one-cell halo, and run the flow passes from it, so no tile is filled twice.
+# The flow pass finishes the fill elementwise (max(local fill, spill[label])) on a tile plus
+# a one-cell halo, takes its D8 codes and flow summary, and stores the codes in the scratch
+# store too; the accumulation pass reads a tile's codes alone. No tile is filled twice, and
+# no D8 code is computed twice.
 
 
 def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
@@ -1057,6 +1070,9 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     # written once, read twice: uncompressed is faster than any codec here
     g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32", compressors=None)
     g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32", compressors=None)
+    # each tile's D8 codes (NO_DATA_DIR where no-data), written by the flow summaries: the
+    # accumulation pass then reads them alone, no halo, nothing recomputed
+    g.create_array("dirs", shape=z.shape, chunks=tile, dtype="int8", compressors=None)
     edges = dask.compute(
         *[
             dask.delayed(_scratch_flood, pure=False)(blk, r0, c0, ncols, halo, str(scratch))
@@ -1084,7 +1100,9 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     fd, pd = fo.to_delayed(), po.to_delayed()
     flow = dask.compute(
         *[
-            dask.delayed(_scratch_flow_summary, pure=True)(fd[bi, bj], pd[bi, bj], bi, bj, geometry)
+            dask.delayed(_scratch_flow_summary, pure=False)(
+                fd[bi, bj], pd[bi, bj], bi, bj, geometry, str(scratch)
+            )
             for bi in range(nbr)
             for bj in range(nbc)
         ]
@@ -1094,11 +1112,8 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
         log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
     acc = da.map_blocks(
         _scratch_accumulate,
-        fo,
-        po,
-        geometry,
+        da.from_zarr(g["dirs"]).rechunk(z.chunks),
         solution,
-        chunks=z.chunks,
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
     )
@@ -1122,16 +1137,25 @@ def _scratch_finished(fblk, pblk, bi, bj, geometry):
     )
 
 
-def _scratch_flow_summary(fblk, pblk, bi, bj, geometry):
+NO_DATA_DIR = -2  # the scratch D8 code of a no-data cell (-1: a sink)
+
+
+def _scratch_flow_summary(fblk, pblk, bi, bj, geometry, scratch):
+    """Pass 2 for one tile: its flow summary; its D8 codes go to the scratch store."""
     _, _, r_off, c_off, nbr, nbc, ncols = geometry
     fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
-    return _tile_flow_summary(fh, int(r_off[bi]), int(c_off[bj]), ncols, _halo(bi, bj, nbr, nbc, 1))
+    dirs, nodata = _tile_dirs(fh, _halo(bi, bj, nbr, nbc, 1))
+    r0, c0 = int(r_off[bi]), int(c_off[bj])
+    g = zarr.open_group(scratch, mode="r+", zarr_format=3)
+    g["dirs"][r0 : r0 + dirs.shape[0], c0 : c0 + dirs.shape[1]] = np.where(
+        nodata, np.int8(NO_DATA_DIR), dirs
+    )
+    return _dirs_flow_summary(dirs, nodata, r0, c0, ncols)
 
 
-def _scratch_accumulate(fblk, pblk, geometry, solution, block_info=None):
-    bi, bj = block_info[0]["chunk-location"]
-    fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
-    return _flow_finish(fh, solution, block_info).astype(np.int32)
+def _scratch_accumulate(dirs, solution, block_info=None):
+    """Pass 3 for one block: the accumulation from its stored D8 codes and the flow solve."""
+    return _flow_finish_dirs(dirs, dirs == NO_DATA_DIR, solution, block_info).astype(np.int32)
 
 
 def _scratch_inner_fill(fblk, pblk, geometry, block_info=None):

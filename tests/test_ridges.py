@@ -292,7 +292,7 @@ def test_not_a_dataarray():
         pipeline.fill_depressions(xr.DataArray(np.zeros((4, 4)), dims=("a", "b")))
 
 
-@pytest.mark.parametrize("chunks", [(7, 5), (64, 64), (100, 37), (90, 70)])
+@pytest.mark.parametrize("chunks", [(7, 5), (64, 64), (100, 37), (90, 70), (89, 23)])
 def test_staged_build_path_equals_single_array(tmp_path, chunks):
     """The path build_maps takes (each tile flooded once, a scratch Zarr store, elementwise
     finish with halos) equals the single array too."""
