@@ -146,6 +146,12 @@ def main() -> None:
     )
     r = run_job()
     rows, info = read_catalog()
+    unproven = [f"{x['id']} (omega {x['omega']:g})" for x in rows if x["status"] == "uncertified"]
+    exit_note = (
+        f" (EXIT_UNCERTIFIED: every mission planned; {', '.join(unproven)} reported uncertified)"
+        if r["exit"] == 5
+        else ""
+    )
     rep.p(f"""matplotlib's sample grid `topobathy.npz` (real topography and bathymetry, 91 x 120
           points at 2 arc-minutes in lon/lat, -1437 to +2205 m) written as a CF NetCDF file by
           `tasks/data/make_topobathy.py`, then `pipeline run tasks/topobathy.toml`: the DEM is
@@ -154,8 +160,8 @@ def main() -> None:
           built ({r["maps_what"]}; {info["passable_pct"]:.1f} % passable, {info["ridge_pct"]:.1f}
           % ridge cells) in {r["maps_s"]:.1f} s, five missions planned from lon/lat endpoints on
           a LocalCluster of 2 workers, and the catalog written. The whole job: exit
-          {r["exit"]}, **{r["wall_s"]:.1f} s** wall, client peak {r["client_peak_gib"]:.2f}
-          GiB. The catalog read back with pystac and geopandas:""")
+          {r["exit"]}{exit_note}, **{r["wall_s"]:.1f} s** wall, client peak
+          {r["client_peak_gib"]:.2f} GiB. The catalog read back with pystac and geopandas:""")
     rep.table(
         [
             "mission",
@@ -205,7 +211,11 @@ def main() -> None:
     )
     rep.save()
     print(json.dumps(dict(job=r, missions=rows), default=str))
-    if r["exit"] != 0:
+    # exit 5 (the CLI's EXIT_UNCERTIFIED) is a complete job in which some missions could not be
+    # proven within omega x L* and say so: the omega 1 mission over this rough terrain (README,
+    # "Flyable missions"); any other code, or a failed mission, fails the benchmark
+    uncertified_only = r["exit"] == 5 and all(x["status"] in ("ok", "uncertified") for x in rows)
+    if r["exit"] != 0 and not uncertified_only:
         sys.exit(f"pipeline run {JOB} exited {r['exit']}")
 
 
