@@ -260,13 +260,12 @@ def _basin_fill(z, seed, want_labels):
     for h in range(_CACHE):
         if ck[h] != NONE:
             keys, vals, used = _table_min(keys, vals, used, ck[h], cv[h])
-    cap = keys.size
     # 3: Kruskal; a component's terminal label (-2: none yet) and, while it has none, its
     # members in a linked list
     ek = np.empty(used, dtype=np.int64)
     ew = np.empty(used, dtype=np.float32)
     e = 0
-    for t in range(cap):
+    for t in range(keys.size):
         if keys[t] != NONE:
             ek[e] = keys[t]
             ew[e] = vals[t]
