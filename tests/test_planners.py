@@ -115,6 +115,58 @@ def test_optimal_against_scipy(planner, seed):
     assert t.ridge_ratio == pytest.approx(ridge_len / length, rel=1e-12)
 
 
+def test_heap_keeps_order_while_it_grows():
+    """The searches' heap (``pipeline._heap``), grown by ``heap_reserve`` between pushes from
+    1 slot to thousands, pops every key in sorted order (against numpy's sort)."""
+    from pipeline._heap import heap_pop, heap_push, heap_reserve
+
+    rng = np.random.default_rng(7)
+    keys = rng.random(5000)
+    keys[::7] = keys[1::7]  # ties
+    hk, hi, hn = np.empty(1), np.empty(1, dtype=np.int64), 0
+    out = []
+    for i, k in enumerate(keys):
+        hk, hi = heap_reserve(hk, hi, hn, 1 + i % 9)
+        assert hk.size >= hn + 1 + i % 9
+        hn = heap_push(hk, hi, hn, k, i)
+        if i % 5 == 4:  # pops between pushes
+            key, item = heap_pop(hk, hi, hn)
+            hn -= 1
+            out.append((key, keys[item]))
+    popped = [k for k, _ in out]
+    assert all(k == keys_item for k, keys_item in out)  # items travel with their keys
+    while hn:
+        key, item = heap_pop(hk, hi, hn)
+        hn -= 1
+        assert key == keys[item]
+        popped.append(key)
+    assert len(popped) == keys.size
+    tail = np.asarray(popped[len(out) :])
+    np.testing.assert_array_equal(tail, np.sort(tail))
+
+
+@pytest.mark.parametrize("planner", ["dijkstra", "astar", "ra_star"])
+def test_large_window_where_the_heaps_outgrow_their_first_size(planner):
+    """260 x 260 cells from the middle to a corner: the open lists hold well over the 1024
+    entries the searches start with (1.4-1.6 thousand for A* and Dijkstra), so they grow
+    between passes of the inner loop. Optimal lengths against scipy, RA*'s bound."""
+    surface, ridge, passable = obstacle_map((260, 260), 11, density=0.04)
+    s = (130, 130)
+    g = tuple(np.argwhere(passable[-20:, :20])[-1] + (240, 0))
+    passable[s] = True
+    ref = reference_length(surface, passable, 30.0, s, g)
+    assert np.isfinite(ref)
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner=planner, omega=2.0
+    )
+    check_path(t, passable, s, g)
+    if planner == "ra_star":
+        assert ref * (1 - 1e-9) <= t.length_m <= 2.0 * ref * (1 + 1e-9)
+        assert t.lower_bound_m <= ref * (1 + 1e-9)
+    else:
+        assert t.length_m == pytest.approx(ref, rel=1e-9)
+
+
 def test_optimal_on_real_bathymetry(topobathy_tif):
     """Real relief and a real coastline: matplotlib's topobathy (2.4 km cells, too coarse for
     a clearance sphere), planned on the seabed itself over sea cells deeper than 50 m."""

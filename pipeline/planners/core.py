@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from .._grid8 import DC, DR
-from .._heap import heap_grow, heap_pop, heap_push
+from .._heap import heap_pop, heap_push, heap_reserve
 from ..exceptions import InvalidEndpointError, InvalidParameterError
 
 
@@ -176,13 +176,12 @@ def relax_successors(
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
     ``length + off_ridge / lambda``; 0 for plain length). With landmark layers ``lm`` (goal
     distances ``lg``, consistency factor ``shrink``) ``h`` is the larger of the octile and the
-    landmark bound, both consistent. Returns the heap and its size."""
+    landmark bound, both consistent. The heap must have room for 8 more entries (``heap_reserve``,
+    outside the caller's inner loop). Returns the heap's new size."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
     gu = g[u]
-    if hn + 8 > hk.size:
-        hk, hi = heap_grow(hk, hi, hk.size)
     for k in range(8):
         nr = r + DR[k]
         nc = c + DC[k]
@@ -205,7 +204,7 @@ def relax_successors(
             if lm.shape[0] > 0:
                 h = landmark_heuristic(lm, lg, shrink, v, h)
             hn = heap_push(hk, hi, hn, ng + weight * h, v)
-    return hk, hi, hn
+    return hn
 
 
 @njit(nogil=True, cache=True)
@@ -241,35 +240,37 @@ def astar_search(
         h0 = landmark_heuristic(lm, lg, shrink, s, h0)
     hn = heap_push(hk, hi, 0, weight * h0, s)
     expansions = 0
-    while hn > 0:
-        _, u = heap_pop(hk, hi, hn)
-        hn -= 1
-        if state[u] & CLOSED:
-            continue
-        state[u] |= CLOSED
-        expansions += 1
-        if u == t:
-            return state, g, expansions, True
-        hk, hi, hn = relax_successors(
-            surface,
-            ridge,
-            passable,
-            a,
-            u,
-            g,
-            state,
-            hk,
-            hi,
-            hn,
-            gr,
-            gc,
-            weight,
-            off_weight,
-            octile,
-            lm,
-            lg,
-            shrink,
-        )
+    while hn > 0:  # makes room in the heap; the inner loop never reassigns it (heap_reserve)
+        hk, hi = heap_reserve(hk, hi, hn, 8)
+        while hn > 0 and hn + 8 <= hk.size:
+            _, u = heap_pop(hk, hi, hn)
+            hn -= 1
+            if state[u] & CLOSED:
+                continue
+            state[u] |= CLOSED
+            expansions += 1
+            if u == t:
+                return state, g, expansions, True
+            hn = relax_successors(
+                surface,
+                ridge,
+                passable,
+                a,
+                u,
+                g,
+                state,
+                hk,
+                hi,
+                hn,
+                gr,
+                gc,
+                weight,
+                off_weight,
+                octile,
+                lm,
+                lg,
+                shrink,
+            )
     return state, g, expansions, False
 
 

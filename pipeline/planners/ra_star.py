@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from .._grid8 import DC, DR
-from .._heap import heap_grow, heap_pop, heap_push
+from .._heap import heap_pop, heap_push, heap_reserve
 from .core import CLOSED, INWAIT, PARENT, SEEN, Planner, Search, edge_cost, relax_successors
 
 
@@ -79,111 +79,111 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
         wn = heap_push(wk, wi, wn, h0, s)
         st_nor[s] |= INWAIT
     expansions = 0
-    while True:
-        # the OPEN_cost top (drop stale entries) gives f_min and the limit
-        top = -1
-        while cn > 0:
-            u = ci[0]
-            if st_cost[u] & CLOSED or ck[0] != g[u] + a * math.sqrt(
-                (u // cols - gr) ** 2 + (u % cols - gc) ** 2
-            ):
-                heap_pop(ck, ci, cn)
-                cn -= 1
-                continue
-            top = u
-            if ck[0] > f_min:
-                f_min = ck[0]
-            break
-        limit = omega * f_min
-        # WAIT states that the grown limit admits move to FOCAL
-        while wn > 0 and wk[0] < limit:
-            _, v = heap_pop(wk, wi, wn)
-            wn -= 1
-            st_nor[v] &= ~INWAIT
-            if st_nor[v] & CLOSED:
-                continue
-            hv = a * math.sqrt((v // cols - gr) ** 2 + (v % cols - gc) ** 2)
-            if gi[v] + hv < limit:
-                fk, fi = heap_grow(fk, fi, fn)
-                fn = heap_push(fk, fi, fn, _focal_key(nor[v], gi[v], gscale), v)
-            else:  # the record changed while it waited: wait again under its own key
-                wk, wi = heap_grow(wk, wi, wn)
-                wn = heap_push(wk, wi, wn, gi[v] + hv, v)
-                st_nor[v] |= INWAIT
-        # the FOCAL top (drop stale entries)
-        pick = -1
-        while fn > 0:
-            v = fi[0]
-            if st_nor[v] & CLOSED or fk[0] != _focal_key(nor[v], gi[v], gscale):
+    while True:  # makes room in the heaps; the inner loop never reassigns them (heap_reserve)
+        # one pass of the inner loop pushes at most 8 entries to OPEN_cost, moves WAIT entries
+        # (each to FOCAL or back to WAIT) and pushes at most 8 to FOCAL or WAIT
+        ck, ci = heap_reserve(ck, ci, cn, 8)
+        fk, fi = heap_reserve(fk, fi, fn, wn + 8)
+        wk, wi = heap_reserve(wk, wi, wn, 8)
+        while cn + 8 <= ck.size and fn + wn + 8 <= fk.size and wn + 8 <= wk.size:
+            # the OPEN_cost top (drop stale entries) gives f_min and the limit
+            top = -1
+            while cn > 0:
+                u = ci[0]
+                if st_cost[u] & CLOSED or ck[0] != g[u] + a * math.sqrt(
+                    (u // cols - gr) ** 2 + (u % cols - gc) ** 2
+                ):
+                    heap_pop(ck, ci, cn)
+                    cn -= 1
+                    continue
+                top = u
+                if ck[0] > f_min:
+                    f_min = ck[0]
+                break
+            limit = omega * f_min
+            # WAIT states that the grown limit admits move to FOCAL
+            while wn > 0 and wk[0] < limit:
+                _, v = heap_pop(wk, wi, wn)
+                wn -= 1
+                st_nor[v] &= ~INWAIT
+                if st_nor[v] & CLOSED:
+                    continue
+                hv = a * math.sqrt((v // cols - gr) ** 2 + (v % cols - gc) ** 2)
+                if gi[v] + hv < limit:
+                    fn = heap_push(fk, fi, fn, _focal_key(nor[v], gi[v], gscale), v)
+                else:  # the record changed while it waited: wait again under its own key
+                    wn = heap_push(wk, wi, wn, gi[v] + hv, v)
+                    st_nor[v] |= INWAIT
+            # the FOCAL top (drop stale entries)
+            pick = -1
+            while fn > 0:
+                v = fi[0]
+                if st_nor[v] & CLOSED or fk[0] != _focal_key(nor[v], gi[v], gscale):
+                    heap_pop(fk, fi, fn)
+                    fn -= 1
+                    continue
+                pick = v
+                break
+            if pick < 0 and top < 0:
+                return st_cost, st_nor, expansions, 0, f_min  # nothing left: unreachable
+            if pick >= 0:
                 heap_pop(fk, fi, fn)
                 fn -= 1
-                continue
-            pick = v
-            break
-        if pick < 0 and top < 0:
-            return st_cost, st_nor, expansions, 0, f_min  # nothing left: unreachable
-        if pick >= 0:
-            heap_pop(fk, fi, fn)
-            fn -= 1
-            st_nor[pick] |= CLOSED
-            expansions += 1
-            if pick == t:
-                return st_cost, st_nor, expansions, 2, f_min
-            r = pick // cols
-            c = pick - r * cols
-            gp = gi[pick]
-            np_ = nor[pick]
-            if fn + 8 > fk.size:
-                fk, fi = heap_grow(fk, fi, fk.size)
-            if wn + 8 > wk.size:
-                wk, wi = heap_grow(wk, wi, wk.size)
-            for k in range(8):
-                nr = r + DR[k]
-                nc = c + DC[k]
-                if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
+                st_nor[pick] |= CLOSED
+                expansions += 1
+                if pick == t:
+                    return st_cost, st_nor, expansions, 2, f_min
+                r = pick // cols
+                c = pick - r * cols
+                gp = gi[pick]
+                np_ = nor[pick]
+                for k in range(8):
+                    nr = r + DR[k]
+                    nc = c + DC[k]
+                    if nr < 0 or nr >= rows or nc < 0 or nc >= cols:
+                        continue
+                    v = nr * cols + nc
+                    sv = st_nor[v]
+                    if sv & CLOSED or not passable[nr, nc]:
+                        continue
+                    if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
+                        continue  # no corner cutting
+                    ng = gp + edge_cost(surface, a, r, c, nr, nc)
+                    if ng >= limit:
+                        continue
+                    nn = np_ + (1 if ridge[nr, nc] else 0)
+                    if sv & (PARENT | SEEN) and not (nn > nor[v] or (nn == nor[v] and ng < gi[v])):
+                        continue
+                    # INWAIT: the state has a WAIT entry no later than its record (an early one
+                    # rereads the record when it pops), so a record that waits longer needs no
+                    # push. A record that goes to FOCAL clears it: the entries still in WAIT may
+                    # then be later than a later record of the state, which must push its own
+                    early = (sv & INWAIT) != 0 and ng >= gi[v]
+                    gi[v] = ng
+                    nor[v] = nn
+                    hv = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2)
+                    if ng + hv < limit:
+                        st_nor[v] = PARENT | k
+                        fn = heap_push(fk, fi, fn, _focal_key(nn, ng, gscale), v)
+                        continue
+                    st_nor[v] = (sv & INWAIT) | PARENT | k
+                    if not early:
+                        wn = heap_push(wk, wi, wn, ng + hv, v)
+                        st_nor[v] |= INWAIT
+                if pick != top:
                     continue
-                v = nr * cols + nc
-                sv = st_nor[v]
-                if sv & CLOSED or not passable[nr, nc]:
-                    continue
-                if k % 2 == 1 and not (passable[r, nc] and passable[nr, c]):
-                    continue  # no corner cutting
-                ng = gp + edge_cost(surface, a, r, c, nr, nc)
-                if ng >= limit:
-                    continue
-                nn = np_ + (1 if ridge[nr, nc] else 0)
-                if sv & (PARENT | SEEN) and not (nn > nor[v] or (nn == nor[v] and ng < gi[v])):
-                    continue
-                # INWAIT: the state has a WAIT entry no later than its record (an early one
-                # rereads the record when it pops), so a record that waits longer needs no
-                # push. A record that goes to FOCAL clears it: the entries still in WAIT may
-                # then be later than a later record of the state, which must push its own
-                early = (sv & INWAIT) != 0 and ng >= gi[v]
-                gi[v] = ng
-                nor[v] = nn
-                hv = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2)
-                if ng + hv < limit:
-                    st_nor[v] = PARENT | k
-                    fn = heap_push(fk, fi, fn, _focal_key(nn, ng, gscale), v)
-                    continue
-                st_nor[v] = (sv & INWAIT) | PARENT | k
-                if not early:
-                    wn = heap_push(wk, wi, wn, ng + hv, v)
-                    st_nor[v] |= INWAIT
-            if pick != top:
-                continue
-            # the picked state is also the OPEN_cost top: do the A* update as well
-        u = top
-        heap_pop(ck, ci, cn)
-        cn -= 1
-        st_cost[u] |= CLOSED
-        if pick < 0:
-            expansions += 1
-        if u == t:
-            return st_cost, st_nor, expansions, 1, f_min
-        ck, ci, cn = relax_successors(
-            surface, ridge, passable, a, u, g, st_cost, ck, ci, cn, gr, gc, 1.0, 0.0, False
-        )
+                # the picked state is also the OPEN_cost top: do the A* update as well
+            u = top
+            heap_pop(ck, ci, cn)
+            cn -= 1
+            st_cost[u] |= CLOSED
+            if pick < 0:
+                expansions += 1
+            if u == t:
+                return st_cost, st_nor, expansions, 1, f_min
+            cn = relax_successors(
+                surface, ridge, passable, a, u, g, st_cost, ck, ci, cn, gr, gc, 1.0, 0.0, False
+            )
 
 
 def _search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
