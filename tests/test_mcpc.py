@@ -278,6 +278,50 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
         assert np.array_equal(a, b)
 
 
+def test_plan_missions_in_groups_per_task(store, local_client):
+    """``missions_per_task``: the missions go to tasks in groups, the last 2 per cluster
+    thread alone; every mission comes back as plan() makes it on its own, once to
+    ``on_done``; a mission that fails in a group fails alone."""
+    from distributed import get_task_stream
+
+    from pipeline.missions import _groups
+
+    for n, threads, per in ((100, 2, None), (7, 2, 2), (30, 1, 4), (5, 4, 3), (32, 2, None)):
+        groups = _groups(n, threads, per)
+        assert [i for g in groups for i in g] == list(range(n))  # each once, in order
+        assert all(len(g) == 1 for g in groups[-min(n, 2 * threads) :])
+        assert max(len(g) for g in groups) <= (per or 4)
+    assert max(len(g) for g in _groups(100, 2, None)) == 3  # 100 // (16 x 2)
+    assert max(len(g) for g in _groups(31, 2, None)) == 1  # up to 16 a thread: alone
+
+    missions = [
+        {"start": (20 + 6 * i, 20), "goal": (225 - 4 * i, 30 + 10 * i), **SMALL} for i in range(6)
+    ]
+    missions.insert(1, {"start": (0, 0), "goal": (5000, 5000)})  # outside the map
+    seen = []
+    with get_task_stream(client=local_client) as ts:
+        got = pipeline.plan_missions(
+            store,
+            missions,
+            client=local_client,
+            missions_per_task=2,
+            on_done=lambda i, m, t: seen.append(i),
+        )
+    keys = sorted(str(t["key"]).rsplit("-", 1)[0] for t in ts.data)
+    # 7 missions on 2 threads: 0-1 grouped, 2 left alone by the grouping, the last 4 alone
+    assert keys == [f"mission-{i}" for i in range(2, 7)] + ["missions-0-1"], keys
+    assert sorted(seen) == list(range(len(missions)))
+    assert got[1].status == "failed" and "goal" in got[1].message
+    for k in (0, 2, 3, 6):
+        m = missions[k]
+        opts = {key: v for key, v in m.items() if key not in ("start", "goal")}
+        ref = pipeline.plan(store, m["start"], m["goal"], client="synchronous", **opts)
+        assert got[k].status == ref.status == "ok"
+        assert np.array_equal(got[k].cells, ref.cells) and got[k].length_m == ref.length_m
+    with pytest.raises(InvalidParameterError, match="missions_per_task"):
+        pipeline.plan_missions(store, missions[:2], client=local_client, missions_per_task=0)
+
+
 def test_missions_on_a_fresh_store_run_one_per_worker_thread(store, local_client, tmp_path):
     """On a store whose coarse level is not written yet, plan_missions writes it once before
     the missions start, and each mission task runs alone on its worker's one thread: a dask
