@@ -157,11 +157,12 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
     if store.exists():
         import zarr
 
-        if "landmarks" in zarr.open_group(store, mode="r").attrs:
+        group = zarr.open_group(store, mode="r")
+        if "landmarks" in group.attrs and group["safety"].shards is not None:
             return store
         import shutil
 
-        print(f"{store.name} predates the landmark layers: building it again", flush=True)
+        print(f"{store.name} predates the landmark layers or sharding: building it again")
         shutil.rmtree(store)
     build = f"""
     dem = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0, chunks=1024)

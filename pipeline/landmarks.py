@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from ._grid8 import DC, DR, flat_offsets, inside
-from ._io import layer_codec
+from ._io import layer_codec, storage_chunks
 from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
 
@@ -289,8 +289,10 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     import zarr
 
     store = str(store)
-    comp = da.from_zarr(zarr.open_array(f"{store}/component", mode="r", zarr_format=3))
-    safety = da.from_zarr(zarr.open_array(f"{store}/safety", mode="r", zarr_format=3))
+    comp_arr = zarr.open_array(f"{store}/component", mode="r", zarr_format=3)
+    comp = da.from_zarr(comp_arr, chunks=storage_chunks(comp_arr))
+    safety_arr = zarr.open_array(f"{store}/safety", mode="r", zarr_format=3)
+    safety = da.from_zarr(safety_arr, chunks=storage_chunks(safety_arr))
     nmax = int(comp.max().compute())
     if k <= 0 or nmax == 0:
         return []

@@ -35,7 +35,7 @@ from numba import njit
 from ._io import (
     is_url,
     join,
-    layer_codec,
+    layer_encoding,
     location,
     remove_settled,
     remove_tree,
@@ -220,7 +220,7 @@ def build_maps(
                 store,
             )
             # pass 4: connected components of the passable layer just written
-            component = components_staged(da.from_zarr(join(tmp, "passable")), labels)
+            component = components_staged(da.from_zarr(join(tmp, "passable"), chunks=ch), labels)
             xr.Dataset(
                 {
                     "component": (
@@ -234,7 +234,7 @@ def build_maps(
                 mode="a",
                 zarr_format=3,
                 consolidated=False,
-                encoding={"component": {"chunks": ch, "compressors": layer_codec()}},
+                encoding={"component": layer_encoding(ch)},
                 write_empty_chunks=True,
             )
             log.info("maps %s: components labelled", store)
@@ -342,7 +342,7 @@ def _write(ds: xr.Dataset, path, ch, *, also):
         mode="w",
         zarr_format=3,
         consolidated=False,
-        encoding={k: {"chunks": ch, "compressors": layer_codec()} for k in ds.data_vars},
+        encoding={k: layer_encoding(ch) for k in ds.data_vars},
         compute=False,
         write_empty_chunks=True,  # every chunk on disk: a missing one means damage
     )

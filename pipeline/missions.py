@@ -285,7 +285,7 @@ def _missions_task(path: str, group: list, defaults: dict, vehicle, quicklook: b
     return out
 
 
-def _groups(n: int, threads: int, per_task: int | None) -> list[list[int]]:
+def mission_groups(n: int, threads: int, per_task: int | None) -> list[list[int]]:
     """Mission indices in task order: groups of ``per_task`` (default: 1 up to 16 missions a
     thread, then up to 4), the last ``2 * threads`` missions alone."""
     threads = max(1, threads)
@@ -299,7 +299,7 @@ def _groups(n: int, threads: int, per_task: int | None) -> list[list[int]]:
 
 
 def _on_cluster(client, m, items, defaults, vehicle, quicklooks, done, per_task=None) -> None:
-    """Every mission in a task (alone, or in a group of ``per_task``, see :func:`_groups`);
+    """Every mission in a task (alone, or in a group of ``per_task``, see :func:`mission_groups`);
     ``done(i, trajectory)`` for each as its task finishes. A task that raises (a bug) or whose
     workers keep dying fails its missions only."""
     from distributed import as_completed as finished
@@ -309,7 +309,7 @@ def _on_cluster(client, m, items, defaults, vehicle, quicklooks, done, per_task=
         threads = sum(client.nthreads().values())
     except Exception:  # noqa: BLE001 - an adaptive cluster with no worker yet: one thread
         threads = 1
-    groups = _groups(len(items), threads, per_task)
+    groups = mission_groups(len(items), threads, per_task)
     # one map per kind of task, one message each to the scheduler (a submit each would cost it
     # a graph update each before the workers are fed); the groups go first, then the tail
     futures = {}

@@ -21,7 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import exists, filesystem, is_url, join, location, stamp, store_exists, unreachable
+from ._io import (
+    exists,
+    filesystem,
+    is_url,
+    join,
+    location,
+    stamp,
+    storage_chunks,
+    store_exists,
+    unreachable,
+)
 from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
 from .params import LATITUDE, LONGITUDE, PLANNING
 
@@ -51,33 +61,58 @@ COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine 
 
 def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index) -> ndarray``, clipped to the array)
-    that fetches the chunk's file or object and decodes it with numcodecs (None for a chunk
-    that is not there), or None when the array is not laid out the way the maps stores are
-    (Zarr 3 on a local directory or object storage, no sharding, the ``bytes`` codec then one
-    blosc or zstd compressor). zarr-python's own read costs about
-    1.5-2 ms a chunk more than the decode itself (benchmarks/RESULTS.md, "one mission"): a
-    mission reads 16 landmark chunks for its bound and a few per section."""
+    that fetches the chunk's bytes from its file or object and decodes them with numcodecs
+    (None for a chunk that is not there), or None when the array is not laid out the way the
+    maps stores are (Zarr 3 on a local directory or object storage, the ``bytes`` codec then
+    one blosc or zstd compressor, either as the array's codecs or inside a sharding codec with
+    its index at the end of each shard). zarr-python's own read costs about 1.5-2 ms a chunk
+    more than the decode itself (benchmarks/RESULTS.md, "one mission"): a mission reads 16
+    landmark chunks for its bound and a few per section.
+
+    In a sharded array ``index`` is an inner chunk's: the reader reads the shard's index (the
+    offset and size of each inner chunk, checked against its CRC32C) once, then each inner
+    chunk's own bytes, so a window decodes the inner chunks it covers, not whole shards."""
     import numcodecs
-    from zarr.codecs import BloscCodec, BytesCodec, ZstdCodec
+    from numcodecs.checksum32 import CRC32C
+    from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, ShardingCodec, ZstdCodec
+    from zarr.codecs.sharding import ShardingCodecIndexLocation
     from zarr.storage import FsspecStore, LocalStore
 
     meta = arr.metadata
-    codecs = getattr(meta, "codecs", ())
+    codecs = tuple(getattr(meta, "codecs", ()))
     if isinstance(arr.store, LocalStore):
         root = os.path.join(str(arr.store.root), arr.path)
 
-        def fetch(key: str) -> bytes:
+        def fetch(key: str, start: int | None = None, size: int | None = None) -> bytes:
+            """The object's bytes; ``start`` (negative: from the end) and ``size`` a range."""
             with open(os.path.join(root, key), "rb") as f:
-                return f.read()
+                if start is None:
+                    return f.read()
+                f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
+                return f.read(-1 if size is None else size)
 
     elif isinstance(arr.store, FsspecStore) and is_url(store):
         fs, root = filesystem(join(store, var))  # a synchronous instance, for this thread
 
-        def fetch(key: str) -> bytes:
-            return fs.cat_file(f"{root}/{key}")
+        def fetch(key: str, start: int | None = None, size: int | None = None) -> bytes:
+            end = None if start is None or size is None else start + size
+            return fs.cat_file(f"{root}/{key}", start=start, end=end)
 
     else:
         return None
+    sharding = None
+    if len(codecs) == 1 and isinstance(codecs[0], ShardingCodec):
+        sharding = codecs[0]
+        index_codecs = tuple(sharding.index_codecs)
+        if (
+            sharding.index_location != ShardingCodecIndexLocation.end
+            or len(index_codecs) != 2
+            or not isinstance(index_codecs[0], BytesCodec)
+            or getattr(index_codecs[0].endian, "value", "little") != "little"
+            or not isinstance(index_codecs[1], Crc32cCodec)
+        ):
+            return None
+        codecs = tuple(sharding.codecs)
     if (
         len(codecs) != 2
         or not isinstance(codecs[0], BytesCodec)
@@ -94,20 +129,57 @@ def direct_reader(arr, store: str, var: str):
         return None
     chunks, shape, dtype = tuple(arr.chunks), tuple(arr.shape), arr.dtype
 
-    def read(index: tuple):
-        key = meta.encode_chunk_key(index)
-        try:
-            raw = fetch(key)
-        except FileNotFoundError:
-            return None
+    def decode(raw: bytes, key: str, index: tuple):
         try:
             block = np.frombuffer(decoder.decode(raw), dtype=dtype).reshape(chunks)
         except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError, ValueError, ...
+            where = key if sharding is None else f"{key} (inner chunk {index})"
             raise damaged(
-                store, f"chunk {key} of its layer {var!r} cannot be decoded ({exc})"
+                store, f"chunk {where} of its layer {var!r} cannot be decoded ({exc})"
             ) from None
         clip = zip(index, chunks, shape, strict=True)
         return block[tuple(slice(0, min(c, n - i * c)) for i, c, n in clip)]
+
+    if sharding is None:
+
+        def read(index: tuple):
+            key = meta.encode_chunk_key(index)
+            try:
+                raw = fetch(key)
+            except FileNotFoundError:
+                return None
+            return decode(raw, key, index)
+
+        return read
+
+    per = tuple(s // c for s, c in zip(arr.shards, chunks, strict=True))  # inner chunks a shard
+    index_size = 16 * math.prod(per) + 4
+    empty = 2**64 - 1  # an inner chunk that was not written
+    tables: dict = {}  # shard key -> its index, (inner chunks, 2) of offset and size
+    check = CRC32C(location="end")
+
+    def read(index: tuple):
+        key = meta.encode_chunk_key(tuple(i // p for i, p in zip(index, per, strict=True)))
+        table = tables.get(key)
+        if table is None:
+            try:
+                table = np.frombuffer(check.decode(fetch(key, -index_size)), dtype="<u8")
+                table = table.reshape(-1, 2).tolist()  # Python ints: quick to look up
+            except FileNotFoundError:
+                return None
+            except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
+                raise damaged(
+                    store,
+                    f"chunk {key} of its layer {var!r} cannot be decoded (its shard index: {exc})",
+                ) from None
+            tables[key] = table
+        k = 0
+        for i, p in zip(index, per, strict=True):  # the inner chunk's place in the shard, C order
+            k = k * p + i % p
+        offset, size = table[k]
+        if offset == empty and size == empty:
+            return None
+        return decode(fetch(key, offset, size), key, index)
 
     return read
 
@@ -145,9 +217,14 @@ class ChunkCache:
         block = read(index) if read is not None else None
         if block is not None:
             return block
-        # the direct reader found no chunk there; else ask the storage
+        # the direct reader found no chunk there; else ask the storage (a chunk's key names its
+        # file only without sharding; zarr reads other sharded layouts as they are)
         if complete and (
-            read is not None or not exists(join(store, var, arr.metadata.encode_chunk_key(index)))
+            read is not None
+            or (
+                getattr(arr, "shards", None) is None
+                and not exists(join(store, var, arr.metadata.encode_chunk_key(index)))
+            )
         ):
             what = ", ".join(str(i) for i in index)
             raise damaged(store, f"chunk ({what}) of its layer {var!r} is missing")
@@ -534,20 +611,29 @@ def open_store(maps) -> MapsStore:
 
 
 def open_maps(store: str | os.PathLike, chunks="store"):
-    """Open a maps store lazily as an ``xarray.Dataset``; ``chunks="store"`` keeps the store's
-    own chunks. ``attrs["store"]`` holds its path, so :func:`pipeline.plan` accepts the
-    Dataset too."""
+    """Open a maps store lazily as an ``xarray.Dataset``; ``chunks="store"`` keeps the blocks
+    the store was written in (its shards: a dask chunk per shard, not per inner chunk).
+    ``attrs["store"]`` holds its path, so :func:`pipeline.plan` accepts the Dataset too."""
     import xarray as xr
+    import zarr
 
     store = location(store)
     _require_store(store)
     try:
-        ds = xr.open_zarr(
-            store,
-            consolidated=False,
-            zarr_format=3,
-            chunks={} if chunks == "store" else chunks,
-        )
+        opts = dict(consolidated=False, zarr_format=3)
+        shards = None
+        if chunks == "store":
+            group = zarr.open_group(store, mode="r", zarr_format=3)
+            if "safety" in group and getattr(group["safety"], "shards", None) is not None:
+                shards = dict(zip(("y", "x"), storage_chunks(group["safety"]), strict=True))
+        if shards is None:
+            ds = xr.open_zarr(store, chunks={} if chunks == "store" else chunks, **opts)
+        else:  # the layers by their shards; the landmark layers (not sharded) by their chunks
+            from .landmarks import VARIABLE
+
+            ds = xr.open_zarr(store, chunks=shards, drop_variables=[VARIABLE], **opts)
+            if VARIABLE in group:
+                ds[VARIABLE] = xr.open_zarr(store, chunks={}, **opts)[VARIABLE]
     except Exception as exc:  # noqa: BLE001 - object storage raises its own errors
         if not is_url(store):
             raise

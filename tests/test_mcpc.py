@@ -284,15 +284,15 @@ def test_plan_missions_in_groups_per_task(store, local_client):
     ``on_done``; a mission that fails in a group fails alone."""
     from distributed import get_task_stream
 
-    from pipeline.missions import _groups
+    from pipeline.missions import mission_groups
 
     for n, threads, per in ((100, 2, None), (7, 2, 2), (30, 1, 4), (5, 4, 3), (32, 2, None)):
-        groups = _groups(n, threads, per)
+        groups = mission_groups(n, threads, per)
         assert [i for g in groups for i in g] == list(range(n))  # each once, in order
         assert all(len(g) == 1 for g in groups[-min(n, 2 * threads) :])
         assert max(len(g) for g in groups) <= (per or 4)
-    assert max(len(g) for g in _groups(100, 2, None)) == 3  # 100 // (16 x 2)
-    assert max(len(g) for g in _groups(31, 2, None)) == 1  # up to 16 a thread: alone
+    assert max(len(g) for g in mission_groups(100, 2, None)) == 3  # 100 // (16 x 2)
+    assert max(len(g) for g in mission_groups(31, 2, None)) == 1  # up to 16 a thread: alone
 
     missions = [
         {"start": (20 + 6 * i, 20), "goal": (225 - 4 * i, 30 + 10 * i), **SMALL} for i in range(6)

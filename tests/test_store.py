@@ -1,5 +1,6 @@
-"""The maps store's chunk reads: the direct decode (chunk file + numcodecs) against zarr's own
-reads, for every layout the stores use and awkward shapes; zarr for every other layout."""
+"""The maps store's chunk reads: the direct decode (chunk file + numcodecs, or a shard's index
+then its inner chunk's bytes) against zarr's own reads, for every layout the stores use and
+awkward shapes; zarr for every other layout."""
 
 from __future__ import annotations
 
@@ -28,16 +29,26 @@ def _array(path, data, chunks, codec, **kw):
     return zarr.open_array(path, mode="r")
 
 
+# sharded: shards of several inner chunks, a last shard of one inner chunk and of a partial one,
+# shards of one inner chunk, inner chunks of one cell
+SHARDED = [
+    ((65, 33), (16, 16), (32, 32)),
+    ((40, 41), (8, 8), (40, 16)),
+    ((7, 300), (1, 100), (3, 200)),
+    ((50, 50), (25, 25), (25, 25)),
+]
+
+
 @pytest.mark.parametrize("codec", list(CODECS))
-@pytest.mark.parametrize("shape, chunks", SHAPES)
+@pytest.mark.parametrize("shape, chunks, shards", [(*s, None) for s in SHAPES] + SHARDED, ids=str)
 @pytest.mark.parametrize("dtype", ["float32", "bool", "int32"])
-def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, dtype):
+def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, shards, dtype):
     rng = np.random.default_rng(3)
     data = rng.normal(size=shape).astype(np.float32) * 100
     if dtype == "float32":
         data[0, 0] = np.nan
     data = data.astype(dtype) if dtype != "bool" else data > 0
-    arr = _array(tmp_path / "a", data, chunks, CODECS[codec])
+    arr = _array(tmp_path / "a", data, chunks, CODECS[codec], shards=shards)
     assert direct_reader(arr, str(tmp_path), "a") is not None  # the direct path is taken
     cache = ChunkCache(2**30)
     for _ in range(25):
@@ -64,10 +75,22 @@ def test_the_stack_of_landmark_layers_equals_zarr(tmp_path):
 
 
 def test_other_layouts_are_read_by_zarr(tmp_path):
+    from zarr.codecs import BytesCodec, ShardingCodec
+
     data = np.arange(40 * 40, dtype=np.float32).reshape(40, 40)
-    sharded = _array(tmp_path / "s", data, (8, 8), CODECS["zstd"], shards=(16, 16))
     plain = _array(tmp_path / "p", data, (8, 8), None)  # no compressor
-    for name, arr in (("s", sharded), ("p", plain)):
+    index_first = zarr.create_array(  # a shard index at the start of each shard
+        tmp_path / "s",
+        shape=data.shape,
+        chunks=(16, 16),
+        dtype=data.dtype,
+        serializer=ShardingCodec(
+            chunk_shape=(8, 8), codecs=[BytesCodec(), CODECS["zstd"]], index_location="start"
+        ),
+        compressors=None,
+    )
+    index_first[...] = data
+    for name, arr in (("s", zarr.open_array(tmp_path / "s")), ("p", plain)):
         assert direct_reader(arr, str(tmp_path), name) is None
         got = ChunkCache(2**30).window(str(tmp_path), name, 3, 29, 5, 40)
         np.testing.assert_array_equal(got, data[3:29, 5:40])
@@ -98,3 +121,45 @@ def test_a_corrupt_chunk_is_damage_not_a_traceback(tmp_path):
         pipeline.PipelineError, match=r"damaged: chunk c/1/0 of its layer 'c' cannot be decoded"
     ):
         ChunkCache(2**30).window(str(tmp_path), "c", 0, 20, 0, 20, complete=True)
+
+
+def _sharded_layer(tmp_path, name="h"):
+    data = np.arange(40 * 40, dtype=np.float32).reshape(40, 40)
+    _array(
+        tmp_path / name,
+        data,
+        (8, 8),
+        CODECS["blosc-lz4-shuffle"],
+        shards=(16, 16),
+        config={"write_empty_chunks": True},
+    )
+    return data
+
+
+def test_a_shard_or_an_inner_chunk_missing_is_damage_in_a_complete_store(tmp_path):
+    import os
+
+    data = _sharded_layer(tmp_path)
+    os.remove(tmp_path / "h" / "c" / "1" / "0")  # rows 16-31, columns 0-15
+    got = ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40)  # not complete: fill
+    assert (got[16:32, :16] == 0).all() and (got[:16] == data[:16]).all()
+    with pytest.raises(pipeline.PipelineError, match=r"chunk \(2, 0\) of its layer 'h' is missing"):
+        ChunkCache(2**30).window(str(tmp_path), "h", 10, 20, 0, 5, complete=True)
+    # a shard whose index says an inner chunk was never written
+    arr = zarr.open_array(tmp_path / "h", mode="r+", config={"write_empty_chunks": False})
+    arr[32:40, 8:16] = 0  # all fill value: zarr drops the inner chunk from its shard
+    with pytest.raises(pipeline.PipelineError, match=r"chunk \(4, 1\) of its layer 'h' is missing"):
+        ChunkCache(2**30).window(str(tmp_path), "h", 32, 40, 0, 40, complete=True)
+
+
+def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path):
+    _sharded_layer(tmp_path)
+    shard = tmp_path / "h" / "c" / "0" / "1"
+    raw = bytearray(shard.read_bytes())
+    raw[-10] ^= 0xFF  # inside the index: its checksum no longer matches
+    shard.write_bytes(bytes(raw))
+    with pytest.raises(pipeline.PipelineError, match=r"damaged: chunk c/0/1 of its layer 'h'"):
+        ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40, complete=True)
+    shard.write_bytes(b"short")  # shorter than the index itself
+    with pytest.raises(pipeline.PipelineError, match=r"damaged: chunk c/0/1 of its layer 'h'"):
+        ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40, complete=True)

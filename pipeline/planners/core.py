@@ -280,6 +280,9 @@ def astar_search(
 def nearest_passable(passable: np.ndarray, cell, origin=(0, 0)) -> tuple[int, int] | None:
     """The passable cell of ``passable`` nearest ``cell``, or None; ``passable`` may be a window
     whose first cell is ``origin`` (cells in and out are then in map coordinates)."""
+    r, c = int(cell[0]) - origin[0], int(cell[1]) - origin[1]
+    if 0 <= r < passable.shape[0] and 0 <= c < passable.shape[1] and passable[r, c]:
+        return int(cell[0]), int(cell[1])  # itself, the only cell at distance 0
     idx = np.argwhere(passable)
     if idx.size == 0:
         return None
