@@ -387,3 +387,49 @@ def test_lagrangian_bound_validity_and_duality(seed, omega, density, ridge_share
     assert (
         t.extra["dual_bound_off_ridge_m"] <= (ra.length_m - ra.ridge_length_m) * (1 + 1e-9) + 1e-6
     )
+
+
+def _weighted_graph(surface, ridge, passable, a, off_weight, horizontal_off=False):
+    """The planners' graph with each move costing its 3-D length plus ``off_weight`` times
+    its off-ridge length (the move ends off the ridge network); ``horizontal_off``: the cost
+    is only the horizontal length of the moves that end off the ridge."""
+    g = reference_graph(surface, passable, a).tocoo()
+    rows, cols = surface.shape
+    end_off = ~ridge.ravel()[g.col]
+    if horizontal_off:
+        d = np.abs(np.divmod(g.row, cols)[0] - np.divmod(g.col, cols)[0]) + np.abs(
+            g.row % cols - g.col % cols
+        )
+        w = np.where(end_off, a * np.where(d == 2, math.sqrt(2.0), 1.0), 0.0)
+    else:
+        w = g.data * (1.0 + off_weight * end_off)
+    return coo_matrix((w, (g.row, g.col)), shape=g.shape).tocsr()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
+    """``off_ridge_to_goal`` equals scipy's Dijkstra towards the goal on the graph whose moves
+    cost their horizontal length when they end off the ridge (0 on it); A* with it in the
+    heuristic finds scipy's optimum of length + w x off-ridge length, for several w."""
+    from pipeline.planners.core import astar_search, off_ridge_to_goal
+
+    surface, ridge, passable = obstacle_map((30, 34), seed, density=0.15)
+    ridge = np.random.default_rng(seed).random(surface.shape) < 0.4
+    s, g = endpoints(passable, seed)
+    goal = g[0] * surface.shape[1] + g[1]
+    # towards the goal: distances from the goal on the transposed graph
+    rev = _weighted_graph(surface, ridge, passable, 30.0, 0.0, horizontal_off=True).T.tocsr()
+    want = dijkstra(rev, indices=goal)
+    got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1])
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    z = surface.astype(np.float32)  # as a maps store keeps it
+    for w in (0.05, 1.0, 1e7):
+        graph = _weighted_graph(z.astype(np.float64), ridge, passable, 30.0, w)
+        ref = dijkstra(graph, indices=s[0] * surface.shape[1] + s[1])[goal]
+        if not np.isfinite(ref):
+            return
+        for hoff in (got, np.zeros(0)):
+            _, gs, _, found = astar_search(
+                z, ridge, passable, 30.0, *s, *g, 1.0, w, True, np.zeros((0, 0), np.float32), hoff
+            )
+            assert found and gs[goal] == pytest.approx(ref, rel=1e-9)

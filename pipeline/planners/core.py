@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .._grid8 import DC, DR
+from .._grid8 import DC, DIST, DR
 from .._heap import heap_pop, heap_push, heap_reserve
 from ..exceptions import InvalidEndpointError, InvalidParameterError
 
@@ -170,14 +170,17 @@ def relax_successors(
     lm=NO_LANDMARKS,
     lg=NO_GOAL,
     shrink=1.0,
+    hoff=NO_GOAL,
+    hw=0.0,
 ):
     """A*'s expansion of ``u``: improve ``g`` of its open successors and push them with key
     ``g + weight * h`` (weight 0: Dijkstra). An edge costs its 3-D length, times
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
     ``length + off_ridge / lambda``; 0 for plain length). With landmark layers ``lm`` (goal
     distances ``lg``, consistency factor ``shrink``) ``h`` is the larger of the octile and the
-    landmark bound, both consistent. The heap must have room for 8 more entries (``heap_reserve``,
-    outside the caller's inner loop). Returns the heap's new size."""
+    landmark bound, both consistent; with ``hoff`` (:func:`off_ridge_to_goal`, flat) ``hw`` times
+    it is added, a bound on the off-ridge term. The heap must have room for 8 more entries
+    (``heap_reserve``, outside the caller's inner loop). Returns the heap's new size."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
@@ -203,20 +206,38 @@ def relax_successors(
             h = heuristic(a, nr, nc, gr, gc, octile)
             if lm.shape[0] > 0:
                 h = landmark_heuristic(lm, lg, shrink, v, h)
+            if hoff.size > 0:
+                h += hw * hoff[v]
             hn = heap_push(hk, hi, hn, ng + weight * h, v)
     return hn
 
 
 @njit(nogil=True, cache=True)
 def astar_search(
-    surface, ridge, passable, a, sr, sc, gr, gc, weight, off_weight, octile=True, lm=NO_LANDMARKS
+    surface,
+    ridge,
+    passable,
+    a,
+    sr,
+    sc,
+    gr,
+    gc,
+    weight,
+    off_weight,
+    octile=True,
+    lm=NO_LANDMARKS,
+    hoff=NO_GOAL,
 ):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
     No re-expansions: the heuristic is consistent, and weighted A* without reopening still
     returns a path within ``weight`` of the optimum (Likhachev et al. 2003). With landmark
     layers ``lm`` (k x cells of the window, float32) the heuristic is the larger of the octile
-    distance and the landmark bound, made consistent by ``landmark_shrink``.
+    distance and the landmark bound, made consistent by ``landmark_shrink``. With ``hoff``
+    (:func:`off_ridge_to_goal` of this goal, flat) and ``off_weight > 0``, ``off_weight`` times
+    it (less a relative ``1e-9`` for rounding) is added to the heuristic: the off-ridge term of
+    the Lagrangian cost has a bound of its own, and the sum of two consistent bounds on the two
+    terms of a cost is a consistent bound on the cost.
     Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
     found flag.
     """
@@ -238,6 +259,11 @@ def astar_search(
     h0 = heuristic(a, sr, sc, gr, gc, octile)
     if lm.shape[0] > 0:
         h0 = landmark_heuristic(lm, lg, shrink, s, h0)
+    hw = off_weight * (1.0 - 1e-9) if off_weight > 0.0 else 0.0
+    if hoff.size == 0 or hw == 0.0:
+        hoff = NO_GOAL
+    else:
+        h0 += hw * hoff[s]
     hn = heap_push(hk, hi, 0, weight * h0, s)
     expansions = 0
     while hn > 0:  # makes room in the heap; the inner loop never reassigns it (heap_reserve)
@@ -270,8 +296,54 @@ def astar_search(
                 lm,
                 lg,
                 shrink,
+                hoff,
+                hw,
             )
     return state, g, expansions, False
+
+
+@njit(nogil=True, cache=True)
+def off_ridge_to_goal(ridge, passable, a, gr, gc):
+    """Per cell (flat), a lower bound on the off-ridge length of any path from it to the goal
+    (gr, gc): the least horizontal length of the moves that end off the ridge network, over
+    the paths of the planners' graph (an exact search backwards from the goal; ``inf`` where
+    the goal is out of reach). A move's 3-D length is at least its horizontal one, so this
+    bounds the Lagrangian cost's off-ridge term, consistently (it is a shortest distance)."""
+    rows, cols = passable.shape
+    n = rows * cols
+    d = np.full(n, np.inf)
+    done = np.zeros(n, dtype=np.bool_)
+    hk = np.empty(1024)
+    hi = np.empty(1024, dtype=np.int64)
+    t = gr * cols + gc
+    d[t] = 0.0
+    hn = heap_push(hk, hi, 0, 0.0, t)
+    while hn > 0:
+        hk, hi = heap_reserve(hk, hi, hn, 8)
+        while hn > 0 and hn + 8 <= hk.size:
+            dx, x = heap_pop(hk, hi, hn)
+            hn -= 1
+            if done[x]:
+                continue
+            done[x] = True
+            r = x // cols
+            c = x - r * cols
+            off = not ridge[r, c]  # a move into x counts when x is off the ridge network
+            for k in range(8):  # p, a cell with a move p -> x (the moves are symmetric)
+                pr = r + DR[k]
+                pc = c + DC[k]
+                if pr < 0 or pr >= rows or pc < 0 or pc >= cols:
+                    continue
+                p = pr * cols + pc
+                if done[p] or not passable[pr, pc]:
+                    continue
+                if k % 2 == 1 and not (passable[r, pc] and passable[pr, c]):
+                    continue  # no corner cutting
+                nd = dx + a * DIST[k] if off else dx
+                if nd < d[p]:
+                    d[p] = nd
+                    hn = heap_push(hk, hi, hn, nd, p)
+    return d
 
 
 # --------------------------------------------------------------------------- validation
