@@ -4,7 +4,7 @@ ties broken towards the goal."""
 
 from __future__ import annotations
 
-from .core import TIE, Planner, Search, astar_search, landmark_rows
+from .core import NO_GOAL, TIE, Planner, Search, astar_search, landmark_rows
 
 
 def _weighted(weight_of):
@@ -23,6 +23,7 @@ def _weighted(weight_of):
             0.0,
             True,
             landmark_rows(landmarks, surface.shape),
+            NO_GOAL,
         )
         # A* (tie-broken) is within 1 + TIE of L*, weighted A* within omega (1 + TIE)
         w = max(weight, 1.0)

@@ -224,9 +224,9 @@ def astar_search(
     gc,
     weight,
     off_weight,
-    octile=True,
-    lm=NO_LANDMARKS,
-    hoff=NO_GOAL,
+    octile,
+    lm,
+    hoff,
 ):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
@@ -238,6 +238,9 @@ def astar_search(
     it (less a relative ``1e-9`` for rounding) is added to the heuristic: the off-ridge term of
     the Lagrangian cost has a bound of its own, and the sum of two consistent bounds on the two
     terms of a cost is a consistent bound on the cost.
+    Every argument is given by the callers (``NO_LANDMARKS``, ``NO_GOAL`` for none): an
+    omitted array argument types as its default object, which numba cannot key its on-disk
+    cache by, so every new process compiled the search again (1-3 s).
     Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
     found flag.
     """
