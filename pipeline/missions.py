@@ -27,7 +27,7 @@ from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
 from .mcpc import coarse_rho, plan
-from .params import PLANNING
+from .params import MISSIONS_PER_TASK, PLANNING
 from .planners.core import Trajectory
 from .store import open_store
 
@@ -145,14 +145,7 @@ def plan_missions(
             f"unknown planning option {sorted(unknown)[0]!r}; allowed: {sorted(_PLAN_KEYS)}"
         )
 
-    if missions_per_task is not None and (
-        isinstance(missions_per_task, bool)
-        or not isinstance(missions_per_task, int)
-        or missions_per_task < 1
-    ):
-        raise InvalidParameterError(
-            f"`missions_per_task` must be a whole number >= 1 (or None), got {missions_per_task!r}"
-        )
+    missions_per_task = MISSIONS_PER_TASK.check_optional(missions_per_task)
     veh = vehicle.to_dict() if isinstance(vehicle, Vehicle) else vehicle
     out: list[Trajectory | None] = [None] * len(items)
     if len(items) > 1:

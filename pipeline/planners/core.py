@@ -178,9 +178,10 @@ def relax_successors(
     ``1 + off_weight`` when it ends off the ridge network (the Lagrangian objective
     ``length + off_ridge / lambda``; 0 for plain length). With landmark layers ``lm`` (goal
     distances ``lg``, consistency factor ``shrink``) ``h`` is the larger of the octile and the
-    landmark bound, both consistent; with ``hoff`` (:func:`off_ridge_to_goal`, flat) ``hw`` times
-    it is added, a bound on the off-ridge term. The heap must have room for 8 more entries
-    (``heap_reserve``, outside the caller's inner loop). Returns the heap's new size."""
+    landmark bound, both consistent; with ``hw > 0``, ``hw`` times ``hoff``
+    (:func:`off_ridge_to_goal`, flat) is added, a bound on the off-ridge term. The heap must
+    have room for 8 more entries (``heap_reserve``, outside the caller's inner loop). Returns
+    the heap's new size."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
@@ -206,7 +207,7 @@ def relax_successors(
             h = heuristic(a, nr, nc, gr, gc, octile)
             if lm.shape[0] > 0:
                 h = landmark_heuristic(lm, lg, shrink, v, h)
-            if hoff.size > 0:
+            if hw > 0.0:
                 h += hw * hoff[v]
             hn = heap_push(hk, hi, hn, ng + weight * h, v)
     return hn
@@ -262,10 +263,9 @@ def astar_search(
     h0 = heuristic(a, sr, sc, gr, gc, octile)
     if lm.shape[0] > 0:
         h0 = landmark_heuristic(lm, lg, shrink, s, h0)
-    hw = off_weight * (1.0 - 1e-9) if off_weight > 0.0 else 0.0
-    if hoff.size == 0 or hw == 0.0:
-        hoff = NO_GOAL
-    else:
+    # the off-ridge bound's weight (0: not used)
+    hw = off_weight * (1.0 - 1e-9) if off_weight > 0.0 and hoff.size > 0 else 0.0
+    if hw > 0.0:
         h0 += hw * hoff[s]
     hn = heap_push(hk, hi, 0, weight * h0, s)
     expansions = 0
