@@ -128,13 +128,14 @@ def run_isolated(code: str, *, timeout: float = 1800) -> dict:
 CLUSTER_PREAMBLE = """
 import time, dask, pipeline, shutil, resource, xarray as xr
 from pathlib import Path
-from distributed import Client, LocalCluster
+from distributed import Client
+from pipeline.cluster import local_cluster
 src = "{src}"
 if not Path(src).exists():
     with dask.config.set(scheduler="threads"):
         pipeline.write_dem(pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0,
                                                   chunks=1024), src, chunks=1024)
-cluster = LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None)
+cluster = local_cluster(dashboard_address=None)
 client = Client(cluster)
 small = pipeline.synthetic_dem((300, 300), chunks=100)
 pipeline.safety_map(small, "spherical", 300.0).compute()   # warm the workers' numba caches
@@ -171,12 +172,12 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
     # up to 5000^2 dask's threads in one process are quickest (no cluster to start); larger maps
     # are built the way a job builds them, by a LocalCluster of 2 single-threaded workers
     code = (
-        "import dask, pipeline\nfrom distributed import Client, LocalCluster\n"
+        "import dask, pipeline\nfrom distributed import Client\n"
+        + "from pipeline.cluster import local_cluster\n"
         + (
             "with dask.config.set(scheduler='threads', num_workers=2):"
             if n <= 5000
-            else "with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) "
-            "as cl, Client(cl):"
+            else "with local_cluster(dashboard_address=None) as cl, Client(cl):"
         )
         + build
         + "\nresult = {}\n"

@@ -393,7 +393,9 @@ def exact_search(n: int, k: int) -> list[dict]:
 
 
 def measure(quick: bool):
-    from distributed import Client, LocalCluster
+    from distributed import Client
+
+    from pipeline.cluster import local_cluster
 
     k = 4 if quick else 12
     side = 1000 if quick else 2000
@@ -410,7 +412,7 @@ def measure(quick: bool):
         ),
     ]
     with (
-        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster,
+        local_cluster(dashboard_address=None) as cluster,
         Client(cluster) as client,
     ):
         rows = []

@@ -166,9 +166,10 @@ def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
 
 def overhead(n: int, k: int) -> dict:
     """Planning time of k missions on the n^2 store, and what the flight and files add."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     import pipeline
+    from pipeline.cluster import local_cluster
     from pipeline.exports import write_mission_files
     from pipeline.flight import with_flight
     from pipeline.plots import mission_quicklook
@@ -182,7 +183,7 @@ def overhead(n: int, k: int) -> dict:
     ms = far_missions(ok, n, k + 1, seed=n + 1)
     rows = []
     with (
-        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster,
+        local_cluster(dashboard_address=None) as cluster,
         Client(cluster) as client,
         tempfile.TemporaryDirectory() as tmp,
     ):

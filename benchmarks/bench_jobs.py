@@ -25,7 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 THROUGHPUT = """
 import time, numpy as np, pipeline
-from distributed import Client, LocalCluster
+from distributed import Client
+from pipeline.cluster import local_cluster
 store = "{store}"
 ok = pipeline.open_maps(store)["passable"].values
 rng = np.random.default_rng(11)
@@ -36,7 +37,7 @@ while len(missions) < {k}:
     if ok[tuple(s)] and ok[tuple(g)] and np.hypot(*(s - g)) > 0.3 * n:
         missions.append({{"start": tuple(map(int, s)), "goal": tuple(map(int, g)),
                          "omega": float(rng.choice([1.5, 2.0, 3.0]))}})
-with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl, \\
+with local_cluster(dashboard_address=None) as cl, \\
         Client(cl) as c:
     pipeline.plan_missions(store, missions[:4], client=c)   # warm: coarse maps, chunks
     from distributed import WorkerPlugin

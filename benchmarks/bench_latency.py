@@ -95,10 +95,12 @@ def main() -> None:
         ".venv/bin/python benchmarks/bench_latency.py",
         args.quick,
     )
-    from distributed import Client, LocalCluster
+    from distributed import Client
+
+    from pipeline.cluster import local_cluster
 
     with (
-        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl,
+        local_cluster(dashboard_address=None) as cl,
         Client(cl) as client,
     ):
         rows = {n: run_side(client, n, k) for n in sides}

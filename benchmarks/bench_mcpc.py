@@ -439,10 +439,12 @@ def main() -> None:
           single-threaded workers for the whole run; `pipeline.plan` with its defaults
           (`rho = max(2, ceil(side / 1000))`, sections of 3 km, margin a quarter of that)
           unless said. Times are the wall time of `plan()` on the client.""")
-    from distributed import Client, LocalCluster
+    from distributed import Client
+
+    from pipeline.cluster import local_cluster
 
     with (
-        LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cl,
+        local_cluster(dashboard_address=None) as cl,
         Client(cl) as client,
     ):
         if args.only in (None, "t5"):

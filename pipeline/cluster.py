@@ -27,16 +27,35 @@ LOCAL_WORKERS = 2
 DASHBOARD_PORT = 8787
 
 
+# glibc's allocator in the workers of a local cluster (set before each worker process starts,
+# so they also hold after a nanny restarts a worker). dask sets MALLOC_TRIM_THRESHOLD_ to 64 KiB,
+# which also freezes glibc's mmap threshold at 128 KiB: every array above it (a section's window,
+# its search state, a decoded chunk) is then a fresh mmap whose pages fault in on first touch, and
+# a page fault costs 1-2 us on a VM. Allocations up to 64 MiB from the heap and 256 MiB of free
+# heap kept, measured on 2 workers: build_maps 10000^2 22.1 -> 18.2 s (worker peaks 0.45 -> 0.55
+# GiB), one mission across 4000^2 42 -> 39 ms, plan_missions 51 -> 60 missions/s
+# (benchmarks/RESULTS.md). A variable already in the environment wins.
+WORKER_ENV = {
+    "MALLOC_MMAP_THRESHOLD_": str(64 * 2**20),
+    "MALLOC_TRIM_THRESHOLD_": str(256 * 2**20),
+}
+
+
 def local_cluster(dashboard_address: str = ":0"):
-    """A LocalCluster of 2 single-threaded worker processes (the default everywhere)."""
+    """A LocalCluster of 2 single-threaded worker processes (the default everywhere), their
+    allocator set by :data:`WORKER_ENV`."""
+    import dask
     from distributed import LocalCluster
 
-    return LocalCluster(
-        n_workers=LOCAL_WORKERS,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=dashboard_address,
-    )
+    key = "distributed.nanny.pre-spawn-environ"
+    env = {**dask.config.get(key, {}), **WORKER_ENV}
+    with dask.config.set({key: env}):  # read when each nanny is made, inside LocalCluster()
+        return LocalCluster(
+            n_workers=LOCAL_WORKERS,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=dashboard_address,
+        )
 
 
 def connect(address: str, *, timeout: float | None = None, set_as_default: bool = False):
