@@ -44,8 +44,8 @@ from .planners.core import (
     path_metrics,
 )
 from .planners.registry import PLANNERS
-from .planners.window import plan_window
-from .store import COARSE_RIDGE_FRACTION, MapsStore, open_store
+from .planners.window import plan_window, search_window
+from .store import MapsStore, open_store
 
 __all__ = [
     "CERTIFY_TOLERANCE",
@@ -628,15 +628,15 @@ def _plan_mcpc(
     else:
         coarse_omega = omega
     try:
-        ct = plan_window(
+        ct = search_window(  # the coarse level's arrays are checked when it is read
             co["safety"],
-            co["ridge"] >= COARSE_RIDGE_FRACTION,
+            co["ridge_cells"],
             co["passable"],
             cs,
             cg,
-            cell_size=m.cell_size * rho,
-            planner=coarse_planner,
-            omega=coarse_omega,
+            m.cell_size * rho,
+            coarse_planner,
+            coarse_omega,
         )
     except UnreachableGoalError:
         raise UnreachableGoalError(

@@ -429,9 +429,11 @@ class MapsStore:
 
         ``safety`` is the block mean of the finite fine values, ``ridge`` the fraction of ridge
         cells, ``passable`` true where at least half the fine cells are passable (and the mean
-        is finite). Blocks at the right and bottom edges may be partial. The result is written
-        once into the store (group ``coarse-rho{rho}``) and read from there afterwards, so that
-        many missions and processes share it.
+        is finite), ``ridge_cells`` true where at least ``COARSE_RIDGE_FRACTION`` of the fine
+        cells are ridge cells. The arrays are checked once (a damaged level is refused). Blocks
+        at the right and bottom edges may be partial. The result is written once into the store
+        (group ``coarse-rho{rho}``) and read from there afterwards, so that many missions and
+        processes share it.
         """
         import xarray as xr
 
@@ -458,10 +460,22 @@ class MapsStore:
         ds = xr.open_zarr(  # numpy, not dask: read in the caller's thread (a mission task's)
             self.path, group=name, consolidated=False, zarr_format=3, chunks=None
         ).load()
+        from .planners.core import check_arrays
+
+        try:  # once: every mission searches these arrays (planners.window.search_window)
+            safety, ridge_cells, passable = check_arrays(
+                ds["safety"].values,
+                ds["ridge"].values >= COARSE_RIDGE_FRACTION,
+                ds["passable"].values,
+            )
+        except InvalidParameterError as exc:
+            what = f"its coarse level {name} does not hold together ({exc})"
+            raise damaged(self.path, what) from None
         res = {
-            "safety": ds["safety"].values,
+            "safety": safety,
             "ridge": ds["ridge"].values,
-            "passable": ds["passable"].values.astype(bool),
+            "passable": passable,
+            "ridge_cells": ridge_cells,
         }
         with self._lock:
             self._coarse[rho] = res

@@ -383,6 +383,28 @@ def test_missions_on_a_fresh_store_run_one_per_worker_thread(store, local_client
     assert sorted(t.runtime_s for t in got)[-1] <= took[-1] + 1e-3
 
 
+def test_a_coarse_level_that_does_not_hold_together_is_damage(store, tmp_path):
+    """The coarse level is checked once when read (every mission then searches it unchecked):
+    a NaN height at a passable coarse cell refuses the store in one line."""
+    import shutil
+
+    import zarr
+
+    copy = tmp_path / "maps.zarr"
+    shutil.copytree(store, copy)
+    rho = SMALL["rho"]
+    pipeline.store.MapsStore(copy).coarse(rho)  # written into the copy
+    group = zarr.open_group(copy / f"coarse-rho{rho}", mode="r+")
+    ok = group["passable"][...]
+    r, c = np.argwhere(ok)[len(np.argwhere(ok)) // 2]
+    safety = group["safety"][...]
+    safety[r, c] = np.nan
+    group["safety"][...] = safety
+    with pytest.raises(pipeline.PipelineError, match=rf"damaged: its coarse level coarse-rho{rho}"):
+        # a new MapsStore: the one open_store keeps has the level in memory, checked
+        pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client="synchronous", **SMALL)
+
+
 def _faults_reallocating(nbytes: int) -> int:
     """Minor page faults of allocating and filling ``nbytes`` again right after an array of
     that size was freed, in this process."""
