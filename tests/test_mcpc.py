@@ -405,6 +405,47 @@ def test_a_coarse_level_that_does_not_hold_together_is_damage(store, tmp_path):
         pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client="synchronous", **SMALL)
 
 
+def test_a_mission_releases_the_last_ones_tasks_only_after_submitting_its_own(store, local_client):
+    """plan() on a cluster keeps its section tasks until the next plan() on that client has
+    submitted its own (mcpc._HELD): released at once, they would put a message on the client's
+    batched stream just before the next mission's tasks, which then wait for its next batch."""
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    class Log(SchedulerPlugin):
+        name = "section-log"
+
+        def __init__(self):
+            self.log = []
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            if str(key).startswith("_section_batch"):
+                self.log.append((str(key), start, finish))
+
+    goals = [(225 - 4 * i, 30 + 10 * i) for i in range(3)]
+    local_client.register_plugin(Log())
+    try:
+        for goal in goals:
+            t = pipeline.plan(store, (20, 20), goal, client=local_client, **SMALL)
+            assert t.status == "ok" and len(t.extra["sections"]) >= 2
+        log = local_client.run_on_scheduler(
+            lambda dask_scheduler: dask_scheduler.plugins["section-log"].log
+        )
+    finally:
+        local_client.unregister_scheduler_plugin("section-log")
+    keys: list = []  # in the order the scheduler first saw them: 2 tasks a mission (2 threads)
+    for key, *_ in log:
+        if key not in keys:
+            keys.append(key)
+    missions = [keys[2 * i : 2 * i + 2] for i in range(len(goals))]
+    assert len(keys) == 2 * len(goals), keys
+    first_seen = {k: min(i for i, e in enumerate(log) if e[0] == k) for k in keys}
+    released = {k: i for i, (k, start, _) in enumerate(log) if start == "memory"}
+    for before, after in zip(missions[:-1], missions[1:], strict=True):
+        for k in before:
+            assert released[k] > min(first_seen[a] for a in after), (k, log)
+    assert not set(missions[-1]) & set(released)  # held until the next mission
+
+
 def _faults_reallocating(nbytes: int) -> int:
     """Minor page faults of allocating and filling ``nbytes`` again right after an array of
     that size was freed, in this process."""
