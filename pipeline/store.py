@@ -285,6 +285,15 @@ class ChunkCache:
 
         return self._cached((store, var, "stack", ci, cj), load), ci * ch, cj * cw
 
+    def forget(self, store: str) -> None:
+        """Drop what this cache holds of ``store``: its decoded chunks and open arrays."""
+        with self.lock:
+            for key in [k for k in self.items if k[0] == store]:
+                self.used -= self.items.pop(key).nbytes
+            for d in (self.arrays, self.readers):
+                for key in [k for k in d if k[0] == store]:
+                    del d[key]
+
     def clear(self) -> None:
         with self.lock:
             self.items.clear()
@@ -361,6 +370,9 @@ class MapsStore:
         self._dataset = None
         self._coarse: dict = {}
         self._lock = threading.Lock()
+        # a store opened anew (open_store does so when its zarr.json changed: rebuilt in place)
+        # must not be read through chunks decoded from what was there before
+        CACHE.forget(path)
 
     def __reduce__(self):
         return open_store, (self.path,)

@@ -163,3 +163,22 @@ def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path):
     shard.write_bytes(b"short")  # shorter than the index itself
     with pytest.raises(pipeline.PipelineError, match=r"damaged: chunk c/0/1 of its layer 'h'"):
         ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40, complete=True)
+
+
+def test_a_store_rebuilt_in_place_is_not_read_through_old_chunks(tmp_path):
+    """A maps store rebuilt at the same path, in a process that read the old one (a worker of
+    a long-lived cluster between two jobs, a notebook): its windows are the new store's, as
+    zarr reads them, not chunks decoded from the old store and kept in the process's cache."""
+    import dask
+
+    path = tmp_path / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(pipeline.synthetic_dem((120, 120), seed=1, chunks=60), path)
+        old = pipeline.open_store(path).window("safety", 0, 120, 0, 120)
+        pipeline.build_maps(
+            pipeline.synthetic_dem((120, 120), seed=2, chunks=60), path, overwrite=True
+        )
+    new = zarr.open_group(path, mode="r")["safety"][...]
+    assert not np.array_equal(old, new, equal_nan=True)  # the rebuild changed the layer
+    got = pipeline.open_store(path).window("safety", 0, 120, 0, 120)
+    np.testing.assert_array_equal(got, new)
