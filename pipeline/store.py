@@ -196,6 +196,7 @@ class ChunkCache:
         self.items: OrderedDict = OrderedDict()
         self.arrays: dict = {}
         self.readers: dict = {}
+        self.layouts: dict = {}  # (store, var) -> (chunk shape, dtype) of a 2-D layer
         self.lock = threading.Lock()
 
     def array(self, store: str, var: str):
@@ -256,9 +257,12 @@ class ChunkCache:
     def window(
         self, store: str, var: str, r0: int, r1: int, c0: int, c1: int, complete: bool = False
     ) -> np.ndarray:
-        arr = self.array(store, var)
-        ch, cw = arr.chunks
-        out = np.empty((r1 - r0, c1 - c0), dtype=arr.dtype)
+        layout = self.layouts.get((store, var))
+        if layout is None:  # zarr's metadata properties cost microseconds a call
+            arr = self.array(store, var)
+            layout = self.layouts[(store, var)] = (tuple(arr.chunks), arr.dtype)
+        (ch, cw), dtype = layout
+        out = np.empty((r1 - r0, c1 - c0), dtype=dtype)
         for ci in range(r0 // ch, (r1 - 1) // ch + 1):
             for cj in range(c0 // cw, (c1 - 1) // cw + 1):
                 blk = self.chunk(store, var, ci, cj, complete)
@@ -290,7 +294,7 @@ class ChunkCache:
         with self.lock:
             for key in [k for k in self.items if k[0] == store]:
                 self.used -= self.items.pop(key).nbytes
-            for d in (self.arrays, self.readers):
+            for d in (self.arrays, self.readers, self.layouts):
                 for key in [k for k in d if k[0] == store]:
                     del d[key]
 
@@ -299,6 +303,7 @@ class ChunkCache:
             self.items.clear()
             self.arrays.clear()
             self.readers.clear()
+            self.layouts.clear()
             self.used = 0
 
 
