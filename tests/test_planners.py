@@ -389,10 +389,11 @@ def test_lagrangian_bound_validity_and_duality(seed, omega, density, ridge_share
     )
 
 
-def _weighted_graph(surface, ridge, passable, a, off_weight, horizontal_off=False):
+def _weighted_graph(surface, ridge, passable, a, off_weight, horizontal_off=False, diagonal=None):
     """The planners' graph with each move costing its 3-D length plus ``off_weight`` times
     its off-ridge length (the move ends off the ridge network); ``horizontal_off``: the cost
-    is only the horizontal length of the moves that end off the ridge."""
+    is only the horizontal length of the moves that end off the ridge, a diagonal counted as
+    ``diagonal`` cells (default sqrt 2)."""
     g = reference_graph(surface, passable, a).tocoo()
     rows, cols = surface.shape
     end_off = ~ridge.ravel()[g.col]
@@ -400,7 +401,8 @@ def _weighted_graph(surface, ridge, passable, a, off_weight, horizontal_off=Fals
         d = np.abs(np.divmod(g.row, cols)[0] - np.divmod(g.col, cols)[0]) + np.abs(
             g.row % cols - g.col % cols
         )
-        w = np.where(end_off, a * np.where(d == 2, math.sqrt(2.0), 1.0), 0.0)
+        diag = math.sqrt(2.0) if diagonal is None else diagonal
+        w = np.where(end_off, a * np.where(d == 2, diag, 1.0), 0.0)
     else:
         w = g.data * (1.0 + off_weight * end_off)
     return coo_matrix((w, (g.row, g.col)), shape=g.shape).tocsr()
@@ -409,19 +411,30 @@ def _weighted_graph(surface, ridge, passable, a, off_weight, horizontal_off=Fals
 @pytest.mark.parametrize("seed", range(4))
 def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     """``off_ridge_to_goal`` equals scipy's Dijkstra towards the goal on the graph whose moves
-    cost their horizontal length when they end off the ridge (0 on it); A* with it in the
-    heuristic finds scipy's optimum of length + w x off-ridge length, for several w."""
-    from pipeline.planners.core import astar_search, off_ridge_to_goal
+    cost their horizontal length when they end off the ridge (0 on it), a diagonal counted as
+    41 / 29 cells, and is at most the distance with diagonals of sqrt 2 (within 0.03 %); A*
+    with it in the heuristic finds scipy's optimum of length + w x off-ridge length, for
+    several w."""
+    from pipeline.planners.core import OFF_DIAGONAL, OFF_UNITS, astar_search, off_ridge_to_goal
 
     surface, ridge, passable = obstacle_map((30, 34), seed, density=0.15)
     ridge = np.random.default_rng(seed).random(surface.shape) < 0.4
     s, g = endpoints(passable, seed)
     goal = g[0] * surface.shape[1] + g[1]
     # towards the goal: distances from the goal on the transposed graph
-    rev = _weighted_graph(surface, ridge, passable, 30.0, 0.0, horizontal_off=True).T.tocsr()
+    assert (OFF_UNITS, OFF_DIAGONAL) == (29, 41)
+    rev = _weighted_graph(
+        surface, ridge, passable, 30.0, 0.0, horizontal_off=True, diagonal=41 / 29
+    ).T.tocsr()
     want = dijkstra(rev, indices=goal)
     got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1])
     np.testing.assert_allclose(got, want, rtol=1e-12)
+    exact = _weighted_graph(surface, ridge, passable, 30.0, 0.0, horizontal_off=True).T.tocsr()
+    exact = dijkstra(exact, indices=goal)
+    assert np.array_equal(np.isfinite(got), np.isfinite(exact))
+    fin = np.isfinite(exact)
+    assert (got[fin] <= exact[fin]).all() and (got[fin] >= exact[fin] * (1 - 3e-4)).all()
+    assert (got[fin] > 0).sum() > 10  # off-ridge moves were counted
     z = surface.astype(np.float32)  # as a maps store keeps it
     for w in (0.05, 1.0, 1e7):
         graph = _weighted_graph(z.astype(np.float64), ridge, passable, 30.0, w)
