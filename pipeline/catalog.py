@@ -27,6 +27,7 @@ Item's presence means the mission is finished (a re-run skips it).
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import hashlib
 import json
 import math
@@ -224,18 +225,26 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
     return files, geom, bbox, props
 
 
+@functools.lru_cache(maxsize=8)
+def _epsg_or_wkt2(crs_wkt: str) -> tuple:
+    """(EPSG code or None, WKT2) of a CRS: pyproj's EPSG lookup takes about 3 ms, once per
+    job's maps rather than once per mission."""
+    from pyproj import CRS
+
+    crs = CRS.from_wkt(crs_wkt)
+    return crs.to_epsg(), crs.to_wkt()
+
+
 def _projection(item, crs_wkt: str, traj) -> None:
     """The STAC projection extension: the maps' CRS (an EPSG code when it has one, else
     WKT2) and the track's bounding box in it."""
-    from pyproj import CRS
     from pystac.extensions.projection import ProjectionExtension
 
-    crs = CRS.from_wkt(crs_wkt)
     proj = ProjectionExtension.ext(item, add_if_missing=True)
-    epsg = crs.to_epsg()
+    epsg, wkt2 = _epsg_or_wkt2(crs_wkt)
     proj.code = f"EPSG:{epsg}" if epsg else None
     if not epsg:
-        proj.wkt2 = crs.to_wkt()
+        proj.wkt2 = wkt2
     f = traj.flight
     xy = np.column_stack([f.x, f.y]) if f is not None else traj.points[:, :2]
     proj.bbox = [float(v) for v in (*xy.min(axis=0), *xy.max(axis=0))]
