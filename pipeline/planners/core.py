@@ -312,19 +312,6 @@ OFF_UNITS = 29
 OFF_DIAGONAL = 41
 
 
-@njit(inline="always", cache=True)
-def _entries_reserve(cells, nxt, m, extra):
-    """The bucket queue's entry arrays with room for ``extra`` more beyond ``m`` (doubled)."""
-    if m + extra <= cells.size:
-        return cells, nxt
-    size = max(2 * cells.size, m + extra)
-    c2 = np.empty(size, dtype=cells.dtype)
-    n2 = np.empty(size, dtype=nxt.dtype)
-    c2[:m] = cells[:m]
-    n2[:m] = nxt[:m]
-    return c2, n2
-
-
 @njit(nogil=True, cache=True)
 def off_ridge_to_goal(ridge, passable, a, gr, gc):
     """Per cell (flat), a lower bound on the off-ridge length of any path from it to the goal
@@ -353,7 +340,7 @@ def off_ridge_to_goal(ridge, passable, a, gr, gc):
     live = 1  # entries not popped yet
     cur = 0  # the length of the bucket being emptied
     while live > 0:
-        cells, nxt = _entries_reserve(cells, nxt, m, 8 * 64)
+        cells, nxt = heap_reserve(cells, nxt, m, 8 * 64)  # two parallel arrays, as a heap's
         budget = 64  # cells settled in this pass: 8 entries each at most
         while live > 0 and budget > 0:
             b = cur % nb
