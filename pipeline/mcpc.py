@@ -227,10 +227,7 @@ def plan_section(store: MapsStore, section: Section, planner: str, omega: float)
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
-        # plan_window's checks, the parameters' only when they are not the checked kind that
-        # plan() passes (the generic check costs 15 us, a section's search can take 100 us)
-        if not (planner in PLANNERS and isinstance(omega, float) and 1.0 <= omega < math.inf):
-            planner, omega = check_planner(planner, omega)
+        planner, omega = check_planner(planner, omega)  # plan_window's checks
         surface, ridge, ok = check_arrays(surface, ridge, ok)
         a = CELL_SIZE.check(store.cell_size)
         t = search_window(surface, ridge, ok, s, g, a, planner, omega, landmarks=lm)
