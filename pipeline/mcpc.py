@@ -654,7 +654,7 @@ def _plan_mcpc(
             "reachable only through passages narrower than rho cells; try a smaller rho or "
             "mcpc=False"
         ) from None
-    extra["coarse_cells"] = ct.cells.tolist()
+    extra["coarse_cells"] = ct.cells.astype(np.int32)  # an array: quick to send back
     extra["coarse_s"] = time.perf_counter() - tc
 
     # 3-5: restore, segment, snap the joints

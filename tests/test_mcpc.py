@@ -153,7 +153,10 @@ def test_the_coarse_path_is_within_its_weight_of_the_coarse_optimum(
         **SMALL,
     )
     co = m.coarse(SMALL["rho"])
-    cells = np.array(t.extra["coarse_cells"])
+    cells = t.extra["coarse_cells"]
+    # an array, not a list of pairs: a job's client unpickles every result (as lists, 0.1 ms a
+    # mission, a third of the client's CPU in plan_missions)
+    assert isinstance(cells, np.ndarray) and cells.ndim == 2 and cells.shape[1] == 2
     z = co["safety"][cells[:, 0], cells[:, 1]]
     length, _, _ = path_metrics(cells, z, np.zeros(len(cells), bool), A * SMALL["rho"])
     opt = reference_length(co["safety"], co["passable"], A * SMALL["rho"], cells[0], cells[-1])
