@@ -59,6 +59,17 @@ def damaged(path, what: str) -> PipelineError:
 COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine cells are
 
 
+_SCRATCH = threading.local()
+
+
+def _scratch(size: int) -> memoryview:
+    """A view of ``size`` bytes of this thread's reusable read buffer (grown as needed)."""
+    buf = getattr(_SCRATCH, "buf", None)
+    if buf is None or len(buf) < size:
+        buf = _SCRATCH.buf = bytearray(max(size, 2**20))
+    return memoryview(buf)[:size]
+
+
 def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index) -> ndarray``, clipped to the array)
     that fetches the chunk's bytes from its file or object and decodes them with numcodecs
@@ -83,13 +94,19 @@ def direct_reader(arr, store: str, var: str):
     if isinstance(arr.store, LocalStore):
         root = os.path.join(str(arr.store.root), arr.path)
 
-        def fetch(key: str, start: int | None = None, size: int | None = None) -> bytes:
-            """The object's bytes; ``start`` (negative: from the end) and ``size`` a range."""
-            with open(os.path.join(root, key), "rb") as f:
-                if start is None:
+        def fetch(key: str, start: int | None = None, size: int | None = None):
+            """The object's bytes; ``start`` (negative: from the end) and ``size`` a range.
+            A range of known size is read into this thread's scratch buffer (a view of it,
+            valid until the thread's next fetch): a new bytes object of a chunk's size is
+            fresh memory, whose page faults cost more than the read itself."""
+            with open(os.path.join(root, key), "rb", buffering=0) as f:
+                if start is None or size is None:
+                    if start is not None:
+                        f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
                     return f.read()
-                f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
-                return f.read(-1 if size is None else size)
+                f.seek(start)
+                view = _scratch(size)
+                return view[: f.readinto(view)]
 
     elif isinstance(arr.store, FsspecStore) and is_url(store):
         fs, root = filesystem(join(store, var))  # a synchronous instance, for this thread

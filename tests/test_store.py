@@ -62,6 +62,29 @@ def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, shards, dtype):
     )
 
 
+def test_reads_in_several_threads_at_once_equal_zarr(tmp_path):
+    """Each thread reads a chunk's bytes into a buffer of its own (the decode releases the GIL
+    while another thread reads): windows read by 4 threads at once, every chunk decoded anew,
+    equal zarr's read."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(8)
+    data = rng.normal(size=(512, 512)).astype(np.float32)
+    arr = _array(
+        tmp_path / "a", data, (64, 64), CODECS["blosc-lz4-shuffle"], shards=(256, 256)
+    )
+    windows = [tuple(int(v) for v in rng.integers(0, 448, 2)) for _ in range(400)]
+
+    def read(w):
+        cache = ChunkCache(0)  # nothing kept: every window decodes its chunks
+        r, c = w
+        return cache.window(str(tmp_path), "a", r, r + 64, c, c + 64, complete=True)
+
+    with ThreadPoolExecutor(4) as pool:
+        for (r, c), got in zip(windows, pool.map(read, windows), strict=True):
+            np.testing.assert_array_equal(got, data[r : r + 64, c : c + 64])
+
+
 def test_the_stack_of_landmark_layers_equals_zarr(tmp_path):
     rng = np.random.default_rng(4)
     data = rng.uniform(0, 1e5, size=(3, 70, 45)).astype(np.float32)
