@@ -36,12 +36,12 @@ from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from numba import njit
 
+from ._threads import shared_pool
 from .exceptions import InvalidParameterError
 from .params import VEHICLE
 
@@ -413,6 +413,31 @@ def arcs(wr, wc, radius, step):
     return outr[:n], outc[:n], leg[:n], rad, tan_d
 
 
+@njit(cache=True)
+def _fill_route(
+    rows, cols, shared, vi, wr, wc, u, ln, tan_d, head, own, tail, order, starts, pr, pc
+):
+    """``_route_samples``' legs: each the new samples from its first corner to where its arc
+    meets it, the track's straight samples, the new samples to its last corner."""
+    for k in range(wr.size - 1):
+        o = vi[k]
+        for q in range(head[k]):
+            t = q / head[k] * tan_d[k]
+            rows[o + q] = wr[k] + u[k, 0] * t
+            cols[o + q] = wc[k] + u[k, 1] * t
+        o += head[k]
+        for q in range(own[k]):
+            idx = order[starts[k] + q]
+            rows[o + q] = pr[idx]
+            cols[o + q] = pc[idx]
+            shared[o + q] = idx
+        o += own[k]
+        for q in range(tail[k]):
+            t = ln[k] - tan_d[k + 1] + q / tail[k] * tan_d[k + 1]
+            rows[o + q] = wr[k] + u[k, 0] * t
+            cols[o + q] = wc[k] + u[k, 1] * t
+
+
 def _route_samples(wr, wc, pr, pc, leg, tan_d, step):
     """Samples of the straight legs between the corners ``w`` that share the flown track's
     samples where the two coincide (a leg's straight part between its arcs); the rest (from a
@@ -434,24 +459,18 @@ def _route_samples(wr, wc, pr, pc, leg, tan_d, step):
     n = int(vi[-1]) + 1
     rows, cols = np.empty(n), np.empty(n)
     shared = np.full(n, -1, dtype=np.int64)
-    for k in range(m - 1):  # a few slices per leg
-        o = vi[k]
-        if head[k]:
-            t = np.arange(head[k]) / head[k] * tan_d[k]
-            rows[o : o + head[k]] = wr[k] + u[k, 0] * t
-            cols[o : o + head[k]] = wc[k] + u[k, 1] * t
-        o += head[k]
-        idx = order[starts[k] : starts[k] + own[k]]
-        rows[o : o + own[k]], cols[o : o + own[k]] = pr[idx], pc[idx]
-        shared[o : o + own[k]] = idx
-        o += own[k]
-        if tail[k]:
-            t = ln[k] - tan_d[k + 1] + np.arange(tail[k]) / tail[k] * tan_d[k + 1]
-            rows[o : o + tail[k]] = wr[k] + u[k, 0] * t
-            cols[o : o + tail[k]] = wc[k] + u[k, 1] * t
+    _fill_route(
+        rows, cols, shared, vi, wr, wc, u, ln, tan_d, head, own, tail, order, starts, pr, pc
+    )
     rows[-1], cols[-1] = wr[-1], wc[-1]
     shared[-1] = len(pr) - 1
     return rows, cols, shared, vi
+
+
+# required_heights reads the corridor's elevation in square blocks of up to this side (a divisor
+# of the tiles' side), each with its highest value: a block whose highest value cannot raise
+# the height found so far is passed over unread (measured on the 10000^2 benchmark missions)
+HEIGHT_BLOCK = 4
 
 
 @njit(cache=True, nogil=True)
@@ -461,17 +480,22 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
     within ``R``; horizontal ``max z(q) + R`` within ``R_h`` (``radius``); vertical
     ``max z + R`` over the (up to four) grid points less than a cell away in row and column.
     NaN where a grid point it needs is unknown (no-data or not loaded); ``-inf`` where no grid
-    point is near enough to constrain it."""
+    point is near enough to constrain it.
+
+    Exactly the maximum over every grid point within the radius: the grid points are taken in
+    blocks (``HEIGHT_BLOCK``), and a block is read only when its highest elevation, at the
+    block's least distance, could exceed the best value so far (computed with the same floating
+    point operations as each point's own value, which are monotone: so a block passed over
+    holds no larger value), or when it holds unknown elevation; the best value starts at the
+    previous point's highest grid point, usually near the answer."""
     n = pr.size
     out = np.empty(n)
-    r2 = radius * radius
-    rc = radius / a
-    for k in range(n):
-        p = pr[k]
-        q = pc[k]
-        best = -np.inf
-        bad = False
-        if method == 0:
+    if method == 0:
+        for k in range(n):
+            p = pr[k]
+            q = pc[k]
+            best = -np.inf
+            bad = False
             i0 = int(math.floor(p))
             j0 = int(math.floor(q))
             for i in range(i0, i0 + 2):
@@ -483,42 +507,116 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
                         elif z > best:
                             best = z
             out[k] = np.nan if bad else best + clearance
-            continue
+        return out
+    spherical = method == 2
+    r2 = radius * radius
+    rc = radius / a
+    b = HEIGHT_BLOCK
+    while b > 1 and (tr % b or tc % b):
+        b //= 2
+    nbr = tr // b
+    nbc = tc // b
+    top = np.empty((el.shape[0], nbr, nbc), dtype=np.float64)  # a block's highest elevation
+    seen = np.zeros((el.shape[0], nbr, nbc), dtype=np.uint8)
+    colterm = np.empty(int(2 * rc) // b + 3)  # per block column: its least column term,
+    coltile = np.empty(colterm.size, dtype=np.int64)  # its tile column, its block in the tile
+    colblock = np.empty(colterm.size, dtype=np.int64)
+    cap = math.sqrt(r2) if spherical else 0.0
+    mi = -1  # the previous point's highest grid point
+    mj = -1
+    for k in range(n):
+        p = pr[k]
+        q = pc[k]
+        best = -np.inf
+        bad = False
         ilo = max(0, int(math.ceil(p - rc)))
         ihi = min(rows - 1, int(math.floor(p + rc)))
-        ic = min(max(int(math.floor(p + 0.5)), ilo), ihi)
-        # rows from the centre out: the highest caps first, so that the bound below skips
-        # most square roots further out (every grid point is still read: no-data is checked)
-        for step in range(2 * (ihi - ilo) + 2):
-            i = ic + (step + 1) // 2 if step % 2 else ic - step // 2
-            if i < ilo or i > ihi:
-                continue
-            di2 = (i - p) * (i - p) * a * a
-            rem = r2 - di2
-            if rem < 0:
-                continue
-            w = math.sqrt(rem) / a
-            cap = math.sqrt(rem) if method == 2 else 0.0  # the row's highest cap
-            jlo = max(0, int(math.ceil(q - w)))
-            jhi = min(cols - 1, int(math.floor(q + w)))
-            for j in range(jlo, jhi + 1):
-                d2 = di2 + (j - q) * (j - q) * a * a
-                if d2 > r2:
-                    continue
-                z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
-                if z != z:
-                    bad = True
+        jlo = max(0, int(math.ceil(q - rc)))
+        jhi = min(cols - 1, int(math.floor(q + rc)))
+        if mi >= 0:
+            d2 = (mi - p) * (mi - p) * a * a + (mj - q) * (mj - q) * a * a
+            if d2 <= r2:
+                z = np.float64(_cell(slot, el, tr, tc, mi, mj, np.nan))
+                if z == z:
+                    best = z + math.sqrt(r2 - d2) if spherical else z
+        bj0 = jlo // b
+        nbj = jhi // b + 1 - bj0
+        for bj in range(bj0, bj0 + nbj):  # each block column's least column term
+            j0 = max(bj * b, jlo)
+            j1 = min(bj * b + b - 1, jhi)
+            near = min(max(int(math.floor(q + 0.5)), j0), j1)
+            dj2 = (near - q) * (near - q) * a * a
+            for j in range(max(near - 1, j0), min(near + 1, j1) + 1):
+                dj2 = min(dj2, (j - q) * (j - q) * a * a)
+            colterm[bj - bj0] = dj2
+            coltile[bj - bj0] = (bj * b) // tc
+            colblock[bj - bj0] = (bj * b) % tc // b
+        for bi in range(ilo // b, ihi // b + 1):
+            i0 = max(bi * b, ilo)
+            i1 = min(bi * b + b - 1, ihi)
+            # the block's least row term, as each row's own term is computed (the terms grow
+            # with the distance on either side of the point: the least is next to it)
+            near = min(max(int(math.floor(p + 0.5)), i0), i1)
+            di2 = (near - p) * (near - p) * a * a
+            for i in range(max(near - 1, i0), min(near + 1, i1) + 1):
+                di2 = min(di2, (i - p) * (i - p) * a * a)
+            ti = (bi * b) // tr
+            lbi = (bi * b) % tr // b
+            for bj in range(bj0, bj0 + nbj):
+                dj2 = colterm[bj - bj0]
+                if di2 + dj2 > r2:
+                    continue  # no grid point of the block is within the radius
+                j0 = max(bj * b, jlo)
+                j1 = min(bj * b + b - 1, jhi)
+                s = slot[ti, coltile[bj - bj0]]
+                if s >= 0:
+                    lbj = colblock[bj - bj0]
+                    if not seen[s, lbi, lbj]:
+                        hi = -np.inf
+                        r0 = (bi * b) % tr
+                        c0 = (bj * b) % tc
+                        for ii in range(r0, r0 + b):
+                            for jj in range(c0, c0 + b):
+                                z = np.float64(el[s, ii, jj])
+                                if z != z:
+                                    hi = np.nan
+                                    break
+                                if z > hi:
+                                    hi = z
+                            if hi != hi:
+                                break
+                        top[s, lbi, lbj] = hi
+                        seen[s, lbi, lbj] = 1
+                    hi = top[s, lbi, lbj]
+                    if hi == hi:  # no unknown elevation in the block
+                        if hi + cap <= best:  # cap: no block's square root is larger
+                            continue
+                        if spherical and hi + math.sqrt(r2 - (di2 + dj2)) <= best:
+                            continue
+                for i in range(i0, i1 + 1):
+                    ri2 = (i - p) * (i - p) * a * a
+                    for j in range(j0, j1 + 1):
+                        d2 = ri2 + (j - q) * (j - q) * a * a
+                        if d2 > r2:
+                            continue
+                        z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
+                        if z != z:
+                            bad = True
+                            break
+                        v = z + math.sqrt(r2 - d2) if spherical else z
+                        if v > best:
+                            best = v
+                            mi = i
+                            mj = j
+                    if bad:
+                        break
+                if bad:
                     break
-                if z + cap <= best:
-                    continue
-                v = z + math.sqrt(r2 - d2) if method == 2 else z
-                if v > best:
-                    best = v
             if bad:
                 break
         if bad:
             out[k] = np.nan
-        elif method == 2 or best == -np.inf:
+        elif spherical or best == -np.inf:
             out[k] = best
         else:
             out[k] = best + clearance
@@ -744,8 +842,7 @@ class Corridor:
             for var, dst in layers
         ]
         # decoding releases the GIL: read the chunks a few at a time
-        with ThreadPoolExecutor(max_workers=4, thread_name_prefix="corridor") as pool:
-            list(pool.map(load, jobs))
+        list(shared_pool("corridor", 4).map(load, jobs))
         self.tiles = len(ti)
 
 
@@ -972,14 +1069,13 @@ def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> np.ndarray:
     if n < 4096 or parts < 2:
         return required_heights(*grid, pr, pc, *terrain)
     cut = np.linspace(0, n, parts + 1).astype(int)
-    with ThreadPoolExecutor(max_workers=parts, thread_name_prefix="heights") as pool:
-        out = pool.map(
-            lambda k: required_heights(
-                *grid, pr[cut[k] : cut[k + 1]], pc[cut[k] : cut[k + 1]], *terrain
-            ),
-            range(parts),
-        )
-        return np.concatenate(list(out))
+    out = shared_pool(f"heights-{parts}", parts).map(
+        lambda k: required_heights(
+            *grid, pr[cut[k] : cut[k + 1]], pc[cut[k] : cut[k + 1]], *terrain
+        ),
+        range(parts),
+    )
+    return np.concatenate(list(out))
 
 
 def _profile(grid, terrain, pr, pc, slope, h=None) -> dict:

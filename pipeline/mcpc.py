@@ -25,7 +25,6 @@ import math
 import threading
 import time
 import weakref
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from numbers import Integral
 
@@ -33,6 +32,7 @@ import numpy as np
 from numba import njit, types
 from numba.typed import Dict
 
+from ._threads import shared_pool
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
 from .params import CELL_SIZE, PLANNING, check_planner
@@ -533,15 +533,9 @@ class _Bound:
     at each end, 16 chunks: about as long as the coarse search); ``value()`` waits for it and
     records it and its time in ``extra``."""
 
-    _pool = None
-    _pool_lock = threading.Lock()
-
     def __init__(self, m: MapsStore, start, goal, extra: dict):
-        with self._pool_lock:
-            if _Bound._pool is None:
-                _Bound._pool = ThreadPoolExecutor(2, thread_name_prefix="pipeline-bound")
         self.extra = extra
-        self.future = _Bound._pool.submit(self._read, m, start, goal)
+        self.future = shared_pool("bound", 2).submit(self._read, m, start, goal)
 
     @staticmethod
     def _read(m, start, goal):

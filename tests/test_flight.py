@@ -499,6 +499,54 @@ def test_a_flight_over_the_bound_alone_is_uncertified_with_the_reason(ridge_stor
     assert tight.flight.problems == [tight.flight.over_bound]
 
 
+@pytest.mark.parametrize("method, tile", [(2, 16), (1, 16), (2, 12), (2, 6)])
+def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
+    """The required heights read the elevation in blocks and pass over those that cannot raise
+    the best value so far: along a winding track (each point next to the last, as the flight
+    samples it), over rough terrain with no-data holes, unloaded tiles and the map's edges,
+    they equal the maximum over every grid point within the radius (numpy), NaN wherever a
+    grid point within it is unknown."""
+    from pipeline.flight import required_heights
+
+    rng = np.random.default_rng(7)
+    rows, cols, a, radius, clearance = 90, 75, 30.0, 260.0, 100.0
+    z = rng.normal(0.0, 40.0, (rows, cols)) + 300.0 * np.sin(np.arange(cols) / 9.0)
+    z[rng.random((rows, cols)) < 0.002] = np.nan  # no-data cells
+    z[40:44, 10:13] = np.nan
+    z = z.astype(np.float32)
+    nti, ntj = -(-rows // tile), -(-cols // tile)
+    slot = np.arange(nti * ntj).reshape(nti, ntj)
+    slot[nti - 1, 0] = -1  # a tile not loaded: unknown
+    el = np.full((nti * ntj, tile, tile), np.nan, dtype=np.float32)
+    for ti in range(nti):
+        for tj in range(ntj):
+            blk = z[ti * tile : (ti + 1) * tile, tj * tile : (tj + 1) * tile]
+            el[slot[ti, tj], : blk.shape[0], : blk.shape[1]] = blk
+    known = z.astype(np.float64)
+    known[(nti - 1) * tile :, :tile] = np.nan
+    s = np.linspace(0.0, 1.0, 1500)
+    pr = -0.4 + (rows - 0.2) * s + 8.0 * np.sin(19.0 * s)
+    pc = (cols - 1) * (0.5 + 0.49 * np.sin(7.0 * s))
+    h = required_heights(el, slot, tile, tile, rows, cols, pr, pc, a, radius, method, clearance)
+    ii, jj = np.mgrid[0:rows, 0:cols]
+    for k in range(len(pr)):
+        d2 = a * a * ((ii - pr[k]) ** 2 + (jj - pc[k]) ** 2)
+        near = d2 <= radius**2
+        if not near.any():
+            ref = -np.inf
+        elif np.isnan(known[near]).any():
+            ref = np.nan
+        elif method == 2:
+            ref = np.max(known[near] + np.sqrt(radius**2 - d2[near]))
+        else:
+            ref = np.max(known[near]) + clearance
+        if np.isnan(ref):
+            assert np.isnan(h[k]), k
+        else:
+            assert h[k] == pytest.approx(ref, rel=0, abs=1e-9), k
+    assert np.isnan(h).any() and np.isfinite(h).sum() > len(h) // 2
+
+
 @pytest.mark.parametrize("shape, chunks", [((257, 257), 64), ((130, 200), 64), ((70, 9), 8)])
 def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, chunks):
     """The flight reads the terrain through store chunks stacked as tiles: on chunkings with a

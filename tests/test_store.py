@@ -70,9 +70,8 @@ def test_reads_in_several_threads_at_once_equal_zarr(tmp_path):
 
     rng = np.random.default_rng(8)
     data = rng.normal(size=(512, 512)).astype(np.float32)
-    arr = _array(
-        tmp_path / "a", data, (64, 64), CODECS["blosc-lz4-shuffle"], shards=(256, 256)
-    )
+    arr = _array(tmp_path / "a", data, (64, 64), CODECS["blosc-lz4-shuffle"], shards=(256, 256))
+    assert direct_reader(arr, str(tmp_path), "a") is not None  # the direct path is taken
     windows = [tuple(int(v) for v in rng.integers(0, 448, 2)) for _ in range(400)]
 
     def read(w):
