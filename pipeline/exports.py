@@ -53,13 +53,35 @@ def to_lonlat(crs_wkt: str | None, x, y):
     return np.asarray(lon), np.asarray(lat)
 
 
-def _points_frame(columns: dict, x, y, lonlat, crs_wkt):
-    import geopandas as gpd
-    from shapely import points
+def _write_points(path: Path, columns: dict, x, y, lonlat, crs_wkt) -> None:
+    """A GeoParquet file of point rows: ``columns`` and a WKB point geometry in WGS84 longitude
+    and latitude (``lonlat``), else in the maps' CRS (``x``, ``y``), with its CRS, geometry
+    type and bounding box in the file's metadata. Written from the coordinate arrays by
+    geoarrow (a shapely point per row, as geopandas makes them, took most of a track's write)."""
+    import geoarrow.pyarrow as ga
+    import pyarrow as pa
+    from geoarrow.pyarrow.io import write_geoparquet_table
 
-    if lonlat is not None:
-        return gpd.GeoDataFrame(columns, geometry=points(lonlat[0], lonlat[1]), crs="EPSG:4326")
-    return gpd.GeoDataFrame(columns, geometry=points(x, y), crs=crs_wkt or None)
+    gx, gy = lonlat if lonlat is not None else (x, y)
+    geom = ga.point().from_geobuffers(
+        None, np.ascontiguousarray(gx, dtype=np.float64), np.ascontiguousarray(gy, dtype=np.float64)
+    )
+    crs = "EPSG:4326" if lonlat is not None else crs_wkt
+    if crs:
+        geom = ga.with_crs(geom, _projjson(crs))
+    table = pa.table(
+        {**{k: np.asarray(v) for k, v in columns.items()}, "geometry": ga.as_wkb(geom)}
+    )
+    write_geoparquet_table(
+        table, path, write_bbox=True, write_geometry_types=True, check_wkb=False, **PARQUET_OPTIONS
+    )
+
+
+@functools.lru_cache(maxsize=8)
+def _projjson(crs: str) -> str:
+    from pyproj import CRS
+
+    return CRS.from_user_input(crs).to_json()
 
 
 def write_track(path: Path, flight, crs_wkt: str | None, lonlat=None) -> None:
@@ -77,15 +99,14 @@ def write_track(path: Path, flight, crs_wkt: str | None, lonlat=None) -> None:
         "s_m": f.s,
         "time_s": f.time_s,
     }
-    _points_frame(cols, f.x, f.y, lonlat, crs_wkt).to_parquet(path, **PARQUET_OPTIONS)
+    _write_points(path, cols, f.x, f.y, lonlat, crs_wkt)
 
 
 def write_grid_path(path: Path, traj, crs_wkt: str | None) -> None:
     """The planned grid path: its cells, their centres and the safety surface there."""
     x, y, z = traj.points[:, 0], traj.points[:, 1], traj.points[:, 2]
     cols = {"row": traj.cells[:, 0], "col": traj.cells[:, 1], "x": x, "y": y, "z": z}
-    frame = _points_frame(cols, x, y, to_lonlat(crs_wkt, x, y), crs_wkt)
-    frame.to_parquet(path, **PARQUET_OPTIONS)
+    _write_points(path, cols, x, y, to_lonlat(crs_wkt, x, y), crs_wkt)
 
 
 def waypoint_table(flight, sea_level: float, lonlat) -> dict:
