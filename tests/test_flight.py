@@ -245,16 +245,27 @@ def test_waypoints_geojson_and_csv_read_back(flown):
 
 def test_track_parquet_is_geoparquet_in_lonlat(flown):
     import geopandas as gpd
+    from pyproj import Transformer
 
-    _, t, folder, _ = flown
+    m, t, folder, _ = flown
     f = t.flight
     gdf = gpd.read_parquet(folder / "track.parquet")
     assert gdf.crs.to_epsg() == 4326 and len(gdf) == len(f.x)
     for col in ("x", "y", "z", "altitude_m", "time_s"):
-        assert col in gdf
-    assert -180 <= gdf.geometry.x.min() and gdf.geometry.x.max() <= 180
+        np.testing.assert_array_equal(gdf[col].values, getattr(f, col))
+    # the points are the samples' longitude and latitude (pyproj from the maps' CRS)
+    lon, lat = Transformer.from_crs(m.crs_wkt, 4326, always_xy=True).transform(f.x, f.y)
+    np.testing.assert_allclose(gdf.geometry.x.values, lon, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(gdf.geometry.y.values, lat, rtol=0, atol=1e-9)
+    assert set(gdf.geometry.geom_type) == {"Point"}
     grid = gpd.read_parquet(folder / "grid-path.parquet")
     assert len(grid) == len(t.cells) and (grid["row"].values == t.cells[:, 0]).all()
+    assert (grid["col"].values == t.cells[:, 1]).all() and grid.crs.to_epsg() == 4326
+    lon, lat = Transformer.from_crs(m.crs_wkt, 4326, always_xy=True).transform(
+        t.points[:, 0], t.points[:, 1]
+    )
+    np.testing.assert_allclose(grid.geometry.x.values, lon, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(grid.geometry.y.values, lat, rtol=0, atol=1e-9)
 
 
 def test_qgc_wpl_loads_in_pymavlink(flown):
@@ -454,6 +465,12 @@ def test_no_data_holes_and_no_crs(tmp_path):
     with_flight(m, t, {})
     files = exports.write_mission_files(tmp_path, "m", "m", t, None, 0.0)
     assert set(files) == {"track", "grid-path", "waypoints-csv"}
+    import geopandas as gpd
+
+    track = gpd.read_parquet(tmp_path / "track.parquet")  # in map coordinates, no CRS
+    assert track.crs is None and len(track) == len(t.flight.x)
+    np.testing.assert_array_equal(track.geometry.x.values, t.flight.x)
+    np.testing.assert_array_equal(track.geometry.y.values, t.flight.y)
     with open(tmp_path / "waypoints.csv") as fh:
         assert fh.readline().strip() == "x_m,y_m,depth_m,altitude_m,speed_m_s,time_s"
 
