@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 
 import matplotlib
@@ -174,14 +175,49 @@ def graticule(ax, crs_wkt: str, extent_km) -> None:
 RIDGE_RGBA = (0.55, 0.95, 1.0, 0.4)
 
 
-def _block_max(a: np.ndarray, step: int) -> np.ndarray:
-    """``a`` reduced by ``step`` with the maximum of each block (thin ridge lines survive)."""
-    if step == 1:
-        return a
-    r, c = (-(-n // step) * step for n in a.shape)
-    pad = np.zeros((r, c), dtype=a.dtype)
-    pad[: a.shape[0], : a.shape[1]] = a
-    return pad.reshape(r // step, step, c // step, step).max(axis=(1, 3))
+def _plan_layers(maps, r0, r1, c0, c1, step: float):
+    """The elevation (a DataArray with its coordinates) and the ridge mask of rows ``r0:r1``
+    and columns ``c0:c1`` of the maps, reduced by about ``step`` for a picture: from the
+    store's overview at the power of two nearest ``step`` (block means, ridge where a block
+    holds any) when the region covers a sixteenth of the map or more (the overview is made
+    from the whole map, once); else from the full layers, every ``step``-th cell of the
+    elevation and the largest ridge value of each block. The choice depends on the region
+    alone, so that a mission's picture is the same wherever and whenever it is drawn."""
+    import xarray as xr
+
+    f = 2 ** round(math.log2(step)) if step >= 1.5 else 1
+    rows, cols = maps.shape
+    if f == 1 or 16 * (r1 - r0) * (c1 - c0) < rows * cols:
+        k = max(1, int(math.ceil(step)))
+        sub = xr.DataArray(
+            maps.window("elevation", r0, r1, c0, c1)[::k, ::k],
+            dims=("y", "x"),
+            coords={"y": maps.y[r0:r1:k], "x": maps.x[c0:c1:k]},
+        )
+        sub.attrs["cell_size"] = maps.cell_size * k
+        ridge = maps.window("ridge", r0, r1, c0, c1)
+        if k > 1:
+            h, w = -(-ridge.shape[0] // k) * k, -(-ridge.shape[1] // k) * k
+            pad = np.zeros((h, w), dtype=bool)
+            pad[: ridge.shape[0], : ridge.shape[1]] = ridge
+            ridge = pad.reshape(h // k, k, w // k, k).any(axis=(1, 3))
+        return sub, ridge.astype(np.uint8)
+    ov = maps.overview(f)
+    i0, j0 = r0 // f, c0 // f
+    i1, j1 = min(-(-r1 // f), ov["elevation"].shape[0]), min(-(-c1 // f), ov["elevation"].shape[1])
+    dy = maps.y[1] - maps.y[0] if len(maps.y) > 1 else -maps.cell_size
+    dx = maps.x[1] - maps.x[0] if len(maps.x) > 1 else maps.cell_size
+    centre = (f - 1) / 2  # a block's centre, in cells from its first
+    sub = xr.DataArray(
+        ov["elevation"][i0:i1, j0:j1],
+        dims=("y", "x"),
+        coords={
+            "y": maps.y[0] + (np.arange(i0, i1) * f + centre) * dy,
+            "x": maps.x[0] + (np.arange(j0, j1) * f + centre) * dx,
+        },
+    )
+    sub.attrs["cell_size"] = maps.cell_size * f
+    return sub, ov["ridge"][i0:i1, j0:j1].astype(np.uint8)
 
 
 def mission_quicklook(
@@ -218,11 +254,7 @@ def mission_quicklook(
     c0 = max(int(np.floor(min(cols_f.min(), traj.cells[:, 1].min()))) - pad, 0)
     r1 = min(int(np.ceil(max(rows_f.max(), traj.cells[:, 0].max()))) + pad + 1, rows)
     c1 = min(int(np.ceil(max(cols_f.max(), traj.cells[:, 1].max()))) + pad + 1, cols)
-    step = max(1, int(np.ceil(max(r1 - r0, c1 - c0) / max_side)))
-    ds = maps.dataset
-    sub = ds["elevation"][r0:r1:step, c0:c1:step].load()
-    sub.attrs["cell_size"] = a * step
-    rdg = _block_max(maps.window("ridge", r0, r1, c0, c1).astype(np.uint8), step)
+    sub, rdg = _plan_layers(maps, r0, r1, c0, c1, max(r1 - r0, c1 - c0) / max_side)
     # figure shape: the plan view follows the track's extent, the profile below it
     w_km, h_km = (c1 - c0) * a, (r1 - r0) * a
     plan_w = 9.0

@@ -4,6 +4,8 @@ awkward shapes; zarr for every other layout."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import zarr
@@ -204,3 +206,76 @@ def test_a_store_rebuilt_in_place_is_not_read_through_old_chunks(tmp_path):
     assert not np.array_equal(old, new, equal_nan=True)  # the rebuild changed the layer
     got = pipeline.open_store(path).window("safety", 0, 120, 0, 120)
     np.testing.assert_array_equal(got, new)
+
+
+@pytest.mark.parametrize("factor", [2, 4, 8])
+def test_overview_is_the_block_mean_of_the_elevation_and_any_ridge(tmp_path, factor):
+    """The pictures' overview of a maps store (sides not multiples of the factor, no-data
+    holes, one block wholly no-data) against numpy's block means and block any."""
+    import dask
+    from conftest import metric_dataarray, random_surface
+
+    z = random_surface((61, 43), seed=5, holes=True)
+    z[:8, :8] = np.nan  # a block with no elevation at all
+    dem = metric_dataarray(z, a=50.0)
+    dem.attrs["cell_size"] = 50.0
+    path = tmp_path / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem.chunk(16), path, clearance=120.0, min_accumulation=6, landmarks=0)
+    ds = pipeline.open_maps(path)
+    elev = ds["elevation"].values.astype(np.float64)
+    ridge = ds["ridge"].values.astype(bool)
+    ov = pipeline.open_store(path).overview(factor)
+    rows, cols = elev.shape
+    nr, nc = -(-rows // factor), -(-cols // factor)
+    assert ov["elevation"].shape == ov["ridge"].shape == (nr, nc)
+    for i in range(nr):
+        for j in range(nc):
+            blk = elev[i * factor : (i + 1) * factor, j * factor : (j + 1) * factor]
+            known = blk[np.isfinite(blk)]
+            if known.size:
+                assert ov["elevation"][i, j] == pytest.approx(known.mean(), abs=1e-3)
+            else:
+                assert np.isnan(ov["elevation"][i, j])
+            rb = ridge[i * factor : (i + 1) * factor, j * factor : (j + 1) * factor]
+            assert ov["ridge"][i, j] == rb.any()
+    assert np.isnan(ov["elevation"]).any() and ov["ridge"].any()
+    # written into the store once: a new process (a fresh MapsStore) reads the same arrays
+    again = pipeline.store.MapsStore(str(path)).overview(factor)
+    np.testing.assert_array_equal(again["elevation"], ov["elevation"])
+    assert (path / f"overview-f{factor}" / "zarr.json").is_file()
+
+
+def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
+    """A quick-look's plan view: a region of a sixteenth of the map or more from the overview
+    (block means at the block centres, ridge where a block has any), a smaller one from every
+    k-th cell of the elevation and the ridge of each k x k block (numpy on the layers)."""
+    import dask
+    from conftest import metric_dataarray, random_surface
+
+    from pipeline.plots import _plan_layers
+
+    z = random_surface((64, 48), seed=6, holes=True)
+    dem = metric_dataarray(z, a=50.0)
+    dem.attrs["cell_size"] = 50.0
+    path = tmp_path / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem.chunk(16), path, clearance=120.0, min_accumulation=6, landmarks=0)
+    m = pipeline.open_store(path)
+    ds = pipeline.open_maps(path)
+    elev, ridge = ds["elevation"].values.astype(np.float64), ds["ridge"].values.astype(bool)
+    x, y = ds["x"].values, ds["y"].values
+    sub, rdg = _plan_layers(m, 0, 64, 8, 48, 4.3)  # the whole height: from the overview at 4
+    blocks = elev[:, 8:48].reshape(16, 4, 10, 4)
+    with warnings.catch_warnings():  # blocks of no-data only: NaN, as the overview's
+        warnings.simplefilter("ignore", RuntimeWarning)
+        want = np.nanmean(blocks, axis=(1, 3))
+    np.testing.assert_allclose(sub.values, want, atol=1e-3)
+    np.testing.assert_allclose(sub["x"].values, x[8:48].reshape(10, 4).mean(axis=1))
+    np.testing.assert_allclose(sub["y"].values, y.reshape(16, 4).mean(axis=1))
+    assert sub.attrs["cell_size"] == 200.0
+    np.testing.assert_array_equal(rdg, ridge[:, 8:48].reshape(16, 4, 10, 4).any(axis=(1, 3)))
+    sub, rdg = _plan_layers(m, 10, 22, 5, 17, 2.6)  # 12 x 12 cells: every third cell
+    np.testing.assert_array_equal(sub.values, elev[10:22:3, 5:17:3])
+    np.testing.assert_array_equal(sub["x"].values, x[5:17:3])
+    np.testing.assert_array_equal(rdg, ridge[10:22, 5:17].reshape(4, 3, 4, 3).any(axis=(1, 3)))
