@@ -175,7 +175,7 @@ def graticule(ax, crs_wkt: str, extent_km) -> None:
 RIDGE_RGBA = (0.55, 0.95, 1.0, 0.4)
 
 
-def _plan_layers(maps, r0, r1, c0, c1, step: float):
+def plan_layers(maps, r0, r1, c0, c1, step: float):
     """The elevation (a DataArray with its coordinates) and the ridge mask of rows ``r0:r1``
     and columns ``c0:c1`` of the maps, reduced by about ``step`` for a picture: from the
     store's overview at the power of two nearest ``step`` (block means, ridge where a block
@@ -254,7 +254,7 @@ def mission_quicklook(
     c0 = max(int(np.floor(min(cols_f.min(), traj.cells[:, 1].min()))) - pad, 0)
     r1 = min(int(np.ceil(max(rows_f.max(), traj.cells[:, 0].max()))) + pad + 1, rows)
     c1 = min(int(np.ceil(max(cols_f.max(), traj.cells[:, 1].max()))) + pad + 1, cols)
-    sub, rdg = _plan_layers(maps, r0, r1, c0, c1, max(r1 - r0, c1 - c0) / max_side)
+    sub, rdg = plan_layers(maps, r0, r1, c0, c1, max(r1 - r0, c1 - c0) / max_side)
     # figure shape: the plan view follows the track's extent, the profile below it
     w_km, h_km = (c1 - c0) * a, (r1 - r0) * a
     plan_w = 9.0

@@ -253,7 +253,7 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     import dask
     from conftest import metric_dataarray, random_surface
 
-    from pipeline.plots import _plan_layers
+    from pipeline.plots import plan_layers
 
     z = random_surface((64, 48), seed=6, holes=True)
     dem = metric_dataarray(z, a=50.0)
@@ -265,7 +265,7 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     ds = pipeline.open_maps(path)
     elev, ridge = ds["elevation"].values.astype(np.float64), ds["ridge"].values.astype(bool)
     x, y = ds["x"].values, ds["y"].values
-    sub, rdg = _plan_layers(m, 0, 64, 8, 48, 4.3)  # the whole height: from the overview at 4
+    sub, rdg = plan_layers(m, 0, 64, 8, 48, 4.3)  # the whole height: from the overview at 4
     blocks = elev[:, 8:48].reshape(16, 4, 10, 4)
     with warnings.catch_warnings():  # blocks of no-data only: NaN, as the overview's
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -275,7 +275,7 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     np.testing.assert_allclose(sub["y"].values, y.reshape(16, 4).mean(axis=1))
     assert sub.attrs["cell_size"] == 200.0
     np.testing.assert_array_equal(rdg, ridge[:, 8:48].reshape(16, 4, 10, 4).any(axis=(1, 3)))
-    sub, rdg = _plan_layers(m, 10, 22, 5, 17, 2.6)  # 12 x 12 cells: every third cell
+    sub, rdg = plan_layers(m, 10, 22, 5, 17, 2.6)  # 12 x 12 cells: every third cell
     np.testing.assert_array_equal(sub.values, elev[10:22:3, 5:17:3])
     np.testing.assert_array_equal(sub["x"].values, x[5:17:3])
     np.testing.assert_array_equal(rdg, ridge[10:22, 5:17].reshape(4, 3, 4, 3).any(axis=(1, 3)))
