@@ -467,6 +467,18 @@ def _route_samples(wr, wc, pr, pc, leg, tan_d, step):
     return rows, cols, shared, vi
 
 
+@njit(inline="always", cache=True)
+def _least_term(p, lo, hi, a):
+    """The least ``(i - p)^2 a^2`` over the grid lines ``lo..hi``, computed as each line's own
+    term is (the terms grow with the distance on either side of ``p``: the least is next to
+    it)."""
+    near = min(max(int(math.floor(p + 0.5)), lo), hi)
+    least = (near - p) * (near - p) * a * a
+    for i in range(max(near - 1, lo), min(near + 1, hi) + 1):
+        least = min(least, (i - p) * (i - p) * a * a)
+    return least
+
+
 # required_heights reads the corridor's elevation in square blocks of up to this side (a divisor
 # of the tiles' side), each with its highest value: a block whose highest value cannot raise
 # the height found so far is passed over unread (measured on the 10000^2 benchmark missions)
@@ -542,24 +554,13 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
         bj0 = jlo // b
         nbj = jhi // b + 1 - bj0
         for bj in range(bj0, bj0 + nbj):  # each block column's least column term
-            j0 = max(bj * b, jlo)
-            j1 = min(bj * b + b - 1, jhi)
-            near = min(max(int(math.floor(q + 0.5)), j0), j1)
-            dj2 = (near - q) * (near - q) * a * a
-            for j in range(max(near - 1, j0), min(near + 1, j1) + 1):
-                dj2 = min(dj2, (j - q) * (j - q) * a * a)
-            colterm[bj - bj0] = dj2
+            colterm[bj - bj0] = _least_term(q, max(bj * b, jlo), min(bj * b + b - 1, jhi), a)
             coltile[bj - bj0] = (bj * b) // tc
             colblock[bj - bj0] = (bj * b) % tc // b
         for bi in range(ilo // b, ihi // b + 1):
             i0 = max(bi * b, ilo)
             i1 = min(bi * b + b - 1, ihi)
-            # the block's least row term, as each row's own term is computed (the terms grow
-            # with the distance on either side of the point: the least is next to it)
-            near = min(max(int(math.floor(p + 0.5)), i0), i1)
-            di2 = (near - p) * (near - p) * a * a
-            for i in range(max(near - 1, i0), min(near + 1, i1) + 1):
-                di2 = min(di2, (i - p) * (i - p) * a * a)
+            di2 = _least_term(p, i0, i1, a)
             ti = (bi * b) // tr
             lbi = (bi * b) % tr // b
             for bj in range(bj0, bj0 + nbj):

@@ -9,6 +9,7 @@ import warnings
 import numpy as np
 import pytest
 import zarr
+from conftest import metric_dataarray, random_surface
 from zarr.codecs import BloscCodec, ZstdCodec
 
 import pipeline
@@ -208,20 +209,25 @@ def test_a_store_rebuilt_in_place_is_not_read_through_old_chunks(tmp_path):
     np.testing.assert_array_equal(got, new)
 
 
-@pytest.mark.parametrize("factor", [2, 4, 8])
-def test_overview_is_the_block_mean_of_the_elevation_and_any_ridge(tmp_path, factor):
-    """The pictures' overview of a maps store (sides not multiples of the factor, no-data
-    holes, one block wholly no-data) against numpy's block means and block any."""
+def _maps_of(z, tmp_path):
+    """The maps store of the seabed ``z`` (50 m cells, chunks of 16), built in this process."""
     import dask
-    from conftest import metric_dataarray, random_surface
 
-    z = random_surface((61, 43), seed=5, holes=True)
-    z[:8, :8] = np.nan  # a block with no elevation at all
     dem = metric_dataarray(z, a=50.0)
     dem.attrs["cell_size"] = 50.0
     path = tmp_path / "maps.zarr"
     with dask.config.set(scheduler="synchronous"):
         pipeline.build_maps(dem.chunk(16), path, clearance=120.0, min_accumulation=6, landmarks=0)
+    return path
+
+
+@pytest.mark.parametrize("factor", [2, 4, 8])
+def test_overview_is_the_block_mean_of_the_elevation_and_any_ridge(tmp_path, factor):
+    """The pictures' overview of a maps store (sides not multiples of the factor, no-data
+    holes, one block wholly no-data) against numpy's block means and block any."""
+    z = random_surface((61, 43), seed=5, holes=True)
+    z[:8, :8] = np.nan  # a block with no elevation at all
+    path = _maps_of(z, tmp_path)
     ds = pipeline.open_maps(path)
     elev = ds["elevation"].values.astype(np.float64)
     ridge = ds["ridge"].values.astype(bool)
@@ -250,17 +256,9 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     """A quick-look's plan view: a region of a sixteenth of the map or more from the overview
     (block means at the block centres, ridge where a block has any), a smaller one from every
     k-th cell of the elevation and the ridge of each k x k block (numpy on the layers)."""
-    import dask
-    from conftest import metric_dataarray, random_surface
-
     from pipeline.plots import plan_layers
 
-    z = random_surface((64, 48), seed=6, holes=True)
-    dem = metric_dataarray(z, a=50.0)
-    dem.attrs["cell_size"] = 50.0
-    path = tmp_path / "maps.zarr"
-    with dask.config.set(scheduler="synchronous"):
-        pipeline.build_maps(dem.chunk(16), path, clearance=120.0, min_accumulation=6, landmarks=0)
+    path = _maps_of(random_surface((64, 48), seed=6, holes=True), tmp_path)
     m = pipeline.open_store(path)
     ds = pipeline.open_maps(path)
     elev, ridge = ds["elevation"].values.astype(np.float64), ds["ridge"].values.astype(bool)
