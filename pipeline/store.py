@@ -535,12 +535,14 @@ class MapsStore:
             return got
         name = f"overview-f{factor}"
         if not _coarse_written(self.path, name):
-            ds = self.dataset[["elevation", "ridge"]]
+            # as float32: coarsen pads the partial blocks with NaN (a bool layer becomes an
+            # object array), which the block mean and maximum pass over
+            ds = self.dataset[["elevation", "ridge"]].astype("float32")
             blocks = ds.coarsen(y=factor, x=factor, boundary="pad")
             out = xr.Dataset(
                 {
-                    "elevation": blocks.mean()["elevation"].astype("float32"),
-                    "ridge": blocks.max()["ridge"].astype(bool),
+                    "elevation": blocks.mean()["elevation"],
+                    "ridge": blocks.max()["ridge"] > 0,
                 }
             ).compute()
             out.attrs.update(factor=factor, source="block mean of the elevation, ridge if any")
