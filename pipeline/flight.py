@@ -802,13 +802,10 @@ class Corridor:
     slot table, so that the kernels read the terrain near the track and nothing else."""
 
     def __init__(self, m, cells: np.ndarray, pad: int):
-        import zarr
-
         from .store import CACHE
 
         rows, cols = m.shape
-        arr = zarr.open_array(f"{m.path}/elevation", mode="r", zarr_format=3)
-        tr, tc = (int(v) for v in arr.chunks)
+        tr, tc = (int(v) for v in CACHE.array(m.path, "elevation").chunks)
         self.tr, self.tc, self.rows, self.cols = tr, tc, rows, cols
         nti, ntj = -(-rows // tr), -(-cols // tc)
         want = np.zeros((nti, ntj), dtype=bool)
