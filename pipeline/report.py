@@ -85,14 +85,16 @@ def _hillshade(maps, png: Path) -> dict:
     ``HILLSHADE_SIDE`` pixels a side; its extent in map metres and its colour scale."""
     import matplotlib.pyplot as plt
 
-    from .plots import RELIEF_CMAP, shaded_relief
+    from .plots import RELIEF_CMAP, plan_layers, shaded_relief
 
     rows, cols = maps.shape
-    step = max(1, math.ceil(max(rows, cols) / HILLSHADE_SIDE))
-    z = np.asarray(maps.dataset["elevation"][::step, ::step].values, dtype=np.float64)
+    # the store's overview (made once, kept in the store) on large maps, not a read of the
+    # whole elevation layer at every run
+    sub, _ = plan_layers(maps, 0, rows, 0, cols, max(rows, cols) / HILLSHADE_SIDE)
+    z = np.asarray(sub.values, dtype=np.float64)
     if maps.y[0] < maps.y[-1]:  # rows run south to north: draw north up
         z = z[::-1]
-    rgb, vmin, vmax = shaded_relief(z, maps.cell_size * step)
+    rgb, vmin, vmax = shaded_relief(z, float(sub.attrs["cell_size"]))
     from PIL import Image
 
     tmp = png.with_name(f".{png.name}.tmp-{uuid.uuid4().hex[:8]}.png")
