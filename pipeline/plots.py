@@ -177,18 +177,23 @@ RIDGE_RGBA = (0.55, 0.95, 1.0, 0.4)
 
 def plan_layers(maps, r0, r1, c0, c1, step: float):
     """The elevation (a DataArray with its coordinates) and the ridge mask of rows ``r0:r1``
-    and columns ``c0:c1`` of the maps, reduced by about ``step`` for a picture: from the
-    store's overview at the power of two nearest ``step`` (block means, ridge where a block
-    holds any) when the region covers a sixteenth of the map or more (the overview is made
-    from the whole map, once); else from the full layers, every ``step``-th cell of the
-    elevation and the largest ridge value of each block. The choice depends on the region
-    alone, so that a mission's picture is the same wherever and whenever it is drawn."""
+    and columns ``c0:c1`` of the maps, reduced by ``k = ceil(step)`` for a picture: from the
+    store's overview at the first of the factors 2, 3, 4, 6, 8, 12, 16, ... not below ``k``
+    (block means, ridge where a block holds any) when the region covers a sixteenth of the
+    map or more (an overview is made from the whole map, once, so only a few factors are
+    made); else from the full layers, every ``k``-th cell of the elevation and the ridge of
+    each ``k x k`` block. The choice depends on the region alone, so that a mission's picture
+    is the same wherever and whenever it is drawn."""
     import xarray as xr
 
-    f = 2 ** round(math.log2(step)) if step >= 1.5 else 1
+    k = max(1, int(math.ceil(step - 1e-9)))
+    f = 1
+    if k > 1:  # 2^j or 3 x 2^(j-1), the first not below k: at most 1.5 k
+        f = 2 ** math.ceil(math.log2(k))
+        if 3 * f // 4 >= k:
+            f = 3 * f // 4
     rows, cols = maps.shape
     if f == 1 or 16 * (r1 - r0) * (c1 - c0) < rows * cols:
-        k = max(1, int(math.ceil(step)))
         sub = xr.DataArray(
             maps.window("elevation", r0, r1, c0, c1)[::k, ::k],
             dims=("y", "x"),

@@ -263,7 +263,7 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     ds = pipeline.open_maps(path)
     elev, ridge = ds["elevation"].values.astype(np.float64), ds["ridge"].values.astype(bool)
     x, y = ds["x"].values, ds["y"].values
-    sub, rdg = plan_layers(m, 0, 64, 8, 48, 4.3)  # the whole height: from the overview at 4
+    sub, rdg = plan_layers(m, 0, 64, 8, 48, 3.7)  # the whole height: from the overview at 4
     blocks = elev[:, 8:48].reshape(16, 4, 10, 4)
     with warnings.catch_warnings():  # blocks of no-data only: NaN, as the overview's
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -273,6 +273,14 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     np.testing.assert_allclose(sub["y"].values, y.reshape(16, 4).mean(axis=1))
     assert sub.attrs["cell_size"] == 200.0
     np.testing.assert_array_equal(rdg, ridge[:, 8:48].reshape(16, 4, 10, 4).any(axis=(1, 3)))
+    sub, rdg = plan_layers(m, 0, 64, 0, 48, 2.5)  # k = 3: the overview at 3, a partial row
+    assert sub.shape == (22, 16) and sub.attrs["cell_size"] == 150.0
+    pad = np.full((66, 48), np.nan)
+    pad[:64] = elev
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        want = np.nanmean(pad.reshape(22, 3, 16, 3), axis=(1, 3))
+    np.testing.assert_allclose(sub.values, want, atol=1e-3)
     sub, rdg = plan_layers(m, 10, 22, 5, 17, 2.6)  # 12 x 12 cells: every third cell
     np.testing.assert_array_equal(sub.values, elev[10:22:3, 5:17:3])
     np.testing.assert_array_equal(sub["x"].values, x[5:17:3])
