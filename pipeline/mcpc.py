@@ -35,10 +35,9 @@ from numba.typed import Dict
 from ._threads import shared_pool
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
-from .params import CELL_SIZE, PLANNING, check_planner
+from .params import PLANNING, check_planner
 from .planners.core import (
     Trajectory,
-    check_arrays,
     heuristic,
     nearest_passable,
     not_passable_error,
@@ -46,7 +45,7 @@ from .planners.core import (
     path_metrics,
 )
 from .planners.registry import PLANNERS
-from .planners.window import search_window
+from .planners.window import plan_window, search_window
 from .store import MapsStore, open_store
 
 __all__ = [
@@ -227,10 +226,17 @@ def plan_section(store: MapsStore, section: Section, planner: str, omega: float)
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
-        planner, omega = check_planner(planner, omega)  # plan_window's checks
-        surface, ridge, ok = check_arrays(surface, ridge, ok)
-        a = CELL_SIZE.check(store.cell_size)
-        t = search_window(surface, ridge, ok, s, g, a, planner, omega, landmarks=lm)
+        t = plan_window(
+            surface,
+            ridge,
+            ok,
+            s,
+            g,
+            cell_size=store.cell_size,
+            planner=planner,
+            omega=omega,
+            landmarks=lm,
+        )
     except PipelineError as e:
         return SectionResult("failed", section.window, message=str(e), read_s=read_s)
     return SectionResult(
