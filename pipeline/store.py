@@ -472,12 +472,9 @@ class MapsStore:
         import xarray as xr
 
         rho = PLANNING.rho.check(rho)
-        with self._lock:
-            got = self._coarse.get(rho)
-        if got is not None:
-            return got
         name = f"coarse-rho{rho}"
-        if not _coarse_written(self.path, name):
+
+        def build():
             ds = self.dataset[["safety", "ridge", "passable"]]
             cs = ds.astype("float32").coarsen(y=rho, x=rho, boundary="pad").mean()
             out = xr.Dataset(
@@ -490,30 +487,28 @@ class MapsStore:
             out.attrs.update(
                 rho=rho, source="block means of the fine maps (docs/method.md section 6)"
             )
-            _write_coarse(out, self.path, name)
-        ds = xr.open_zarr(  # numpy, not dask: read in the caller's thread (a mission task's)
-            self.path, group=name, consolidated=False, zarr_format=3, chunks=None
-        ).load()
-        from .planners.core import check_arrays
+            return out
 
-        try:  # once: every mission searches these arrays (planners.window.search_window)
-            safety, ridge_cells, passable = check_arrays(
-                ds["safety"].values,
-                ds["ridge"].values >= COARSE_RIDGE_FRACTION,
-                ds["passable"].values,
-            )
-        except InvalidParameterError as exc:
-            what = f"its coarse level {name} does not hold together ({exc})"
-            raise damaged(self.path, what) from None
-        res = {
-            "safety": safety,
-            "ridge": ds["ridge"].values,
-            "passable": passable,
-            "ridge_cells": ridge_cells,
-        }
-        with self._lock:
-            self._coarse[rho] = res
-        return res
+        def finish(ds):
+            from .planners.core import check_arrays
+
+            try:  # once: every mission searches these arrays (planners.window.search_window)
+                safety, ridge_cells, passable = check_arrays(
+                    ds["safety"].values,
+                    ds["ridge"].values >= COARSE_RIDGE_FRACTION,
+                    ds["passable"].values,
+                )
+            except InvalidParameterError as exc:
+                what = f"its coarse level {name} does not hold together ({exc})"
+                raise damaged(self.path, what) from None
+            return {
+                "safety": safety,
+                "ridge": ds["ridge"].values,
+                "passable": passable,
+                "ridge_cells": ridge_cells,
+            }
+
+        return self._reduced(rho, name, build, finish)
 
     def overview(self, factor: int) -> dict:
         """The elevation and ridge layers reduced by ``factor`` for pictures, as numpy arrays:
@@ -528,13 +523,8 @@ class MapsStore:
         factor = int(factor)
         if factor < 2:
             raise InvalidParameterError(f"an overview factor must be 2 or more, got {factor}")
-        key = ("overview", factor)
-        with self._lock:
-            got = self._coarse.get(key)
-        if got is not None:
-            return got
-        name = f"overview-f{factor}"
-        if not _coarse_written(self.path, name):
+
+        def build():
             # as float32: coarsen pads the partial blocks with NaN (a bool layer becomes an
             # object array), which the block mean and maximum pass over
             ds = self.dataset[["elevation", "ridge"]].astype("float32")
@@ -546,9 +536,30 @@ class MapsStore:
                 }
             ).compute()
             out.attrs.update(factor=factor, source="block mean of the elevation, ridge if any")
-            _write_coarse(out, self.path, name)
-        ds = xr.open_zarr(self.path, group=name, consolidated=False, zarr_format=3, chunks=None)
-        res = {"elevation": ds["elevation"].values, "ridge": ds["ridge"].values.astype(bool)}
+            return out
+
+        def finish(ds):
+            return {"elevation": ds["elevation"].values, "ridge": ds["ridge"].values.astype(bool)}
+
+        return self._reduced(("overview", factor), f"overview-f{factor}", build, finish)
+
+    def _reduced(self, key, name: str, build, finish) -> dict:
+        """A reduced level of the maps (:meth:`coarse`, :meth:`overview`), kept by this object
+        under ``key``: ``finish`` of group ``name`` of the store, read as numpy arrays in the
+        caller's thread (a mission task's), after writing it there once from ``build()`` when
+        it is not there yet (so that many missions and processes share it)."""
+        import xarray as xr
+
+        with self._lock:
+            got = self._coarse.get(key)
+        if got is not None:
+            return got
+        if not _coarse_written(self.path, name):
+            _write_coarse(build(), self.path, name)
+        ds = xr.open_zarr(
+            self.path, group=name, consolidated=False, zarr_format=3, chunks=None
+        ).load()
+        res = finish(ds)
         with self._lock:
             self._coarse[key] = res
         return res
