@@ -222,10 +222,12 @@ def _maps_of(z, tmp_path):
 
 
 @pytest.mark.parametrize("factor", [2, 4, 8])
-def test_overview_is_the_block_mean_of_the_elevation_and_any_ridge(tmp_path, factor):
-    """The pictures' overview of a maps store (sides not multiples of the factor, no-data
-    holes, one block wholly no-data) against numpy's block means and block any."""
-    z = random_surface((61, 43), seed=5, holes=True)
+@pytest.mark.parametrize("shape", [(61, 43), (49, 33)], ids=str)
+def test_overview_is_the_block_mean_of_the_elevation_and_any_ridge(tmp_path, factor, shape):
+    """The pictures' overview of a maps store (sides not multiples of the factor, chunks of 16
+    with a last chunk of one cell, no-data holes, one block wholly no-data) against numpy's
+    block means and block any."""
+    z = random_surface(shape, seed=5, holes=True)
     z[:8, :8] = np.nan  # a block with no elevation at all
     path = _maps_of(z, tmp_path)
     ds = pipeline.open_maps(path)
