@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import uuid
 import weakref
 from dataclasses import dataclass, field, replace
 from numbers import Integral
@@ -32,6 +33,7 @@ import numpy as np
 from numba import njit, types
 from numba.typed import Dict
 
+from ._share import Claims
 from ._threads import shared_pool
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
@@ -258,26 +260,60 @@ def _section_batch(store: MapsStore, sections: list, planner: str, omega: float)
     return [plan_section(store, sec, planner, omega) for sec in sections]
 
 
+def _shared_batch(
+    store: MapsStore, sections: list, planner: str, omega: float, token: str, me: int, bounds
+) -> list:
+    """Run ``me`` of ``sections`` (split at ``bounds``) in one task, then sections left in
+    the other runs, taken from their backs (:mod:`pipeline._share`): ``(index, result)``
+    pairs."""
+    out = []
+    with Claims(token, me, bounds) as claims:
+        while (i := claims.next()) is not None:
+            out.append((i, plan_section(store, sections[i], planner, omega)))
+    return out
+
+
 def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -> list:
     """Plan ``sections``; on a cluster as one task per worker thread, each a run of
-    consecutive sections (they share chunks, which the worker then decodes once). Measured
-    on 2 workers (benchmarks/RESULTS.md, "One mission"): two tasks per thread cost 30-40 %
-    more than one per thread (more round trips, and chunks decoded by both workers)."""
+    consecutive sections (they share chunks, which the worker then decodes once) that, once
+    done, takes sections left in the other runs (:mod:`pipeline._share`). Measured on 2
+    workers (benchmarks/RESULTS.md, "One mission"): two tasks per thread cost 30-40 % more
+    than one per thread (more round trips, and chunks decoded by both workers)."""
     if client == "synchronous":
         return _section_batch(store, sections, planner, omega)
     slots = max(1, sum(client.nthreads().values()))
     k = min(len(sections), slots)
-    bounds = np.linspace(0, len(sections), k + 1).round().astype(int)
-    batches = [sections[bounds[i] : bounds[i + 1]] for i in range(k)]
+    bounds = np.linspace(0, len(sections), k + 1).round().astype(int).tolist()
+    token = uuid.uuid4().hex
     futures = client.map(
-        _section_batch, [store] * k, batches, [planner] * k, [omega] * k, pure=False
+        _shared_batch,
+        [store] * k,
+        [sections] * k,
+        [planner] * k,
+        [omega] * k,
+        [token] * k,
+        range(k),
+        [bounds] * k,
+        pure=False,
     )
     # the previous call's tasks are released only now, behind these: see _HELD
     with _HELD_LOCK:
         previous = _HELD.get(client)
         _HELD[client] = futures
     del previous
-    return [r for part in client.gather(futures) for r in part]
+    results: list = [None] * len(sections)
+    for part in client.gather(futures):
+        for i, r in part:
+            results[i] = r
+    # a section claimed by a task that was lost with its worker (and run again elsewhere)
+    missing = [i for i, r in enumerate(results) if r is None]
+    if missing:
+        again = client.submit(
+            _section_batch, store, [sections[i] for i in missing], planner, omega, pure=False
+        )
+        for i, r in zip(missing, again.result(), strict=True):
+            results[i] = r
+    return results
 
 
 # The section tasks of the last call of ``_run`` per client, released by the next call after it

@@ -421,7 +421,7 @@ def test_a_mission_releases_the_last_ones_tasks_only_after_submitting_its_own(st
             self.log = []
 
         def transition(self, key, start, finish, *args, **kwargs):
-            if str(key).startswith("_section_batch"):
+            if str(key).startswith("_shared_batch"):
                 self.log.append((str(key), start, finish))
 
     goals = [(225 - 4 * i, 30 + 10 * i) for i in range(3)]
@@ -477,3 +477,98 @@ def test_local_cluster_workers_reuse_freed_memory(local_client):
     faults = local_client.run(_faults_reallocating, 2 * 2**20)
     assert len(faults) == 2
     assert all(f < 64 for f in faults.values()), faults
+
+
+# ------------------------------------------------------------------ work sharing between runs
+
+
+def _claim_all(token, me, bounds, barrier, pause_s):
+    """In a process of its own: open the claims of run ``me``, wait for the other runs' tasks,
+    then take sections (``pause_s`` each) until none is left; the sections taken, in order."""
+    import time
+
+    from pipeline._share import Claims
+
+    got = []
+    with Claims(token, me, bounds) as claims:
+        barrier.wait()
+        while (i := claims.next()) is not None:
+            got.append(i)
+            time.sleep(pause_s)
+    return got
+
+
+def test_runs_share_their_sections_between_processes_each_exactly_once():
+    """Two processes (real flock on one file): the fast one plans its run in order, then the
+    slow one's from its back; every section is taken exactly once, and the file is gone."""
+    import multiprocessing as mp
+    import os
+    import uuid
+    from concurrent.futures import ProcessPoolExecutor
+
+    from pipeline._share import Claims
+
+    token, bounds = uuid.uuid4().hex, [0, 10, 20]
+    ctx = mp.get_context("spawn")
+    with ctx.Manager() as manager, ProcessPoolExecutor(2, mp_context=ctx) as pool:
+        barrier = manager.Barrier(2)
+        fast = pool.submit(_claim_all, token, 0, bounds, barrier, 0.0)
+        slow = pool.submit(_claim_all, token, 1, bounds, barrier, 0.05)
+        fast, slow = fast.result(timeout=60), slow.result(timeout=60)
+    assert sorted(fast + slow) == list(range(20))  # each once
+    assert fast[:10] == list(range(10)) and len(fast) > 10  # its own run, then the slow one's
+    assert fast[10:] == list(range(19, 19 - len(fast[10:]), -1))  # from the back, contiguous
+    assert slow == list(range(10, 10 + len(slow)))  # its own run from the front, in order
+    assert not os.path.exists(Claims(token, 0, bounds).path)
+
+
+def test_a_run_whose_task_has_not_opened_the_claims_is_not_taken(tmp_path):
+    """A task alone (the other run's task on another host, or not started) plans its own run
+    only; a task that opens the claims after the first has gone starts afresh."""
+    import uuid
+
+    from pipeline._share import Claims
+
+    token, bounds = uuid.uuid4().hex, [0, 3, 7]
+    with Claims(token, 0, bounds) as c:
+        assert [c.next() for _ in range(4)] == [0, 1, 2, None]
+    with Claims(token, 1, bounds) as c:
+        assert [c.next() for _ in range(5)] == [3, 4, 5, 6, None]
+
+
+def test_sections_of_a_lost_task_are_planned_again(store, local_client, monkeypatch):
+    """A task that died after claiming sections (its worker lost) returns nothing for them:
+    the claims file says run 0's first two sections are taken, yet the mission has every
+    section, and the same path as in this process."""
+    import os
+    import uuid
+
+    import pipeline.mcpc as mcpc
+    from pipeline._share import Claims
+
+    ref = pipeline.plan(store, **MISSION, planner="lagrangian", client="synchronous", **SMALL)
+    n = len(ref.extra["sections"])
+    assert n >= 4
+    bounds = np.linspace(0, n, 3).round().astype(int).tolist()
+    token = uuid.uuid4().hex
+    lost = Claims(token, 0, bounds)
+    state = lost._empty()
+    state[0] += 2  # run 0's first two sections claimed by the lost task, which opened the file
+    state[2] = 1
+    with open(lost.path, "wb") as f:
+        f.write(state.tobytes())
+
+    class Fixed:
+        hex = token
+
+    monkeypatch.setattr(mcpc.uuid, "uuid4", lambda: Fixed)
+    try:
+        got = pipeline.plan(store, **MISSION, planner="lagrangian", client=local_client, **SMALL)
+    finally:
+        if os.path.exists(lost.path):
+            os.unlink(lost.path)
+    assert [s["window"] for s in got.extra["sections"]] == [
+        s["window"] for s in ref.extra["sections"]
+    ]
+    assert all(s["status"] == "ok" for s in got.extra["sections"])
+    assert np.array_equal(got.cells, ref.cells) and got.length_m == ref.length_m
