@@ -12,7 +12,6 @@ files in map coordinates are written (the Item says which were skipped).
 
 from __future__ import annotations
 
-import csv
 import functools
 import math
 import struct
@@ -53,29 +52,57 @@ def to_lonlat(crs_wkt: str | None, x, y):
     return np.asarray(lon), np.asarray(lat)
 
 
+@functools.lru_cache(maxsize=8)
+def _projjson(crs: str) -> dict:
+    """A CRS (WKT, or an authority code) as the PROJJSON dict GeoParquet metadata holds."""
+    from pyproj import CRS
+
+    return CRS.from_user_input(crs).to_json_dict()
+
+
+# a WKB point, little-endian: byte order 1, geometry type 1 (Point), x, y (21 bytes, packed)
+_WKB_POINT = np.dtype([("order", "u1"), ("type", "<u4"), ("x", "<f8"), ("y", "<f8")])
+
+
 def _write_points(path: Path, columns: dict, x, y, lonlat, crs_wkt) -> None:
-    """A GeoParquet file of point rows: ``columns`` and a WKB point geometry in WGS84 longitude
-    and latitude (``lonlat``), else in the maps' CRS (``x``, ``y``), with its CRS, geometry
-    type and bounding box in the file's metadata. Written from the coordinate arrays by
-    geoarrow (a shapely point per row, as geopandas makes them, took most of a track's write)."""
-    import geoarrow.pyarrow as ga
+    """A GeoParquet 1.0 file of point rows: ``columns`` and a WKB point geometry in WGS84
+    longitude and latitude (``lonlat``), else in the maps' CRS (``x``, ``y``; ``crs`` null
+    without one), with its CRS (PROJJSON), geometry type and bounding box in the file's
+    ``geo`` metadata. The points are laid out as WKB by numpy and the table written by pyarrow:
+    geoarrow-pyarrow's writer, which makes the same file (tests/test_flight.py), spends 3 ms
+    a file on its type bookkeeping, three times pyarrow's write of a 10000^2 mission's track."""
+    import json
+
     import pyarrow as pa
-    from geoarrow.pyarrow.io import write_geoparquet_table
+    import pyarrow.parquet as pq
 
     gx, gy = lonlat if lonlat is not None else (x, y)
-    geom = ga.point().from_geobuffers(
-        None, np.ascontiguousarray(gx, dtype=np.float64), np.ascontiguousarray(gy, dtype=np.float64)
+    gx = np.asarray(gx, dtype=np.float64)
+    gy = np.asarray(gy, dtype=np.float64)
+    n = len(gx)
+    wkb = np.empty(n, dtype=_WKB_POINT)
+    wkb["order"], wkb["type"], wkb["x"], wkb["y"] = 1, 1, gx, gy
+    offsets = np.arange(0, _WKB_POINT.itemsize * (n + 1), _WKB_POINT.itemsize, dtype=np.int32)
+    geometry = pa.Array.from_buffers(
+        pa.binary(), n, [None, pa.py_buffer(offsets), pa.py_buffer(wkb.view(np.uint8))]
     )
     crs = "EPSG:4326" if lonlat is not None else crs_wkt
-    if crs:  # as a string: geoarrow writes it as PROJJSON (a PROJJSON dict here was deep-copied
-        # at every step of the write, a third of it)
-        geom = ga.with_crs(geom, crs)
-    table = pa.table(
-        {**{k: np.asarray(v) for k, v in columns.items()}, "geometry": ga.as_wkb(geom)}
-    )
-    write_geoparquet_table(
-        table, path, write_bbox=True, write_geometry_types=True, check_wkb=False, **PARQUET_OPTIONS
-    )
+    bbox = [float(gx.min()), float(gy.min()), float(gx.max()), float(gy.max())] if n else []
+    geo = {
+        "version": "1.0.0",
+        "primary_column": "geometry",
+        "columns": {
+            "geometry": {
+                "encoding": "WKB",
+                "geometry_types": ["Point"],
+                "crs": _projjson(crs) if crs else None,
+                "bbox": bbox,
+            }
+        },
+    }
+    table = pa.table({**{k: np.asarray(v) for k, v in columns.items()}, "geometry": geometry})
+    table = table.replace_schema_metadata({"geo": json.dumps(geo)})
+    pq.write_table(table, path, **PARQUET_OPTIONS)
 
 
 def write_track(path: Path, flight, crs_wkt: str | None, lonlat=None) -> None:
@@ -122,52 +149,54 @@ def waypoint_table(flight, sea_level: float, lonlat) -> dict:
     }
 
 
+def _lists(table: dict, *keys) -> list:
+    """Columns of a table as lists of Python floats: a million times quicker to format one by
+    one than numpy scalars are (the files' text is written value by value)."""
+    return [np.asarray(table[k], dtype=np.float64).tolist() for k in keys]
+
+
 def write_waypoints_csv(path: Path, table: dict) -> None:
-    """lat, lon, depth_m, altitude_m, speed_m_s, time_s (x_m, y_m without a CRS)."""
+    """lat, lon, depth_m, altitude_m, speed_m_s, time_s (x_m, y_m without a CRS); rows end
+    with CRLF (RFC 4180)."""
     geo = table["lat"] is not None
     head = ["lat", "lon"] if geo else ["x_m", "y_m"]
-    a, b = (table["lat"], table["lon"]) if geo else (table["x"], table["y"])
+    row = ("{:.8f},{:.8f}" if geo else "{:.2f},{:.2f}") + ",{:.2f},{:.2f},{:g},{:.1f}"
+    a, b, depth, alt, speed, tt = _lists(
+        table,
+        *(("lat", "lon") if geo else ("x", "y")),
+        "depth_m",
+        "altitude_m",
+        "speed_m_s",
+        "time_s",
+    )
+    lines = [",".join(head + ["depth_m", "altitude_m", "speed_m_s", "time_s"])]
+    lines += [row.format(a[k], b[k], depth[k], alt[k], speed[k], tt[k]) for k in range(len(a))]
     with open(path, "w", newline="") as fh:
-        out = csv.writer(fh)
-        out.writerow(head + ["depth_m", "altitude_m", "speed_m_s", "time_s"])
-        for k in range(len(table["index"])):
-            out.writerow(
-                [
-                    f"{a[k]:.8f}" if geo else f"{a[k]:.2f}",
-                    f"{b[k]:.8f}" if geo else f"{b[k]:.2f}",
-                    f"{table['depth_m'][k]:.2f}",
-                    f"{table['altitude_m'][k]:.2f}",
-                    f"{table['speed_m_s'][k]:g}",
-                    f"{table['time_s'][k]:.1f}",
-                ]
-            )
+        fh.write("\r\n".join(lines) + "\r\n")
 
 
 def waypoints_geojson(table: dict) -> dict:
     """RFC 7946 (WGS84 lon, lat, height in metres, positive up): one Point per waypoint with
     its depth, altitude, speed and time, and the route as a LineString."""
-    feats = []
-    coords = []
-    for k in range(len(table["index"])):
-        c = [
-            round(float(table["lon"][k]), 8),
-            round(float(table["lat"][k]), 8),
-            round(float(table["z"][k]), 2),
-        ]
-        coords.append(c)
-        feats.append(
-            {
-                "type": "Feature",
-                "geometry": {"type": "Point", "coordinates": c},
-                "properties": {
-                    "index": int(table["index"][k]),
-                    "depth_m": round(float(table["depth_m"][k]), 2),
-                    "altitude_m": round(float(table["altitude_m"][k]), 2),
-                    "speed_m_s": float(table["speed_m_s"][k]),
-                    "time_s": round(float(table["time_s"][k]), 1),
-                },
-            }
-        )
+    lon, lat, z, depth, alt, speed, tt = _lists(
+        table, "lon", "lat", "z", "depth_m", "altitude_m", "speed_m_s", "time_s"
+    )
+    index = np.asarray(table["index"]).tolist()
+    coords = [[round(lon[k], 8), round(lat[k], 8), round(z[k], 2)] for k in range(len(lon))]
+    feats = [
+        {
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": coords[k]},
+            "properties": {
+                "index": int(index[k]),
+                "depth_m": round(depth[k], 2),
+                "altitude_m": round(alt[k], 2),
+                "speed_m_s": speed[k],
+                "time_s": round(tt[k], 1),
+            },
+        }
+        for k in range(len(lon))
+    ]
     feats.append(
         {
             "type": "Feature",
@@ -188,21 +217,14 @@ def qgc_wpl(table: dict, acceptance_m: float) -> str:
     the frame relative to home, altitude ``-depth_m`` (ArduSub: negative is below the
     surface), acceptance radius ``acceptance_m``. 12 tab-separated fields per row: index,
     current, frame, command, param1-4, latitude, longitude, altitude, autocontinue."""
-    rows = ["QGC WPL 110"]
-
-    def row(i, current, frame, lat, lon, alt, p2):
-        fields = [i, current, frame, _NAV_WAYPOINT, 0, p2, 0, 0]
-        return "\t".join(
-            [str(v) if isinstance(v, int) else f"{v:g}" for v in fields]
-            + [f"{lat:.8f}", f"{lon:.8f}", f"{alt:.2f}", "1"]
-        )
-
-    lat, lon = table["lat"], table["lon"]
-    rows.append(row(0, 1, _FRAME_GLOBAL, lat[0], lon[0], 0.0, 0.0))
-    for k in range(len(lat)):
-        rows.append(
-            row(k + 1, 0, _FRAME_RELATIVE_ALT, lat[k], lon[k], -table["depth_m"][k], acceptance_m)
-        )
+    lat, lon, depth = _lists(table, "lat", "lon", "depth_m")
+    # index, current, frame, command, param1, param2 (acceptance), param3, param4, lat, lon, alt
+    fixed = f"{_NAV_WAYPOINT}\t0\t"  # command, param1
+    place = "\t0\t0\t{:.8f}\t{:.8f}\t"  # param3, param4, latitude, longitude
+    home = f"0\t1\t{_FRAME_GLOBAL}\t{fixed}0" + place + "0.00\t1"
+    row = "{}" + f"\t0\t{_FRAME_RELATIVE_ALT}\t{fixed}{acceptance_m:g}" + place + "{:.2f}\t1"
+    rows = ["QGC WPL 110", home.format(lat[0], lon[0])]
+    rows += [row.format(k + 1, lat[k], lon[k], -depth[k]) for k in range(len(lat))]
     return "\n".join(rows) + "\n"
 
 
@@ -213,9 +235,14 @@ def kml(name: str, flight, table: dict, lonlat_track) -> bytes:
     # is track.parquet)
     n = len(flight.z)
     keep = np.unique(np.append(np.arange(0, n, max(1, -(-n // KML_TRACK_POINTS))), n - 1))
+    route = _coords(table["lon"], table["lat"], table["z"])
     lines = (
-        ("flown track", "#track", lonlat_track[0][keep], lonlat_track[1][keep], flight.z[keep]),
-        ("waypoint route", "#route", table["lon"], table["lat"], table["z"]),
+        (
+            "flown track",
+            "#track",
+            _coords(lonlat_track[0][keep], lonlat_track[1][keep], flight.z[keep]),
+        ),
+        ("waypoint route", "#route", route),
     )
     out = [
         '<?xml version="1.0" encoding="UTF-8"?>',
@@ -227,31 +254,28 @@ def kml(name: str, flight, table: dict, lonlat_track) -> bytes:
             f'<Style id="{sid}"><LineStyle><color>{colour}</color><width>{width}</width>'
             "</LineStyle></Style>"
         )
-    for title, style, lo, la, zz in lines:
+    for title, style, coords in lines:
         out.append(
             f"<Placemark><name>{title}</name><styleUrl>{style}</styleUrl><LineString>"
-            f"<altitudeMode>absolute</altitudeMode><coordinates>{_coords(lo, la, zz)}"
+            f"<altitudeMode>absolute</altitudeMode><coordinates>{' '.join(coords)}"
             "</coordinates></LineString></Placemark>"
         )
     out.append("<Folder><name>waypoints</name>")
-    depth, alt, tt = (
-        np.asarray(table[k], dtype=np.float64).tolist() for k in ("depth_m", "altitude_m", "time_s")
+    depth, alt, tt = _lists(table, "depth_m", "altitude_m", "time_s")
+    mark = (
+        "<Placemark><name>WP{}</name><description>depth {:.0f} m, altitude {:.0f} m, t = {:.0f} s"
+        "</description><Point><altitudeMode>absolute</altitudeMode><coordinates>{}"
+        "</coordinates></Point></Placemark>"
     )
-    coords = _coords(table["lon"], table["lat"], table["z"]).split(" ")
-    for k, c in enumerate(coords):
-        out.append(
-            f"<Placemark><name>WP{k}</name><description>depth {depth[k]:.0f} m, altitude "
-            f"{alt[k]:.0f} m, t = {tt[k]:.0f} s</description><Point><altitudeMode>absolute"
-            f"</altitudeMode><coordinates>{c}</coordinates></Point></Placemark>"
-        )
+    out += [mark.format(k, depth[k], alt[k], tt[k], c) for k, c in enumerate(route)]
     out.append("</Folder></Document></kml>")
     return "\n".join(out).encode("utf-8")
 
 
-def _coords(lon, lat, z) -> str:
-    """KML coordinates: ``lon,lat,height`` tuples separated by spaces."""
+def _coords(lon, lat, z) -> list:
+    """KML coordinates: a ``lon,lat,height`` tuple per point (joined by spaces in a line)."""
     lon, lat, z = (np.asarray(v, dtype=np.float64).tolist() for v in (lon, lat, z))
-    return " ".join(f"{a:.8f},{b:.8f},{c:.1f}" for a, b, c in zip(lon, lat, z, strict=True))
+    return list(map("{:.8f},{:.8f},{:.1f}".format, lon, lat, z))
 
 
 # ---------------------------------------------------------------- IMC (LSTS), binary

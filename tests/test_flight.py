@@ -602,3 +602,44 @@ def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, 
         near = d2 <= 120.0**2
         ref = np.max(z[near] + np.sqrt(120.0**2 - d2[near])) if near.any() else -np.inf
         assert h[k] == pytest.approx(ref, rel=0, abs=1e-9)
+
+
+@pytest.mark.parametrize("crs", ["lonlat", "map CRS", "none"])
+def test_point_geoparquet_is_the_file_geoarrow_writes(tmp_path, crs):
+    """The track and grid path files' writer against geoarrow-pyarrow's GeoParquet writer on
+    the same columns and points: the same `geo` metadata (version, geometry type, CRS as
+    PROJJSON or null, bounding box), the same WKB points, the same columns."""
+    import json
+
+    import geoarrow.pyarrow as ga
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    import pyproj
+    from geoarrow.pyarrow.io import write_geoparquet_table
+
+    rng = np.random.default_rng(5)
+    n = 1001
+    x, y = rng.uniform(1e5, 2e5, n), rng.uniform(3e6, 3.1e6, n)
+    cols = {"x": x, "y": y, "z": rng.normal(-2000, 300, n), "row": np.arange(n)}
+    wkt = pyproj.CRS.from_epsg(32623).to_wkt()
+    lonlat = pyproj.Transformer.from_crs(wkt, 4326, always_xy=True).transform(x, y)
+    gx, gy, given, ref_crs = {
+        "lonlat": (*lonlat, lonlat, "EPSG:4326"),
+        "map CRS": (x, y, None, wkt),
+        "none": (x, y, None, None),
+    }[crs]
+    exports._write_points(
+        tmp_path / "ours.parquet", cols, x, y, given, None if crs == "none" else wkt
+    )
+    geom = ga.point().from_geobuffers(None, np.asarray(gx), np.asarray(gy))
+    if ref_crs:
+        geom = ga.with_crs(geom, ref_crs)
+    ref = pa.table({**cols, "geometry": ga.as_wkb(geom)})
+    write_geoparquet_table(
+        ref, tmp_path / "ref.parquet", write_bbox=True, write_geometry_types=True
+    )
+    ours, theirs = pq.read_table(tmp_path / "ours.parquet"), pq.read_table(tmp_path / "ref.parquet")
+    meta = [json.loads(t.schema.metadata[b"geo"]) for t in (ours, theirs)]
+    assert meta[0] == meta[1]
+    for name in (*cols, "geometry"):
+        assert ours.column(name).to_pylist() == theirs.column(name).to_pylist(), name
