@@ -234,7 +234,9 @@ def kml(name: str, flight, table: dict, lonlat_track) -> bytes:
     # the flown track at most KML_TRACK_POINTS vertices (a line for the eye; the exact track
     # is track.parquet)
     n = len(flight.z)
-    keep = np.unique(np.append(np.arange(0, n, max(1, -(-n // KML_TRACK_POINTS))), n - 1))
+    keep = np.arange(0, n, max(1, -(-n // KML_TRACK_POINTS)))
+    if keep[-1] != n - 1:
+        keep = np.append(keep, n - 1)
     route = _coords(table["lon"], table["lat"], table["z"])
     lines = (
         (
@@ -313,13 +315,19 @@ def _text(s: str) -> bytes:
     return struct.pack("<H", len(b)) + b
 
 
+@functools.lru_cache(maxsize=1)
+def _to_ecef():
+    """WGS84 longitude, latitude and ellipsoidal height to ECEF (made once: 0.3 ms)."""
+    from pyproj import Transformer
+
+    return Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+
+
 def ned_offsets(lat0, lon0, lat, lon):
     """North and east offsets (metres) of points from a reference, on the WGS84 ellipsoid:
     the ECEF difference rotated into the reference's local north-east-down frame (as DUNE
     displaces positions)."""
-    from pyproj import Transformer
-
-    tr = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+    tr = _to_ecef()
     x0, y0, z0 = tr.transform(lon0, lat0, 0.0)
     x, y, z = tr.transform(np.asarray(lon), np.asarray(lat), np.zeros(len(lat)))
     dx, dy, dz = np.asarray(x) - x0, np.asarray(y) - y0, np.asarray(z) - z0
