@@ -22,6 +22,7 @@ Defaults (all in fine cells; ``a`` is the cell size in metres):
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 import uuid
@@ -209,8 +210,9 @@ class SectionResult:
         return self.status == "ok"
 
 
-def plan_section(store: MapsStore, section: Section, planner: str, omega: float) -> SectionResult:
-    """Plan one section on its window, read from the store by this process (a dask task)."""
+def read_section(store: MapsStore, section: Section) -> tuple:
+    """The layers of a section's window (safety, ridge, passable, the landmark layers or None)
+    read from the store by this process, and the seconds the reads took."""
     r0, r1, c0, c1 = (int(v) for v in section.window)
     t0 = time.perf_counter()
     surface = store.window("safety", r0, r1, c0, c1)
@@ -224,7 +226,16 @@ def plan_section(store: MapsStore, section: Section, planner: str, omega: float)
                 for i in store.active_landmarks(section.start, section.goal, section.landmarks)
             ]
         )
-    read_s = time.perf_counter() - t0
+    return (surface, ridge, ok, lm), time.perf_counter() - t0
+
+
+def plan_section(
+    store: MapsStore, section: Section, planner: str, omega: float, read=None
+) -> SectionResult:
+    """Plan one section on its window, read from the store by this process (a dask task), or
+    given as ``read`` (what :func:`read_section` returned)."""
+    r0, r1, c0, c1 = (int(v) for v in section.window)
+    (surface, ridge, ok, lm), read_s = read_section(store, section) if read is None else read
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
@@ -256,8 +267,45 @@ def plan_section(store: MapsStore, section: Section, planner: str, omega: float)
 
 
 def _section_batch(store: MapsStore, sections: list, planner: str, omega: float) -> list:
-    """Several consecutive sections in one task (they share chunks; one task's overhead)."""
-    return [plan_section(store, sec, planner, omega) for sec in sections]
+    """Several consecutive sections in one task (they share chunks; one task's overhead). Out
+    of a dask worker, each next window is read by a helper thread while this one is searched
+    (the searches and the reads release the GIL): on the spare core of a process that plans
+    alone, ``client="synchronous"``, a 10000^2 mission took 60 ms instead of 66
+    (benchmarks/RESULTS.md, "One mission"). A worker's threads are the cluster's parallelism,
+    so a task plans its sections with its own thread only; so does a batch that finds the
+    helper busy with another (``plan_missions`` in client threads)."""
+    if len(sections) < 2 or _in_worker() or not _READER.acquire(blocking=False):
+        return [plan_section(store, sec, planner, omega) for sec in sections]
+    ahead = None
+    try:
+        pool = shared_pool("section-reads", 1)
+        out = []
+        ahead = pool.submit(read_section, store, sections[0])
+        for k, sec in enumerate(sections):
+            read = ahead.result()
+            if k + 1 < len(sections):
+                ahead = pool.submit(read_section, store, sections[k + 1])
+            out.append(plan_section(store, sec, planner, omega, read))
+        return out
+    finally:
+        if ahead is not None:
+            ahead.cancel()  # a batch that stopped early (an error) leaves no read queued
+        _READER.release()
+
+
+_READER = threading.Lock()  # held by the batch whose windows the helper thread reads
+
+
+def _in_worker() -> bool:
+    """Whether this thread runs a dask worker's task."""
+    distributed = sys.modules.get("distributed")
+    if distributed is None:
+        return False
+    try:
+        distributed.get_worker()
+    except ValueError:
+        return False
+    return True
 
 
 def _shared_batch(

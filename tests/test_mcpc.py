@@ -572,3 +572,37 @@ def test_sections_of_a_lost_task_are_planned_again(store, local_client, monkeypa
     ]
     assert all(s["status"] == "ok" for s in got.extra["sections"])
     assert np.array_equal(got.cells, ref.cells) and got.length_m == ref.length_m
+
+
+def test_a_batch_in_this_process_reads_each_next_window_in_a_helper_thread(store, monkeypatch):
+    """Out of a dask worker the windows of a run of sections are read by the helper thread,
+    each while the one before is searched; the results are those of planning each section
+    on its own. A second batch at the same time reads its own (the helper is taken)."""
+    import threading
+
+    import pipeline.mcpc as mcpc
+
+    ref = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
+    sections = [
+        Section(tuple(s["window"]), tuple(s["start"]), tuple(s["goal"]))
+        for s in ref.extra["sections"]
+    ]
+    assert len(sections) >= 3
+    m = pipeline.open_store(store)
+    real, readers = mcpc.read_section, []
+
+    def read_section(st, sec):
+        readers.append(threading.current_thread().name)
+        return real(st, sec)
+
+    monkeypatch.setattr(mcpc, "read_section", read_section)
+    got = mcpc._section_batch(m, sections, "astar", 1.5)
+    assert all(name.startswith("pipeline-section-reads") for name in readers), readers
+    assert len(readers) == len(sections)
+    alone = [mcpc.plan_section(m, sec, "astar", 1.5) for sec in sections]
+    for a, b in zip(got, alone, strict=True):
+        assert a.ok and np.array_equal(a.cells, b.cells) and a.length_m == b.length_m
+    readers.clear()
+    with mcpc._READER:  # another batch holds the helper: this one reads in its own thread
+        mcpc._section_batch(m, sections, "astar", 1.5)
+    assert readers == [threading.current_thread().name] * len(sections)
