@@ -446,3 +446,26 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
                 z, ridge, passable, 30.0, *s, *g, 1.0, w, True, np.zeros((0, 0), np.float32), hoff
             )
             assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 257])
+def test_path_steps_are_the_3d_lengths_bit_for_bit(n):
+    """Every step's length against the formula evaluated by Python's own floats, step by step
+    (sqrt(a a (dr dr + dc dc) + dz dz) with dz in double precision; ``x ** 2`` is C's pow,
+    which may differ from ``x * x`` in the last bit): equal to the last bit, for
+    float32 and float64 heights, integer cells of either width, several cell sizes."""
+    from pipeline.planners.core import path_steps
+
+    rng = np.random.default_rng(n)
+    cells = np.cumsum(rng.integers(-2, 3, (n, 2)), axis=0)
+    for z in (rng.normal(-2000, 300, n).astype(np.float32), rng.normal(-2000, 300, n)):
+        for a in (30.0, 1.0 / 3, 92.6):
+            for dtype in (np.int64, np.int32):
+                got = path_steps(cells.astype(dtype), z, a)
+                want = []
+                for (r0, c0), (r1, c1), z0, z1 in zip(
+                    cells[:-1], cells[1:], z[:-1], z[1:], strict=True
+                ):
+                    dr, dc, dz = int(r1) - int(r0), int(c1) - int(c0), float(z1) - float(z0)
+                    want.append(math.sqrt(a * a * float(dr * dr + dc * dc) + dz * dz))
+                assert got.dtype == np.float64 and got.tolist() == want, (n, a, dtype)
