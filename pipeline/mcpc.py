@@ -27,6 +27,7 @@ import threading
 import time
 import uuid
 import weakref
+from collections import deque
 from dataclasses import dataclass, field, replace
 from numbers import Integral
 
@@ -38,9 +39,10 @@ from ._share import Claims
 from ._threads import shared_pool
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
-from .params import PLANNING, check_planner
+from .params import CELL_SIZE, PLANNING, check_planner
 from .planners.core import (
     Trajectory,
+    check_arrays,
     heuristic,
     nearest_passable,
     not_passable_error,
@@ -48,7 +50,7 @@ from .planners.core import (
     path_metrics,
 )
 from .planners.registry import PLANNERS
-from .planners.window import plan_window, search_window
+from .planners.window import search_window
 from .store import MapsStore, open_store
 
 __all__ = [
@@ -112,17 +114,17 @@ def segment(points: np.ndarray, section_size: int, margin: int, shape) -> list:
     of ``(i0, i1, (r0, r1, c0, c1))``: the indices of the section's first and last point in
     ``points`` and its window (half-open, clipped to the map).
     """
-    pts = np.asarray(points)
+    pts = np.asarray(points, dtype=np.int64).tolist()  # Python ints: quick one at a time
     n = len(pts)
     out = []
     i0 = 0
     while i0 < n - 1:
-        rmin = rmax = int(pts[i0, 0])
-        cmin = cmax = int(pts[i0, 1])
+        rmin = rmax = pts[i0][0]
+        cmin = cmax = pts[i0][1]
         j = i0
         while j < n - 1:
             j += 1
-            r, c = int(pts[j, 0]), int(pts[j, 1])
+            r, c = pts[j]
             rmin, rmax = min(rmin, r), max(rmax, r)
             cmin, cmax = min(cmin, c), max(cmax, c)
             if max(rmax - rmin, cmax - cmin) >= section_size:
@@ -211,8 +213,12 @@ class SectionResult:
 
 
 def read_section(store: MapsStore, section: Section) -> tuple:
-    """The layers of a section's window (safety, ridge, passable, the landmark layers or None)
-    read from the store by this process, and the seconds the reads took."""
+    """The layers of a section's window read from the store by this process and checked
+    (:func:`~pipeline.planners.core.check_arrays`), with the seconds that took: ``((safety,
+    ridge, passable, the landmark layers or None), seconds)``, or ``(the error, seconds)``
+    when the layers fail the check. Checked here, where they are read: in one process that is
+    the helper thread of :func:`_section_batch`, on the core whose cache holds them (the check
+    took 30 us a section on the searching core)."""
     r0, r1, c0, c1 = (int(v) for v in section.window)
     t0 = time.perf_counter()
     surface = store.window("safety", r0, r1, c0, c1)
@@ -226,6 +232,10 @@ def read_section(store: MapsStore, section: Section) -> tuple:
                 for i in store.active_landmarks(section.start, section.goal, section.landmarks)
             ]
         )
+    try:
+        surface, ridge, ok = check_arrays(surface, ridge, ok)
+    except PipelineError as e:
+        return e, time.perf_counter() - t0
     return (surface, ridge, ok, lm), time.perf_counter() - t0
 
 
@@ -233,23 +243,19 @@ def plan_section(
     store: MapsStore, section: Section, planner: str, omega: float, read=None
 ) -> SectionResult:
     """Plan one section on its window, read from the store by this process (a dask task), or
-    given as ``read`` (what :func:`read_section` returned)."""
+    given as ``read`` (what :func:`read_section` returned): :func:`pipeline.plan_window`'s
+    checks and search, the layers checked by :func:`read_section`."""
     r0, r1, c0, c1 = (int(v) for v in section.window)
-    (surface, ridge, ok, lm), read_s = read_section(store, section) if read is None else read
+    layers, read_s = read_section(store, section) if read is None else read
+    if isinstance(layers, PipelineError):
+        return SectionResult("failed", section.window, message=str(layers), read_s=read_s)
+    surface, ridge, ok, lm = layers
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
-        t = plan_window(
-            surface,
-            ridge,
-            ok,
-            s,
-            g,
-            cell_size=store.cell_size,
-            planner=planner,
-            omega=omega,
-            landmarks=lm,
-        )
+        planner, omega = check_planner(planner, omega)
+        a = CELL_SIZE.check(store.cell_size)
+        t = search_window(surface, ridge, ok, s, g, a, planner, omega, landmarks=lm)
     except PipelineError as e:
         return SectionResult("failed", section.window, message=str(e), read_s=read_s)
     return SectionResult(
@@ -268,29 +274,36 @@ def plan_section(
 
 def _section_batch(store: MapsStore, sections: list, planner: str, omega: float) -> list:
     """Several consecutive sections in one task (they share chunks; one task's overhead). Out
-    of a dask worker, each next window is read by a helper thread while this one is searched
-    (the searches and the reads release the GIL): on the spare core of a process that plans
-    alone, ``client="synchronous"``, a 10000^2 mission took 60 ms instead of 66
+    of a dask worker, the next windows (:data:`READ_AHEAD`) are read and checked by a helper
+    thread while this one is searched (the searches and the reads release the GIL): on the
+    spare core of a process that plans alone, ``client="synchronous"``, a 10000^2 mission's
+    fixed cost (its time less its sections' searches) went from 20 ms to 10
     (benchmarks/RESULTS.md, "One mission"). A worker's threads are the cluster's parallelism,
     so a task plans its sections with its own thread only; so does a batch that finds the
     helper busy with another (``plan_missions`` in client threads)."""
     if len(sections) < 2 or _in_worker() or not _READER.acquire(blocking=False):
         return [plan_section(store, sec, planner, omega) for sec in sections]
-    ahead = None
+    ahead: deque = deque()  # the reads queued, READ_AHEAD at most
     try:
         pool = shared_pool("section-reads", 1)
         out = []
-        ahead = pool.submit(read_section, store, sections[0])
+        for k in range(min(READ_AHEAD, len(sections))):
+            ahead.append(pool.submit(read_section, store, sections[k]))
         for k, sec in enumerate(sections):
-            read = ahead.result()
-            if k + 1 < len(sections):
-                ahead = pool.submit(read_section, store, sections[k + 1])
+            read = ahead.popleft().result()
+            if k + READ_AHEAD < len(sections):
+                ahead.append(pool.submit(read_section, store, sections[k + READ_AHEAD]))
             out.append(plan_section(store, sec, planner, omega, read))
         return out
     finally:
-        if ahead is not None:
-            ahead.cancel()  # a batch that stopped early (an error) leaves no read queued
+        for fut in ahead:
+            fut.cancel()  # a batch that stopped early (an error) leaves no read queued
         _READER.release()
+
+
+# windows read ahead of the section being searched: with one, a search shorter than the next
+# read waited for it (3.8 ms a 10000^2 mission)
+READ_AHEAD = 2
 
 
 _READER = threading.Lock()  # held by the batch whose windows the helper thread reads

@@ -606,3 +606,28 @@ def test_a_batch_in_this_process_reads_each_next_window_in_a_helper_thread(store
     with mcpc._READER:  # another batch holds the helper: this one reads in its own thread
         mcpc._section_batch(m, sections, "astar", 1.5)
     assert readers == [threading.current_thread().name] * len(sections)
+
+
+@pytest.mark.parametrize("client", ["synchronous", "cluster"])
+def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
+    store, tmp_path, client, local_client
+):
+    """The layers of a section's window are checked where they are read (a helper thread in
+    one process, the task on a worker): a NaN safety height at a passable cell on the path
+    fails the section with the reason, and the mission after its retries, in one line."""
+    import shutil
+
+    import zarr
+
+    ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
+    copy = tmp_path / "maps.zarr"
+    shutil.copytree(store, copy)
+    arr = zarr.open_array(copy / "safety", mode="r+")
+    r, c = (int(v) for v in ref.cells[len(ref.cells) // 2])
+    arr[r, c] = np.nan
+    run_on = local_client if client == "cluster" else "synchronous"
+    with pytest.raises(
+        pipeline.UnreachableGoalError, match=r"NaN or infinite at passable cell"
+    ) as err:
+        pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client=run_on, **SMALL)
+    assert "\n" not in str(err.value)
