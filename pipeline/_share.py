@@ -17,7 +17,7 @@ section at a time, so that what each task plans stays contiguous. A claim costs 
 Tasks take from each other only once both have opened the file: workers on other hosts (or
 in other containers) see no file of ours and each plans just its own run, as without sharing;
 the results are the same either way. A task that dies after a claim (a lost worker) leaves
-its claimed sections unplanned: :func:`pipeline.mcpc` plans any missing section again. The
+its claimed sections unplanned: :mod:`pipeline.mcpc` plans any missing section again. The
 last task to finish removes the file.
 """
 
