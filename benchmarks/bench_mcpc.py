@@ -597,13 +597,18 @@ def t6_part(rep, client, n):
         "t6",
         52,
         f"Table 6: {n}^2, omega 2, 3 long missions",
-        f"{min(r[2] for r in rows if r[1].startswith('ra_star')):.2f}-"
-        f"{max(r[2] for r in rows if r[1].startswith('ra_star')):.2f} s",
+        _span([r[2] for r in rows if r[1].startswith("ra_star")]),
         paper="RA* 3.12 s; WA* 25.4 s",
         peer=f"pyastar2d: {faster_range(py, [1.0] * len(py))}; wastar: "
         f"{faster_range(wa, [1.0] * len(wa))}",
         target="3x faster than pyastar2d",
     )
+
+
+def _span(seconds) -> str:
+    """``"a-b s"`` for the range of ``seconds`` at two decimals, one value when they print alike."""
+    lo, hi = f"{min(seconds):.2f}", f"{max(seconds):.2f}"
+    return f"{lo} s" if lo == hi else f"{lo}-{hi} s"
 
 
 def case_part(rep, figs, store, t, res):
