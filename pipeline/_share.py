@@ -57,8 +57,7 @@ class Claims:
         self.me = me
         self.path = os.path.join(_directory(), f"auv-pipeline-sections-{token}")
         self.fd = None
-        self.own = (self.bounds[me], self.bounds[me + 1])
-        self.next_own = self.own[0]  # without a file: this run alone, in order
+        self.mine = None  # the state without a shared file: no other run opened, this one alone
 
     def __enter__(self):
         if fcntl is not None:
@@ -87,11 +86,6 @@ class Claims:
 
     def next(self) -> int | None:
         """The next section for this task to plan, or None when none is left for it."""
-        if self.fd is None:
-            if self.next_own < self.own[1]:
-                self.next_own += 1
-                return self.next_own - 1
-            return None
         try:
             return self._claim()
         except OSError:  # the file failed us: stop here; what is left is planned again
@@ -136,12 +130,17 @@ class Claims:
 
 
 class _Locked:
-    """The claims' state, read under an exclusive lock and written back on exit."""
+    """The claims' state, read under an exclusive lock and written back on exit (without a
+    shared file, the task's own copy)."""
 
     def __init__(self, claims: Claims):
         self.c = claims
 
     def __enter__(self) -> np.ndarray:
+        if self.c.fd is None:
+            if self.c.mine is None:
+                self.c.mine = self.c._empty()
+            return self.c.mine
         fcntl.flock(self.c.fd, fcntl.LOCK_EX)
         size = 8 * (3 * self.c.k + 1)
         raw = os.pread(self.c.fd, size, 0)
@@ -151,6 +150,8 @@ class _Locked:
         return self.st
 
     def __exit__(self, *exc):
+        if self.c.fd is None:
+            return False
         try:
             if exc[0] is None:
                 os.pwrite(self.c.fd, self.st.tobytes(), 0)

@@ -631,3 +631,20 @@ def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
     ) as err:
         pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client=run_on, **SMALL)
     assert "\n" not in str(err.value)
+
+
+def test_without_a_shared_file_a_task_plans_its_own_run(monkeypatch, tmp_path):
+    """No flock (not POSIX) or no writable directory: each task plans its own run, in order,
+    and leaves no file."""
+    import uuid
+
+    import pipeline._share as share
+
+    token, bounds = uuid.uuid4().hex, [0, 3, 7]
+    monkeypatch.setattr(share, "fcntl", None)
+    with share.Claims(token, 1, bounds) as c:
+        assert [c.next() for _ in range(6)] == [3, 4, 5, 6, None, None]
+    monkeypatch.undo()
+    monkeypatch.setattr(share, "_directory", lambda: str(tmp_path / "missing"))
+    with share.Claims(token, 0, bounds) as c:
+        assert c.fd is None and [c.next() for _ in range(4)] == [0, 1, 2, None]
