@@ -253,17 +253,56 @@ def _off_ridge(rdg, slot, tr, tc, ar, ac, br, bc):
 
 
 @njit(inline="always", cache=True)
-def _leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, share=0.02):
-    if not _line_usable(pas, slot, tr, tc, rows, cols, pad, pr[i], pc[i], pr[j], pc[j]):
-        return False
-    # no more off-ridge length than the path between them (half a cell of slack, more with a
-    # larger ``share``), nor an off-ridge share larger by more than ``share``
-    seg = _off_ridge(rdg, slot, tr, tc, pr[i], pc[i], pr[j], pc[j])
+def leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, share=0.02):
+    """Whether the straight leg from vertex ``i`` to ``j`` crosses only usable cells
+    (:func:`_line_usable`) and flies no more off the ridge cells (:func:`_off_ridge`) than the
+    path between them (half a cell of slack, more with a larger ``share``), nor an off-ridge
+    share larger by more than ``share``. One walk along the leg, both functions' samples in
+    turn, that stops at the first unusable cell or once the off-ridge length so far is over
+    either limit (it only grows): the same answer as the two functions', sooner when it is no
+    (most probes of a leg too long)."""
+    ar = pr[i]
+    ac = pc[i]
+    dr = pr[j] - ar
+    dc = pc[j] - ac
     path = off[j] - off[i]
-    ln = math.hypot(pr[j] - pr[i], pc[j] - pc[i])
-    if seg > path + 0.5 + share * ln:
-        return False
-    return seg / ln <= path / (along[j] - along[i]) + share
+    ln = math.hypot(dr, dc)
+    most = path + 0.5 + share * ln
+    rate = path / (along[j] - along[i]) + share
+    n = max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
+    piece = math.hypot(dr, dc) / n
+    seg = 0.0
+    pi = -(10**9)
+    pj = -(10**9)
+    for k in range(n + 1):
+        t = k / n
+        i1 = int(math.floor(ar + t * dr + 0.5))
+        j1 = int(math.floor(ac + t * dc + 0.5))
+        if i1 != pi or j1 != pj:
+            if not _usable(pas, slot, tr, tc, rows, cols, pad, i1, j1):
+                return False
+            if k > 0 and i1 != pi and j1 != pj:
+                if not (
+                    _usable(pas, slot, tr, tc, rows, cols, pad, pi, j1)
+                    and _usable(pas, slot, tr, tc, rows, cols, pad, i1, pj)
+                ):
+                    return False
+            pi = i1
+            pj = j1
+        if k == n:
+            break
+        t = (k + 0.5) / n
+        i2 = int(math.floor(ar + t * dr + 0.5))
+        j2 = int(math.floor(ac + t * dc + 0.5))
+        if i2 < 0 or j2 < 0 or i2 >= slot.shape[0] * tr or j2 >= slot.shape[1] * tc:
+            seg += piece
+        elif not _cell(slot, rdg, tr, tc, i2, j2, 0):
+            seg += piece
+        else:
+            continue
+        if seg > most or seg / ln > rate:
+            return False
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -288,7 +327,7 @@ def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_
             if j - i > max_leg:
                 nxt = j
                 break
-            if _leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad):
+            if leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad):
                 best = j
                 nxt = min(i + 2 * step, n - 1)
             else:
@@ -302,7 +341,7 @@ def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_
         hi = max(nxt, best)
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            if mid - i <= max_leg and _leg_allowed(
+            if mid - i <= max_leg and leg_allowed(
                 pr, pc, off, along, i, mid, pas, rdg, slot, tr, tc, rows, cols, pad
             ):
                 lo = mid
@@ -777,7 +816,7 @@ def _route_vertices(wr, wc, off, along, tol, share, rdg, pas, slot, tr, tc, rows
                 t = min(1.0, max(0.0, t))
                 if math.hypot(wr[i] + t * dr - wr[q], wc[i] + t * dc - wc[q]) > tol:
                     ok = False
-            if not ok or not _leg_allowed(
+            if not ok or not leg_allowed(
                 wr, wc, off, along, i, c, pas, rdg, slot, tr, tc, rows, cols, pad, share
             ):
                 break

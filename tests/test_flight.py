@@ -643,3 +643,68 @@ def test_point_geoparquet_is_the_file_geoarrow_writes(tmp_path, crs):
     assert meta[0] == meta[1]
     for name in (*cols, "geometry"):
         assert ours.column(name).to_pylist() == theirs.column(name).to_pylist(), name
+
+
+def test_a_shortcut_leg_is_allowed_by_its_two_rules():
+    """``leg_allowed`` walks a leg once and stops early; it equals the rules written out
+    (numpy): every cell its samples (4 a cell) pass is passable with the terrain loaded within
+    the pad, a diagonal step cuts no corner, and its off-ridge length (midpoint samples) is at
+    most the path's plus half a cell plus the share, at a rate at most the path's plus the
+    share. Over random legs on tiles with unloaded ones and the map's edge."""
+    from pipeline.flight import leg_allowed
+
+    rng = np.random.default_rng(3)
+    rows, cols, tile, pad, share = 30, 27, 8, 2, 0.02
+    nti, ntj = -(-rows // tile), -(-cols // tile)
+    slot = np.arange(nti * ntj).reshape(nti, ntj)
+    slot[0, ntj - 1] = -1
+    slot[nti - 1, 1] = -1
+    pas = (rng.random((nti * ntj, tile, tile)) < 0.93).astype(np.uint8)
+    rdg = (rng.random((nti * ntj, tile, tile)) < 0.6).astype(np.uint8)
+    n = 60
+    pr = rng.uniform(-1.0, rows, n)
+    pc = rng.uniform(-1.0, cols, n)
+    along = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(pr), np.diff(pc)))))
+    off = np.concatenate(([0.0], np.cumsum(rng.uniform(0.0, 1.0, n - 1) * np.diff(along))))
+
+    def usable(i, j):
+        if not (0 <= i < rows and 0 <= j < cols) or slot[i // tile, j // tile] < 0:
+            return False
+        if not pas[slot[i // tile, j // tile], i % tile, j % tile]:
+            return False
+        box = [(min(max(i + di, 0), rows - 1), min(max(j + dj, 0), cols - 1))
+               for di in (-pad, pad) for dj in (-pad, pad)]  # fmt: skip
+        return all(slot[p // tile, q // tile] >= 0 for p, q in box)
+
+    def reference(i, j):
+        dr, dc = pr[j] - pr[i], pc[j] - pc[i]
+        m = max(1, math.ceil(max(abs(dr), abs(dc)) * 4.0))
+        t = np.arange(m + 1) / m
+        cells = np.floor(np.column_stack([pr[i] + t * dr, pc[i] + t * dc]) + 0.5).astype(int)
+        keep = np.concatenate(([True], np.any(cells[1:] != cells[:-1], axis=1)))
+        cells = cells[keep]
+        ok = all(usable(r, c) for r, c in cells)
+        for (r0, c0), (r1, c1) in zip(cells[:-1], cells[1:], strict=True):
+            if r0 != r1 and c0 != c1:
+                ok = ok and usable(r0, c1) and usable(r1, c0)
+        tm = (np.arange(m) + 0.5) / m
+        mid = np.floor(np.column_stack([pr[i] + tm * dr, pc[i] + tm * dc]) + 0.5).astype(int)
+        on = [
+            0 <= r < nti * tile and 0 <= c < ntj * tile and slot[r // tile, c // tile] >= 0
+            and bool(rdg[slot[r // tile, c // tile], r % tile, c % tile])
+            for r, c in mid
+        ]  # fmt: skip
+        seg = float(np.sum(~np.array(on))) * math.hypot(dr, dc) / m
+        ln, path = math.hypot(dr, dc), off[j] - off[i]
+        ridge_ok = seg <= path + 0.5 + share * ln + 1e-9 * ln
+        rate_ok = seg / ln <= path / (along[j] - along[i]) + share + 1e-9
+        return ok, ok and ridge_ok and rate_ok
+
+    outcomes = set()
+    for _ in range(3000):
+        i, j = sorted(rng.choice(n, 2, replace=False))
+        ok, want = reference(i, j)
+        got = leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tile, tile, rows, cols, pad)
+        assert got == want, (i, j)
+        outcomes.add((ok, want))
+    assert outcomes == {(True, True), (True, False), (False, False)}
