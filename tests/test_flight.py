@@ -243,6 +243,62 @@ def test_waypoints_geojson_and_csv_read_back(flown):
     assert alt.min() >= math.sqrt(r * r - a * a / 2) - 0.01
 
 
+def test_waypoints_geojson_is_the_json_of_the_rounded_values():
+    """The GeoJSON text, formatted in one go, parses (strict JSON: no NaN) to exactly the
+    document of the values rounded as documented (lon and lat 8 decimals, heights 2, time 1,
+    ``round``), built here as dicts; halfway and negative-zero values included. A value that
+    is not finite is null."""
+    from pipeline.exports import waypoints_geojson
+
+    rng = np.random.default_rng(11)
+    n = 400
+    z = rng.normal(-2000.0, 500.0, n)
+    z[:6] = [0.125, -0.125, 2.675, -0.0, 1e-9, -1234.565]  # halfway cases, -0, tiny
+    table = {
+        "index": np.arange(n),
+        "lon": rng.uniform(-180.0, 180.0, n),
+        "lat": rng.uniform(-90.0, 90.0, n),
+        "z": z,
+        "depth_m": -z,
+        "altitude_m": rng.uniform(0.0, 400.0, n),
+        "speed_m_s": np.full(n, 1.7),
+        "time_s": np.concatenate(([0.05, 0.15, 0.25], rng.uniform(0.0, 1e5, n - 3))),
+    }
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in the GeoJSON"))
+
+    def reference(t):
+        def num(v, digits=None):
+            v = float(v)
+            return None if not math.isfinite(v) else v if digits is None else round(v, digits)
+
+        coords = [[num(t["lon"][k], 8), num(t["lat"][k], 8), num(t["z"][k], 2)] for k in range(n)]
+        feats = [
+            {
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": coords[k]},
+                "properties": {
+                    "index": k,
+                    "depth_m": num(t["depth_m"][k], 2),
+                    "altitude_m": num(t["altitude_m"][k], 2),
+                    "speed_m_s": num(t["speed_m_s"][k]),
+                    "time_s": num(t["time_s"][k], 1),
+                },
+            }
+            for k in range(n)
+        ]
+        line = {"type": "LineString", "coordinates": coords}
+        feats.append({"type": "Feature", "geometry": line, "properties": {"role": "route"}})
+        return {"type": "FeatureCollection", "features": feats}
+
+    assert strict(waypoints_geojson(table)) == reference(table)
+    table["altitude_m"][7] = np.nan
+    got = strict(waypoints_geojson(table))
+    assert got["features"][7]["properties"]["altitude_m"] is None
+    assert got == reference(table)
+
+
 def test_track_parquet_is_geoparquet_in_lonlat(flown):
     import geopandas as gpd
     from pyproj import Transformer
