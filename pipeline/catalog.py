@@ -161,7 +161,7 @@ def write_mission(
             {"rel": "collection", "href": "../collection.json", "type": "application/json"},
         ]
         d["collection"] = COLLECTION
-        (tmp / f"{mid}.json").write_text(json.dumps(d, indent=1))
+        (tmp / f"{mid}.json").write_text(_item_text(d))
         if final.exists():
             shutil.rmtree(final)
         os.rename(tmp, final)
@@ -326,6 +326,20 @@ def write_catalog(
     _atomic_json(coll_dir / "collection.json", cd)
     _atomic_json(root / "catalog.json", kd)
     return root / "catalog.json"
+
+
+# stands in for an Item's geometry while the rest is indented (NUL: no other string has it)
+_GEOMETRY_TOKEN = "\x00geometry\x00"
+
+
+def _item_text(item: dict) -> str:
+    """An Item's JSON indented as ``json.dumps(item, indent=1)`` but its geometry on one line:
+    indenting runs json's Python encoder, and the geometry's thousands of numbers took 2.5 ms
+    a mission of 4000 cells that way; on one line the C encoder writes them."""
+    if not item.get("geometry"):
+        return json.dumps(item, indent=1)
+    text = json.dumps({**item, "geometry": _GEOMETRY_TOKEN}, indent=1)
+    return text.replace(json.dumps(_GEOMETRY_TOKEN), json.dumps(item["geometry"]), 1)
 
 
 def _atomic_json(path: Path, doc: dict) -> None:

@@ -113,6 +113,25 @@ def done(tmp_path_factory, stores, local_client):
     return job, run_job(job, scheduler=local_client)
 
 
+def test_an_item_file_is_its_document_indented_with_the_geometry_on_one_line(done):
+    """Each mission's Item file is its document as ``json.dumps(indent=1)`` writes it, but
+    for the geometry, which is on one line."""
+    _, res = done
+    items = sorted((res.catalog.parent / "missions").glob("*/*.json"))
+    assert len(items) >= 4
+    for path in items:
+        text = path.read_text()
+        doc = json.loads(text)
+        if not doc.get("geometry"):
+            assert text == json.dumps(doc, indent=1)
+            continue
+        assert len(doc["geometry"]["coordinates"]) > 2
+        want = json.dumps({**doc, "geometry": None}, indent=1).replace(
+            '"geometry": null', '"geometry": ' + json.dumps(doc["geometry"]), 1
+        )
+        assert text == want
+
+
 def test_catalog_loads_and_items_validate_against_the_stac_schema(done):
     job, res = done
     assert res.ok and res.planned == 4 and res.catalog.name == "catalog.json"
