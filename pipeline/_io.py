@@ -35,12 +35,12 @@ def layer_codec():
 INNER_CHUNK = 256  # the largest side of a maps layer's inner chunk (the unit a window reads)
 
 
-def inner_chunks(chunks) -> tuple[int, ...]:
+def inner_chunks(chunks, largest: int = INNER_CHUNK) -> tuple[int, ...]:
     """The inner chunk of a maps layer whose shards are ``chunks``: on each side the largest
-    divisor of the shard's side that is at most :data:`INNER_CHUNK` (1024 -> 256, 300 -> 150,
-    89 -> 89)."""
+    divisor of the shard's side that is at most ``largest`` (:data:`INNER_CHUNK`: 1024 -> 256,
+    300 -> 150, 89 -> 89)."""
     return tuple(
-        next(d for d in range(min(int(c), INNER_CHUNK), 0, -1) if int(c) % d == 0) for c in chunks
+        next(d for d in range(min(int(c), largest), 0, -1) if int(c) % d == 0) for c in chunks
     )
 
 

@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from ._grid8 import DC, DR, flat_offsets, inside
-from ._io import layer_codec, storage_chunks
+from ._io import inner_chunks, layer_codec, storage_chunks
 from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
 
@@ -256,8 +256,15 @@ def lower_bound(ds: np.ndarray, dg: np.ndarray) -> float:
 
 # --------------------------------------------------------------------------- the maps store
 
-LANDMARK_CHUNK = 256  # small chunks: a mission reads one value per landmark at each end
-VARIABLE = "landmark_distance"  # (landmark, y, x), float32, chunks (1, 256, 256)
+# the layers are sharded as the maps' other layers are, with inner chunks of at most this side:
+# a mission reads one value per landmark at each end, which decodes one inner chunk each.
+# Measured on a 4000^2 layer (chunks of 1024^2 inner 128^2 against 256^2 chunks unsharded):
+# the 16 chunks of a mission's bound decode in 1.0 ms against 3.1 ms (4 ms on the client, more
+# while the workers run its sections), writing a layer takes 0.29 s against 0.16 s and reading
+# it whole 0.27 s against 0.11 s; inner chunks of 64^2 saved 0.6 ms more a mission for 3.3x
+# the write time
+LANDMARK_CHUNK = 128
+VARIABLE = "landmark_distance"  # (landmark, y, x), float32, shards (1, *the maps' chunks)
 
 
 def memory_per_landmark(shape) -> int:
@@ -329,7 +336,8 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     group.create_array(
         VARIABLE,
         shape=(len(cells),) + tuple(comp.shape),
-        chunks=(1, LANDMARK_CHUNK, LANDMARK_CHUNK),
+        shards=(1,) + storage_chunks(comp_arr),
+        chunks=(1,) + inner_chunks(storage_chunks(comp_arr), LANDMARK_CHUNK),
         dtype="float32",
         # no distance is negative, so no chunk equals the fill value and every chunk is
         # written (also those all inf, outside the landmark's component)

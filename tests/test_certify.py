@@ -192,20 +192,31 @@ def test_store_layers_equal_the_in_memory_ones_for_any_chunking(tmp_path, chunks
 
 def test_every_landmark_chunk_is_written_also_where_it_does_not_reach(tmp_path):
     import dask
+    import zarr
 
     z = random_surface((300, 40), seed=2) * 50.0 - 1500.0
-    z[256:259] = 40.0  # land across: rows 259.. are a region of their own, no chunk of the
-    # upper region's landmark reaches them (a chunk all inf, once not written at all)
+    z[197:200] = 40.0  # land across: rows 200.. are a region of their own, whose inner chunk
+    # (rows 200-299 of the one shard) no distance of the upper region's landmark reaches (a
+    # chunk all inf, once not written at all)
     dem = metric_dataarray(z.astype(np.float32), a=A)
     with dask.config.set(scheduler="synchronous"):
         pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=2)
     m = pipeline.open_store(tmp_path / "m.zarr")
     comp = pipeline.open_maps(tmp_path / "m.zarr")["component"].values
     assert len({int(comp[c]) for c in m.landmarks}) == 2  # one in each region
-    for i in range(2):
-        files = [p for p in (tmp_path / "m.zarr" / lm.VARIABLE / "c" / str(i)).rglob("*")]
-        assert len([p for p in files if p.is_file()]) == 2  # both 256-row chunks
-    assert m.lower_bound((5, 5), (250, 30)) > 0 and m.lower_bound((280, 5), (295, 30)) > 0
+    arr = zarr.open_array(str(tmp_path / "m.zarr" / lm.VARIABLE), mode="r")
+    assert arr.chunks == (1, 100, 40) and arr.shards == (1, 300, 40)
+    # every inner chunk of every layer is read from the store (a missing one is damage in a
+    # complete store), and some are all inf
+    dist = np.array([m.landmark_distances((r, 20)) for r in (50, 150, 250)])
+    assert m.all_chunks_written and np.isinf(dist).any() and np.isfinite(dist).any()
+    import shutil
+
+    shutil.copytree(tmp_path / "m.zarr", tmp_path / "gone.zarr")  # read afresh (no cache)
+    (tmp_path / "gone.zarr" / lm.VARIABLE / "c" / "1" / "0" / "0").unlink()
+    with pytest.raises(pipeline.PipelineError, match="missing"):
+        pipeline.open_store(tmp_path / "gone.zarr").landmark_distances((250, 20))
+    assert m.lower_bound((5, 5), (190, 30)) > 0 and m.lower_bound((280, 5), (295, 30)) > 0
 
 
 def test_a_store_without_landmarks_has_no_bound(tmp_path):

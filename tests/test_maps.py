@@ -28,7 +28,7 @@ def test_build_maps_store(tmp_path):
     }
     assert maps["landmark_distance"].shape == (MAPS.landmarks.default, 300, 250)
     for k, v in maps.data_vars.items():  # chunked identically; landmark layers in small chunks
-        assert v.data.chunksize == ((64, 64) if k != "landmark_distance" else (1, 256, 250))
+        assert v.data.chunksize == ((64, 64) if k != "landmark_distance" else (1, 64, 64))
     g = zarr.open_group(tmp_path / "maps.zarr", mode="r")
     assert g.metadata.zarr_format == 3 and g["safety"].chunks == (64, 64)
     z = dem.values
