@@ -159,11 +159,14 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
         import zarr
 
         group = zarr.open_group(store, mode="r")
-        if "landmarks" in group.attrs and group["safety"].shards is not None:
+        current = "landmarks" in group.attrs and group["safety"].shards is not None
+        if current and "landmark_distance" in group:  # the landmark layers sharded too
+            current = group["landmark_distance"].shards is not None
+        if current:
             return store
         import shutil
 
-        print(f"{store.name} predates the landmark layers or sharding: building it again")
+        print(f"{store.name} predates the landmark layers or their sharding: building it again")
         shutil.rmtree(store)
     build = f"""
     dem = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0, chunks=1024)
