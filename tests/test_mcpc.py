@@ -652,3 +652,27 @@ def test_without_a_shared_file_a_task_plans_its_own_run(monkeypatch, tmp_path):
     monkeypatch.setattr(share, "_directory", lambda: str(tmp_path / "missing"))
     with share.Claims(token, 0, bounds) as c:
         assert c.fd is None and [c.next() for _ in range(4)] == [0, 1, 2, None]
+
+
+def test_a_mission_asks_for_the_worker_threads_at_most_once_a_second(monkeypatch):
+    """The number of section tasks follows the cluster's worker threads, asked of the
+    scheduler at most once every SLOTS_SECONDS per client (a round trip before every mission
+    otherwise): a worker added shows once the count is that old."""
+    from distributed import Client, LocalCluster
+
+    from pipeline import mcpc
+
+    with (
+        LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        monkeypatch.setattr(mcpc, "SLOTS_SECONDS", 3600.0)
+        assert mcpc._slots(client) == 1
+        cluster.scale(2)
+        client.wait_for_workers(2, timeout=60)
+        assert sum(client.nthreads().values()) == 2
+        assert mcpc._slots(client) == 1  # asked less than SLOTS_SECONDS ago
+        monkeypatch.setattr(mcpc, "SLOTS_SECONDS", 0.0)
+        assert mcpc._slots(client) == 2
