@@ -35,6 +35,7 @@ import numpy as np
 from numba import njit, types
 from numba.typed import Dict
 
+from ._inbox import Inbox, post
 from ._share import Claims
 from ._threads import shared_pool
 from .cluster import get_client
@@ -322,15 +323,27 @@ def _in_worker() -> bool:
 
 
 def _shared_batch(
-    store: MapsStore, sections: list, planner: str, omega: float, token: str, me: int, bounds
+    store: MapsStore,
+    sections: list,
+    planner: str,
+    omega: float,
+    token: str,
+    me: int,
+    bounds,
+    inbox: str | None = None,
 ) -> list:
     """Run ``me`` of ``sections`` (split at ``bounds``) in one task, then sections left in
     the other runs, taken from their backs (:mod:`pipeline._share`): ``(index, result)``
-    pairs."""
+    pairs, also posted to ``inbox`` (:mod:`pipeline._inbox`; on an error, a note saying so)."""
     out = []
-    with Claims(token, me, bounds) as claims:
-        while (i := claims.next()) is not None:
-            out.append((i, plan_section(store, sections[i], planner, omega)))
+    try:
+        with Claims(token, me, bounds) as claims:
+            while (i := claims.next()) is not None:
+                out.append((i, plan_section(store, sections[i], planner, omega)))
+    except BaseException:
+        post(inbox, token, me, None)
+        raise
+    post(inbox, token, me, out)
     return out
 
 
@@ -339,12 +352,15 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
     consecutive sections (they share chunks, which the worker then decodes once) that, once
     done, takes sections left in the other runs (:mod:`pipeline._share`). Measured on 2
     workers (benchmarks/RESULTS.md, "One mission"): two tasks per thread cost 30-40 % more
-    than one per thread (more round trips, and chunks decoded by both workers)."""
+    than one per thread (more round trips, and chunks decoded by both workers). The tasks'
+    results come through a queue on the scheduler (:mod:`pipeline._inbox`), sooner than
+    through their futures, which are gathered when the queue cannot serve."""
     if client == "synchronous":
         return _section_batch(store, sections, planner, omega)
     k = min(len(sections), _slots(client))
     bounds = np.linspace(0, len(sections), k + 1).round().astype(int).tolist()
     token = uuid.uuid4().hex
+    inbox = Inbox.take(client)
     futures = client.map(
         _shared_batch,
         [store] * k,
@@ -354,6 +370,7 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
         [token] * k,
         range(k),
         [bounds] * k,
+        [inbox.name if inbox else None] * k,
         pure=False,
     )
     # the previous call's tasks are released only now, behind these: see _HELD
@@ -361,8 +378,13 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
         previous = _HELD.get(client)
         _HELD[client] = futures
     del previous
+    parts = inbox.collect(futures, token, k) if inbox else None
+    if inbox:
+        inbox.give_back()
+    if parts is None:
+        parts = client.gather(futures)
     results: list = [None] * len(sections)
-    for part in client.gather(futures):
+    for part in parts:
         for i, r in part:
             results[i] = r
     # a section claimed by a task that was lost with its worker (and run again elsewhere)

@@ -676,3 +676,103 @@ def test_a_mission_asks_for_the_worker_threads_at_most_once_a_second(monkeypatch
         assert mcpc._slots(client) == 1  # asked less than SLOTS_SECONDS ago
         monkeypatch.setattr(mcpc, "SLOTS_SECONDS", 0.0)
         assert mcpc._slots(client) == 2
+
+
+def test_section_results_reach_the_client_through_the_schedulers_queue(store, local_client):
+    """Each section task posts its results to a queue on the scheduler that the client waits
+    on (pipeline._inbox), sooner than through the task's future: every task of a mission posts
+    once, the client's next mission posts to the same queue, and the path is the one planned in
+    this process."""
+
+    def count_posts(dask_scheduler):
+        ext = dask_scheduler.extensions["queues"]
+        posts = []
+
+        async def put(name=None, key=None, data=None, client=None, timeout=None):
+            posts.append(name)
+            return await ext.put(name=name, key=key, data=data, client=client, timeout=timeout)
+
+        dask_scheduler.handlers["queue_put"] = put
+        dask_scheduler.inbox_test_posts = posts
+
+    def posts(dask_scheduler):
+        return list(dask_scheduler.inbox_test_posts)
+
+    def restore(dask_scheduler):
+        ext = dask_scheduler.extensions["queues"]
+        dask_scheduler.handlers["queue_put"] = ext.put
+        del dask_scheduler.inbox_test_posts
+
+    ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
+    assert len(ref.extra["sections"]) >= 2
+    local_client.run_on_scheduler(count_posts)
+    try:
+        for _ in range(2):
+            t = pipeline.plan(store, **MISSION, client=local_client, **SMALL)
+            assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
+        got = local_client.run_on_scheduler(posts)
+    finally:
+        local_client.run_on_scheduler(restore)
+    assert len(got) == 2 * 2  # 2 worker threads: 2 tasks a mission
+    assert len(set(got)) == 1 and got[0].startswith("auv-pipeline-sections-")
+
+
+def test_failing_section_tasks_are_reported_and_a_scheduler_without_queues_still_serves(
+    store, monkeypatch
+):
+    """A section task that raises posts a note, and the client raises its error at once; one
+    that fails without posting is seen by the client's watch on the futures; a scheduler
+    without the queue routes serves the missions through the futures. A real LocalCluster, its
+    workers threads of this process so that a task can be made to fail."""
+    import time
+
+    from distributed import Client, LocalCluster
+
+    from pipeline import mcpc
+    from pipeline._inbox import Inbox
+
+    ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
+
+    def same(client):
+        t = pipeline.plan(store, **MISSION, client=client, **SMALL)
+        assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("the disk went away")
+
+    with (
+        LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0"
+        ) as cluster,
+        Client(cluster) as client,
+    ):
+        same(client)
+        with monkeypatch.context() as mp:
+            mp.setattr("pipeline._inbox.POLL", 30.0)  # the watch would take 30 s: the note is seen
+            mp.setattr(mcpc, "plan_section", fail)
+            t0 = time.perf_counter()
+            with pytest.raises(RuntimeError, match="the disk went away"):
+                pipeline.plan(store, **MISSION, client=client, **SMALL)
+            assert time.perf_counter() - t0 < 15.0
+            mp.setattr("pipeline._inbox.POLL", 0.1)  # no note: the watch sees the failed futures
+            mp.setattr(mcpc, "post", lambda *args: None)
+            with pytest.raises(RuntimeError, match="the disk went away"):
+                pipeline.plan(store, **MISSION, client=client, **SMALL)
+            mp.undo()  # still no post: the watch sees the futures done
+            mp.setattr("pipeline._inbox.POLL", 0.1)
+            mp.setattr(mcpc, "post", lambda *args: None)
+            same(client)
+        same(client)  # the queue serves again (late posts of the failed runs passed over)
+        assert Inbox.take(client) is not None
+        client.run_on_scheduler(
+            lambda dask_scheduler: [
+                dask_scheduler.handlers.pop(k) for k in ("queue_create", "queue_put", "queue_get")
+            ]
+        )
+        same(client)  # its queue has no routes now: gathered, and not tried again
+        assert Inbox.take(client) is None
+        same(client)
+        with Client(cluster) as other:  # a new client: it has no queue yet, and gets none
+            same(other)
+            assert Inbox.take(other) is None
+            same(other)
