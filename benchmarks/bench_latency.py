@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+import uuid
 
 import numpy as np
 from _common import OUT, machine, maps_store
@@ -78,6 +79,49 @@ def run_side(client, n: int, k: int) -> dict:
     return out
 
 
+def _stamp(token: str, me: int, inbox) -> float:
+    """A section task that does nothing: its end time, also posted to ``inbox``."""
+    from pipeline._inbox import post
+
+    t = time.time()
+    post(inbox, token, me, t)
+    return t
+
+
+def result_delay(client, k: int = 40) -> dict:
+    """How long after two tasks that do nothing end their results reach the client, and the
+    whole round trip, through the futures (``gather``) and through the scheduler's queue
+    (``pipeline._inbox``, as a mission's sections): medians in seconds, the two ways taken in
+    turn, 30 ms apart (a mission's pace)."""
+    from pipeline._inbox import Inbox
+
+    got: dict = {"future": [], "queue": []}
+    for _ in range(k):
+        for how in got:
+            inbox = Inbox.take(client) if how == "queue" else None
+            token = uuid.uuid4().hex
+            t0 = time.time()
+            futures = client.map(
+                _stamp, [token] * 2, [0, 1], [inbox.name if inbox else None] * 2, pure=False
+            )
+            ends = inbox.collect(futures, token, 2) if inbox else None
+            if inbox:
+                inbox.give_back()
+            if ends is None:
+                ends = client.gather(futures)
+            t1 = time.time()
+            got[how].append((t1 - max(ends), t1 - t0))
+            del futures
+            time.sleep(0.03)
+    return {
+        how: {
+            "after_end": float(np.median([a for a, _ in v])),
+            "round_trip": float(np.median([b for _, b in v])),
+        }
+        for how, v in got.items()
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="2000^2 only, 5 missions")
@@ -104,7 +148,10 @@ def main() -> None:
         Client(cl) as client,
     ):
         rows = {n: run_side(client, n, k) for n in sides}
-    (OUT / "latency.json").write_text(json.dumps({str(n): r for n, r in rows.items()}, indent=1))
+        delay = result_delay(client)
+    (OUT / "latency.json").write_text(
+        json.dumps({**{str(n): r for n, r in rows.items()}, "result_delay": delay}, indent=1)
+    )
     rep.p(f"""{k} missions per side (start-goal >= side / 2, both passable), omega 2, MCPC with
           its defaults, one `plan()` at a time: on a LocalCluster of 2 workers (sections as
           tasks) and in this process (`client="synchronous"`, sections in turn). pyastar2d
@@ -140,6 +187,14 @@ def main() -> None:
             for n, r in rows.items()
         ],
     )
+    fut, que = delay["future"], delay["queue"]
+    rep.p(f"""How a section task's result reaches the client (the same cluster, two tasks that do
+          nothing, 40 times each way, medians): through its future (the worker tells the
+          scheduler, the scheduler tells the client, the client fetches the data) it arrived
+          {1e3 * fut["after_end"]:.1f} ms after the task ended, a round trip of
+          {1e3 * fut["round_trip"]:.1f} ms; through the queue on the scheduler that `plan()`'s
+          section tasks post to (`pipeline._inbox`) {1e3 * que["after_end"]:.1f} ms after, a
+          round trip of {1e3 * que["round_trip"]:.1f} ms.""")
     big = max(rows)
     rep.headline(
         "latency",

@@ -85,25 +85,32 @@ class Inbox:
         got: dict = {}
         try:
             while len(got) < k:
-                try:
-                    rec = self.client.sync(self.client.scheduler.queue_get, name=self.name)
+                try:  # the posts still missing, in one request (the scheduler waits for them)
+                    recs = self.client.sync(
+                        self.client.scheduler.queue_get, name=self.name, batch=k - len(got)
+                    )
                 except Exception:  # noqa: BLE001 - the queue failed: the futures have it all
                     self.broken = True
                     return None
-                if not isinstance(rec, dict):  # no queue routes: the scheduler answers None
+                if not isinstance(recs, (list, tuple)):  # no queue routes: the answer is None
                     self.broken = True
                     with _LOCK:
                         _NONE.add(self.client)
                     return None
-                try:
-                    run, me, payload = pickle.loads(rec["value"])
-                except Exception:  # noqa: BLE001 - not a post of ours
-                    continue
-                if run != token:
-                    continue  # a late post of an earlier run
-                if payload is None:
-                    return None  # a task failed, or was done without posting: gather them
-                got[me] = payload
+                gather = False
+                for rec in recs:
+                    try:
+                        run, me, payload = pickle.loads(rec["value"])
+                    except Exception:  # noqa: BLE001 - not a post of ours
+                        continue
+                    if run != token:
+                        continue  # a late post of an earlier run
+                    if payload is None:
+                        gather = True  # a task failed, or was done without posting
+                    else:
+                        got[me] = payload
+                if gather:
+                    return None
         finally:
             watch.done = True
             handle.cancel()
@@ -121,9 +128,11 @@ class Inbox:
                 or all(s == "finished" for s in states)
             ):
                 continue
+            # one note for each task: the client waits for as many posts as tasks it lacks
             data = pickle.dumps((token, -1, None), protocol=pickle.HIGHEST_PROTOCOL)
             try:
-                await self.client.scheduler.queue_put(name=self.name, data=data)
+                for _ in futures:
+                    await self.client.scheduler.queue_put(name=self.name, data=data)
             except Exception:  # noqa: BLE001 - then the client's wait fails: it gathers
                 pass
             return

@@ -715,6 +715,11 @@ def test_section_results_reach_the_client_through_the_schedulers_queue(store, lo
         local_client.run_on_scheduler(restore)
     assert len(got) == 2 * 2  # 2 worker threads: 2 tasks a mission
     assert len(set(got)) == 1 and got[0].startswith("auv-pipeline-sections-")
+    # the client took every post (gathering the futures instead would have left them queued)
+    left = local_client.run_on_scheduler(
+        lambda dask_scheduler: dask_scheduler.extensions["queues"].queues[got[0]].qsize()
+    )
+    assert left == 0
 
 
 def test_failing_section_tasks_are_reported_and_a_scheduler_without_queues_still_serves(
