@@ -115,24 +115,43 @@ def segment(points: np.ndarray, section_size: int, margin: int, shape) -> list:
     of ``(i0, i1, (r0, r1, c0, c1))``: the indices of the section's first and last point in
     ``points`` and its window (half-open, clipped to the map).
     """
-    pts = np.asarray(points, dtype=np.int64).tolist()  # Python ints: quick one at a time
-    n = len(pts)
-    out = []
+    cuts = _cuts(np.ascontiguousarray(points, dtype=np.int64).reshape(-1, 2), int(section_size))
+    return [
+        (i0, i1, _window(rmin, rmax, cmin, cmax, margin, shape))
+        for i0, i1, rmin, rmax, cmin, cmax in cuts.tolist()
+    ]
+
+
+@njit(cache=True)
+def _cuts(pts, section_size):
+    """:func:`segment`'s sections as rows ``(i0, i1, rmin, rmax, cmin, cmax)``: their first and
+    last point and their points' bounding box (compiled: a Python loop over the points took
+    0.5-0.8 ms of a 2000^2 mission)."""
+    n = pts.shape[0]
+    out = np.empty((max(n - 1, 0), 6), dtype=np.int64)
+    k = 0
     i0 = 0
     while i0 < n - 1:
-        rmin = rmax = pts[i0][0]
-        cmin = cmax = pts[i0][1]
+        rmin = rmax = pts[i0, 0]
+        cmin = cmax = pts[i0, 1]
         j = i0
         while j < n - 1:
             j += 1
-            r, c = pts[j]
+            r = pts[j, 0]
+            c = pts[j, 1]
             rmin, rmax = min(rmin, r), max(rmax, r)
             cmin, cmax = min(cmin, c), max(cmax, c)
             if max(rmax - rmin, cmax - cmin) >= section_size:
                 break
-        out.append((i0, j, _window(rmin, rmax, cmin, cmax, margin, shape)))
+        out[k, 0] = i0
+        out[k, 1] = j
+        out[k, 2] = rmin
+        out[k, 3] = rmax
+        out[k, 4] = cmin
+        out[k, 5] = cmax
+        k += 1
         i0 = j
-    return out
+    return out[:k]
 
 
 @njit(cache=True)

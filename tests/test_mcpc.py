@@ -77,6 +77,34 @@ def test_segment_clipped_by_the_map_edge_by_hand():
     assert segment(pts, 25, 3, (40, 100)) == [(0, 2, (0, 34, 81, 100))]
 
 
+def test_segment_follows_the_rule_on_random_paths():
+    """On 500 random walks: each section ends at the first point whose bounding box with the
+    section's earlier points has a side of at least the section size (or at the path's end),
+    the next starts there, and its window is the square of the SPEC centred on that box, grown
+    by the margin and clipped (written out here point by point)."""
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        n = int(rng.integers(1, 200))
+        pts = np.cumsum(rng.integers(-2, 3, size=(n, 2)), axis=0) + rng.integers(0, 60, size=2)
+        size, margin = int(rng.integers(1, 30)), int(rng.integers(0, 8))
+        shape = (int(rng.integers(1, 90)), int(rng.integers(1, 90)))
+        want, i0 = [], 0
+        while i0 < n - 1:
+            i1 = i0 + 1
+            while i1 < n - 1 and np.ptp(pts[i0 : i1 + 1], axis=0).max() < size:
+                i1 += 1
+            lo, hi = pts[i0 : i1 + 1].min(axis=0), pts[i0 : i1 + 1].max(axis=0)
+            side = int((hi - lo).max())
+            start = [math.floor((lo[d] + hi[d] - side) / 2) - margin for d in (0, 1)]
+            win = []
+            for d in (0, 1):
+                a, b = min(start[d], lo[d]), max(start[d] + side + 2 * margin + 1, hi[d] + 1)
+                win += [max(int(a), 0), min(int(b), shape[d])]
+            want.append((i0, i1, tuple(win)))
+            i0 = i1
+        assert segment(pts, size, margin, shape) == want
+
+
 def test_restore_by_hand():
     coarse = np.array([(0, 0), (1, 1), (2, 2), (3, 2)])
     got = restore(coarse, 10, (35, 100), (1, 2), (33, 27))
