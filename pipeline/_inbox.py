@@ -72,8 +72,7 @@ class Inbox:
         try:
             client.sync(client.scheduler.queue_create, name=name, maxsize=0)
         except Exception:  # noqa: BLE001 - no queue routes, or they failed: use the futures
-            with _LOCK:
-                _NONE.add(client)
+            _no_queues(client)
             return None
         return cls(client, name)
 
@@ -96,8 +95,7 @@ class Inbox:
                     return None
                 if not isinstance(recs, (list, tuple)):  # no queue routes: the answer is None
                     self.broken = True
-                    with _LOCK:
-                        _NONE.add(self.client)
+                    _no_queues(self.client)
                     return None
                 gather = False
                 for rec in recs:
@@ -131,7 +129,7 @@ class Inbox:
             ):
                 continue
             # one note for each task: the client waits for as many posts as tasks it lacks
-            data = pickle.dumps((token, -1, None), protocol=pickle.HIGHEST_PROTOCOL)
+            data = _message(token, -1, None)
             try:
                 for _ in futures:
                     await self.client.scheduler.queue_put(name=self.name, data=data)
@@ -145,6 +143,18 @@ class Inbox:
             return
         with _LOCK:
             _IDLE.setdefault(self.client, []).append(self.name)
+
+
+def _message(token: str, me: int, payload) -> bytes:
+    """A post's bytes, as :meth:`Inbox.collect` reads them: task ``me`` of run ``token``, its
+    payload (None: "gather the futures")."""
+    return pickle.dumps((token, me, payload), protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _no_queues(client) -> None:
+    """Use ``client``'s futures alone from now on."""
+    with _LOCK:
+        _NONE.add(client)
 
 
 class _Watch:
@@ -163,9 +173,9 @@ def post(name: str | None, token: str, me: int, payload) -> None:
         from distributed.utils import sync
 
         worker = get_worker()
-        data = pickle.dumps((token, me, payload), protocol=pickle.HIGHEST_PROTOCOL)
+        data = _message(token, me, payload)
         if payload is not None and len(data) > MAX_BYTES:
-            data = pickle.dumps((token, me, None), protocol=pickle.HIGHEST_PROTOCOL)
+            data = _message(token, me, None)
         sync(worker.loop, worker.scheduler.queue_put, name=name, data=data)
     except Exception:  # noqa: BLE001 - the client then gathers the futures
         pass

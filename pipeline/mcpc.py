@@ -397,8 +397,9 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
         previous = _HELD.get(client)
         _HELD[client] = futures
     del previous
-    parts = inbox.collect(futures, token, k) if inbox else None
+    parts = None
     if inbox:
+        parts = inbox.collect(futures, token, k)
         inbox.give_back()
     if parts is None:
         parts = client.gather(futures)
