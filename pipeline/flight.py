@@ -206,6 +206,14 @@ def _usable(pas, slot, tr, tc, rows, cols, pad, i, j):
 
 
 @njit(inline="always", cache=True)
+def _samples(dr, dc):
+    """How many pieces a segment of ``dr`` rows and ``dc`` columns is walked in: 4 a cell along
+    its longer side (one count for :func:`_walk` and :func:`_off_ridge`, so that
+    :func:`leg_allowed` measures the off-ridge length as :func:`_off_ridge` does)."""
+    return max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
+
+
+@njit(inline="always", cache=True)
 def _walk(pas, rdg, slot, tr, tc, rows, cols, pad, ar, ac, br, bc, most, rate):
     """Whether the straight segment between two points (grid units: row, col) crosses only
     usable cells, without cutting a corner between two cells it passes diagonally (samples 4
@@ -215,7 +223,7 @@ def _walk(pas, rdg, slot, tr, tc, rows, cols, pad, ar, ac, br, bc, most, rate):
     only grows)."""
     dr = br - ar
     dc = bc - ac
-    n = max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
+    n = _samples(dr, dc)
     ln = math.hypot(dr, dc)
     piece = ln / n
     seg = 0.0
@@ -269,7 +277,7 @@ def _off_ridge(rdg, slot, tr, tc, ar, ac, br, bc):
     """The length (grid units) of the straight segment lying over cells that are not ridge."""
     dr = br - ar
     dc = bc - ac
-    n = max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
+    n = _samples(dr, dc)
     piece = math.hypot(dr, dc) / n
     off = 0.0
     for k in range(n):
