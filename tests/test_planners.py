@@ -338,6 +338,24 @@ def test_ra_star_bound_validity_and_lower_bound(seed, omega, density, ridge_shar
     np.testing.assert_array_equal(again.cells, t.cells)
 
 
+def test_ra_star_heads_for_the_goal_between_ridge_cells():
+    """Among admissible states of equal ``Nor`` the ridge search takes the least
+    ``g_incons + h`` (docs/method.md section 5): on flat ground with no ridge it walks the
+    straight row to the goal, about one expansion a cell. Taking the least ``g_incons``
+    instead floods every state closer than the goal, as Dijkstra does (6965 here)."""
+    rows, cols = 61, 121
+    surface = np.zeros((rows, cols))
+    ridge = np.zeros((rows, cols), bool)
+    passable = np.ones((rows, cols), bool)
+    s, g = (30, 0), (30, cols - 1)
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="ra_star", omega=2.0
+    )
+    assert t.length_m == pytest.approx(30.0 * (cols - 1), rel=1e-12)
+    assert (t.cells[:, 0] == 30).all()
+    assert t.expansions <= 2 * cols
+
+
 def test_ridge_following_ranks_lagrangian_ra_star_astar_on_average():
     ratios = {"astar": [], "ra_star": [], "lagrangian": []}
     for seed in range(12):
