@@ -493,6 +493,33 @@ def test_a_mission_releases_the_last_ones_tasks_only_after_submitting_its_own(st
     assert not set(missions[-1]) & set(released)  # held until the next mission
 
 
+def test_a_missions_tasks_are_sent_within_a_millisecond(store, local_client):
+    """distributed batches a client's messages to its scheduler every 10 ms and a scheduler's
+    to a worker every 5 ms: a mission of about 10 ms then met the batch that released the
+    mission before it, and its tasks waited for the next. A client that plans is sent every
+    pipeline.cluster.STREAM_INTERVAL_S (1 ms), and so is the scheduler of local_cluster() to
+    each of its workers, those added later included."""
+    from distributed import Client
+
+    from pipeline.cluster import STREAM_INTERVAL_S, local_cluster
+
+    assert STREAM_INTERVAL_S <= 0.001
+
+    def intervals(dask_scheduler):
+        return sorted(c.interval for c in dask_scheduler.stream_comms.values())
+
+    t = pipeline.plan(store, (20, 20), (225, 30), client=local_client, **SMALL)
+    assert t.status == "ok"
+    assert local_client.scheduler_comm.interval <= STREAM_INTERVAL_S
+    assert local_client.run_on_scheduler(intervals) == [STREAM_INTERVAL_S] * 2
+
+    with local_cluster(dashboard_address=None) as cluster, Client(cluster) as client:
+        assert client.scheduler_comm.interval == 0.01  # distributed's own, until plan() runs
+        cluster.scale(3)
+        client.wait_for_workers(3, timeout=60)
+        assert client.run_on_scheduler(intervals) == [STREAM_INTERVAL_S] * 3
+
+
 def _faults_reallocating(nbytes: int) -> int:
     """Minor page faults of allocating and filling ``nbytes`` again right after an array of
     that size was freed, in this process."""
