@@ -323,7 +323,7 @@ PLANNING = Schema(
     Param(
         "coarse_weight",
         "float",
-        1.05,
+        1.1,
         "weight of the coarse A* for the bounded planners (weighted A*, at most omega; 1: "
         "exact A*, which astar and dijkstra always use): the coarse path, a guide for the "
         "sections, is within this factor of the coarse optimum",
