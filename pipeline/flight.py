@@ -979,7 +979,11 @@ def fly(maps, traj, vehicle=None) -> Flight:
                 rk = _route_vertices(wr, wc, woff, walong, tol, share, cor.rdg, *usable)
                 if len(rk) <= 0.75 * want:
                     break
-            wr, wc = widen_turns(wr[rk], wc[rk], rad, usable)
+            sr, sc = widen_turns(wr[rk], wc[rk], rad, usable)
+            # a simplified route whose corners come too close together where no straight leg
+            # can part them: every corner of the smoothing kept instead (more waypoints)
+            if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
+                wr, wc = sr, sc
         pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)
         track = _profile(grid, terrain, pr, pc, slope)
         qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, step)
@@ -1010,6 +1014,15 @@ def fly(maps, traj, vehicle=None) -> Flight:
                 f"bound ({limit:.0f} m)"
             )
             problems.append(over)
+        turns = radii[np.isfinite(radii)] * a
+        tight = int(np.sum(turns < turn_m * (1 - 1e-9)))
+        if rad == 0:
+            problems.append("turns are not rounded (the smoothed tracks broke a limit)")
+        elif tight:  # corners that widen_turns could not part: the next smoothing may
+            problems.append(
+                f"{tight} turns are tighter than the minimum turn radius {turn_m:g} m "
+                f"(tightest {turns.min():.1f} m): the corners are too close together"
+            )
         results.append(
             dict(
                 name=name,
@@ -1032,25 +1045,17 @@ def fly(maps, traj, vehicle=None) -> Flight:
             break
     # the first smoothing that keeps every limit; else the first whose only fault is a length
     # above the proven bound (the mission is then "uncertified", as a planned path would be);
-    # else the last tried
+    # else the first with the fewest faults
     pick = next((r for r in results if not r["problems"]), None)
-    pick = pick or next((r for r in results if r["problems"] == [r["over"]]), results[-1])
+    pick = pick or next((r for r in results if r["problems"] == [r["over"]]), None)
+    pick = pick or min(results, key=lambda r: len(r["problems"]))
     name, pr, pc, radii = pick["name"], pick["pr"], pick["pc"], pick["radii"]
     track, route, qr, qc = pick["track"], pick["route"], pick["qr"], pick["qc"]
     zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
     problems = list(pick["problems"])
     z, s, h = track["z"], track["s"], track["h"]
     turns = radii[np.isfinite(radii)] * a
-    min_turn = float(turns.min()) if turns.size else math.inf
-    tight = int(np.sum(turns < turn_m * (1 - 1e-9)))
-    if name == "grid path":
-        problems.append("turns are not rounded (the smoothed tracks broke a limit)")
-        min_turn = 0.0
-    elif tight:
-        problems.append(
-            f"{tight} turns are tighter than the minimum turn radius {turn_m:g} m (tightest "
-            f"{min_turn:.1f} m): the corners are too close together"
-        )
+    min_turn = 0.0 if name == "grid path" else float(turns.min()) if turns.size else math.inf
     dz, ds = np.diff(z), np.diff(s)
     pitch = np.degrees(np.arctan2(np.abs(dz), ds))
     seg = np.hypot(ds, dz)
@@ -1155,6 +1160,13 @@ def widen_turns(wr, wc, radius, usable, passes: int = 8):
             break
         wr, wc = _distinct(wr[~drop], wc[~drop])
     return wr, wc
+
+
+def _tight_turns(wr, wc, radius) -> int:
+    """How many corners of the polyline turn tighter than ``radius`` (grid units)."""
+    if len(wr) <= 2:
+        return 0
+    return int(np.sum(_arcs_radii(wr, wc, radius)[1] < radius * (1 - 1e-9)))
 
 
 def _distinct(wr, wc):
