@@ -513,7 +513,7 @@ def test_a_missions_tasks_are_sent_within_a_millisecond(store, local_client):
     assert local_client.scheduler_comm.interval <= STREAM_INTERVAL_S
     assert local_client.run_on_scheduler(intervals) == [STREAM_INTERVAL_S] * 2
 
-    with local_cluster(dashboard_address=None) as cluster, Client(cluster) as client:
+    with local_cluster() as cluster, Client(cluster) as client:
         assert client.scheduler_comm.interval == 0.01  # distributed's own, until plan() runs
         cluster.scale(3)
         client.wait_for_workers(3, timeout=60)
