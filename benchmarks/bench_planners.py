@@ -114,15 +114,24 @@ def plot200(res: dict, png: Path) -> None:
             ax = axes[i, j]
             hillshade_axes(ax, dem, colorbar=False)
             ax.scatter(x[cc], y[rr], s=1.2, c="white", alpha=0.7, linewidths=0, label="ridge cells")
+            groups: list = []  # omegas whose paths are the same, drawn once with one label
             for om in OMEGAS:
-                p = np.asarray(res["paths"][f"{name}|{planner}|{om}"]) / 1e3
-                row = res["tables"][name][f"{planner} {om}"]
+                p = np.asarray(res["paths"][f"{name}|{planner}|{om}"])
+                same = next((g for g in groups if np.array_equal(g[1], p)), None)
+                if same is None:
+                    groups.append(([om], p))
+                else:
+                    same[0].append(om)
+            for oms, p in groups:
+                row = res["tables"][name][f"{planner} {oms[0]}"]
+                which = " / ".join(str(om) for om in oms)
                 ax.plot(
-                    p[:, 0],
-                    p[:, 1],
-                    color=colours[om],
+                    p[:, 0] / 1e3,
+                    p[:, 1] / 1e3,
+                    color=colours[oms[0]],
                     lw=1.6,
-                    label=f"omega {om}: {row['length_km']:.1f} km, {row['ratio_pct']:.0f} % ridge",
+                    label=f"omega {which}: {row['length_km']:.1f} km, "
+                    f"{row['ratio_pct']:.0f} % ridge" + (" (one path)" if len(oms) > 1 else ""),
                 )
             ax.set_title(f"{planner}, {name.split(' (')[0]}", fontsize=10)
             ax.legend(loc="lower right", fontsize=7, framealpha=0.85, markerscale=6)
