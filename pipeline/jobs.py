@@ -75,6 +75,11 @@ log = logging.getLogger(__name__)
 _TOP_KEYS = {"name", "dem", "maps", "planning", "vehicle", "missions", "output"}
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
 _MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS
+
+# Raised whenever a change of the code makes a mission's result differ for the same inputs (the
+# planners' paths, the flight), so that a job plans its finished missions again instead of
+# keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h.
+RESULTS_REVISION = 2
 _DEM_KEYS = {"path", "synthetic"} | DEM.names()
 _SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
 _OUTPUT_KEYS = {"catalog", "quicklooks"}
@@ -111,14 +116,20 @@ class Job:
 
     def mission_fingerprint(self, mission: dict) -> str:
         """A hash of what defines a mission's result: its endpoints, its planning options (the
-        job's defaults included) and the maps (hence the DEM). A re-run plans a finished
-        mission again when this changed."""
-        plan = {**self.planning, **{k: mission[k] for k in PLANNING.names() if k in mission}}
+        library's defaults, under the job's, under the mission's), the vehicle, the maps (hence
+        the DEM) and :data:`RESULTS_REVISION`. A re-run plans a finished mission again when this
+        changed: a new default or a planner that now returns other paths included."""
+        plan = {
+            **PLANNING.defaults(),
+            **self.planning,
+            **{k: mission[k] for k in PLANNING.names() if k in mission},
+        }
         what = {
             "ends": {k: mission[k] for k in sorted(mission) if k.startswith(("start", "goal"))},
             "planning": plan,
             "vehicle": self.vehicle_of(mission),
             "maps": self.maps_fingerprint(),
+            "revision": RESULTS_REVISION,
         }
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -643,8 +654,8 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
         done = None if overwrite else finished(job.catalog, m["name"])
         if done is not None and done["properties"].get("auv:fingerprint") != m["fingerprint"]:
             log.info(
-                "%s: its definition, the maps or the DEM changed since it was planned: "
-                "planning it again",
+                "%s: its definition, the maps, the DEM, or the library's defaults or results "
+                "revision changed since it was planned: planning it again",
                 m["name"],
             )
             res.replanned += 1

@@ -533,7 +533,7 @@ def test_a_changed_mission_or_maps_is_planned_again(tmp_path, stores, local_clie
     second = _run_ids(root)
     assert res.skipped == 1 and res.replanned == 1 and res.ok
     assert second["south"] == first["south"] and second["east"] != first["east"]
-    assert "east: its definition, the maps or the DEM changed" in caplog.text
+    assert "east: its definition, the maps, the DEM, or the library's defaults" in caplog.text
     item = json.loads((root / "missions" / "east" / "east.json").read_text())
     assert item["properties"]["auv:goal"] == [140, 280]
     # the job's clearance changed: new maps, every mission planned again on them
@@ -545,6 +545,31 @@ def test_a_changed_mission_or_maps_is_planned_again(tmp_path, stores, local_clie
     for mid in ("east", "south"):
         item = json.loads((root / "missions" / mid / f"{mid}.json").read_text())
         assert item["properties"]["auv:min_clearance_m"] >= 200.0 - 1e-2
+
+
+def test_a_new_default_or_results_revision_plans_finished_missions_again(
+    tmp_path, stores, local_client, monkeypatch
+):
+    """A finished mission is kept only while the code would give the same result: a planning
+    default that changed (the job does not set it), or a new RESULTS_REVISION (a planner that
+    now returns other paths), plans it again."""
+    import pipeline.jobs
+    import pipeline.params
+
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="rev")
+    run_job(job, scheduler=local_client)
+    assert run_job(job, scheduler=local_client).skipped == 2
+    monkeypatch.setattr("pipeline.jobs.RESULTS_REVISION", pipeline.jobs.RESULTS_REVISION + 1)
+    res = run_job(job, scheduler=local_client)
+    assert res.replanned == 2 and res.skipped == 0 and res.ok
+    assert run_job(job, scheduler=local_client).skipped == 2
+    defaults = pipeline.params.PLANNING.defaults()
+    assert "coarse_weight" not in job.read_text() and "coarse_weight" in defaults
+    changed = {**defaults, "coarse_weight": defaults["coarse_weight"] + 0.1}
+    monkeypatch.setattr(pipeline.params.PLANNING, "defaults", lambda: changed)
+    res = run_job(job, scheduler=local_client)
+    assert res.replanned == 2 and res.skipped == 0 and res.ok
 
 
 NAMES = [
