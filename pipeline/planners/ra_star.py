@@ -28,26 +28,28 @@ below the limit, so RA* is A*.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
 from .._grid8 import DC, DR
 from .._heap import heap_pop, heap_push, heap_reserve
-from .core import CLOSED, INWAIT, PARENT, SEEN, Planner, Search, edge_cost, relax_successors
+from .core import (
+    CLOSED,
+    INWAIT,
+    PARENT,
+    SEEN,
+    Planner,
+    Search,
+    edge_cost,
+    heuristic,
+    relax_successors,
+)
 
 
 @njit(inline="always", cache=True)
 def _focal_key(nor, f, gscale):
     # largest Nor first; among equals the smallest f_incons = g_incons + h (f / gscale < 1)
     return -np.float64(nor) + f / gscale
-
-
-@njit(inline="always", cache=True)
-def _h(v, cols, gr, gc, a):
-    # the straight-line distance from state v to the goal
-    return a * math.sqrt((v // cols - gr) ** 2 + (v % cols - gc) ** 2)
 
 
 @njit(nogil=True, cache=True)
@@ -74,7 +76,7 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
     wk = np.empty(1024)
     wi = np.empty(1024, dtype=np.int64)
     wn = 0
-    h0 = a * math.sqrt((sr - gr) ** 2 + (sc - gc) ** 2)
+    h0 = heuristic(a, sr, sc, gr, gc, False)
     gscale = 1e6 * (h0 + a) * (1.0 + omega) + 1.0  # > any f_incons that can pass the limit
     g[s] = 0.0
     st_cost[s] = SEEN
@@ -101,8 +103,8 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
             top = -1
             while cn > 0:
                 u = ci[0]
-                if st_cost[u] & CLOSED or ck[0] != g[u] + a * math.sqrt(
-                    (u // cols - gr) ** 2 + (u % cols - gc) ** 2
+                if st_cost[u] & CLOSED or ck[0] != g[u] + heuristic(
+                    a, u // cols, u % cols, gr, gc, False
                 ):
                     heap_pop(ck, ci, cn)
                     cn -= 1
@@ -119,7 +121,7 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
                 st_nor[v] &= ~INWAIT
                 if st_nor[v] & CLOSED:
                     continue
-                fv = gi[v] + _h(v, cols, gr, gc, a)
+                fv = gi[v] + heuristic(a, v // cols, v % cols, gr, gc, False)
                 if fv < limit:
                     fn = heap_push(fk, fi, fn, _focal_key(nor[v], fv, gscale), v)
                 else:  # the record changed while it waited: wait again under its own key
@@ -130,7 +132,7 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
             while fn > 0:
                 v = fi[0]
                 if st_nor[v] & CLOSED or fk[0] != _focal_key(
-                    nor[v], gi[v] + _h(v, cols, gr, gc, a), gscale
+                    nor[v], gi[v] + heuristic(a, v // cols, v % cols, gr, gc, False), gscale
                 ):
                     heap_pop(fk, fi, fn)
                     fn -= 1
@@ -174,7 +176,7 @@ def _ra_star(surface, ridge, passable, a, sr, sc, gr, gc, omega):
                     early = (sv & INWAIT) != 0 and ng >= gi[v]
                     gi[v] = ng
                     nor[v] = nn
-                    hv = a * math.sqrt((nr - gr) ** 2 + (nc - gc) ** 2)
+                    hv = heuristic(a, nr, nc, gr, gc, False)
                     if ng + hv < limit:
                         st_nor[v] = PARENT | k
                         fn = heap_push(fk, fi, fn, _focal_key(nn, ng + hv, gscale), v)
