@@ -79,12 +79,16 @@ STREAM_INTERVAL_S = 0.001
 def prompt(client) -> None:
     """Send ``client``'s messages to its scheduler every :data:`STREAM_INTERVAL_S` at most
     (not every 10 ms): the planning functions call it on the client they are given."""
-    comm = getattr(client, "scheduler_comm", None)
     try:
-        if comm is not None and comm.interval > STREAM_INTERVAL_S:
-            comm.interval = STREAM_INTERVAL_S
+        _shorten(getattr(client, "scheduler_comm", None))
     except (AttributeError, TypeError):  # a distributed without it: its own interval
         pass
+
+
+def _shorten(comm) -> None:
+    """A distributed ``BatchedSend`` (or None) sent every :data:`STREAM_INTERVAL_S` at most."""
+    if comm is not None and comm.interval > STREAM_INTERVAL_S:
+        comm.interval = STREAM_INTERVAL_S
 
 
 def _prompt_streams():
@@ -100,9 +104,7 @@ def _prompt_streams():
                 self.add_worker(scheduler, address)
 
         def add_worker(self, scheduler, worker: str) -> None:
-            comm = scheduler.stream_comms.get(worker)
-            if comm is not None and comm.interval > STREAM_INTERVAL_S:
-                comm.interval = STREAM_INTERVAL_S
+            _shorten(scheduler.stream_comms.get(worker))
 
     return PromptStreams()
 

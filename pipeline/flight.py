@@ -1015,7 +1015,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
             )
             problems.append(over)
         turns = radii[np.isfinite(radii)] * a
-        tight = int(np.sum(turns < turn_m * (1 - 1e-9)))
+        tight = int(np.sum(_too_tight(turns, turn_m)))
         if rad == 0:
             problems.append("turns are not rounded (the smoothed tracks broke a limit)")
         elif tight:  # corners that widen_turns could not part: the next smoothing may
@@ -1147,7 +1147,7 @@ def widen_turns(wr, wc, radius, usable, passes: int = 8):
         if len(wr) <= 2:
             break
         rad = _arcs_radii(wr, wc, radius)[1]
-        tight = np.nonzero(rad < radius * (1 - 1e-9))[0]
+        tight = np.nonzero(_too_tight(rad, radius))[0]
         if tight.size == 0:
             break
         drop = np.zeros(len(wr), dtype=bool)
@@ -1166,7 +1166,12 @@ def _tight_turns(wr, wc, radius) -> int:
     """How many corners of the polyline turn tighter than ``radius`` (grid units)."""
     if len(wr) <= 2:
         return 0
-    return int(np.sum(_arcs_radii(wr, wc, radius)[1] < radius * (1 - 1e-9)))
+    return int(np.sum(_too_tight(_arcs_radii(wr, wc, radius)[1], radius)))
+
+
+def _too_tight(radii, radius):
+    """Which turn radii are below ``radius`` (beyond rounding)."""
+    return radii < radius * (1 - 1e-9)
 
 
 def _distinct(wr, wc):

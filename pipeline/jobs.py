@@ -75,14 +75,15 @@ log = logging.getLogger(__name__)
 _TOP_KEYS = {"name", "dem", "maps", "planning", "vehicle", "missions", "output"}
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
 _MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS
+_DEM_KEYS = {"path", "synthetic"} | DEM.names()
+_SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
+_OUTPUT_KEYS = {"catalog", "quicklooks"}
 
 # Raised whenever a change of the code makes a mission's result differ for the same inputs (the
 # planners' paths, the flight), so that a job plans its finished missions again instead of
 # keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h.
 RESULTS_REVISION = 2
-_DEM_KEYS = {"path", "synthetic"} | DEM.names()
-_SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
-_OUTPUT_KEYS = {"catalog", "quicklooks"}
+
 _COORD = Param("coordinate", "float", None, "")
 
 
