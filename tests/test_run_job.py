@@ -432,10 +432,18 @@ mcpc = false
 def _items(root):
     """run_id of every finished mission (a folder being written is hidden and skipped)."""
     out = {}
-    for p in (root / "missions").glob("*/*.json"):
-        if p.parent.name.startswith("."):
+    missions = root / "missions"
+    if not missions.is_dir():
+        return out
+    # Hidden folders are skipped before they are listed: the job renames them while this polls.
+    for name in sorted(os.listdir(missions)):
+        if name.startswith("."):
             continue
-        out[p.parent.name] = json.loads(p.read_text())["properties"]["auv:run_id"]
+        try:  # a finished folder is replaced whole when its mission is planned again
+            for p in (missions / name).glob("*.json"):
+                out[name] = json.loads(p.read_text())["properties"]["auv:run_id"]
+        except FileNotFoundError:
+            continue
     return out
 
 
