@@ -61,6 +61,9 @@ COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine 
 
 _SCRATCH = threading.local()
 
+# shard files a direct reader keeps open, per layer (a 10000^2 layer of 1024^2 shards has 100)
+OPEN_FILES = 64
+
 
 def _scratch(size: int) -> memoryview:
     """A view of ``size`` bytes of this thread's reusable read buffer (grown as needed)."""
@@ -93,20 +96,39 @@ def direct_reader(arr, store: str, var: str):
     codecs = tuple(getattr(meta, "codecs", ()))
     if isinstance(arr.store, LocalStore):
         root = os.path.join(str(arr.store.root), arr.path)
+        files: OrderedDict = OrderedDict()  # key -> its open file, the oldest first
+        files_lock = threading.Lock()
+
+        def handle(key: str):
+            """The file of ``key``, kept open (the last ``OPEN_FILES`` of the layer): opening
+            and closing a shard's file took as long as reading an inner chunk of it. A file
+            dropped from the table closes when no thread reads it any more."""
+            f = files.get(key)
+            if f is None:
+                f = open(os.path.join(root, key), "rb", buffering=0)  # noqa: SIM115 - kept
+                with files_lock:
+                    files[key] = f
+                    while len(files) > OPEN_FILES:
+                        files.popitem(last=False)
+            return f
 
         def fetch(key: str, start: int | None = None, size: int | None = None):
             """The object's bytes; ``start`` (negative: from the end) and ``size`` a range.
             A range of known size is read into this thread's scratch buffer (a view of it,
             valid until the thread's next fetch): a new bytes object of a chunk's size is
             fresh memory, whose page faults cost more than the read itself."""
-            with open(os.path.join(root, key), "rb", buffering=0) as f:
-                if start is None or size is None:
-                    if start is not None:
-                        f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
-                    return f.read()
-                f.seek(start)
-                view = _scratch(size)
-                return view[: f.readinto(view)]
+            if start is None or size is None or not hasattr(os, "preadv"):
+                with open(os.path.join(root, key), "rb", buffering=0) as f:
+                    if start is None or size is None:
+                        if start is not None:
+                            f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
+                        return f.read()
+                    f.seek(start)
+                    view = _scratch(size)
+                    return view[: f.readinto(view)]
+            f = handle(key)  # held while read: a file dropped by another thread stays open
+            view = _scratch(size)
+            return view[: os.preadv(f.fileno(), [view], start)]  # no shared file position
 
     elif isinstance(arr.store, FsspecStore) and is_url(store):
         fs, root = filesystem(join(store, var))  # a synchronous instance, for this thread

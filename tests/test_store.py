@@ -87,6 +87,45 @@ def test_reads_in_several_threads_at_once_equal_zarr(tmp_path):
             np.testing.assert_array_equal(got, data[r : r + 64, c : c + 64])
 
 
+def test_shard_files_stay_open_within_a_bound_while_threads_read_them(tmp_path, monkeypatch):
+    """A reader keeps the last ``OPEN_FILES`` shard files of a layer open. With a bound of one,
+    four threads sharing one cache drop each other's files all the time: every read still
+    equals the data (a file dropped while another thread reads it stays open until that read
+    ends), and no more files stay open than the bound."""
+    import gc
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.setattr("pipeline.store.OPEN_FILES", 1)
+    rng = np.random.default_rng(9)
+    data = rng.normal(size=(512, 512)).astype(np.float32)
+    _array(tmp_path / "a", data, (32, 32), CODECS["blosc-lz4-shuffle"], shards=(128, 128))
+    windows = [tuple(int(v) for v in rng.integers(0, 448, 2)) for _ in range(400)]
+    cache = ChunkCache(0)  # one reader for the four threads; every window decodes its chunks
+
+    def read(w):
+        r, c = w
+        return cache.window(str(tmp_path), "a", r, r + 64, c, c + 64, complete=True)
+
+    def open_here():
+        fds = []
+        for fd in os.listdir("/proc/self/fd"):
+            try:
+                fds.append(os.readlink(f"/proc/self/fd/{fd}"))
+            except OSError:
+                continue  # the listing's own descriptor
+        return [p for p in fds if p.startswith(str(tmp_path / "a"))]
+
+    with ThreadPoolExecutor(4) as pool:
+        for (r, c), got in zip(windows, pool.map(read, windows), strict=True):
+            np.testing.assert_array_equal(got, data[r : r + 64, c : c + 64])
+    gc.collect()
+    assert len(open_here()) == 1  # 16 shard files read, the last one kept
+    cache.clear()
+    gc.collect()
+    assert open_here() == []
+
+
 def test_the_stack_of_landmark_layers_equals_zarr(tmp_path):
     rng = np.random.default_rng(4)
     data = rng.uniform(0, 1e5, size=(3, 70, 45)).astype(np.float32)
