@@ -859,20 +859,23 @@ class Corridor:
         self.el = np.empty((len(ti), tr, tc), dtype=np.float32)
         self.pas = np.empty((len(ti), tr, tc), dtype=np.uint8)
         self.rdg = np.empty((len(ti), tr, tc), dtype=np.uint8)
-        edge = (ti + 1) * tr > rows  # tiles at the map's edge: the rest is no terrain
-        edge |= (tj + 1) * tc > cols
-        self.el[edge], self.pas[edge], self.rdg[edge] = np.nan, 0, 0
-        layers = (("elevation", self.el), ("passable", self.pas), ("ridge", self.rdg))
+        layers = (
+            ("elevation", self.el, np.nan),
+            ("passable", self.pas, 0),
+            ("ridge", self.rdg, 0),
+        )
 
         def load(job):
-            k, i, j, var, dst = job
-            ch = CACHE.chunk(m.path, var, i, j, complete=complete)
-            dst[k, : ch.shape[0], : ch.shape[1]] = ch
+            k, i, j, var, dst, fill = job
+            # decoded into the tile (the chunks a planning process holds are copied from it)
+            h, w = CACHE.chunk_into(m.path, var, i, j, dst[k], complete=complete)
+            dst[k, h:, :] = fill  # a tile at the map's edge: the rest is no terrain
+            dst[k, :h, w:] = fill
 
         jobs = [
-            (k, i, j, var, dst)
+            (k, i, j, var, dst, fill)
             for k, (i, j) in enumerate(zip(ti.tolist(), tj.tolist(), strict=True))
-            for var, dst in layers
+            for var, dst, fill in layers
         ]
         # decoding releases the GIL: read the chunks a few at a time
         list(shared_pool("corridor", 4).map(load, jobs))

@@ -74,7 +74,8 @@ def _scratch(size: int) -> memoryview:
 
 
 def direct_reader(arr, store: str, var: str):
-    """A reader of whole chunks of ``arr`` (``read(index) -> ndarray``, clipped to the array)
+    """A reader of whole chunks of ``arr`` (``read(index, out=None) -> ndarray``, clipped to the
+    array; decoded into ``out``, a buffer of the chunk's bytes, when given)
     that fetches the chunk's bytes from its file or object and decodes them with numcodecs
     (None for a chunk that is not there), or None when the array is not laid out the way the
     maps stores are (Zarr 3 on a local directory or object storage, the ``bytes`` codec then
@@ -168,9 +169,9 @@ def direct_reader(arr, store: str, var: str):
         return None
     chunks, shape, dtype = tuple(arr.chunks), tuple(arr.shape), arr.dtype
 
-    def decode(raw: bytes, key: str, index: tuple):
+    def decode(raw: bytes, key: str, index: tuple, out):
         try:
-            block = np.frombuffer(decoder.decode(raw), dtype=dtype).reshape(chunks)
+            block = np.frombuffer(decoder.decode(raw, out=out), dtype=dtype).reshape(chunks)
         except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError, ValueError, ...
             where = key if sharding is None else f"{key} (inner chunk {index})"
             raise damaged(
@@ -181,14 +182,15 @@ def direct_reader(arr, store: str, var: str):
 
     if sharding is None:
 
-        def read(index: tuple):
+        def read(index: tuple, out=None):
             key = meta.encode_chunk_key(index)
             try:
                 raw = fetch(key)
             except FileNotFoundError:
                 return None
-            return decode(raw, key, index)
+            return decode(raw, key, index, out)
 
+        read.chunks, read.dtype = chunks, dtype
         return read
 
     per = tuple(s // c for s, c in zip(arr.shards, chunks, strict=True))  # inner chunks a shard
@@ -197,7 +199,7 @@ def direct_reader(arr, store: str, var: str):
     tables: dict = {}  # shard key -> its index, (inner chunks, 2) of offset and size
     check = CRC32C(location="end")
 
-    def read(index: tuple):
+    def read(index: tuple, out=None):
         key = meta.encode_chunk_key(tuple(i // p for i, p in zip(index, per, strict=True)))
         table = tables.get(key)
         if table is None:
@@ -218,8 +220,9 @@ def direct_reader(arr, store: str, var: str):
         offset, size = table[k]
         if offset == empty and size == empty:
             return None
-        return decode(fetch(key, offset, size), key, index)
+        return decode(fetch(key, offset, size), key, index, out)
 
+    read.chunks, read.dtype = chunks, dtype
     return read
 
 
@@ -292,6 +295,33 @@ class ChunkCache:
             return self._read(store, var, (ci, cj), complete)
 
         return self._cached((store, var, ci, cj), load)
+
+    def chunk_into(
+        self, store: str, var: str, ci: int, cj: int, out: np.ndarray, complete: bool = False
+    ) -> tuple[int, int]:
+        """Chunk ``(ci, cj)`` of ``var`` written into ``out`` (an array of the chunk's full
+        shape): copied from the cache when it holds the chunk, else decoded straight into
+        ``out`` and not kept (a read used once, such as the flight's corridor: no copy, no
+        memory of the cache's own). Returns the chunk's shape within the layer (smaller at its
+        right and bottom edges, where the rest of ``out`` holds what the store padded with)."""
+        with self.lock:
+            got = self.items.get((store, var, ci, cj))
+        if got is None:
+            self.array(store, var)
+            read = self.readers.get((store, var))
+            if (
+                read is not None
+                and out.flags.c_contiguous
+                and tuple(out.shape) == tuple(read.chunks)
+                and out.dtype.itemsize == read.dtype.itemsize
+                and out.dtype.kind in (read.dtype.kind, "u" if read.dtype.kind == "b" else "")
+            ):
+                block = read((ci, cj), out.reshape(-1).view(np.uint8))
+                if block is not None:
+                    return block.shape
+            got = self.chunk(store, var, ci, cj, complete)  # zarr's read, or the damage
+        out[: got.shape[0], : got.shape[1]] = got
+        return got.shape
 
     def window(
         self, store: str, var: str, r0: int, r1: int, c0: int, c1: int, complete: bool = False

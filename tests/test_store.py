@@ -87,6 +87,37 @@ def test_reads_in_several_threads_at_once_equal_zarr(tmp_path):
             np.testing.assert_array_equal(got, data[r : r + 64, c : c + 64])
 
 
+@pytest.mark.parametrize("shape, chunks, shards", [(*s, None) for s in SHAPES] + SHARDED, ids=str)
+@pytest.mark.parametrize("dtype, tile", [("float32", "float32"), ("bool", "uint8")])
+def test_a_chunk_read_into_a_tile_equals_zarr(tmp_path, shape, chunks, shards, dtype, tile):
+    """``chunk_into`` (the flight's corridor) decodes a chunk straight into a tile of its full
+    shape, or copies it from the cache when the cache holds it, or reads it through zarr for a
+    layout read otherwise (no compressor): each time the part within the layer equals the
+    data and the returned shape is that part's (clipped at the last row and column of
+    chunks)."""
+    rng = np.random.default_rng(5)
+    data = rng.normal(size=shape).astype(np.float32) * 100
+    data = data.astype(dtype) if dtype != "bool" else data > 0
+    arr = _array(tmp_path / "a", data, chunks, CODECS["blosc-lz4-shuffle"], shards=shards)
+    other = _array(tmp_path / "b", data, chunks, None, shards=shards)
+    assert direct_reader(arr, str(tmp_path), "a") is not None
+    assert direct_reader(other, str(tmp_path), "b") is None
+    ch, cw = chunks
+    cache = ChunkCache(2**30)
+    for var in ("a", "b"):
+        for kept in (False, True):  # decoded into the tile, then copied from the cache
+            for ci in range(-(-shape[0] // ch)):
+                for cj in range(-(-shape[1] // cw)):
+                    if kept:
+                        cache.chunk(str(tmp_path), var, ci, cj)
+                    out = np.zeros(chunks, dtype=tile)
+                    # not complete: a chunk of the fill value only is not written (bool)
+                    h, w = cache.chunk_into(str(tmp_path), var, ci, cj, out)
+                    want = data[ci * ch : (ci + 1) * ch, cj * cw : (cj + 1) * cw]
+                    assert (h, w) == want.shape
+                    np.testing.assert_array_equal(out[:h, :w], want.astype(tile))
+
+
 def test_shard_files_stay_open_within_a_bound_while_threads_read_them(tmp_path, monkeypatch):
     """A reader keeps the last ``OPEN_FILES`` shard files of a layer open. With a bound of one,
     four threads sharing one cache drop each other's files all the time: every read still
