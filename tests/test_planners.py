@@ -297,6 +297,44 @@ def random_mission(seed, density, ridge_share):
     return (surface, ridge, passable, s, g, ref) if np.isfinite(ref) else None
 
 
+def test_searches_one_after_another_in_a_thread_are_each_optimal():
+    """A* reuses its thread's search arrays: after searches on larger windows (a long path,
+    its cells marked in the kept state) and one whose goal is walled off (every reachable
+    cell closed), each search on a smaller window still equals scipy."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    walled = obstacle_map((50, 50), 7, density=0.0)
+    walled[2][:, 25] = False
+    cases = [obstacle_map(shape, k, 0.15 + 0.05 * (k % 3)) for k, shape in enumerate(
+        [(60, 70), (40, 35), (61, 71), (25, 30), (9, 8), (40, 35)]
+    )]  # fmt: skip
+    cases.insert(2, walled)
+    ends = [endpoints(c[2], k) for k, c in enumerate(cases)]
+    ends[2] = ((10, 3), (40, 45))
+
+    def run():
+        out = []
+        for (surface, ridge, passable), (s, g) in zip(cases, ends, strict=True):
+            try:
+                t = pipeline.plan_window(
+                    surface, ridge, passable, s, g, cell_size=30.0, planner="astar"
+                )
+                out.append(t)
+            except UnreachableGoalError:
+                out.append(None)
+        return out
+
+    with ThreadPoolExecutor(1) as pool:  # a thread whose arrays start empty
+        results = pool.submit(run).result()
+    assert results[2] is None
+    for (surface, _, passable), (s, g), t in zip(cases, ends, results, strict=True):
+        ref = reference_length(surface, passable, 30.0, s, g)
+        assert (t is None) == (not np.isfinite(ref))
+        if t is not None:
+            assert t.length_m == pytest.approx(ref, rel=1e-9)
+            check_path(t, passable, s, g)
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_ra_star_with_omega_one_is_optimal(seed):
     surface, ridge, passable = obstacle_map((35, 40), seed, density=0.2)
@@ -433,7 +471,13 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     41 / 29 cells, and is at most the distance with diagonals of sqrt 2 (within 0.03 %); A*
     with it in the heuristic finds scipy's optimum of length + w x off-ridge length, for
     several w."""
-    from pipeline.planners.core import OFF_DIAGONAL, OFF_UNITS, astar_search, off_ridge_to_goal
+    from pipeline.planners.core import (
+        OFF_DIAGONAL,
+        OFF_UNITS,
+        astar_search,
+        off_ridge_to_goal,
+        search_arrays,
+    )
 
     surface, ridge, passable = obstacle_map((30, 34), seed, density=0.15)
     ridge = np.random.default_rng(seed).random(surface.shape) < 0.4
@@ -461,8 +505,9 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
             return
         for hoff in (got, np.zeros(0)):
             _, gs, _, found = astar_search(
-                z, ridge, passable, 30.0, *s, *g, 1.0, w, True, np.zeros((0, 0), np.float32), hoff
-            )
+                z, ridge, passable, 30.0, *s, *g, 1.0, w, True, np.zeros((0, 0), np.float32), hoff,
+                *search_arrays(z.size),
+            )  # fmt: skip
             assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
 
 

@@ -4,11 +4,14 @@ ties broken towards the goal."""
 
 from __future__ import annotations
 
-from .core import NO_GOAL, TIE, Planner, Search, astar_search, landmark_rows
+from .core import NO_GOAL, TIE, Planner, Search, astar_search, landmark_rows, search_arrays
 
 
 def _weighted(weight_of):
     def search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
+        """The search's state is read (``trace_path``) before this thread searches again: its
+        arrays are the thread's own (:func:`~.core.search_arrays`), kept for the next search
+        (the coarse search of every mission on a map)."""
         weight = weight_of(omega)
         state, _, expansions, found = astar_search(
             surface,
@@ -24,6 +27,7 @@ def _weighted(weight_of):
             True,
             landmark_rows(landmarks, surface.shape),
             NO_GOAL,
+            *search_arrays(surface.size, reuse=True),
         )
         # A* (tie-broken) is within 1 + TIE of L*, weighted A* within omega (1 + TIE)
         w = max(weight, 1.0)

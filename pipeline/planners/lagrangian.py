@@ -23,6 +23,7 @@ from .core import (
     landmark_rows,
     off_ridge_to_goal,
     path_steps,
+    search_arrays,
     trace_path,
 )
 
@@ -65,6 +66,7 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
             True,
             lm,
             hoff if off_weight > 0 else NO_GOAL,
+            *search_arrays(surface.size),  # new ones: the searches' states are kept
         )
         expansions += exp
         if not found:
