@@ -464,6 +464,34 @@ def _weighted_graph(surface, ridge, passable, a, off_weight, horizontal_off=Fals
     return coo_matrix((w, (g.row, g.col)), shape=g.shape).tocsr()
 
 
+def test_lagrangian_at_omega_one_takes_the_most_ridge_among_shortest_paths():
+    """On flat ground many paths share the shortest length; at omega 1 the Lagrangian planner
+    takes the one with the least off-ridge length among them (its weighted searches find it:
+    a shortcut that returned A*'s path at omega 1 would not), which is scipy's Dijkstra on
+    length plus 1e-6 x off-ridge length (a longer path is longer by more than the weight
+    could ever trade). A* itself finds it on few of these missions."""
+    rng = np.random.default_rng(0)
+    a_off_more = 0
+    for _ in range(12):
+        n = 30
+        flat = np.full((n, n), -1000.0)
+        ok = np.ones((n, n), bool)
+        ridge = rng.random((n, n)) < 0.3
+        s = (int(rng.integers(0, 5)), int(rng.integers(0, 5)))
+        g = (int(rng.integers(20, 30)), int(rng.integers(10, 30)))
+        src, dst = s[0] * n + s[1], g[0] * n + g[1]
+        shortest = dijkstra(_weighted_graph(flat, ridge, ok, 30.0, 0.0), indices=src)[dst]
+        tilted = dijkstra(_weighted_graph(flat, ridge, ok, 30.0, 1e-6), indices=src)[dst]
+        least_off = (tilted - shortest) / 1e-6
+        kw = dict(cell_size=30.0, omega=1.0)
+        lg = pipeline.plan_window(flat, ridge, ok, s, g, planner="lagrangian", **kw)
+        a = pipeline.plan_window(flat, ridge, ok, s, g, planner="astar", **kw)
+        assert lg.length_m == pytest.approx(shortest, rel=1e-12)
+        assert lg.length_m - lg.ridge_length_m == pytest.approx(least_off, abs=1e-4)
+        a_off_more += a.length_m - a.ridge_length_m > least_off + 1.0
+    assert a_off_more >= 8
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     """``off_ridge_to_goal`` equals scipy's Dijkstra towards the goal on the graph whose moves
