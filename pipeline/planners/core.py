@@ -236,6 +236,8 @@ def astar_search(
     hoff,
     g,
     state,
+    hk,
+    hi,
 ):
     """(Weighted) A* from (sr, sc) to (gr, gc); weight 1 is A*, weight 0 is Dijkstra.
 
@@ -250,8 +252,9 @@ def astar_search(
     Every argument is given by the callers (``NO_LANDMARKS``, ``NO_GOAL`` for none): an
     omitted array argument types as its default object, which numba cannot key its on-disk
     cache by, so every new process compiled the search again (1-3 s).
-    ``g`` and ``state`` (float64 and int8, at least a cell each, :func:`search_arrays`) are
-    the search's own arrays, written here (``state`` cleared first).
+    ``g``, ``state`` (float64 and int8, at least a cell each) and the heap's first arrays
+    ``hk``, ``hi`` (float64 and int64, of one size, grown here when short) are the search's own
+    (:func:`search_arrays`), written here (``state`` cleared first).
     Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
     found flag.
     """
@@ -260,8 +263,6 @@ def astar_search(
     g = g[:n]
     state = state[:n]
     state[:] = 0
-    hk = np.empty(1024)
-    hi = np.empty(1024, dtype=np.int64)
     s = sr * cols + sc
     t = gr * cols + gc
     g[s] = 0.0
@@ -318,20 +319,28 @@ def astar_search(
 
 # searches of at most this many cells reuse arrays kept by their thread (search_arrays)
 REUSED_CELLS = 2**21
+REUSED_HEAP = 2**16
 _ARRAYS = threading.local()
 
 
-def search_arrays(n: int, reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """``g`` and ``state`` for :func:`astar_search` on ``n`` cells: new ones, or with ``reuse``
-    (a caller done with the search's state before its thread's next search) the ones this
-    thread keeps, grown as needed, for up to :data:`REUSED_CELLS` cells. A new array's pages
-    fault in as the search first touches them: 100-1200 faults, 0.1-1 ms, in each mission's
-    coarse search on the 1000^2 coarse level of a 2000^2 map (the search itself 0.1-4 ms)."""
+def search_arrays(n: int, reuse: bool = False) -> tuple:
+    """``g``, ``state`` and the heap's first arrays for :func:`astar_search` on ``n`` cells:
+    new ones, or with ``reuse`` (a caller done with the search's state before its thread's
+    next search) the ones this thread keeps, grown as needed, for up to :data:`REUSED_CELLS`
+    cells (a heap of :data:`REUSED_HEAP` entries). A new array's pages fault in as the search
+    first touches them: 100-1200 faults, 0.1-1 ms, in each mission's coarse search on the
+    1000^2 coarse level of a 2000^2 map (the search itself 0.1-4 ms)."""
     if not reuse or n > REUSED_CELLS:
-        return np.empty(n), np.empty(n, dtype=np.int8)
+        return np.empty(n), np.empty(n, dtype=np.int8), np.empty(1024), np.empty(1024, np.int64)
     got = getattr(_ARRAYS, "arrays", None)
     if got is None or got[0].size < n:
-        got = _ARRAYS.arrays = (np.empty(n), np.empty(n, dtype=np.int8))
+        # written once here, so that later searches touch no page for the first time
+        got = _ARRAYS.arrays = (
+            np.full(n, 0.0),
+            np.full(n, 0, np.int8),
+            np.full(REUSED_HEAP, 0.0),
+            np.full(REUSED_HEAP, 0, np.int64),
+        )
     return got
 
 
