@@ -252,9 +252,9 @@ def astar_search(
     Every argument is given by the callers (``NO_LANDMARKS``, ``NO_GOAL`` for none): an
     omitted array argument types as its default object, which numba cannot key its on-disk
     cache by, so every new process compiled the search again (1-3 s).
-    ``g``, ``state`` (float64 and int8, at least a cell each) and the heap's first arrays
-    ``hk``, ``hi`` (float64 and int64, of one size, grown here when short) are the search's own
-    (:func:`search_arrays`), written here (``state`` cleared first).
+    ``g``, ``state`` (float64 and int8, at least a cell each, ``state`` zero on its first
+    cells) and the heap's first arrays ``hk``, ``hi`` (float64 and int64, of one size, grown
+    here when short) are the search's own, written here (:func:`search_arrays`).
     Returns the state (see ``PARENT``; ``trace_path`` reads the path from it), g, expansions,
     found flag.
     """
@@ -262,7 +262,6 @@ def astar_search(
     n = rows * cols
     g = g[:n]
     state = state[:n]
-    state[:] = 0
     s = sr * cols + sc
     t = gr * cols + gc
     g[s] = 0.0
@@ -330,8 +329,8 @@ def search_arrays(n: int, reuse: bool = False) -> tuple:
     cells (a heap of :data:`REUSED_HEAP` entries). A new array's pages fault in as the search
     first touches them: 100-1200 faults, 0.1-1 ms, in each mission's coarse search on the
     1000^2 coarse level of a 2000^2 map (the search itself 0.1-4 ms)."""
-    if not reuse or n > REUSED_CELLS:
-        return np.empty(n), np.empty(n, dtype=np.int8), np.empty(1024), np.empty(1024, np.int64)
+    if not reuse or n > REUSED_CELLS:  # zeros: pages the search does not touch stay unmapped
+        return np.empty(n), np.zeros(n, dtype=np.int8), np.empty(1024), np.empty(1024, np.int64)
     got = getattr(_ARRAYS, "arrays", None)
     if got is None or got[0].size < n:
         # written once here, so that later searches touch no page for the first time
@@ -341,6 +340,7 @@ def search_arrays(n: int, reuse: bool = False) -> tuple:
             np.full(REUSED_HEAP, 0.0),
             np.full(REUSED_HEAP, 0, np.int64),
         )
+    got[1][:n] = 0  # the last search's marks
     return got
 
 
