@@ -483,11 +483,21 @@ def pareto_part(rep: Report, figs: Path, n: int) -> None:
         rows[f"lagrangian {om}"]["ms_mean"] / rows[f"ra_star {om}"]["ms_mean"]
         for om in PARETO_OMEGAS
     ]
+    ref = rows["astar 1.0"]
+    same = [
+        p
+        for p in ("wastar", "ra_star", "lagrangian")
+        if all(rows[f"{p} 1.0"][k] == ref[k] for k in ("length_over_opt", "ridge_ratio"))
+    ]
     rep.p(
         "Lagrangian time / RA* time per omega: "
         + ", ".join(f"{om}: {r:.1f}x" for om, r in zip(PARETO_OMEGAS, ratios, strict=True))
-        + " (target < 5x). Weighted A* does not look for ridges at all; at omega 1 every "
-        "planner returns A*'s path."
+        + " (target < 5x). Weighted A* does not look for ridges at all. At omega 1, "
+        + (", ".join(same) or "no planner")
+        + " returned A*'s lengths and ridge ratios on these missions (on rough ground shortest "
+        "paths seldom tie). The Lagrangian planner still runs its weighted searches there: "
+        "where several paths do (flat ground), they find the one with the most ridge "
+        "(docs/method.md section 5)."
     )
     png = figs / "pareto.png"
     plot_pareto(res, png)
