@@ -118,18 +118,18 @@ def direct_reader(arr, store: str, var: str):
             A range of known size is read into this thread's scratch buffer (a view of it,
             valid until the thread's next fetch): a new bytes object of a chunk's size is
             fresh memory, whose page faults cost more than the read itself."""
-            if start is None or size is None or not hasattr(os, "preadv"):
+            if start is None or size is None:
                 with open(os.path.join(root, key), "rb", buffering=0) as f:
-                    if start is None or size is None:
-                        if start is not None:
-                            f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
-                        return f.read()
-                    f.seek(start)
-                    view = _scratch(size)
-                    return view[: f.readinto(view)]
-            f = handle(key)  # held while read: a file dropped by another thread stays open
+                    if start is not None:
+                        f.seek(start, os.SEEK_END if start < 0 else os.SEEK_SET)
+                    return f.read()
             view = _scratch(size)
-            return view[: os.preadv(f.fileno(), [view], start)]  # no shared file position
+            if hasattr(os, "preadv"):  # no shared file position: one kept file for all threads
+                f = handle(key)  # held while read: a file dropped by another thread stays open
+                return view[: os.preadv(f.fileno(), [view], start)]
+            with open(os.path.join(root, key), "rb", buffering=0) as f:
+                f.seek(start)
+                return view[: f.readinto(view)]
 
     elif isinstance(arr.store, FsspecStore) and is_url(store):
         fs, root = filesystem(join(store, var))  # a synchronous instance, for this thread
