@@ -62,6 +62,85 @@ def storage_chunks(arr) -> tuple[int, ...]:
     return tuple(int(v) for v in (shards if shards is not None else arr.chunks))
 
 
+# the output a banded write (:func:`store_in_bands`) computes at a time: a band of chunk rows of
+# at most this many bytes (one chunk row at least)
+BAND_BYTES = 256 * 2**20
+
+
+def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None) -> None:
+    """Write the dask array ``data`` (2-D, or more with the rows on its first axis) into
+    ``target`` (a Zarr array of its shape whose chunks are ``data``'s blocks), a band of block
+    rows at a time, each band at most ``band_bytes`` of output, so that memory follows the
+    band, not the map. ``progress(done, total)`` after each band.
+
+    dask's local schedulers keep a task's result until every task that needs it is done, and
+    run any task that is ready: in one graph of a reprojection (each output chunk warps the
+    source chunks it overlaps) they read far ahead of the warps, and a 40000^2 GeoTIFF import
+    held 3.0 GiB (benchmarks/bench_dem.py). A band's graph holds only what that band needs. What
+    the next band needs too (the source chunks astride the boundary) is computed once, kept,
+    and handed to the next band's graph as a value: the file is read once and the chunks
+    written are those of one graph. Under a distributed client the graph goes as one: the
+    cluster has its own memory limits."""
+    import functools
+
+    import dask
+    import dask.array as da
+    from dask.core import flatten, get_dependencies
+
+    stored = da.store(data, target, lock=False, compute=False)
+    get = dask.base.get_scheduler(collections=[stored])
+    owner = getattr(get, "__self__", None)
+    if owner is not None and type(owner).__module__.startswith("distributed"):
+        dask.compute(stored)
+        return
+    rows = [list(flatten(r)) for r in stored.__dask_keys__()]
+    row_bytes = max(1, data.nbytes // max(len(rows), 1))
+    per = max(1, int(band_bytes // row_bytes))
+    bands = [[k for r in rows[i : i + per] for k in r] for i in range(0, len(rows), per)]
+    graph = dict(stored.__dask_graph__())
+    deps: dict = {}
+
+    def needs(key) -> set:
+        if key not in deps:
+            deps[key] = get_dependencies(graph, key)
+        return deps[key]
+
+    def cull(keys, known: dict) -> dict:
+        """The tasks ``keys`` need, those of ``known`` as their values (nothing below them)."""
+        out: dict = {}
+        todo = list(keys)
+        while todo:
+            key = todo.pop()
+            if key in out:
+                continue
+            if key in known:
+                out[key] = (functools.partial(_value, known[key]),)
+                continue
+            out[key] = graph[key]
+            todo.extend(needs(key))
+        return out
+
+    known: dict = {}
+    for i, keys in enumerate(bands):
+        band = cull(keys, known)
+        keep: list = []
+        if i + 1 < len(bands):
+            later = cull(bands[i + 1], {})
+            shared = band.keys() & later.keys()
+            # the shared results the next band uses directly (not only through other shared ones)
+            used = set().union(*(needs(j) for j in later if j not in shared))
+            keep = [k for k in shared if k in used]
+        got = get(band, keys + keep)
+        known = dict(zip(keep, got[len(keys) :], strict=True))
+        if progress is not None:
+            progress(i + 1, len(bands))
+
+
+def _value(v):
+    """A task's result kept from an earlier band (:func:`store_in_bands`)."""
+    return v
+
+
 def is_url(p) -> bool:
     """Whether ``p`` names object storage (an fsspec URL such as ``s3://bucket/key``) rather
     than a local or shared path; ``file://`` URLs are local paths."""

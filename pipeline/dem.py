@@ -21,7 +21,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._io import atomic_path, layer_codec
+from ._io import atomic_path, layer_codec, store_in_bands
 from .exceptions import InvalidDEMError, InvalidParameterError
 from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
 
@@ -264,6 +264,8 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     """:func:`write_dem`; with ``empty``, the grid written is also checked to hold a valid cell
     (from the chunks stored: no second pass over the file), else InvalidDEMError(empty) and
     nothing is left behind."""
+    import zarr
+
     _check_canonical(dem)
     ch = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, dem.shape)
     for side in ch:
@@ -281,7 +283,9 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     encoding = {"elevation": {"chunks": ch, "compressors": layer_codec()}}
     with atomic_path(store, overwrite=overwrite) as tmp:
         with reading(dem.attrs.get("source", "")):
-            # chunks that are all no-data (the fill value, NaN) are not stored
+            # the metadata and coordinates, then the grid a band of chunk rows at a time (its
+            # memory follows the band: store_in_bands); chunks that are all no-data (the fill
+            # value, NaN) are not stored
             ds.to_zarr(
                 tmp,
                 mode="w",
@@ -289,7 +293,12 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
                 consolidated=False,
                 encoding=encoding,
                 write_empty_chunks=False,
+                compute=False,
             )
+            grid = zarr.open_array(
+                str(tmp / "elevation"), mode="r+", config={"write_empty_chunks": False}
+            )
+            store_in_bands(data, grid, progress=_band_log(store))
         if empty is not None and not _holds_a_valid_cell(tmp / "elevation"):
             raise InvalidDEMError(empty)
     log.info(
@@ -300,6 +309,17 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
         ch,
     )
     return Path(store)
+
+
+def _band_log(store):
+    """A progress callback of :func:`store_in_bands` for a DEM store's long writes: a log line
+    each tenth of the bands, from 10 bands up."""
+
+    def progress(done: int, total: int) -> None:
+        if total >= 10 and done * 10 // total > (done - 1) * 10 // total:
+            log.info("writing DEM store %s: %d of %d bands of chunk rows", store, done, total)
+
+    return progress
 
 
 @contextmanager

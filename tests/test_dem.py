@@ -600,6 +600,147 @@ def test_a_lon_lat_grid_is_reprojected_chunk_by_chunk(tmp_path):
     assert np.median(np.abs(v[ok] - ref[ok])) < 0.5
 
 
+# ------------------------------------------------------------------ written band by band
+
+
+def _counted_max_filter(x, chunks, calls):
+    """A 3 x 3 maximum filter of ``x`` as a dask graph whose source blocks count their runs in
+    ``calls``: every output block needs the source blocks around it."""
+    from collections import Counter  # noqa: F401 - calls is a Counter
+
+    def source(block, block_info=None):
+        calls[block_info[0]["chunk-location"]] += 1
+        return block
+
+    from scipy import ndimage
+
+    a = da.from_array(x, chunks=chunks).map_blocks(source, dtype=x.dtype)
+    return a.map_overlap(
+        lambda v: ndimage.maximum_filter(v, size=3, mode="nearest"), depth=1, boundary="nearest"
+    )
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "synchronous"])
+def test_a_banded_write_equals_the_whole_and_reads_each_block_once(scheduler):
+    """store_in_bands (the DEM writer's) on a graph where each output block needs its
+    neighbours' source blocks, in awkward chunks (a last chunk row and column of one cell):
+    for bands of one block row, two, and the whole, the array written equals scipy's filter
+    of the whole array, and every source block ran exactly once (the blocks astride a band's
+    boundary are kept for the next band, not read again)."""
+    from collections import Counter
+
+    import dask
+    import zarr
+    from scipy import ndimage
+
+    from pipeline._io import store_in_bands
+
+    x = np.random.default_rng(4).normal(size=(301, 201)).astype(np.float32)
+    ref = ndimage.maximum_filter(x, size=3, mode="nearest")
+    row = 201 * 100 * 4  # the bytes of one block row
+    for band_bytes in (1, 2 * row, 10**9):
+        calls: Counter = Counter()
+        out = _counted_max_filter(x, 100, calls)
+        target = zarr.create_array(store={}, shape=x.shape, chunks=(100, 100), dtype="float32")
+        seen: list = []
+        with dask.config.set(scheduler=scheduler):
+            store_in_bands(
+                out, target, band_bytes=band_bytes, progress=lambda d, k, s=seen: s.append((d, k))
+            )
+        assert np.array_equal(target[:], ref), band_bytes
+        assert len(calls) == 4 * 3 and set(calls.values()) == {1}, (band_bytes, calls)
+        bands = {1: 4, 2 * row: 2, 10**9: 1}[band_bytes]
+        assert seen == [(d, bands) for d in range(1, bands + 1)]
+
+
+def test_a_banded_write_holds_about_a_band():
+    """What dask holds while a band is computed stays within a few block rows of a 20-row map,
+    with bands of one block row (measured by a scheduler callback on its results)."""
+    import dask
+    import zarr
+    from dask.callbacks import Callback
+
+    from pipeline._io import store_in_bands
+
+    x = np.random.default_rng(5).normal(size=(1000, 400))
+    row = 400 * 50 * 8
+    held = [0]
+
+    class Held(Callback):
+        def _posttask(self, key, result, dsk, state, id):
+            held[0] = max(held[0], sum(getattr(v, "nbytes", 0) for v in state["cache"].values()))
+
+    from collections import Counter
+
+    out = _counted_max_filter(x, 50, Counter())
+    target = zarr.create_array(store={}, shape=x.shape, chunks=(50, 50), dtype="float64")
+    with dask.config.set(scheduler="threads"), Held():
+        store_in_bands(out, target, band_bytes=row)
+    assert np.isfinite(target[:]).all()
+    assert held[0] <= 6 * row, held[0] / row
+
+
+def test_a_lon_lat_reprojection_written_in_bands_reads_the_file_once(tmp_path, local_client):
+    """The reprojection of a lon/lat GeoTIFF (each output chunk warps the source chunks it
+    overlaps) written a band of one chunk row at a time: the same values as computed whole,
+    each of the file's chunks read by one task run once (counted by a scheduler callback), and
+    no more bytes read than by the whole computation (/proc/self/io);
+    under a distributed client (one graph) the same values again."""
+    from collections import Counter
+
+    import dask
+    import rioxarray  # noqa: F401
+    import zarr
+    from dask.callbacks import Callback
+
+    from pipeline._io import store_in_bands
+
+    ran: Counter = Counter()
+
+    class Ran(Callback):
+        def _posttask(self, key, result, dsk, state, id):
+            ran[key] += 1
+
+    n = 1024
+    lon = -60.0 + (np.arange(n) + 0.5) * 0.004
+    lat = 45.0 - (np.arange(n) + 0.5) * 0.004
+    glon, glat = np.meshgrid(lon, lat)
+    z = (-3000 + 800 * np.sin(glon * 9.0) * np.cos(glat * 7.0)).astype(np.float32)
+    arr = lonlat_dataarray(z, lon, lat).rename(lat="y", lon="x").rio.write_crs("EPSG:4326")
+    path = tmp_path / "lonlat.tif"
+    arr.rio.to_raster(path, tiled=True, blockxsize=128, blockysize=128)
+    small = tmp_path / "small.tif"  # the first read in a process imports modules: not here
+    arr[:300, :300].rio.to_raster(small, tiled=True, blockxsize=128, blockysize=128)
+    with dask.config.set(scheduler="threads"):
+        pipeline.open_dem(small, chunks=128, validate=False).values.sum()
+        dem = pipeline.open_dem(path, chunks=128, validate=False)
+        before = _rchar()
+        whole = dem.values
+        read_whole = _rchar() - before
+        rows = dem.data.numblocks[0]
+        assert rows >= 4
+        target = zarr.create_array(
+            store=str(tmp_path / "banded.zarr"), shape=dem.shape, chunks=(128, 128), dtype="f4"
+        )
+        before = _rchar()
+        done = []
+        with Ran():
+            store_in_bands(dem.data, target, band_bytes=1, progress=lambda d, k: done.append(k))
+        read_banded = _rchar() - before
+    assert done[-1] == rows
+    # rioxarray's reads of the file's chunks (its tasks "open_rasterio-..."): each ran once
+    reads = {k: c for k, c in ran.items() if str(k[0]).startswith("open_rasterio-")}
+    assert len(reads) == (n // 128) ** 2 and set(reads.values()) == {1}, reads
+    assert np.array_equal(target[:], whole, equal_nan=True)
+    assert read_banded <= 1.05 * read_whole, (read_banded, read_whole)
+    target = zarr.create_array(
+        store=str(tmp_path / "cluster.zarr"), shape=dem.shape, chunks=(128, 128), dtype="f4"
+    )
+    with local_client.as_current(), dask.config.set(scheduler=local_client):
+        store_in_bands(dem.data, target, band_bytes=1)
+    assert np.array_equal(target[:], whole, equal_nan=True)
+
+
 # ------------------------------------------------------------------ survey uncertainty (BAG)
 
 
