@@ -97,8 +97,10 @@ def lonlat_part(rep, n: int, order: int = 12) -> None:
           benchmark ({made["seconds"]:.0f} s). `import_dem` with
           the threaded scheduler (2 threads), chunks 1024: the grid is reprojected chunk by
           chunk (odc-geo's `xr_reproject`) to an azimuthal equidistant projection and written
-          to Zarr; then with `bbox={list(box)}` (a hundredth of the grid). Bytes read: the
-          process's read() calls (/proc/self/io) during the import, modules imported before.""")
+          to Zarr a band of chunk rows at a time (at most 256 MiB of output a band; the source
+          chunks astride a band's boundary kept for the next band); then with
+          `bbox={list(box)}` (a hundredth of the grid). Bytes read: the process's read() calls
+          (/proc/self/io) during the import, modules imported before.""")
     rep.table(
         ["case", "output cells", "wall time (s)", "peak memory (GiB)", "bytes read (MiB)"],
         [
