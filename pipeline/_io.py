@@ -79,8 +79,12 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
     held 3.0 GiB (benchmarks/bench_dem.py). A band's graph holds only what that band needs. What
     the next band needs too (the source chunks astride the boundary) is computed once, kept,
     and handed to the next band's graph as a value: the file is read once and the chunks
-    written are those of one graph. Under a distributed client the graph goes as one: the
-    cluster has its own memory limits."""
+    written are those of one graph.
+
+    Under a distributed client the graph goes as one. Bands there (what is kept as futures)
+    held 0.8 GiB a worker against 2.8 for a 40000^2 import on the 2 workers of a LocalCluster,
+    but took 107-130 s against 65: each band's graph is sent apart, and sending a reprojection
+    task costs the client about 30 ms (each carries odc-geo's map of the whole grid's chunks)."""
     import functools
 
     import dask
