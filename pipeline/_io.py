@@ -88,11 +88,11 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
     import dask.array as da
     from dask.core import flatten, get_dependencies
 
+    from .cluster import computing_client
+
     stored = da.store(data, target, lock=False, compute=False)
+    client = computing_client()
     get = dask.base.get_scheduler(collections=[stored])
-    client = getattr(get, "__self__", None)
-    if client is not None and not type(client).__module__.startswith("distributed"):
-        client = None
     rows = [list(flatten(r)) for r in stored.__dask_keys__()]
     row_bytes = max(1, data.nbytes // max(len(rows), 1))
     per = max(1, int(band_bytes // row_bytes))

@@ -117,6 +117,23 @@ async def _add_prompt_streams(scheduler) -> None:
     plugin.start(scheduler)
 
 
+def computing_client():
+    """The distributed client dask computes on here, or None for a local scheduler (the maps
+    build's and the banded writes' choice of how to send their work). Never makes one: inside
+    a task, ``distributed.get_client()`` creates the worker's client and makes it the process's
+    default scheduler, so that a build run in a task under ``scheduler="synchronous"`` (the
+    first run's kernel warm-up) then sent its computations to the cluster whose threads its own
+    tasks held, and waited (minutes, or for ever)."""
+    from dask.base import get_scheduler
+
+    try:
+        get = get_scheduler()
+    except (RuntimeError, ValueError):
+        return None
+    owner = getattr(get, "__self__", None)
+    return owner if hasattr(owner, "scheduler_info") else None
+
+
 def connect(address: str, *, timeout: float | None = None, set_as_default: bool = False):
     """A client of the scheduler at ``address``, or one :class:`SchedulerError` after
     ``timeout`` seconds (default ``AUV_PIPELINE_CONNECT_TIMEOUT_S``, else 30)."""

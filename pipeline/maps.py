@@ -42,6 +42,7 @@ from ._io import (
     store_exists,
     target,
 )
+from .cluster import computing_client
 from .components import components_staged
 from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError, StoreExistsError
@@ -290,7 +291,7 @@ def _check_landmark_memory(shape) -> None:
 
     need = memory_per_landmark(shape)
     have = psutil.virtual_memory().total // 2
-    client = _computing_client()
+    client = computing_client()
     if client is not None:
         workers = client.scheduler_info()["workers"].values()
         limits = [w.get("memory_limit") or 0 for w in workers]
@@ -304,22 +305,6 @@ def _check_landmark_memory(shape) -> None:
             "(--landmarks 0): missions are then certified by the octile bound or say they "
             "are not"
         )
-
-
-def _computing_client():
-    """The distributed client dask computes on here, or None for a local scheduler. Never
-    makes one: inside a task, ``distributed.get_client()`` creates the worker's client and
-    makes it the process's default scheduler, so that a build run in a task under
-    ``scheduler="synchronous"`` (the first run's kernel warm-up) then sent its computations to
-    the cluster whose threads its own tasks held, and waited (minutes, or for ever)."""
-    from dask.base import get_scheduler
-
-    try:
-        get = get_scheduler()
-    except (RuntimeError, ValueError):
-        return None
-    owner = getattr(get, "__self__", None)
-    return owner if hasattr(owner, "scheduler_info") else None
 
 
 BAND_CHUNKS = 64  # pass 3 writes bands of whole chunk rows of at least this many chunks

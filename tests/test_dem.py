@@ -606,7 +606,6 @@ def test_a_lon_lat_grid_is_reprojected_chunk_by_chunk(tmp_path):
 def _counted_max_filter(x, chunks, calls):
     """A 3 x 3 maximum filter of ``x`` as a dask graph whose source blocks count their runs in
     ``calls``: every output block needs the source blocks around it."""
-    from collections import Counter  # noqa: F401 - calls is a Counter
 
     def source(block, block_info=None):
         calls[block_info[0]["chunk-location"]] += 1
@@ -656,6 +655,8 @@ def test_a_banded_write_equals_the_whole_and_reads_each_block_once(scheduler):
 def test_a_banded_write_holds_about_a_band():
     """What dask holds while a band is computed stays within a few block rows of a 20-row map,
     with bands of one block row (measured by a scheduler callback on its results)."""
+    from collections import Counter
+
     import dask
     import zarr
     from dask.callbacks import Callback
@@ -669,8 +670,6 @@ def test_a_banded_write_holds_about_a_band():
     class Held(Callback):
         def _posttask(self, key, result, dsk, state, id):
             held[0] = max(held[0], sum(getattr(v, "nbytes", 0) for v in state["cache"].values()))
-
-    from collections import Counter
 
     out = _counted_max_filter(x, 50, Counter())
     target = zarr.create_array(store={}, shape=x.shape, chunks=(50, 50), dtype="float64")
