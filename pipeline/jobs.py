@@ -81,8 +81,9 @@ _OUTPUT_KEYS = {"catalog", "quicklooks"}
 
 # Raised whenever a change of the code makes a mission's result differ for the same inputs (the
 # planners' paths, the flight), so that a job plans its finished missions again instead of
-# keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h.
-RESULTS_REVISION = 2
+# keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h, 3 the
+# default window margin of MCPC's sections halved (section_size // 8).
+RESULTS_REVISION = 3
 
 _COORD = Param("coordinate", "float", None, "")
 

@@ -14,9 +14,14 @@ Defaults (all in fine cells; ``a`` is the cell size in metres):
   The planning work of a mission grows as its length times the section side (a window's area
   per section); larger sections give the ridge search more room, but on the benchmark maps
   5 km sections reached the same ridge ratio as 3 km ones (44-45 %) at 1.4x the work.
-- ``margin = max(rho, section_size // 4)``: room on each side of a section's bounding square
+- ``margin = max(rho, section_size // 8)``: room on each side of a section's bounding square
   for the fine path to leave the coarse one (to follow a ridge, or round an obstacle the coarse
-  map smoothed away). A failing section is retried with the margin doubled.
+  map smoothed away). A failing section is retried with the margin doubled. A window's area per
+  section is ``(1 + 2 margin / section_size)^2`` section squares, and a section's searches
+  cover much of its window (the Lagrangian planner's off-ridge bound all of it): a quarter
+  (2.25 squares, the default until results revision 3) against an eighth (1.56) took 1.2-1.9x
+  the time for at most half a point more ridge on the benchmark maps, with the same missions
+  certified (benchmarks/RESULTS.md, "One mission against pyastar2d").
 """
 
 from __future__ import annotations
@@ -74,7 +79,12 @@ def default_parameters(shape, a: float) -> dict:
     """The default ``rho``, ``section_size`` and ``margin`` for a map (see the module doc)."""
     rho = max(2, math.ceil(max(shape) / 1000))
     section = max(4 * rho, math.ceil(3000.0 / a))
-    return {"rho": rho, "section_size": section, "margin": max(rho, section // 4)}
+    return {"rho": rho, "section_size": section, "margin": default_margin(rho, section)}
+
+
+def default_margin(rho: int, section_size: int) -> int:
+    """The default window margin of sections of ``section_size`` at ``rho`` (the module doc)."""
+    return max(rho, section_size // 8)
 
 
 # --------------------------------------------------------------------------- Algorithm 3
@@ -475,7 +485,7 @@ def _check_args(planner, omega, m: MapsStore, rho, section_size, margin):
             f"({2 * rho}): a section spans at least two coarse cells"
         )
     if margin is None:
-        margin = max(rho, section_size // 4)
+        margin = default_margin(rho, section_size)
     margin = PLANNING.margin.check(margin)
     return planner, omega, rho, section_size, margin
 

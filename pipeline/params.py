@@ -313,7 +313,7 @@ PLANNING = Schema(
         "margin",
         "int",
         None,
-        "window margin round a section; default section_size / 4",
+        "window margin round a section; default section_size / 8",
         "cells",
         minimum=0,
     ),
