@@ -21,7 +21,8 @@ Defaults (all in fine cells; ``a`` is the cell size in metres):
   cover much of its window (the Lagrangian planner's off-ridge bound all of it): a quarter
   (2.25 squares, the default until results revision 3) against an eighth (1.56) took 1.0-1.2x
   the time with RA* and 1.4-1.5x with the Lagrangian planner, for at most 0.6 points more
-  ridge on the benchmark maps, with the same missions certified (benchmarks/RESULTS.md, "One mission against pyastar2d").
+  ridge on the benchmark maps, with the same missions certified (benchmarks/RESULTS.md, "One
+  mission against pyastar2d").
 """
 
 from __future__ import annotations
