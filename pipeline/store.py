@@ -73,6 +73,15 @@ def _scratch(size: int) -> memoryview:
     return memoryview(buf)[:size]
 
 
+def _decoded(size: int) -> np.ndarray:
+    """This thread's reusable buffer of ``size`` bytes for a decoded chunk read once (apart
+    from :func:`_scratch`, which holds the encoded bytes being decoded)."""
+    buf = getattr(_SCRATCH, "decoded", None)
+    if buf is None or buf.size != size:
+        buf = _SCRATCH.decoded = np.empty(size, dtype=np.uint8)
+    return buf
+
+
 def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index, out=None) -> ndarray``, clipped to the
     array; decoded into ``out``, a buffer of the chunk's bytes, when given)
@@ -343,20 +352,29 @@ class ChunkCache:
                 ]
         return out
 
-    def stack_block(self, store: str, var: str, r: int, c: int, complete: bool = False):
-        """The chunk-sized block of every layer of a 3-D ``var`` (layer, y, x) that holds cell
-        ``(r, c)``, in one read: ``(block, r0, c0)`` with ``block[:, r - r0, c - c0]`` the
-        cell's values."""
+    def stack_values(
+        self, store: str, var: str, r: int, c: int, complete: bool = False
+    ) -> np.ndarray:
+        """The values at cell ``(r, c)`` of every layer of a 3-D ``var`` (layer, y, x), read
+        past the cache: each chunk that holds the cell is decoded into this thread's scratch
+        buffer and only the cell's values are kept. A mission's landmark bound needs 8 values
+        at each end, and a new mission's ends lie in chunks not read before: keeping those
+        chunks cost fresh memory, whose page faults took longer than the decoding (1.2 ms a
+        mission at 2000^2, 0.3 ms now; benchmarks/bench_latency.py)."""
         arr = self.array(store, var)
-        _, ch, cw = arr.chunks
+        kc, ch, cw = arr.chunks
+        read = self.readers.get((store, var))
         ci, cj = r // ch, c // cw
-
-        def load():
-            layers = range(-(-arr.shape[0] // arr.chunks[0]))  # chunks along the layer axis
-            parts = [self._read(store, var, (k, ci, cj), complete) for k in layers]
-            return parts[0] if len(parts) == 1 else np.concatenate(parts)
-
-        return self._cached((store, var, "stack", ci, cj), load), ci * ch, cj * cw
+        values = np.empty(arr.shape[0], dtype=arr.dtype)
+        for k in range(-(-arr.shape[0] // kc)):  # chunks along the layer axis
+            block = None
+            if read is not None:
+                block = read((k, ci, cj), _decoded(math.prod(read.chunks) * read.dtype.itemsize))
+            if block is None:  # zarr's read, a chunk not written, or the damage
+                block = self._read(store, var, (k, ci, cj), complete)
+            # copied out before the next chunk is decoded into the same buffer
+            values[k * kc : k * kc + block.shape[0]] = block[:, r - ci * ch, c - cj * cw]
+        return values
 
     def forget(self, store: str) -> None:
         """Drop what this cache holds of ``store``: its decoded chunks and open arrays."""
@@ -476,13 +494,12 @@ class MapsStore:
 
     def landmark_distances(self, cell) -> np.ndarray:
         """The distances of ``cell`` from every landmark (metres, ``inf`` where a landmark does
-        not reach it): one 256^2 block of every layer, read in one call, through the chunk
-        cache."""
+        not reach it): the cell's value in every layer (:meth:`ChunkCache.stack_values`)."""
         from .landmarks import VARIABLE
 
         r, c = int(cell[0]), int(cell[1])
-        block, r0, c0 = CACHE.stack_block(self.path, VARIABLE, r, c, self.all_chunks_written)
-        return block[:, r - r0, c - c0].astype(np.float64)
+        values = CACHE.stack_values(self.path, VARIABLE, r, c, self.all_chunks_written)
+        return values.astype(np.float64)
 
     def landmark_window(self, i: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """Rows ``r0:r1`` and columns ``c0:c1`` of landmark ``i``'s distance layer (read

@@ -164,9 +164,12 @@ def test_the_stack_of_landmark_layers_equals_zarr(tmp_path):
     for chunks in ((1, 32, 32), (3, 16, 40), (2, 64, 64)):
         arr = _array(tmp_path / f"l{chunks[0]}", data, chunks, CODECS["blosc-zstd-bitshuffle"])
         cache = ChunkCache(2**30)
-        for r, c in ((0, 0), (69, 44), (33, 17), (64, 40)):
-            block, r0, c0 = cache.stack_block(str(tmp_path), f"l{chunks[0]}", r, c, True)
-            np.testing.assert_array_equal(block[:, r - r0, c - c0], arr[:, r, c])
+        cells = ((0, 0), (69, 44), (33, 17), (64, 40))
+        # all kept before any is checked: each is its own array, not a view of the buffer
+        got = [cache.stack_values(str(tmp_path), f"l{chunks[0]}", r, c, True) for r, c in cells]
+        for (r, c), values in zip(cells, got, strict=True):
+            np.testing.assert_array_equal(values, arr[:, r, c])
+        assert cache.used == 0  # read past the cache
 
 
 def test_other_layouts_are_read_by_zarr(tmp_path):
