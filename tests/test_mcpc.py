@@ -815,7 +815,7 @@ def test_failing_section_tasks_are_reported_and_a_scheduler_without_queues_still
         same(client)
         with monkeypatch.context() as mp:
             mp.setattr("pipeline._inbox.POLL", 30.0)  # the watch would take 30 s: the note is seen
-            mp.setattr(mcpc, "plan_section", fail)
+            mp.setattr(mcpc, "read_section", fail)
             t0 = time.perf_counter()
             with pytest.raises(RuntimeError, match="the disk went away"):
                 pipeline.plan(store, **MISSION, client=client, **SMALL)
