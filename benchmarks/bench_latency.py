@@ -222,9 +222,10 @@ def main() -> None:
           back after one warm-up mission. Medians in milliseconds. Fixed cost: the in-process
           mission's wall time less its sections' searches (coarse search, snapping, the
           landmark bound, stitching, and what the window reads add: in one process a helper
-          thread reads each next section's window while the one before is searched, so the
-          reads' own time, in brackets, mostly overlaps the searches; on the cluster each
-          worker reads its windows itself).""")
+          thread reads the sections' windows in order from the moment they are cut, while the
+          joints are snapped and then ahead of the searches, so the reads' own time, in
+          brackets, mostly overlaps them; on the cluster each worker reads its windows
+          itself).""")
     names = [name for name, *_ in RUNS]
     rep.table(
         [
