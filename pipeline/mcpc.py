@@ -418,15 +418,18 @@ class _ReadAhead:
             return None
         if not _READER.acquire(blocking=False):
             return None
-        pool = shared_pool("section-reads", 1)
-        # a read needs the window only (a mission's sections read no landmark layer)
-        return cls(
-            store,
-            [
-                pool.submit(read_section, store, Section(w, (w[0], w[2]), (w[0], w[2])))
-                for w in windows
-            ],
-        )
+        futures: list = []
+        try:
+            pool = shared_pool("section-reads", 1)
+            # a read needs the window only (a mission's sections read no landmark layer)
+            for w in windows:
+                futures.append(
+                    pool.submit(read_section, store, Section(w, (w[0], w[2]), (w[0], w[2])))
+                )
+        except BaseException:  # the pool refused (the interpreter exiting): the helper freed
+            cls._drop(futures)
+            raise
+        return cls(store, futures)
 
     def run(self, sections: list, planner: str, omega: float) -> list:
         futures, self.futures = self.futures, None
