@@ -19,7 +19,7 @@ Defaults (all in fine cells; ``a`` is the cell size in metres):
   map smoothed away). A failing section is retried with the margin doubled. A window's area per
   section is ``(1 + 2 margin / section_size)^2`` section squares, and a section's searches
   cover much of its window (the Lagrangian planner's off-ridge bound all of it): a quarter
-  (2.25 squares, the default until results revision 3) against an eighth (1.56) took 1.0-1.2x
+  (2.25 squares, the default until results revision 3) against an eighth (1.56) took 0.9-1.2x
   the time with RA* and 1.4-1.5x with the Lagrangian planner, for at most 0.6 points more
   ridge on the benchmark maps, with the same missions certified (benchmarks/RESULTS.md, "One
   mission against pyastar2d").
