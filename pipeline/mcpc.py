@@ -38,8 +38,7 @@ from dataclasses import dataclass, field, replace
 from numbers import Integral
 
 import numpy as np
-from numba import njit, types
-from numba.typed import Dict
+from numba import njit
 
 from ._inbox import Inbox, post
 from ._share import Claims
@@ -165,19 +164,36 @@ def _cuts(pts, section_size):
     return out[:k]
 
 
+_GOLDEN = np.int64(-7046029254386353131)  # 0x9E3779B97F4A7C15 as a signed 64-bit integer
+
+
 @njit(cache=True)
 def _remove_loops(flat):
-    where = Dict.empty(key_type=types.int64, value_type=types.int64)
+    """The kept indices of :func:`remove_loops`. Each cell's last position in ``keep`` sits in
+    an open-addressing table (nothing is ever deleted from it): a position is the cell's
+    current one when it lies in the kept prefix and ``keep`` still holds that cell there (a
+    cut, then later cells, reuse the positions). numba's typed Dict, with a deletion per cell
+    of each loop cut, took 0.7 ms for the 13000 cells of a 10000^2 mission."""
+    size = 1
+    while size < 2 * flat.size:
+        size *= 2
+    mask = size - 1
+    keys = np.full(size, -1, dtype=np.int64)
+    vals = np.empty(size, dtype=np.int64)
     keep = np.empty(flat.size, dtype=np.int64)
     n = 0
     for i in range(flat.size):
-        p = where.get(flat[i], -1)
-        if p >= 0:
-            for q in range(p + 1, n):
-                del where[flat[keep[q]]]
-            n = p + 1
-            continue
-        where[flat[i]] = n
+        key = flat[i]
+        h = (key * _GOLDEN) & mask  # Fibonacci hashing of the flat cell index (wraps)
+        while keys[h] != -1 and keys[h] != key:
+            h = (h + 1) & mask
+        if keys[h] == key:
+            p = vals[h]
+            if p < n and flat[keep[p]] == key:  # a loop back to position p: cut it out
+                n = p + 1
+                continue
+        keys[h] = key
+        vals[h] = n
         keep[n] = i
         n += 1
     return keep[:n]

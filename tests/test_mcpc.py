@@ -117,6 +117,29 @@ def test_remove_loops_by_hand():
     assert remove_loops(cells).tolist() == [0, 1, 5, 8]
 
 
+def test_remove_loops_equals_cutting_each_loop_in_turn():
+    """Random walks on small tori (many loops, loops inside loops, cells revisited after a
+    cut) against the definition, written out with a list: walk the path, and where a cell is
+    already kept, cut back to it."""
+
+    def reference(cells):
+        kept, idx = [], []
+        for i, c in enumerate(map(tuple, cells)):
+            if c in kept:
+                p = kept.index(c)
+                del kept[p + 1 :], idx[p + 1 :]
+                continue
+            kept.append(c)
+            idx.append(i)
+        return idx
+
+    rng = np.random.default_rng(1)
+    for _ in range(300):
+        steps = rng.integers(-1, 2, size=(int(rng.integers(1, 400)), 2))
+        cells = np.cumsum(steps, axis=0) % int(rng.integers(2, 12))
+        assert remove_loops(cells).tolist() == reference(cells)
+
+
 # ------------------------------------------------------------------ stitched trajectories
 
 
