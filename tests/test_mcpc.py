@@ -696,6 +696,39 @@ def test_a_batch_in_this_process_reads_each_next_window_in_a_helper_thread(store
     assert readers == [threading.current_thread().name] * len(sections)
 
 
+def test_a_mission_in_this_process_reads_its_windows_ahead_and_frees_the_helper(store, monkeypatch):
+    """plan(client="synchronous") has the helper thread read every section's window from the
+    moment they are cut (while the joints are snapped), once each; a mission that fails
+    between the cut and its sections (no joint can be snapped: it falls back to the whole
+    map) frees the helper, so the next mission's windows are read there again."""
+    import threading
+
+    import pipeline.mcpc as mcpc
+
+    ref = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
+    real, readers = mcpc.read_section, []
+
+    def read_section(st, sec):
+        readers.append((threading.current_thread().name, tuple(sec.window)))
+        return real(st, sec)
+
+    monkeypatch.setattr(mcpc, "read_section", read_section)
+    got = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
+    assert np.array_equal(got.cells, ref.cells) and got.length_m == ref.length_m
+    windows = [tuple(s["window"]) for s in ref.extra["sections"]]
+    assert [w for _, w in readers] == windows  # each window once, in order
+    assert all(name.startswith("pipeline-section-reads") for name, _ in readers), readers
+    with monkeypatch.context() as mp:
+        mp.setattr(mcpc, "_snap", lambda *args, **kwargs: None)
+        whole = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
+    assert "no passable cell near the joint" in whole.extra["fallback"]
+    readers.clear()
+    again = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
+    assert np.array_equal(again.cells, ref.cells)
+    assert [w for _, w in readers] == windows
+    assert all(name.startswith("pipeline-section-reads") for name, _ in readers), readers
+
+
 @pytest.mark.parametrize("client", ["synchronous", "cluster"])
 def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
     store, tmp_path, client, local_client
