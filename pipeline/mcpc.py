@@ -337,7 +337,9 @@ def _plan_checked(store, section, planner, omega, a, error, read=None) -> Sectio
     )
 
 
-def _section_batch(store: MapsStore, sections: list, planner: str, omega: float) -> list:
+def _section_batch(
+    store: MapsStore, sections: list, planner: str, omega: float, reads=None
+) -> list:
     """Several consecutive sections in one task (they share chunks; one task's overhead). Out
     of a dask worker, the next windows (:data:`READ_AHEAD`) are read and checked by a helper
     thread while this one is searched (the searches and the reads release the GIL): on the
@@ -345,21 +347,22 @@ def _section_batch(store: MapsStore, sections: list, planner: str, omega: float)
     fixed cost (its time less its sections' searches) went from 20 ms to 10
     (benchmarks/RESULTS.md, "One mission"). A worker's threads are the cluster's parallelism,
     so a task plans its sections with its own thread only; so does a batch that finds the
-    helper busy with another (``plan_missions`` in client threads)."""
+    helper busy with another (``plan_missions`` in client threads). ``reads``: the reads of
+    the first windows submitted already, by a caller that holds the helper (``_READER``,
+    released here; :class:`_ReadAhead`)."""
     checked = _checked(store, planner, omega)
-    if len(sections) < 2 or _in_worker() or not _READER.acquire(blocking=False):
+    if reads is None and (len(sections) < 2 or _in_worker() or not _READER.acquire(blocking=False)):
         return [_plan_checked(store, sec, *checked) for sec in sections]
-    ahead: deque = deque()  # the reads queued, READ_AHEAD at most
+    ahead: deque = deque(reads or ())  # the reads queued, READ_AHEAD at least
     try:
         pool = shared_pool("section-reads", 1)
         out = []
-        for k in range(min(READ_AHEAD, len(sections))):
-            ahead.append(pool.submit(read_section, store, sections[k]))
-        for k, sec in enumerate(sections):
-            read = ahead.popleft().result()
-            if k + READ_AHEAD < len(sections):
-                ahead.append(pool.submit(read_section, store, sections[k + READ_AHEAD]))
-            out.append(_plan_checked(store, sec, *checked, read))
+        queued = len(ahead)  # the sections whose read was submitted
+        for sec in sections:
+            while queued < len(sections) and len(ahead) < READ_AHEAD + 1:
+                ahead.append(pool.submit(read_section, store, sections[queued]))
+                queued += 1
+            out.append(_plan_checked(store, sec, *checked, ahead.popleft().result()))
         return out
     finally:
         for fut in ahead:
@@ -449,18 +452,10 @@ class _ReadAhead:
 
     def run(self, sections: list, planner: str, omega: float) -> list:
         futures, self.futures = self.futures, None
-        if futures is None or len(futures) != len(sections):
-            if futures is not None:
-                self._drop(futures)
-            return _section_batch(self.store, sections, planner, omega)
-        try:
-            checked = _checked(self.store, planner, omega)
-            return [
-                _plan_checked(self.store, sec, *checked, fut.result())
-                for sec, fut in zip(sections, futures, strict=True)
-            ]
-        finally:
+        if futures is not None and len(futures) != len(sections):  # not this mission's run
             self._drop(futures)
+            futures = None
+        return _section_batch(self.store, sections, planner, omega, futures)
 
     def close(self) -> None:
         futures, self.futures = self.futures, None
