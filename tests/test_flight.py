@@ -764,3 +764,93 @@ def test_a_shortcut_leg_is_allowed_by_its_two_rules():
         assert got == want, (i, j)
         outcomes.add((ok, want))
     assert outcomes == {(True, True), (True, False), (False, False)}
+
+
+def test_route_simplification_equals_the_greedy_rule_level_by_level():
+    """``_route_vertices`` walks each short leg once for all the levels (``_walk`` without
+    limits) and reuses the walk; it equals the greedy rule written out with ``leg_allowed``
+    (tested above) and the tolerance, one level after another until one keeps at most
+    ``enough`` corners. Over random wandering polylines on tiles with unloaded ones, passable
+    and ridge at random."""
+    from pipeline.flight import _route_vertices, leg_allowed
+
+    rng = np.random.default_rng(5)
+    rows, cols, tile, pad = 40, 44, 8, 2
+    nti, ntj = -(-rows // tile), -(-cols // tile)
+    slot = np.arange(nti * ntj).reshape(nti, ntj)
+    slot[0, ntj - 1] = -1
+    pas = (rng.random((nti * ntj, tile, tile)) < 0.97).astype(np.uint8)
+    rdg = (rng.random((nti * ntj, tile, tile)) < 0.6).astype(np.uint8)
+    levels = np.array([(0.5, 0.02), (1.0, 0.05), (2.0, 0.1), (3.0, 0.3)])
+
+    def reference(wr, wc, off, along, enough):
+        for level in range(len(levels)):
+            tol, share = levels[level]
+            keep, i, n = [0], 0, len(wr)
+            while i < n - 1:
+                j = i + 1
+                while j + 1 < n:
+                    c = j + 1
+                    dr, dc = wr[c] - wr[i], wc[c] - wc[i]
+                    ln = math.hypot(dr, dc)
+                    ok = ln > 0
+                    for q in range(i + 1, c) if ok else ():
+                        t = ((wr[q] - wr[i]) * dr + (wc[q] - wc[i]) * dc) / ln**2
+                        t = min(1.0, max(0.0, t))
+                        gap = math.hypot(wr[i] + t * dr - wr[q], wc[i] + t * dc - wc[q])
+                        ok = ok and gap <= tol
+                    ok = ok and leg_allowed(
+                        wr, wc, off, along, i, c, pas, rdg, slot, tile, tile, rows, cols, pad, share
+                    )
+                    if not ok:
+                        break
+                    j = c
+                i = j
+                keep.append(i)
+            if len(keep) <= enough:
+                break
+        return keep, level
+
+    stops = set()
+    for _ in range(60):
+        n = int(rng.integers(3, 60))
+        steps = rng.normal(0.0, 1.2, (n - 1, 2)) + rng.normal(0.0, 0.8, 2)
+        w = np.cumsum(np.vstack([rng.uniform([4, 4], [rows - 4, cols - 4]), steps]), axis=0)
+        wr, wc = np.clip(w[:, 0], 0, rows - 1), np.clip(w[:, 1], 0, cols - 1)
+        along = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(wr), np.diff(wc)))))
+        off = np.concatenate(([0.0], np.cumsum(rng.uniform(0.0, 1.0, n - 1) * np.diff(along))))
+        enough = float(rng.integers(1, n + 1))
+        got = _route_vertices(
+            wr, wc, off, along, levels, enough, rdg, pas, slot, tile, tile, rows, cols, pad
+        )
+        want, level = reference(wr, wc, off, along, enough)
+        assert got.tolist() == want
+        stops.add(level)
+    assert stops == set(range(len(levels)))  # every level was the last tried for some
+
+
+@pytest.mark.parametrize("layer", ["elevation", "ridge"])
+def test_a_lost_corridor_chunk_is_one_line_naming_it(ridge_store, tmp_path, layer):
+    """The corridor reads the ridge and passable tiles first and the elevation behind them, in
+    the pool's threads; a chunk lost from the store, in either, stops the flight with the
+    damage named in one line (the elevation's when its tiles are first needed), and the pool
+    is free for the next flight."""
+    import shutil
+
+    from pipeline.exceptions import PipelineError
+    from pipeline.store import CACHE
+
+    path, ok, *_ = ridge_store
+    copy = tmp_path / "maps.zarr"
+    shutil.copytree(path, copy)
+    (s, g), (s2, g2) = missions(ok, 2, seed=5, min_cells=150)
+    t = pipeline.plan(copy, s, g, client="synchronous")
+    lost = copy / layer / "c" / str(s[0] // 128) / str(s[1] // 128)
+    assert lost.is_file()
+    lost.unlink()
+    CACHE.forget(str(copy))
+    with pytest.raises(PipelineError, match=rf"damaged: chunk .* of its layer '{layer}'") as e:
+        pipeline.fly(copy, t)
+    assert "\n" not in str(e.value)
+    u = pipeline.plan(path, s2, g2, client="synchronous")
+    assert pipeline.fly(path, u).flown_length_m > 0
