@@ -165,10 +165,12 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 store = _store(tmp, build=False)
                 t = _plan_each(store, planners=("astar",))
                 if t is not None:
+                    from .exports import crc16
                     from .missions import min_clearance
 
                     pipeline.fly(store, t)
                     min_clearance(store, t, 60.0)  # a job's independent check of each mission
+                    crc16(b"IMC")  # a mission's IMC plan, written by a job's client
             else:
                 raise ValueError(f"unknown warm-up part {part!r}; known: {PARTS}")
             took[part] = round(time.perf_counter() - t0, 1)

@@ -772,7 +772,8 @@ def test_route_simplification_equals_the_greedy_rule_level_by_level():
     (tested above) and the tolerance, one level after another until one keeps at most
     ``enough`` corners. Over random wandering polylines on tiles with unloaded ones, passable
     and ridge at random."""
-    from pipeline.flight import _route_vertices, leg_allowed
+    import pipeline.flight as flight
+    from pipeline.flight import leg_allowed
 
     rng = np.random.default_rng(5)
     rows, cols, tile, pad = 40, 44, 8, 2
@@ -820,7 +821,7 @@ def test_route_simplification_equals_the_greedy_rule_level_by_level():
         along = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(wr), np.diff(wc)))))
         off = np.concatenate(([0.0], np.cumsum(rng.uniform(0.0, 1.0, n - 1) * np.diff(along))))
         enough = float(rng.integers(1, n + 1))
-        got = _route_vertices(
+        got = flight._route_vertices(
             wr, wc, off, along, levels, enough, rdg, pas, slot, tile, tile, rows, cols, pad
         )
         want, level = reference(wr, wc, off, along, enough)
