@@ -221,7 +221,7 @@ def _samples(dr, dc):
     return max(1, int(math.ceil(max(abs(dr), abs(dc)) * 4.0)))
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True, _nrt=False)
 def _walk(pas, rdg, slot, tr, tc, rows, cols, pad, ar, ac, br, bc, most, rate, count):
     """``(ok, off)``: whether the straight segment between two points (grid units: row, col)
     crosses only usable cells, without cutting a corner between two cells it passes diagonally
@@ -852,25 +852,22 @@ def _route_vertices(wr, wc, off, along, levels, enough, rdg, pas, slot, tr, tc, 
                     t = min(1.0, max(0.0, t))
                     if math.hypot(wr[i] + t * dr - wr[q], wc[i] + t * dc - wc[q]) > tol:
                         ok = False
-                if ok:
+                if ok:  # leg_allowed, from the leg's one walk (kept for the next levels)
                     d = c - i - 1
-                    if d < cap:  # leg_allowed from the leg's one walk
-                        if known[i, d] == 0:
-                            usable, seg = _walk(
-                                pas, rdg, slot, tr, tc, rows, cols, pad,
-                                wr[i], wc[i], wr[c], wc[c], np.inf, np.inf, True,
-                            )  # fmt: skip
+                    if d >= cap or known[i, d] == 0:
+                        usable, seg = _walk(
+                            pas, rdg, slot, tr, tc, rows, cols, pad,
+                            wr[i], wc[i], wr[c], wc[c], np.inf, np.inf, True,
+                        )  # fmt: skip
+                        if d < cap:
                             known[i, d] = 1 if usable else 2
                             offs[i, d] = seg
-                        path = off[c] - off[i]
-                        most = path + 0.5 + share * ln
-                        rate = path / (along[c] - along[i]) + share
-                        seg = offs[i, d]
-                        ok = known[i, d] == 1 and not (seg > most or seg / ln > rate)
                     else:
-                        ok = leg_allowed(
-                            wr, wc, off, along, i, c, pas, rdg, slot, tr, tc, rows, cols, pad, share
-                        )
+                        usable, seg = known[i, d] == 1, offs[i, d]
+                    path = off[c] - off[i]
+                    most = path + 0.5 + share * ln
+                    rate = path / (along[c] - along[i]) + share
+                    ok = usable and not (seg > most or seg / ln > rate)
                 if not ok:
                     break
                 j = c
