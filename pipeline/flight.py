@@ -654,13 +654,19 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
                             continue
                         if spherical and hi + math.sqrt(r2 - (di2 + dj2)) <= best:
                             continue
+                if s < 0:  # its tile is not loaded: the grid point within reach is unknown
+                    bad = True
+                    break
+                # the block lies in one tile: its cells by their place in it (no division)
+                oi = (bi * b) % tr - bi * b
+                oj = (bj * b) % tc - bj * b
                 for i in range(i0, i1 + 1):
                     ri2 = (i - p) * (i - p) * a * a
                     for j in range(j0, j1 + 1):
                         d2 = ri2 + (j - q) * (j - q) * a * a
                         if d2 > r2:
                             continue
-                        z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
+                        z = np.float64(el[s, i + oi, j + oj])
                         if z != z:
                             bad = True
                             break
@@ -695,15 +701,25 @@ def _bilinear(el, slot, tr, tc, rows, cols, pr, pc):
         j0 = min(int(math.floor(q)), max(cols - 2, 0))
         fi = p - i0
         fj = q - j0
+        ti = i0 // tr
+        tj = j0 // tc
+        ri = i0 - ti * tr
+        rj = j0 - tj * tc
+        s = slot[ti, tj]
+        # the four grid points in one loaded tile (most samples): read by their place in it
+        one = s >= 0 and ri + 1 < tr and rj + 1 < tc and i0 + 1 < rows and j0 + 1 < cols
         acc = 0.0
         for di in range(2):
             for dj in range(2):
                 wgt = (fi if di else 1.0 - fi) * (fj if dj else 1.0 - fj)
                 if wgt == 0.0:
                     continue
-                z = np.float64(
-                    _cell(slot, el, tr, tc, min(i0 + di, rows - 1), min(j0 + dj, cols - 1), np.nan)
-                )
+                if one:
+                    z = np.float64(el[s, ri + di, rj + dj])
+                else:
+                    i = min(i0 + di, rows - 1)
+                    j = min(j0 + dj, cols - 1)
+                    z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
                 acc += wgt * z
         out[k] = acc
     return out

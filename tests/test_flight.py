@@ -855,3 +855,47 @@ def test_a_lost_corridor_chunk_is_one_line_naming_it(ridge_store, tmp_path, laye
     assert "\n" not in str(e.value)
     u = pipeline.plan(path, s2, g2, client="synchronous")
     assert pipeline.fly(path, u).flown_length_m > 0
+
+
+@pytest.mark.parametrize("tile", [8, 5])
+def test_seabed_under_the_track_is_scipys_bilinear_interpolation(tile):
+    """The seabed under the track (``_bilinear`` over the corridor's tiles, reading the four
+    grid points within one tile by their place in it) equals scipy's linear interpolation of
+    the whole grid, at random points, on grid lines and at the map's edges; NaN where a grid
+    point with weight is unknown (a no-data cell or a tile not loaded)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    import pipeline.flight as flight
+
+    rng = np.random.default_rng(11)
+    rows, cols = 31, 27
+    z = rng.normal(-2000.0, 300.0, (rows, cols)).astype(np.float32)
+    z[12, 7] = np.nan
+    nti, ntj = -(-rows // tile), -(-cols // tile)
+    slot = np.arange(nti * ntj).reshape(nti, ntj)
+    slot[1, ntj - 1] = -1
+    el = np.full((nti * ntj, tile, tile), np.nan, dtype=np.float32)
+    known = np.full((rows, cols), np.nan)
+    for ti in range(nti):
+        for tj in range(ntj):
+            blk = z[ti * tile : (ti + 1) * tile, tj * tile : (tj + 1) * tile]
+            if slot[ti, tj] >= 0:
+                el[slot[ti, tj], : blk.shape[0], : blk.shape[1]] = blk
+                known[ti * tile : (ti + 1) * tile, tj * tile : (tj + 1) * tile] = blk
+    pr = np.concatenate([rng.uniform(0, rows - 1, 400), rng.integers(0, rows, 100) * 1.0,
+                         np.full(20, rows - 1.0), np.zeros(20)])  # fmt: skip
+    pc = np.concatenate([rng.uniform(0, cols - 1, 520), rng.integers(0, cols, 20) * 1.0])
+    got = flight._bilinear(el, slot, tile, tile, rows, cols, pr, pc)
+    ref = RegularGridInterpolator((np.arange(rows), np.arange(cols)), np.nan_to_num(known))
+    ref = ref(np.column_stack([pr, pc]))
+    for k in range(len(pr)):
+        i, j = int(min(np.floor(pr[k]), rows - 2)), int(min(np.floor(pc[k]), cols - 2))
+        fi, fj = pr[k] - i, pc[k] - j
+        weights = {(i, j): (1 - fi) * (1 - fj), (i + 1, j): fi * (1 - fj),
+                   (i, j + 1): (1 - fi) * fj, (i + 1, j + 1): fi * fj}  # fmt: skip
+        unknown = any(w > 0 and np.isnan(known[c]) for c, w in weights.items())
+        if unknown:
+            assert np.isnan(got[k]), k
+        else:
+            assert got[k] == pytest.approx(ref[k], rel=1e-12, abs=1e-9), k
+    assert np.isnan(got).any() and np.isfinite(got).sum() > len(got) // 2
