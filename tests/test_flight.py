@@ -572,7 +572,7 @@ def test_a_flight_over_the_bound_alone_is_uncertified_with_the_reason(ridge_stor
     assert tight.flight.problems == [tight.flight.over_bound]
 
 
-@pytest.mark.parametrize("method, tile", [(2, 16), (1, 16), (2, 12), (2, 6)])
+@pytest.mark.parametrize("method, tile", [(2, 16), (1, 16), (2, 12), (2, 6), (2, 5)])
 def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
     """The required heights read the elevation in blocks and pass over those that cannot raise
     the best value so far: along a winding track (each point next to the last, as the flight
