@@ -1265,16 +1265,25 @@ def widen_turns(wr, wc, radius, usable, passes: int = 8):
         tight = np.nonzero(_too_tight(rad, radius))[0]
         if tight.size == 0:
             break
-        drop = np.zeros(len(wr), dtype=bool)
-        for k in tight[np.argsort(rad[tight])]:
-            if drop[k - 1] or drop[k + 1] or drop[k]:
-                continue
-            if _line_usable(*usable[:6], usable[6], wr[k - 1], wc[k - 1], wr[k + 1], wc[k + 1]):
-                drop[k] = True
+        drop = _cut_corners(wr, wc, tight[np.argsort(rad[tight])], *usable)
         if not drop.any():
             break
         wr, wc = _distinct(wr[~drop], wc[~drop])
     return wr, wc
+
+
+@njit(cache=True, nogil=True)
+def _cut_corners(wr, wc, order, pas, slot, tr, tc, rows, cols, pad):
+    """Which corners ``widen_turns`` drops, taken in ``order`` (the tightest first): a corner
+    whose neighbours are both kept, where the straight leg between those is usable."""
+    drop = np.zeros(wr.size, dtype=np.bool_)
+    for k in order:
+        if drop[k - 1] or drop[k + 1] or drop[k]:
+            continue
+        ar, ac, br, bc = wr[k - 1], wc[k - 1], wr[k + 1], wc[k + 1]
+        if _line_usable(pas, slot, tr, tc, rows, cols, pad, ar, ac, br, bc):
+            drop[k] = True
+    return drop
 
 
 def _tight_turns(wr, wc, radius) -> int:
