@@ -169,12 +169,26 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                     from .missions import min_clearance
 
                     pipeline.fly(store, t)
+                    _widen(store, t)
                     min_clearance(store, t, 60.0)  # a job's independent check of each mission
                     crc16(b"IMC")  # a mission's IMC plan, written by a job's client
             else:
                 raise ValueError(f"unknown warm-up part {part!r}; known: {PARTS}")
             took[part] = round(time.perf_counter() - t0, 1)
     return took
+
+
+def _widen(store: Path, t) -> None:
+    """The kernels of corners too close for the turn radius (``widen_turns``), which the tiny
+    mission's flight may not meet: its grid path's corners with a radius of 10 cells."""
+    from .flight import Corridor, widen_turns
+    from .store import open_store
+
+    m = open_store(store)
+    cells = np.asarray(t.cells, dtype=np.int64)
+    cor = Corridor(m, cells, 3)
+    usable = (cor.pas, cor.slot, cor.tr, cor.tc, *m.shape, 3)
+    widen_turns(cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64), 10.0, usable)
 
 
 def _plan_each(store: Path, planners=None):
