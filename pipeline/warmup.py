@@ -11,8 +11,10 @@ stamp so that later runs skip it.
 The halves: one builds a tiny maps store (safety, ridges, components, landmarks) and plans on
 it with every planner; the other compiles the safety kernels first (the store needs them),
 generates a tiny synthetic DEM, then, once that store exists, plans one mission on it, flies
-it (the flight's kernels) and checks its clearance as a job does. Each kernel is compiled with
-the argument types the pipeline uses, so later calls load it from the cache.
+it (the flight's kernels), widens its corners for a wide turn radius (the kernels of corners
+too close for it, which the tiny flight does not meet) and checks its clearance as a job
+does. Each kernel is compiled with the argument types the pipeline uses, so later calls load
+it from the cache.
 """
 
 from __future__ import annotations
