@@ -189,6 +189,8 @@ def _tile_of(i, t):
 
 @njit(inline="always", cache=True)
 def _cell(slot, tiles, tr, tc, i, j, missing):
+    if i < 0 or j < 0:  # (a 32-bit division of a negative row would index far off the table)
+        return missing
     ti = _tile_of(i, tr)
     tj = _tile_of(j, tc)
     s = slot[ti, tj]
