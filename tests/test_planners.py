@@ -539,6 +539,34 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
             assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
 
 
+@pytest.mark.parametrize("shape", [(1, 17), (13, 1), (1, 1), (2, 2), (3, 40), (25, 19)])
+def test_off_ridge_bound_on_thin_windows_and_goals_at_the_edge(shape):
+    """``off_ridge_to_goal`` against scipy's Dijkstra (as above) on windows one cell thin and
+    with the goal in every corner and at the middle of every side: its search runs on the
+    window framed by cells it may not enter, which must neither be entered nor block a move
+    along the edge."""
+    from pipeline.planners.core import off_ridge_to_goal
+
+    rows, cols = shape
+    rng = np.random.default_rng(rows * 100 + cols)
+    surface = np.zeros(shape)
+    passable = rng.random(shape) > 0.15
+    ridge = rng.random(shape) < 0.4
+    goals = {(r, c) for r in (0, rows // 2, rows - 1) for c in (0, cols // 2, cols - 1)}
+    goals = sorted((r, c) for r, c in goals if r in (0, rows - 1) or c in (0, cols - 1))
+    for g in goals:
+        passable[g] = True
+    rev = _weighted_graph(
+        surface, ridge, passable, 30.0, 0.0, horizontal_off=True, diagonal=41 / 29
+    ).T.tocsr()
+    for g in goals:
+        want = dijkstra(rev, indices=g[0] * cols + g[1])
+        got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1])
+        assert got.shape == (rows * cols,)
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+        assert np.isinf(got[~passable.ravel()]).all()
+
+
 @pytest.mark.parametrize("n", [0, 1, 2, 3, 257])
 def test_path_steps_are_the_3d_lengths_bit_for_bit(n):
     """Every step's length against the formula evaluated by Python's own floats, step by step

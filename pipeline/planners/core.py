@@ -361,65 +361,89 @@ def off_ridge_to_goal(ridge, passable, a, gr, gc):
     shortest distance). The lengths are whole units (a / ``OFF_UNITS``), so the search backwards
     from the goal is Dial's algorithm: a circular array of buckets, one per length modulo the
     longest move plus one, each a stack of cells (2.1 -> 1.0 ms on the benchmark's windows of
-    22000 cells, against a binary heap of exact lengths: its time is the moves it scans)."""
+    22000 cells, against a binary heap of exact lengths: its time is the moves it scans).
+
+    The search runs on the window framed by one cell that is not passable, one byte a cell
+    (passable, off the ridge network, settled), so that a move needs no bounds check; its
+    lengths are integers, turned into metres in place at the end, in the same buffer (the
+    frame dropped). 0.77 -> 0.48 ms a window of the 2000^2 benchmark's Lagrangian sections,
+    the same bounds bit for bit, in the same memory (9 bytes a cell)."""
     rows, cols = passable.shape
-    n = rows * cols
+    w = cols + 2  # the framed grid's row
+    flag = np.zeros((rows + 2) * w, dtype=np.uint8)  # 1 passable, 2 off the ridge, 4 settled
+    for r in range(rows):
+        row = (r + 1) * w + 1
+        for c in range(cols):
+            if passable[r, c]:
+                flag[row + c] = 1 if ridge[r, c] else 3
+    step = np.empty(8, dtype=np.int64)  # to each neighbour, in the framed grid
+    for k in range(8):
+        step[k] = DR[k] * w + DC[k]
     nb = OFF_DIAGONAL + 1  # a move adds at most OFF_DIAGONAL: no two live lengths share one
-    d = np.full(n, np.inf)  # whole units until the end
-    done = np.zeros(n, dtype=np.bool_)
+    far = np.int64(2**62)  # not reached (yet)
+    d = np.full(flag.size, far, dtype=np.int64)  # whole units, framed
     head = np.full(nb, -1, dtype=np.int64)  # per bucket, its last entry
     cells = np.empty(1024, dtype=np.int64)  # entries: a cell and the entry below it
     nxt = np.empty(1024, dtype=np.int64)
-    t = gr * cols + gc
-    d[t] = 0.0
+    t = (gr + 1) * w + gc + 1
+    d[t] = 0
     cells[0] = t
     nxt[0] = -1
     head[0] = 0
     m = 1  # entries made
     live = 1  # entries not popped yet
     cur = 0  # the length of the bucket being emptied
+    b = 0  # its bucket: cur % nb
     while live > 0:
         cells, nxt = heap_reserve(cells, nxt, m, 8 * 64)  # two parallel arrays, as a heap's
         budget = 64  # cells settled in this pass: 8 entries each at most
         while live > 0 and budget > 0:
-            b = cur % nb
             e = head[b]
             if e < 0:
                 cur += 1
+                b = b + 1 if b + 1 < nb else 0
                 continue
             head[b] = nxt[e]
             live -= 1
             x = cells[e]
-            if done[x] or d[x] != cur:
-                continue  # settled already, or pushed again at a smaller length
-            done[x] = True
+            fx = flag[x]
+            if fx & 4:
+                continue  # settled already (an entry at a smaller length came first)
+            flag[x] = fx | 4
             budget -= 1
-            r = x // cols
-            c = x - r * cols
-            off = not ridge[r, c]  # a move into x counts when x is off the ridge network
+            # a move into x counts when x is off the ridge network
+            straight = OFF_UNITS if fx & 2 else 0
+            diagonal = OFF_DIAGONAL if fx & 2 else 0
             for k in range(8):  # p, a cell with a move p -> x (the moves are symmetric)
-                pr = r + DR[k]
-                pc = c + DC[k]
-                if pr < 0 or pr >= rows or pc < 0 or pc >= cols:
-                    continue
-                p = pr * cols + pc
-                if done[p] or not passable[pr, pc]:
-                    continue
-                if k % 2 == 1 and not (passable[r, pc] and passable[pr, c]):
-                    continue  # no corner cutting
-                nd = cur + ((OFF_DIAGONAL if k % 2 == 1 else OFF_UNITS) if off else 0)
+                p = x + step[k]
+                if (flag[p] & 5) != 1:
+                    continue  # not passable (the frame is not), or settled
+                if k % 2 == 1:
+                    if not (flag[x + DC[k]] & 1 and flag[x + DR[k] * w] & 1):
+                        continue  # no corner cutting
+                    nd = cur + diagonal
+                else:
+                    nd = cur + straight
                 if nd < d[p]:
                     d[p] = nd
-                    bp = nd % nb
+                    bp = b + (nd - cur)
+                    if bp >= nb:
+                        bp -= nb
                     cells[m] = p
                     nxt[m] = head[bp]
                     head[bp] = m
                     m += 1
                     live += 1
     unit = a / OFF_UNITS * (1.0 - 1e-13)  # never above the length it bounds, after rounding
-    for v in range(n):
-        d[v] *= unit  # inf stays inf
-    return d
+    out = d.view(np.float64)  # in place: cell v of the window is read from slot >= v first
+    v = 0
+    for r in range(rows):
+        row = (r + 1) * w + 1
+        for c in range(cols):
+            dv = d[row + c]
+            out[v] = np.inf if dv == far else dv * unit
+            v += 1
+    return out[: rows * cols]
 
 
 # --------------------------------------------------------------------------- validation
