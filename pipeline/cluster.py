@@ -43,16 +43,35 @@ WORKER_ENV = {
 }
 
 
+# How often the scheduler, nannies and workers of a LocalCluster of this module wake for their
+# housekeeping (dask's defaults: 20 ms, 500 ms, 100 ms, 10 ms). The scheduler and the nannies
+# live in the client's process; with dask's defaults an idle cluster kept 6.7 % of a core busy
+# there and 4.2 % in each worker, now 1.9 % and 0.8 % (on the 2-core machine, 5 s idle). These
+# are the event loops' responsiveness check, the dashboard's system plots, the memory limits'
+# check and the profile the dashboard shows (sampled 10 times a second instead of 100). A value
+# the user set in dask's configuration (anything but dask's default) wins.
+HOUSEKEEPING = {  # key: (ours, dask's default)
+    "distributed.admin.tick.interval": ("200ms", "20ms"),
+    "distributed.admin.system-monitor.interval": ("1s", "500ms"),
+    "distributed.worker.memory.monitor-interval": ("200ms", "100ms"),
+    "distributed.worker.profile.interval": ("100ms", "10ms"),
+}
+
+
 def local_cluster(dashboard_address: str = ":0"):
     """A LocalCluster of 2 single-threaded worker processes (the default everywhere), their
-    allocator set by :data:`WORKER_ENV`, its scheduler's messages to them sent every
-    :data:`STREAM_INTERVAL_S` at most (:func:`prompt`)."""
+    allocator set by :data:`WORKER_ENV`, their housekeeping by :data:`HOUSEKEEPING`, its
+    scheduler's messages to them sent every :data:`STREAM_INTERVAL_S` at most
+    (:func:`prompt`)."""
     import dask
     from distributed import LocalCluster
 
     key = "distributed.nanny.pre-spawn-environ"
     env = {**dask.config.get(key, {}), **WORKER_ENV}
-    with dask.config.set({key: env}):  # read when each nanny is made, inside LocalCluster()
+    cfg = {k: v for k, (v, default) in HOUSEKEEPING.items() if dask.config.get(k, None) == default}
+    # read when the scheduler and each nanny are made, inside LocalCluster(); each worker
+    # process gets its nanny's configuration
+    with dask.config.set({key: env, **cfg}):
         cluster = LocalCluster(
             n_workers=LOCAL_WORKERS,
             threads_per_worker=1,

@@ -567,6 +567,50 @@ def test_local_cluster_workers_reuse_freed_memory(local_client):
     assert all(f < 64 for f in faults.values()), faults
 
 
+def _callback_ms(dask_worker=None, dask_scheduler=None) -> dict:
+    server = dask_worker if dask_worker is not None else dask_scheduler
+    return {k: pc.callback_time for k, pc in server.periodic_callbacks.items()}
+
+
+def _cpu_s() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def test_local_cluster_housekeeping_is_sparse_and_a_users_setting_wins(local_client):
+    """The scheduler, nannies and workers of local_cluster() wake for their housekeeping at
+    pipeline.cluster.HOUSEKEEPING's intervals, not dask's (event loop check every 20 ms,
+    profile samples every 10 ms, ...): idle, each worker process uses under 2.5 % of a core
+    (4 % with dask's; 0.8 % measured). A value set in dask's configuration wins."""
+    import time
+
+    import dask
+    from distributed import Client
+
+    from pipeline.cluster import HOUSEKEEPING, local_cluster
+
+    ms = {k: 1000 * dask.utils.parse_timedelta(v) for k, (v, _) in HOUSEKEEPING.items()}
+    tick, profile = ms["distributed.admin.tick.interval"], ms["distributed.worker.profile.interval"]
+    memory = ms["distributed.worker.memory.monitor-interval"]
+    assert local_client.run_on_scheduler(_callback_ms)["tick"] == tick
+    for got in local_client.run(_callback_ms).values():
+        assert (got["tick"], got["profile"], got["memory_monitor"]) == (tick, profile, memory)
+    before, t0 = local_client.run(_cpu_s), time.perf_counter()
+    time.sleep(3.0)
+    after, dt = local_client.run(_cpu_s), time.perf_counter() - t0
+    busy = [(after[w] - before[w]) / dt for w in after]
+    assert all(b < 0.025 for b in busy), busy
+
+    with dask.config.set({"distributed.admin.tick.interval": "50ms"}):
+        cluster = local_cluster(dashboard_address=None)
+    with cluster, Client(cluster) as client:
+        assert client.run_on_scheduler(_callback_ms)["tick"] == 50
+        for got in client.run(_callback_ms).values():
+            assert (got["tick"], got["profile"]) == (50, profile)
+
+
 # ------------------------------------------------------------------ work sharing between runs
 
 
