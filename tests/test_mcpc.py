@@ -604,7 +604,7 @@ def test_local_cluster_housekeeping_is_sparse_and_a_users_setting_wins(local_cli
     assert all(b < 0.025 for b in busy), busy
 
     with dask.config.set({"distributed.admin.tick.interval": "50ms"}):
-        cluster = local_cluster(dashboard_address=None)
+        cluster = local_cluster()
     with cluster, Client(cluster) as client:
         assert client.run_on_scheduler(_callback_ms)["tick"] == 50
         for got in client.run(_callback_ms).values():
