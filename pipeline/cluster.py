@@ -10,7 +10,8 @@ address, a scheduler file, a ``distributed.Client``, ``"synchronous"``) into a c
 Both build a LocalCluster with :func:`local_cluster` and reach a scheduler with
 :func:`connect`, so the errors are the same everywhere. The messages that carry a mission's
 tasks wait at most :data:`STREAM_INTERVAL_S` to be batched: the client's (:func:`prompt`) and,
-on a LocalCluster of this module, its scheduler's to the workers.
+on a LocalCluster of this module, its scheduler's to the workers. A LocalCluster of this module
+also wakes for dask's housekeeping less often (:data:`HOUSEKEEPING`).
 """
 
 from __future__ import annotations
