@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .._grid8 import DC, DR
+from .._grid8 import DC, DR, flat_offsets
 from .._heap import heap_pop, heap_push, heap_reserve
 from ..exceptions import InvalidEndpointError, InvalidParameterError
 
@@ -376,9 +376,7 @@ def off_ridge_to_goal(ridge, passable, a, gr, gc):
         for c in range(cols):
             if passable[r, c]:
                 flag[row + c] = 1 if ridge[r, c] else 3
-    step = np.empty(8, dtype=np.int64)  # to each neighbour, in the framed grid
-    for k in range(8):
-        step[k] = DR[k] * w + DC[k]
+    step = flat_offsets(w)  # to each neighbour, in the framed grid
     nb = OFF_DIAGONAL + 1  # a move adds at most OFF_DIAGONAL: no two live lengths share one
     far = np.int64(2**62)  # not reached (yet)
     d = np.full(flag.size, far, dtype=np.int64)  # whole units, framed
