@@ -323,6 +323,14 @@ def _off_ridge(rdg, slot, tr, tc, ar, ac, br, bc):
 
 
 @njit(inline="always", cache=True)
+def _leg_limits(off, along, i, j, ln, share):
+    """``(most, rate)``: the off-ridge length and share a leg of length ``ln`` from vertex ``i``
+    to ``j`` may fly (``off``, ``along``: the path's, :func:`_polyline_off_ridge`)."""
+    path = off[j] - off[i]
+    return path + 0.5 + share * ln, path / (along[j] - along[i]) + share
+
+
+@njit(inline="always", cache=True)
 def leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, share=0.02):
     """Whether the straight leg from vertex ``i`` to ``j`` crosses only usable cells
     (:func:`_line_usable`) and flies no more off the ridge cells (:func:`_off_ridge`) than the
@@ -330,10 +338,8 @@ def leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pa
     share larger by more than ``share``: one walk along the leg (:func:`_walk`), which stops
     at the first unusable cell or once the off-ridge length is over a limit, sooner than the
     two functions when the answer is no (most probes of a leg too long)."""
-    path = off[j] - off[i]
     ln = math.hypot(pr[j] - pr[i], pc[j] - pc[i])
-    most = path + 0.5 + share * ln
-    rate = path / (along[j] - along[i]) + share
+    most, rate = _leg_limits(off, along, i, j, ln, share)
     ar, ac, br, bc = pr[i], pc[i], pr[j], pc[j]
     return _walk(pas, rdg, slot, tr, tc, rows, cols, pad, ar, ac, br, bc, most, rate, True)[0]
 
@@ -898,9 +904,7 @@ def _route_vertices(wr, wc, off, along, levels, enough, rdg, pas, slot, tr, tc, 
                             offs[i, d] = seg
                     else:
                         usable, seg = known[i, d] == 1, offs[i, d]
-                    path = off[c] - off[i]
-                    most = path + 0.5 + share * ln
-                    rate = path / (along[c] - along[i]) + share
+                    most, rate = _leg_limits(off, along, i, c, ln, share)
                     ok = usable and not (seg > most or seg / ln > rate)
                 if not ok:
                     break
