@@ -69,12 +69,12 @@ PYSHEDS = """
 import os; os.sched_setaffinity(0, {{0}})  # one core
 import sys, time, numpy as np, pipeline
 sys.path.insert(0, "tests")
-from test_ridges import _pysheds                      # the tests' pysheds runner (in1d alias)
+from conftest import pysheds_ridges                   # the tests' pysheds runner
 from pipeline.ridges import default_min_accumulation
 z = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=1, chunks=None).values
-_pysheds(z[:50, :50])                                 # warm its numba
+pysheds_ridges(z[:50, :50])                           # compile its kernels
 t = time.perf_counter()
-A = _pysheds(z)[1]
+A = pysheds_ridges(z)[1]
 r = A >= default_min_accumulation(30.0)
 result = dict(seconds=time.perf_counter() - t, ridge=int(r.sum()))
 ours = np.load("{out}/ours_ridge.npy")

@@ -4,8 +4,9 @@ finish in seconds):
 
     python tests/_warm_numba.py first|second MARKS
 
-- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``), then pysheds
-  (which compiles about 80 functions when it is imported); writes MARKS/first, MARKS/pysheds.
+- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``), then the pysheds
+  kernels the comparisons call (conftest.pysheds_ridges on a small grid); writes MARKS/first,
+  MARKS/pysheds.
 - second: the other half, the argument types only the tests use, then (once the first half
   is done) the library's whole warm-up from the cache, which stamps it compiled; writes
   MARKS/library, which every test process waits for.
@@ -29,7 +30,10 @@ if half == "first":
     finally:
         (marks / "first").touch()
     try:
-        import pysheds.grid  # noqa: F401
+        import numpy as np
+        from conftest import pysheds_ridges
+
+        pysheds_ridges(np.random.default_rng(0).normal(size=(20, 20)).astype(np.float32))
     finally:
         (marks / "pysheds").touch()
 else:

@@ -23,9 +23,9 @@ _WARM_DIR = "PIPELINE_TEST_WARM_DIR"  # where they write a file per step done
 
 def pytest_sessionstart(session):
     """In a fresh environment numba compiles every kernel on first use (about a minute of one
-    core for the library's, over a minute for the ~80 that pysheds compiles when imported),
-    then caches it on disk. Two processes (tests/_warm_numba.py) compile the library's kernels
-    in the two halves of ``pipeline.warmup`` at once, then one compiles pysheds while the tests
+    core for the library's, about 15 s for the pysheds kernels the comparisons call), then
+    caches it on disk. Two processes (tests/_warm_numba.py) compile the library's kernels in
+    the two halves of ``pipeline.warmup`` at once, then one compiles pysheds' while the tests
     run. Under pytest-xdist (``./dev test`` runs one test process per core, up to 4) only the
     controller starts them; every test process waits for the library's kernels (the cores are
     busy compiling them meanwhile), the pysheds comparisons for pysheds'."""
@@ -86,8 +86,54 @@ def offline_stac_schemas():
 
 @pytest.fixture(scope="session")
 def pysheds_ready():
-    """The warm-up has compiled pysheds (its comparisons then take seconds, not a minute)."""
+    """The warm-up has compiled the pysheds kernels the comparisons call."""
     _wait_for_warm_up("pysheds")
+
+
+def _import_pysheds():
+    """Import pysheds with its numba kernels compiled as they are first called.
+
+    pysheds 0.5 gives each of its 90 kernels an explicit signature, so importing it compiles
+    them all: about a minute of one core in a fresh environment (then 4-5 s per process to load
+    them from the cache), though the comparisons call a handful. The import here drops those
+    signatures: the same functions, compiled on first call for the argument types they are
+    given (the filled DEM, D8 codes and accumulation are equal bit for bit either way)."""
+    import inspect
+
+    if "pysheds.grid" not in sys.modules:
+        import numba
+
+        eager = numba.njit
+
+        def lazy(*args, **options):
+            if args and inspect.isfunction(args[0]):
+                return eager(args[0], **options)
+            return lambda f: eager(f, **options)  # @njit(signature, ...): drop the signature
+
+        numba.njit = lazy
+        try:
+            import pysheds.grid  # noqa: F401
+        finally:
+            numba.njit = eager
+    if not hasattr(np, "in1d"):  # pysheds 0.5 calls numpy.in1d, removed in numpy 2.4
+        np.in1d = np.isin
+
+
+def pysheds_ridges(z):
+    """pysheds' filled DEM and D8 accumulation on the inverted filled DEM (the ridge layers'
+    reference), for a grid of 30 m cells."""
+    _import_pysheds()
+    from affine import Affine
+    from pysheds.grid import Grid
+    from pysheds.sview import Raster, ViewFinder
+
+    vf = ViewFinder(affine=Affine(30.0, 0, 0, 0, -30.0, 0), shape=z.shape, nodata=np.nan)
+    grid = Grid(viewfinder=vf)
+    filled = grid.fill_depressions(Raster(z.astype(np.float64), viewfinder=vf))
+    inv = Raster(-np.asarray(filled), viewfinder=vf)
+    dirmap = (64, 128, 1, 2, 4, 8, 16, 32)
+    fdir = grid.flowdir(inv, dirmap=dirmap, flats=-1, pits=-2, nodata_out=0)
+    return np.asarray(filled), np.asarray(grid.accumulation(fdir, dirmap=dirmap))
 
 
 def compile_kernels() -> None:

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 import xarray as xr
-from conftest import CHUNKINGS, metric_dataarray, random_surface
+from conftest import CHUNKINGS, metric_dataarray, pysheds_ridges, random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -27,9 +27,6 @@ from pipeline.ridges import (
     fill_single,
     flow_directions,
 )
-
-if not hasattr(np, "in1d"):  # pysheds 0.5 calls numpy.in1d, removed in numpy 2.4
-    np.in1d = np.isin
 
 
 def _dem(z, a=30.0, chunks=None):
@@ -85,20 +82,6 @@ def test_large_flat_and_big_hole_chunked():
 # ----------------------------------------------------------------------------- pysheds
 
 
-def _pysheds(z):
-    from affine import Affine
-    from pysheds.grid import Grid
-    from pysheds.sview import Raster, ViewFinder
-
-    vf = ViewFinder(affine=Affine(30.0, 0, 0, 0, -30.0, 0), shape=z.shape, nodata=np.nan)
-    grid = Grid(viewfinder=vf)
-    filled = grid.fill_depressions(Raster(z.astype(np.float64), viewfinder=vf))
-    inv = Raster(-np.asarray(filled), viewfinder=vf)
-    dirmap = (64, 128, 1, 2, 4, 8, 16, 32)
-    fdir = grid.flowdir(inv, dirmap=dirmap, flats=-1, pits=-2, nodata_out=0)
-    return np.asarray(filled), np.asarray(grid.accumulation(fdir, dirmap=dirmap))
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_against_pysheds(seed, pysheds_ready):
     """Filled DEM: exactly pysheds' fill_depressions. Ridge cells at the default threshold:
@@ -106,7 +89,7 @@ def test_against_pysheds(seed, pysheds_ready):
     pysheds gives flats no direction and breaks slope ties in its own neighbour order, so a
     few cells on ties route the other way; anything larger would be a real disagreement."""
     z = pipeline.synthetic_dem((600, 600), cell_size=30.0, seed=seed, chunks=None).values
-    pf, pa = _pysheds(z)
+    pf, pa = pysheds_ridges(z)
     F = fill_single(z)
     np.testing.assert_array_equal(F.astype(np.float64), pf)
     A = accumulation_single(F)
@@ -120,7 +103,7 @@ def test_against_pysheds(seed, pysheds_ready):
 
 def test_real_bathymetry_against_pysheds(topobathy, pysheds_ready):
     z = topobathy[0]  # the source grid itself: real bathymetry and land, no no-data
-    pf, pa = _pysheds(z)
+    pf, pa = pysheds_ridges(z)
     F = fill_single(z)
     np.testing.assert_array_equal(F.astype(np.float64), pf)
     A = accumulation_single(F)
