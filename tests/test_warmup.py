@@ -89,5 +89,5 @@ def test_the_planners_kernels_load_from_the_cache_in_the_next_process():
         [sys.executable, "-c", _PLAN_EVERY_PLANNER], capture_output=True, text=True, check=True
     )
     counts = json.loads(run.stdout.strip().splitlines()[-1])
-    assert {k: v[1] for k, v in counts.items()} == {k: 0 for k in counts}, counts  # compiled
+    assert {k: v[1] for k, v in counts.items()} == {k: 0 for k in counts}, counts  # none compiled
     assert all(hits > 0 for hits, _ in counts.values()), counts  # each loaded from the cache
