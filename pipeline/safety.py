@@ -28,7 +28,9 @@ import math
 import dask.array as da
 import numpy as np
 import xarray as xr
+from llvmlite import ir
 from numba import njit
+from numba.core.extending import intrinsic
 
 from .dem import check_dem
 from .exceptions import InvalidParameterError
@@ -74,13 +76,32 @@ def sphere_heights(radius_m: float, a: float, widths: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- kernels
 
 
+@intrinsic
+def _maximum(typingctx, x, y):
+    """The larger of two floats, NaN if either is NaN (LLVM's ``llvm.maximum``).
+
+    Why not ``if v > dst[j]: dst[j] = v``: the compiler vectorised that (and the equivalent
+    ``max`` or select, whose result is the value already stored when the sum is NaN) as a
+    store through a mask, ``vmaskmovpd``, one instruction on the Intel VM and microcoded on
+    AMD Zen 3: the spherical map of 2000^2 took 0.44 s on this project's AMD VM against
+    0.084 s on the Intel one. ``maximum`` stores every element (a plain store), 0.14 s. A NaN
+    comes only from a no-data cell and reaches only the cells whose disc holds it, which are
+    NaN in the map anyway (``_nodata_near``), so the map is the same bit for bit."""
+
+    def codegen(context, builder, signature, args):
+        fnty = ir.FunctionType(args[0].type, [args[0].type, args[1].type])
+        fn = builder.module.declare_intrinsic("llvm.maximum", [args[0].type], fnty)
+        return builder.call(fn, args)
+
+    return x(x, y), codegen
+
+
 @njit(inline="always", cache=True)
 def _max_into(dst, src, add):
-    """``dst[j] = max(dst[j], src[j] + add)``; two distinct contiguous views, so it vectorises."""
+    """``dst[j] = max(dst[j], src[j] + add)`` (NaN where either is); two distinct contiguous
+    views, so it vectorises."""
     for j in range(dst.size):
-        v = src[j] + add
-        if v > dst[j]:
-            dst[j] = v
+        dst[j] = _maximum(dst[j], src[j] + add)
 
 
 @njit(nogil=True, cache=True)
