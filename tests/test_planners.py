@@ -498,7 +498,7 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     cost their horizontal length when they end off the ridge (0 on it), a diagonal counted as
     41 / 29 cells, and is at most the distance with diagonals of sqrt 2 (within 0.03 %); A*
     with it in the heuristic finds scipy's optimum of length + w x off-ridge length, for
-    several w."""
+    several w, also with the exact lengths to the goal (``goal_layer``, scipy's too)."""
     from pipeline.planners.core import (
         OFF_DIAGONAL,
         OFF_UNITS,
@@ -506,6 +506,7 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
         off_ridge_to_goal,
         search_arrays,
     )
+    from pipeline.planners.lagrangian import goal_layer
 
     surface, ridge, passable = obstacle_map((30, 34), seed, density=0.15)
     ridge = np.random.default_rng(seed).random(surface.shape) < 0.4
@@ -526,16 +527,25 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     assert (got[fin] <= exact[fin]).all() and (got[fin] >= exact[fin] * (1 - 3e-4)).all()
     assert (got[fin] > 0).sum() > 10  # off-ridge moves were counted
     z = surface.astype(np.float32)  # as a maps store keeps it
+    # the exact lengths to the goal, the goal as a landmark (the searches that weigh length
+    # more): scipy's Dijkstra towards the goal on the length graph, within float32's rounding
+    none = np.zeros((0, 0), np.float32)
+    to_goal = goal_layer(none, z, passable, 30.0, g)
+    length = _weighted_graph(z.astype(np.float64), ridge, passable, 30.0, 0.0).T.tocsr()
+    length = dijkstra(length, indices=goal)
+    assert to_goal.shape == (1, z.size)
+    assert np.array_equal(np.isfinite(to_goal[0]), np.isfinite(length))
+    np.testing.assert_allclose(to_goal[0][np.isfinite(length)], length[np.isfinite(length)], 1e-6)
+    assert goal_layer(to_goal, z, passable, 30.0, g).shape == (2, z.size)  # appended
     for w in (0.05, 1.0, 1e7):
         graph = _weighted_graph(z.astype(np.float64), ridge, passable, 30.0, w)
         ref = dijkstra(graph, indices=s[0] * surface.shape[1] + s[1])[goal]
         if not np.isfinite(ref):
             return
-        for hoff in (got, np.zeros(0)):
+        for hoff, lm in ((got, none), (np.zeros(0), none), (got, to_goal)):
             _, gs, _, found = astar_search(
-                z, ridge, passable, 30.0, *s, *g, 1.0, w, True, np.zeros((0, 0), np.float32), hoff,
-                *search_arrays(z.size),
-            )  # fmt: skip
+                z, ridge, passable, 30.0, *s, *g, 1.0, w, True, lm, hoff, *search_arrays(z.size)
+            )
             assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
 
 
