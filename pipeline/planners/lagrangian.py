@@ -45,9 +45,11 @@ def _measure(cells, surface, ridge, a):
 # (benchmarks/bench_planners.py; per mission the best of 3, both ways in turn): such a search
 # expanded 4200 cells instead of 36000 below 0.1, 45000 instead of 60000 between 1 and 3, for
 # a backward search costing about two of the first kind; the Lagrangian planner's time at
-# omega 1.0 106 -> 84 ms (it runs 7.7 such searches a mission there), the same at omega 1.1-3.0
-# (with the layer from the first search on: +43 % at omega 2, +83 % at 3), and the same on the
-# sections of a 10000^2 mission at omega 2 (223 against 232 ms, the same paths).
+# omega 1.0 106-107 -> 78-84 ms (two runs; it runs 7.7 such searches a mission there), the same
+# at omega 1.1-3.0 (with the layer from the first search on: +44 % at omega 2, +83 % at 3), and
+# the same on the sections of a 10000^2 mission at omega 2 (223 against 232 ms, the same
+# paths). Memory: 4 bytes a cell of the window kept, 13 while the backward search runs (each
+# weighted search keeps 9 of its own).
 EXACT_BELOW = 1.0
 
 
