@@ -102,8 +102,8 @@ def _maximum(typingctx, x, y):
 
 @njit(inline="always", cache=True)
 def _max_into(dst, src, add):
-    """``dst[j] = max(dst[j], src[j] + add)`` (NaN where either is); two distinct contiguous
-    views, so it vectorises."""
+    """``dst[j] = max(dst[j], src[j] + add)`` (a NaN: see :func:`_maximum`); two distinct
+    contiguous views, so it vectorises."""
     for j in range(dst.size):
         dst[j] = _maximum(dst[j], src[j] + add)
 
