@@ -82,6 +82,58 @@ def _decoded(size: int) -> np.ndarray:
     return buf
 
 
+def _layout(arr):
+    """``(the sharding codec or None, the compressor as numcodecs configures it)`` of a Zarr 3
+    array laid out as the pipeline writes its layers: the ``bytes`` codec (little-endian)
+    then one blosc or zstd compressor, either as the array's codecs or inside a sharding codec
+    whose index (little-endian, CRC32C-checked) ends each shard; None for any other layout.
+    The compressor is built as zarr builds it for encoding (blosc with the array's typesize),
+    so that what it encodes is what zarr would write."""
+    import numcodecs
+    from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, ShardingCodec, ZstdCodec
+    from zarr.codecs.sharding import ShardingCodecIndexLocation
+
+    codecs = tuple(getattr(arr.metadata, "codecs", ()))
+    sharding = None
+    if len(codecs) == 1 and isinstance(codecs[0], ShardingCodec):
+        sharding = codecs[0]
+        index_codecs = tuple(sharding.index_codecs)
+        if (
+            sharding.index_location != ShardingCodecIndexLocation.end
+            or len(index_codecs) != 2
+            or not isinstance(index_codecs[0], BytesCodec)
+            or getattr(index_codecs[0].endian, "value", "little") != "little"
+            or not isinstance(index_codecs[1], Crc32cCodec)
+        ):
+            return None
+        codecs = tuple(sharding.codecs)
+    if (
+        len(codecs) != 2
+        or not isinstance(codecs[0], BytesCodec)
+        or getattr(codecs[0].endian, "value", "little") != "little"
+        or arr.dtype.byteorder == ">"
+        or arr.dtype.hasobject
+    ):
+        return None
+    c = codecs[1]
+    if isinstance(c, BloscCodec):
+        shuffle = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}[
+            getattr(c.shuffle, "value", c.shuffle)
+        ]
+        compressor = numcodecs.Blosc(
+            cname=getattr(c.cname, "value", c.cname),
+            clevel=c.clevel,
+            shuffle=shuffle,
+            blocksize=c.blocksize,
+            typesize=c.typesize,
+        )
+    elif isinstance(c, ZstdCodec):
+        compressor = numcodecs.Zstd(level=c.level, checksum=c.checksum)
+    else:
+        return None
+    return sharding, compressor
+
+
 def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index, out=None) -> ndarray``, clipped to the
     array; decoded into ``out``, a buffer of the chunk's bytes, when given)
@@ -98,12 +150,9 @@ def direct_reader(arr, store: str, var: str):
     chunk's own bytes, so a window decodes the inner chunks it covers, not whole shards."""
     import numcodecs
     from numcodecs.checksum32 import CRC32C
-    from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec, ShardingCodec, ZstdCodec
-    from zarr.codecs.sharding import ShardingCodecIndexLocation
     from zarr.storage import FsspecStore, LocalStore
 
     meta = arr.metadata
-    codecs = tuple(getattr(meta, "codecs", ()))
     if isinstance(arr.store, LocalStore):
         root = os.path.join(str(arr.store.root), arr.path)
         files: OrderedDict = OrderedDict()  # key -> its open file, the oldest first
@@ -149,33 +198,11 @@ def direct_reader(arr, store: str, var: str):
 
     else:
         return None
-    sharding = None
-    if len(codecs) == 1 and isinstance(codecs[0], ShardingCodec):
-        sharding = codecs[0]
-        index_codecs = tuple(sharding.index_codecs)
-        if (
-            sharding.index_location != ShardingCodecIndexLocation.end
-            or len(index_codecs) != 2
-            or not isinstance(index_codecs[0], BytesCodec)
-            or getattr(index_codecs[0].endian, "value", "little") != "little"
-            or not isinstance(index_codecs[1], Crc32cCodec)
-        ):
-            return None
-        codecs = tuple(sharding.codecs)
-    if (
-        len(codecs) != 2
-        or not isinstance(codecs[0], BytesCodec)
-        or getattr(codecs[0].endian, "value", "little") != "little"
-        or arr.dtype.byteorder == ">"
-        or arr.dtype.hasobject
-    ):
+    layout = _layout(arr)
+    if layout is None:
         return None
-    if isinstance(codecs[1], BloscCodec):
-        decoder = numcodecs.Blosc()
-    elif isinstance(codecs[1], ZstdCodec):
-        decoder = numcodecs.Zstd()
-    else:
-        return None
+    sharding, compressor = layout
+    decoder = numcodecs.Blosc() if compressor.codec_id == "blosc" else numcodecs.Zstd()
     chunks, shape, dtype = tuple(arr.chunks), tuple(arr.shape), arr.dtype
 
     def decode(raw: bytes, key: str, index: tuple, out):
@@ -233,6 +260,117 @@ def direct_reader(arr, store: str, var: str):
 
     read.chunks, read.dtype = chunks, dtype
     return read
+
+
+def _morton(place: tuple, per: tuple) -> int:
+    """The compressed Z-order code of an inner chunk's ``place`` in a shard of ``per`` inner
+    chunks (zarr's order of the inner chunks in a shard's bytes): the axes' bits interleaved,
+    the first axis lowest, each axis giving only the bits its count needs."""
+    bits = [(int(n) - 1).bit_length() for n in per]
+    code, out = 0, 0
+    for b in range(max(bits, default=0)):
+        for axis, i in enumerate(place):
+            if b < bits[axis]:
+                code |= ((int(i) >> b) & 1) << out
+                out += 1
+    return code
+
+
+class ShardWriter:
+    """Writes whole shards of a local sharded layer laid out as :func:`_layout` reads (what
+    every maps layer is): ``writer(index, block)`` encodes the inner chunks of ``block`` (the
+    shard at ``index`` of the shard grid, clipped to the layer) with the layer's compressor,
+    lays them out in zarr's order after one another, appends their index and its CRC32C, and
+    writes the shard's file, the same bytes zarr writes. Pickles as its few fields: a build
+    sends it with each write task.
+
+    zarr's own write of a shard took 15-26 ms a 1024^2 float32 shard of the 10000^2 benchmark
+    map (its codec pipeline, the region's indexing, a task per inner chunk), against 2.4 ms for
+    the 16 encodings themselves: the maps build's layers pass wrote 5 layers of 100 shards.
+    Inner chunks wholly outside the layer (at its right and bottom edges) are left out, and
+    parts of one are filled with the layer's fill value, as zarr does."""
+
+    def __init__(self, root: str, arr, compressor):
+        self.root = root
+        self.shape = tuple(int(n) for n in arr.shape)
+        self.shards = tuple(int(c) for c in arr.shards)
+        self.inner = tuple(int(c) for c in arr.chunks)
+        self.dtype = np.dtype(arr.dtype)
+        self.fill = np.array(arr.metadata.fill_value, dtype=self.dtype)
+        self.keys = arr.metadata.chunk_key_encoding
+        self.compressor = compressor
+
+    def __call__(self, index: tuple, block) -> int:
+        """Write shard ``index`` holding ``block``; returns the bytes written."""
+        from numcodecs.checksum32 import CRC32C
+
+        block = np.asarray(block)
+        want = tuple(
+            min(s, n - i * s) for i, s, n in zip(index, self.shards, self.shape, strict=True)
+        )
+        if block.shape != want:
+            raise ValueError(f"shard {index} of shape {want} given a block of {block.shape}")
+        per = tuple(s // c for s, c in zip(self.shards, self.inner, strict=True))
+        table = np.full((math.prod(per), 2), 2**64 - 1, dtype="<u8")  # not written: empty
+        parts, offset = [], 0
+        for place in sorted(np.ndindex(*per), key=lambda p: _morton(p, per)):
+            lo = tuple(p * c for p, c in zip(place, self.inner, strict=True))
+            if any(a >= n for a, n in zip(lo, block.shape, strict=True)):
+                continue  # wholly outside the layer
+            piece = block[tuple(slice(a, a + c) for a, c in zip(lo, self.inner, strict=True))]
+            if piece.shape != self.inner:
+                full = np.full(self.inner, self.fill, dtype=self.dtype)
+                full[tuple(slice(0, n) for n in piece.shape)] = piece
+                piece = full
+            raw = np.ascontiguousarray(piece, dtype=self.dtype).reshape(-1).view(np.uint8)
+            data = self.compressor.encode(raw)
+            k = np.ravel_multi_index(place, per)
+            table[k] = (offset, len(data))
+            offset += len(data)
+            parts.append(data)
+        parts.append(CRC32C(location="end").encode(table.tobytes()))
+        path = os.path.join(self.root, self.keys.encode_chunk_key(tuple(int(i) for i in index)))
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        data = b"".join(parts)
+        with open(path, "wb") as f:
+            f.write(data)
+        return len(data)
+
+
+class ZarrBlockWriter:
+    """``writer(index, block)`` through zarr: block ``index`` of the layer's storage blocks
+    (its shards, else its chunks), for the layouts and storages :class:`ShardWriter` does not
+    write (object storage)."""
+
+    def __init__(self, store: str, var: str, blocks: tuple):
+        self.store, self.var, self.blocks = store, var, blocks
+
+    def __call__(self, index: tuple, block) -> int:
+        import zarr
+
+        arr = zarr.open_array(join(self.store, self.var), mode="r+", zarr_format=3)
+        block = np.asarray(block)
+        arr[
+            tuple(
+                slice(i * b, i * b + n)
+                for i, b, n in zip(index, self.blocks, block.shape, strict=True)
+            )
+        ] = block
+        return block.nbytes
+
+
+def block_writer(store: str, var: str):
+    """The writer of ``var``'s storage blocks in the Zarr store ``store`` (created already):
+    a :class:`ShardWriter` where the layer is sharded on a local directory, else a
+    :class:`ZarrBlockWriter`."""
+    import zarr
+    from zarr.storage import LocalStore
+
+    arr = zarr.open_array(join(store, var), mode="r", zarr_format=3)
+    layout = _layout(arr)
+    if isinstance(arr.store, LocalStore) and layout is not None and layout[0] is not None:
+        return ShardWriter(os.path.join(str(arr.store.root), arr.path), arr, layout[1])
+    return ZarrBlockWriter(store, var, storage_chunks(arr))
 
 
 class ChunkCache:

@@ -13,7 +13,7 @@ from conftest import metric_dataarray, random_surface
 from zarr.codecs import BloscCodec, ZstdCodec
 
 import pipeline
-from pipeline.store import ChunkCache, direct_reader
+from pipeline.store import ChunkCache, ShardWriter, ZarrBlockWriter, block_writer, direct_reader
 
 CODECS = {
     "blosc-lz4-shuffle": BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),
@@ -63,6 +63,67 @@ def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, shards, dtype):
     np.testing.assert_array_equal(
         cache.window(str(tmp_path), "a", 0, *shape[:1], 0, shape[1]), data
     )
+
+
+def _files(root) -> dict:
+    """Every chunk or shard file under a Zarr array's directory, by its key: its bytes."""
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != "zarr.json"
+    }
+
+
+@pytest.mark.parametrize("codec", list(CODECS))
+@pytest.mark.parametrize(
+    "shape, chunks, shards",
+    SHARDED + [((600, 700), (256, 256), (512, 512)), ((9, 70), (3, 8), (9, 32))],
+    ids=str,
+)
+@pytest.mark.parametrize("dtype", ["float32", "bool", "int32"])
+def test_the_shard_writer_writes_the_bytes_zarr_writes(
+    tmp_path, codec, shape, chunks, shards, dtype
+):
+    """Shards written by ShardWriter (the maps build's layers) against zarr's own write of the
+    same data: the same files, byte for byte (inner chunks in zarr's order, those wholly past
+    the edge left out, the parts of one filled with the fill value, the index and its CRC32C);
+    and zarr reads back the data. Shards of unequal inner chunk counts a side (4 x 1, 3 x 4)
+    exercise zarr's compressed Z-order."""
+    rng = np.random.default_rng(5)
+    data = rng.normal(size=shape).astype(np.float32) * 100
+    if dtype == "float32":
+        data[rng.random(shape) < 0.05] = np.nan
+    data = data.astype(dtype) if dtype != "bool" else data > 0
+    kw = dict(
+        shape=shape, chunks=chunks, shards=shards, dtype=data.dtype, compressors=CODECS[codec]
+    )
+    fill = dict(fill_value=np.nan) if dtype == "float32" else {}
+    ref = zarr.create_array(tmp_path / "zarr", config={"write_empty_chunks": True}, **kw, **fill)
+    ref[...] = data
+    zarr.create_array(tmp_path / "ours", config={"write_empty_chunks": True}, **kw, **fill)
+    write = block_writer(str(tmp_path), "ours")
+    assert isinstance(write, ShardWriter)
+    for i in range(-(-shape[0] // shards[0])):
+        for j in range(-(-shape[1] // shards[1])):
+            block = data[i * shards[0] : (i + 1) * shards[0], j * shards[1] : (j + 1) * shards[1]]
+            assert write((i, j), block) == len(_files(tmp_path / "ours")[f"c/{i}/{j}"])
+    assert _files(tmp_path / "ours") == _files(tmp_path / "zarr")
+    np.testing.assert_array_equal(zarr.open_array(tmp_path / "ours", mode="r")[...], data)
+    with pytest.raises(ValueError, match="given a block"):
+        write((0, 0), data[:1, :1] if shape != (1, 1) else data[:0])
+
+
+def test_other_layouts_are_written_by_zarr(tmp_path):
+    data = np.arange(40 * 40, dtype=np.float32).reshape(40, 40)
+    zarr.create_array(
+        tmp_path / "p", shape=data.shape, chunks=(16, 16), dtype=data.dtype, compressors=None
+    )
+    write = block_writer(str(tmp_path), "p")
+    assert isinstance(write, ZarrBlockWriter)
+    for i in range(3):
+        for j in range(3):
+            write((i, j), data[i * 16 : (i + 1) * 16, j * 16 : (j + 1) * 16])
+    np.testing.assert_array_equal(zarr.open_array(tmp_path / "p", mode="r")[...], data)
 
 
 def test_reads_in_several_threads_at_once_equal_zarr(tmp_path):
