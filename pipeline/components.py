@@ -118,10 +118,11 @@ def _relabel(local, table, offsets, nbc: int, block_info=None):
     return table[offsets[bi * nbc + bj] + local.astype(np.int64)]
 
 
-def components_staged(passable: da.Array, scratch) -> da.Array:
-    """Component labels of a chunked passable array (see the module doc); ``scratch`` is a
-    path for a temporary Zarr array that the returned array reads, so it must live until the
-    result is written."""
+def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
+    """``(labels, count)``: the component labels of a chunked passable array (see the module
+    doc) and how many components there are (known once the labels are joined, before the
+    labels are written). ``scratch`` is a path for a temporary Zarr array that the returned
+    array reads, so it must live until the result is written."""
     ok = passable.astype(bool)
     ok = ok.rechunk((ok.chunks[0][0], ok.chunks[1][0]))  # regular tiles
     tile = (ok.chunks[0][0], ok.chunks[1][0])
@@ -154,7 +155,7 @@ def components_staged(passable: da.Array, scratch) -> da.Array:
     table_key = dask.delayed(table, pure=True)
     offsets_key = dask.delayed(offsets, pure=True)
     local = da.from_zarr(zarr.open_array(str(scratch), mode="r", zarr_format=3)).rechunk(ok.chunks)
-    return da.map_blocks(
+    labels = da.map_blocks(
         _relabel,
         local,
         table_key,
@@ -163,3 +164,4 @@ def components_staged(passable: da.Array, scratch) -> da.Array:
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
     )
+    return labels, int(table.max(initial=0))

@@ -281,10 +281,13 @@ def _layer_task(store: str, i: int, cell, a: float) -> None:
     zarr.open_array(f"{store}/{VARIABLE}", mode="r+", zarr_format=3)[i] = d
 
 
-def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]:
+def landmarks_staged(
+    store, k: int, a: float, log=None, components: int | None = None
+) -> list[tuple[int, int]]:
     """Place ``k`` landmarks on the maps store being built at ``store`` (its safety, passable
     and component layers written) and write their distance layers into it: the variable
-    ``landmark_distance`` (landmark, y, x).
+    ``landmark_distance`` (landmark, y, x). ``components``: how many components the layer
+    labels, when the caller knows (else it is read, a pass over the layer).
 
     Placement reads the component layer chunk-wise (sizes, then a coarse grid of block means
     of at most ``PLACEMENT_SIDE`` cells a side); each layer is one task, run where the dask
@@ -295,13 +298,15 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     import xarray as xr
     import zarr
 
+    if k <= 0:
+        return []
     store = str(store)
     comp_arr = zarr.open_array(f"{store}/component", mode="r", zarr_format=3)
     comp = da.from_zarr(comp_arr, chunks=storage_chunks(comp_arr))
     safety_arr = zarr.open_array(f"{store}/safety", mode="r", zarr_format=3)
     safety = da.from_zarr(safety_arr, chunks=storage_chunks(safety_arr))
-    nmax = int(comp.max().compute())
-    if k <= 0 or nmax == 0:
+    nmax = int(comp.max().compute()) if components is None else int(components)
+    if nmax == 0:
         return []
     counts = da.bincount(comp.ravel(), minlength=nmax + 1).compute()
     big = large_components(None, counts)
