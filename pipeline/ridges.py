@@ -989,14 +989,56 @@ def ridge_map(
 # no D8 code is computed twice.
 
 
-def _scratch_flood(zh, r0, c0, ncols, halo, scratch):
-    """Pass 1 for one tile: fill, write local fill and label indices, return spill edges."""
+def _scratch_flood(zh, r0, c0, ncols, halo, scratch, tile):
+    """Pass 1 for one tile (``tile``: its place in the tile grid): fill, write local fill and
+    label indices, and the tile's four sides of both (the flow pass's one-cell halos, see
+    :func:`_haloed_from_scratch`); return spill edges."""
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     rows, cols = filled.shape
     g = zarr.open_group(scratch, mode="r+", zarr_format=3)
     g["floc"][r0 : r0 + rows, c0 : c0 + cols] = filled
     g["plab"][r0 : r0 + rows, c0 : c0 + cols] = label
+    for name, a in (("fside", filled), ("pside", label)):
+        sides = np.zeros((1, 1, 4, g[name].shape[3]), dtype=a.dtype)
+        sides[0, 0, 0, :cols], sides[0, 0, 1, :cols] = a[0], a[-1]  # top, bottom rows
+        sides[0, 0, 2, :rows], sides[0, 0, 3, :rows] = a[:, 0], a[:, -1]  # left, right columns
+        g[name][tile[0] : tile[0] + 1, tile[1] : tile[1] + 1] = sides
     return edges
+
+
+def _haloed_from_scratch(g, name, bi, bj, geometry):
+    """Tile ``(bi, bj)`` of the scratch layer ``name`` ("floc" or "plab") with a one-cell halo
+    on each side that has a neighbour: the tile read from its own chunk, the halo from the
+    neighbours' stored sides (``fside``, ``pside``: a few KiB each), so that a flow task needs
+    no other tile's chunk (dask's overlap of the scratch layers moved the neighbours' chunks
+    between the workers and left them idle 35 % of that pass at 10000^2)."""
+    _, _, r_off, c_off, nbr, nbc, _ = geometry
+    top, left, bottom, right = _halo(bi, bj, nbr, nbc, 1)
+    r0, r1, c0, c1 = int(r_off[bi]), int(r_off[bi + 1]), int(c_off[bj]), int(c_off[bj + 1])
+    rows, cols = r1 - r0, c1 - c0
+    arr = g[name]
+    out = np.empty((top + rows + bottom, left + cols + right), dtype=arr.dtype)
+    out[top : top + rows, left : left + cols] = arr[r0:r1, c0:c1]
+    sides = g[name[0] + "side"][bi - top : bi + bottom + 1, bj - left : bj + right + 1]
+    ci, cj = top, left  # this tile's place in the block of sides read
+    nc = [int(c_off[j + 1] - c_off[j]) for j in range(bj - left, bj + right + 1)]
+    if top:
+        out[0, left : left + cols] = sides[ci - 1, cj, 1, :cols]  # the bottom row above
+    if bottom:
+        out[-1, left : left + cols] = sides[ci + 1, cj, 0, :cols]  # the top row below
+    if left:
+        out[top : top + rows, 0] = sides[ci, cj - 1, 3, :rows]  # the right column to the left
+    if right:
+        out[top : top + rows, -1] = sides[ci, cj + 1, 2, :rows]  # the left column to the right
+    if top and left:
+        out[0, 0] = sides[ci - 1, cj - 1, 1, nc[cj - 1] - 1]
+    if top and right:
+        out[0, -1] = sides[ci - 1, cj + 1, 1, 0]
+    if bottom and left:
+        out[-1, 0] = sides[ci + 1, cj - 1, 0, nc[cj - 1] - 1]
+    if bottom and right:
+        out[-1, -1] = sides[ci + 1, cj + 1, 0, 0]
+    return out
 
 
 def _spill_tables(ids, spill, r_off, c_off, ncols):
@@ -1072,10 +1114,18 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     # each tile's D8 codes (NO_DATA_DIR where no-data), written by the flow summaries: the
     # accumulation pass then reads them alone, no halo, nothing recomputed
     g.create_array("dirs", shape=z.shape, chunks=tile, dtype="int8", compressors=None)
+    nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
+    side = max(max(z.chunks[0]), max(z.chunks[1]))  # each tile's four sides, one chunk a tile
+    for name, dtype in (("fside", "float32"), ("pside", "int32")):
+        g.create_array(
+            name, shape=(nbr, nbc, 4, side), chunks=(1, 1, 4, side), dtype=dtype, compressors=None
+        )
     edges = dask.compute(
         *[
-            dask.delayed(_scratch_flood, pure=False)(blk, r0, c0, ncols, halo, str(scratch))
-            for blk, r0, c0, halo in tiles
+            dask.delayed(_scratch_flood, pure=False)(
+                blk, r0, c0, ncols, halo, str(scratch), divmod(k, nbc)
+            )
+            for k, (blk, r0, c0, halo) in enumerate(tiles)
         ]
     )
     ids, spill = _solve_fill(*edges)
@@ -1088,7 +1138,6 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     plab = da.from_zarr(g["plab"]).rechunk(z.chunks)
     fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
     po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
-    nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
     # large constants travel as single graph keys (sent once to each worker), not in closures;
     # on a cluster they are kept there (persisted), so that each later computation that reads
     # them (the layers are written band by band) names them instead of carrying them again
@@ -1096,12 +1145,9 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     (geometry,) = dask.persist(
         dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
     )
-    fd, pd = fo.to_delayed(), po.to_delayed()
     flow = dask.compute(
         *[
-            dask.delayed(_scratch_flow_summary, pure=False)(
-                fd[bi, bj], pd[bi, bj], bi, bj, geometry, str(scratch)
-            )
+            dask.delayed(_scratch_flow_summary, pure=False)(bi, bj, geometry, str(scratch))
             for bi in range(nbr)
             for bj in range(nbc)
         ]
@@ -1139,13 +1185,15 @@ def _scratch_finished(fblk, pblk, bi, bj, geometry):
 NO_DATA_DIR = -2  # the scratch D8 code of a no-data cell (-1: a sink)
 
 
-def _scratch_flow_summary(fblk, pblk, bi, bj, geometry, scratch):
+def _scratch_flow_summary(bi, bj, geometry, scratch):
     """Pass 2 for one tile: its flow summary; its D8 codes go to the scratch store."""
     _, _, r_off, c_off, nbr, nbc, ncols = geometry
+    g = zarr.open_group(scratch, mode="r+", zarr_format=3)
+    fblk = _haloed_from_scratch(g, "floc", bi, bj, geometry)
+    pblk = _haloed_from_scratch(g, "plab", bi, bj, geometry)
     fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
     dirs, nodata = _tile_dirs(fh, _halo(bi, bj, nbr, nbc, 1))
     r0, c0 = int(r_off[bi]), int(c_off[bj])
-    g = zarr.open_group(scratch, mode="r+", zarr_format=3)
     g["dirs"][r0 : r0 + dirs.shape[0], c0 : c0 + dirs.shape[1]] = np.where(
         nodata, np.int8(NO_DATA_DIR), dirs
     )
