@@ -350,26 +350,27 @@ def _write(ds: xr.Dataset, path, ch, *, also=None, mode: str = "w"):
     parts = []
     for r0 in range(0, ny, step):
         r1 = min(ny, r0 + step)
-        writes = [
-            da.map_blocks(
-                _put_block,
-                data[r0:r1],
-                writers[k],
-                r0 // ch[0],
-                chunks=tuple((1,) * len(c) for c in data[r0:r1].chunks),
-                dtype=np.int64,
-                meta=np.empty((0, 0), np.int64),
-            )
-            for k, data in layers.items()
-        ]
+        # one task a block writes every layer's shard: the layers' own steps (the passable
+        # test, the ridge threshold, the accumulation) fuse into it, and a block computed for
+        # two layers (the safety surface: its own and the passable layer) is held by none
+        writes = da.map_blocks(
+            _put_blocks,
+            *(data[r0:r1] for data in layers.values()),
+            writers=tuple(writers[k] for k in layers),
+            first_row=r0 // ch[0],
+            chunks=tuple((1,) * len(c) for c in layers[next(iter(layers))][r0:r1].chunks),
+            dtype=np.int64,
+            meta=np.empty((0, 0), np.int64),
+        )
         band = [] if also is None else also[r0 // ch[0] : -(-r1 // ch[0])]
-        *_, part = dask.compute(*writes, band)
+        _, part = dask.compute(writes, band)
         parts.append(np.asarray(part))
     return None if also is None else np.concatenate(parts)
 
 
-def _put_block(block, writer, first_row: int, block_info=None):
-    """Write one block of a band through ``writer`` (its block row in the band offset by the
-    band's ``first_row``); the bytes written, as a 1x1 block."""
+def _put_blocks(*blocks, writers, first_row: int, block_info=None):
+    """Write one block of each layer of a band through its writer (the block row in the band
+    offset by the band's ``first_row``); the bytes written, as a 1x1 block."""
     bi, bj = block_info[0]["chunk-location"]
-    return np.full((1, 1), writer((first_row + bi, bj), block), dtype=np.int64)
+    n = sum(w((first_row + bi, bj), b) for w, b in zip(writers, blocks, strict=True))
+    return np.full((1, 1), n, dtype=np.int64)
