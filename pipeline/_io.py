@@ -264,6 +264,40 @@ def remove_tree(p) -> None:
         pass
 
 
+def save_tile(scratch, name: str, tile: tuple, array) -> None:
+    """Tile ``tile`` (its place in the tile grid) of the build scratch layer ``name``, kept as
+    one ``.npy`` file under ``scratch`` (a path or a URL): each tile has one writer and is read
+    whole, so no chunk grid constrains the tiles. Through zarr, an uncompressed 1024^2 float32
+    chunk took 6.6 ms to write and 3.9 ms to read; as a file, about a third."""
+    import io
+
+    import numpy as np
+
+    key = f"{tile[0]}.{tile[1]}.npy"
+    if is_url(scratch):
+        buf = io.BytesIO()
+        np.save(buf, np.asarray(array), allow_pickle=False)
+        fs, path = filesystem(join(str(scratch), name, key))
+        fs.pipe_file(path, buf.getvalue())
+        return
+    folder = os.path.join(scratch, name)
+    os.makedirs(folder, exist_ok=True)
+    np.save(os.path.join(folder, key), np.asarray(array), allow_pickle=False)
+
+
+def load_tile(scratch, name: str, tile: tuple):
+    """The tile :func:`save_tile` kept."""
+    import io
+
+    import numpy as np
+
+    key = f"{tile[0]}.{tile[1]}.npy"
+    if is_url(scratch):
+        fs, path = filesystem(join(str(scratch), name, key))
+        return np.load(io.BytesIO(fs.cat_file(path)), allow_pickle=False)
+    return np.load(os.path.join(scratch, name, key), allow_pickle=False)
+
+
 def require_writable(url: str) -> None:
     """Write and remove one small object under ``url``, before a long computation that ends by
     writing there: a wrong bucket, endpoint or credential is then one line at once."""

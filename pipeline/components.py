@@ -8,7 +8,7 @@ components are those of 4-connectivity, and ``scipy.ndimage.label`` with the cro
 labels a tile.
 
 Chunked input is labelled in two streaming passes, bounded in memory like the ridge build:
-(1) every tile is labelled on its own, its labels go to a scratch store and only its border
+(1) every tile is labelled on its own, its labels go to a scratch tile and only its border
 rows and columns come back; (2) a small global solve joins the labels that touch across tile
 borders (``scipy.sparse.csgraph.connected_components`` on that graph), and every tile is
 relabelled through the resulting table. Labels are 1..N in the order of each component's
@@ -21,9 +21,10 @@ from __future__ import annotations
 import dask
 import dask.array as da
 import numpy as np
-import zarr
 from numba import njit
 from scipy import ndimage
+
+from ._io import load_tile, save_tile
 
 CROSS = ndimage.generate_binary_structure(2, 1)
 
@@ -34,12 +35,13 @@ def label_components(passable: np.ndarray) -> tuple[np.ndarray, int]:
     return labels.astype(np.int32), int(n)
 
 
-def _label_tile(block, r0: int, c0: int, ncols: int, scratch: str):
-    """Pass 1 for one tile: label it, write the labels; return its count, the global
+def _label_tile(block, r0: int, c0: int, ncols: int, scratch: str, tile: tuple):
+    """Pass 1 for one tile (``tile``: its place in the tile grid): label it, keep the labels as
+    a scratch tile (uint16 when they fit: half the bytes); return its count, the global
     row-major index of each label's first cell, and its borders."""
     labels, n = label_components(block)
     rows, cols = labels.shape
-    zarr.open_array(scratch, mode="r+", zarr_format=3)[r0 : r0 + rows, c0 : c0 + cols] = labels
+    save_tile(scratch, "labels", tile, labels.astype(np.uint16) if n <= 65535 else labels)
     first = _first_cells(labels, n)  # local row-major indices
     first = (r0 + first // cols) * ncols + (c0 + first % cols)
     return (
@@ -113,6 +115,10 @@ def _solve(counts, firsts, borders, nbr: int, nbc: int) -> tuple[np.ndarray, np.
     return table, offsets
 
 
+def _load_labels(scratch, block_info=None):
+    return load_tile(scratch, "labels", tuple(block_info[None]["chunk-location"]))
+
+
 def _relabel(local, table, offsets, nbc: int, block_info=None):
     bi, bj = block_info[0]["chunk-location"]
     return table[offsets[bi * nbc + bj] + local.astype(np.int64)]
@@ -121,20 +127,11 @@ def _relabel(local, table, offsets, nbc: int, block_info=None):
 def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     """``(labels, count)``: the component labels of a chunked passable array (see the module
     doc) and how many components there are (known once the labels are joined, before the
-    labels are written). ``scratch`` is a path for a temporary Zarr array that the returned
+    labels are written). ``scratch`` is a directory for the scratch tiles that the returned
     array reads, so it must live until the result is written."""
     ok = passable.astype(bool)
     ok = ok.rechunk((ok.chunks[0][0], ok.chunks[1][0]))  # regular tiles
-    tile = (ok.chunks[0][0], ok.chunks[1][0])
-    zarr.create_array(
-        str(scratch),
-        shape=ok.shape,
-        chunks=tile,
-        dtype="int32",
-        compressors=None,
-        zarr_format=3,
-        overwrite=True,
-    )
+    scratch = str(scratch)
     r_off = np.concatenate([[0], np.cumsum(ok.chunks[0])])
     c_off = np.concatenate([[0], np.cumsum(ok.chunks[1])])
     nbr, nbc = len(ok.chunks[0]), len(ok.chunks[1])
@@ -142,7 +139,7 @@ def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     parts = dask.compute(
         *[
             dask.delayed(_label_tile, pure=False)(
-                blocks[bi, bj], int(r_off[bi]), int(c_off[bj]), ok.shape[1], str(scratch)
+                blocks[bi, bj], int(r_off[bi]), int(c_off[bj]), ok.shape[1], scratch, (bi, bj)
             )
             for bi in range(nbr)
             for bj in range(nbc)
@@ -154,7 +151,9 @@ def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     # the tables travel as graph keys (sent once to each worker), not in closures
     table_key = dask.delayed(table, pure=True)
     offsets_key = dask.delayed(offsets, pure=True)
-    local = da.from_zarr(zarr.open_array(str(scratch), mode="r", zarr_format=3)).rechunk(ok.chunks)
+    local = da.map_blocks(
+        _load_labels, scratch, chunks=ok.chunks, dtype=np.int32, meta=np.empty((0, 0), np.int32)
+    )
     labels = da.map_blocks(
         _relabel,
         local,

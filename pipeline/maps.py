@@ -7,9 +7,9 @@ by every mission (:mod:`pipeline.store`).
 
 The build runs as streaming passes, each a dask computation that reads its input chunk by
 chunk, so that no worker holds more than a chunk or two plus perimeter data: (1) every tile
-is filled once, its local fill and label indices go to a scratch store, and the spill edges
+is filled once, its local fill and label indices go to scratch tiles, and the spill edges
 to a small global solve; (2) the fill is finished elementwise per tile (plus a one-cell halo),
-its D8 codes go to the scratch store and the flow summaries to the second global solve; (3)
+its D8 codes go to the scratch tiles and the flow summaries to the second global solve; (3)
 every layer is written (the accumulation from the stored codes and the flow solve); (4) the
 passable layer is labelled tile by tile, the labels that touch across tile borders joined in a
 third small solve, and the component layer written (:mod:`pipeline.components`). The scratch

@@ -45,10 +45,10 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
-import zarr
 from numba import njit
 
 from ._grid8 import DC, DIST, DR, flat_offsets, inside
+from ._io import load_tile, save_tile
 from ._threads import shared_pool
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
@@ -993,63 +993,85 @@ def ridge_map(
 
 # --------------------------------------------------------------------------- staged build
 # For maps built into a store (build_maps), each tile is filled once: its local fill and, for
-# every cell, the index of its label in the tile's perimeter list go to a scratch Zarr store.
+# every cell, the index of its label in the tile's perimeter list go to scratch tiles, one file
+# a tile and layer (:func:`pipeline._io.save_tile`).
 # The flow pass finishes the fill elementwise (max(local fill, spill[label])) on a tile plus
-# a one-cell halo, takes its D8 codes and flow summary, and stores the codes in the scratch
-# store too; the accumulation pass reads a tile's codes alone. No tile is filled twice, and
+# a one-cell halo, takes its D8 codes and flow summary, and stores the codes as scratch tiles
+# too; the accumulation pass reads a tile's codes alone. No tile is filled twice, and
 # no D8 code is computed twice.
 
 
 def _scratch_flood(zh, r0, c0, ncols, halo, scratch, tile):
-    """Pass 1 for one tile (``tile``: its place in the tile grid): fill, write local fill and
-    label indices, and the tile's four sides of both (the flow pass's one-cell halos, see
-    :func:`_haloed_from_scratch`); return spill edges."""
+    """Pass 1 for one tile (``tile``: its place in the tile grid): fill, keep its local fill
+    and label indices and the four sides of both (the flow pass's one-cell halos, see
+    :func:`_haloed_from_scratch`) as scratch tiles; return spill edges."""
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
-    rows, cols = filled.shape
-    g = zarr.open_group(scratch, mode="r+", zarr_format=3)
-    g["floc"][r0 : r0 + rows, c0 : c0 + cols] = filled
-    g["plab"][r0 : r0 + rows, c0 : c0 + cols] = label
+    label = _narrow_labels(label)
+    save_tile(scratch, "floc", tile, filled)
+    save_tile(scratch, "plab", tile, label)
     for name, a in (("fside", filled), ("pside", label)):
-        sides = np.zeros((1, 1, 4, g[name].shape[3]), dtype=a.dtype)
-        sides[0, 0, 0, :cols], sides[0, 0, 1, :cols] = a[0], a[-1]  # top, bottom rows
-        sides[0, 0, 2, :rows], sides[0, 0, 3, :rows] = a[:, 0], a[:, -1]  # left, right columns
-        g[name][tile[0] : tile[0] + 1, tile[1] : tile[1] + 1] = sides
+        rows, cols = a.shape
+        sides = np.zeros((4, max(rows, cols)), dtype=a.dtype)
+        sides[0, :cols], sides[1, :cols] = a[0], a[-1]  # top, bottom rows
+        sides[2, :rows], sides[3, :rows] = a[:, 0], a[:, -1]  # left, right columns
+        save_tile(scratch, name, tile, sides)
     return edges
 
 
-def _haloed_from_scratch(g, name, bi, bj, geometry):
+def _narrow_labels(label: np.ndarray) -> np.ndarray:
+    """A tile's label indices as int16 when they fit (a 1024^2 tile's perimeter has 4092
+    cells): half the scratch bytes written and read."""
+    info = np.iinfo(np.int16)
+    if label.size and (label.max() > info.max or label.min() < info.min):
+        return label
+    return label.astype(np.int16)
+
+
+def _haloed_from_scratch(scratch, name, bi, bj, geometry):
     """Tile ``(bi, bj)`` of the scratch layer ``name`` ("floc" or "plab") with a one-cell halo
-    on each side that has a neighbour: the tile read from its own chunk, the halo from the
+    on each side that has a neighbour: the tile read from its own file, the halo from the
     neighbours' stored sides (``fside``, ``pside``: a few KiB each), so that a flow task needs
-    no other tile's chunk (dask's overlap of the scratch layers moved the neighbours' chunks
-    between the workers and left them idle 35 % of that pass at 10000^2)."""
+    no other tile (dask's overlap of the scratch layers moved the neighbours' chunks between
+    the workers and left them idle 35 % of that pass at 10000^2)."""
     _, _, r_off, c_off, nbr, nbc, _ = geometry
     top, left, bottom, right = _halo(bi, bj, nbr, nbc, 1)
-    r0, r1, c0, c1 = int(r_off[bi]), int(r_off[bi + 1]), int(c_off[bj]), int(c_off[bj + 1])
-    rows, cols = r1 - r0, c1 - c0
-    arr = g[name]
-    out = np.empty((top + rows + bottom, left + cols + right), dtype=arr.dtype)
-    out[top : top + rows, left : left + cols] = arr[r0:r1, c0:c1]
-    sides = g[name[0] + "side"][bi - top : bi + bottom + 1, bj - left : bj + right + 1]
-    ci, cj = top, left  # this tile's place in the block of sides read
-    nc = [int(c_off[j + 1] - c_off[j]) for j in range(bj - left, bj + right + 1)]
+    own = load_tile(scratch, name, (bi, bj))
+    rows, cols = own.shape
+    sides = {}
+    for i in range(bi - top, bi + bottom + 1):
+        for j in range(bj - left, bj + right + 1):
+            if (i, j) != (bi, bj):
+                sides[i, j] = load_tile(scratch, name[0] + "side", (i, j))
+    dtype = np.result_type(own, *sides.values())
+    out = np.empty((top + rows + bottom, left + cols + right), dtype=dtype)
+    out[top : top + rows, left : left + cols] = own
     if top:
-        out[0, left : left + cols] = sides[ci - 1, cj, 1, :cols]  # the bottom row above
+        out[0, left : left + cols] = sides[bi - 1, bj][1, :cols]  # the bottom row above
     if bottom:
-        out[-1, left : left + cols] = sides[ci + 1, cj, 0, :cols]  # the top row below
+        out[-1, left : left + cols] = sides[bi + 1, bj][0, :cols]  # the top row below
     if left:
-        out[top : top + rows, 0] = sides[ci, cj - 1, 3, :rows]  # the right column to the left
+        out[top : top + rows, 0] = sides[bi, bj - 1][3, :rows]  # the right column to the left
     if right:
-        out[top : top + rows, -1] = sides[ci, cj + 1, 2, :rows]  # the left column to the right
+        out[top : top + rows, -1] = sides[bi, bj + 1][2, :rows]  # the left column to the right
+    width = int(c_off[bj] - c_off[bj - 1]) if left else 0  # the tile to the left
     if top and left:
-        out[0, 0] = sides[ci - 1, cj - 1, 1, nc[cj - 1] - 1]
+        out[0, 0] = sides[bi - 1, bj - 1][1, width - 1]
     if top and right:
-        out[0, -1] = sides[ci - 1, cj + 1, 1, 0]
+        out[0, -1] = sides[bi - 1, bj + 1][1, 0]
     if bottom and left:
-        out[-1, 0] = sides[ci + 1, cj - 1, 0, nc[cj - 1] - 1]
+        out[-1, 0] = sides[bi + 1, bj - 1][0, width - 1]
     if bottom and right:
-        out[-1, -1] = sides[ci + 1, cj + 1, 0, 0]
+        out[-1, -1] = sides[bi + 1, bj + 1][0, 0]
     return out
+
+
+def _tile_loader(scratch, name: str, chunks, dtype) -> da.Array:
+    """The scratch layer ``name`` as a dask array of ``chunks``, a tile a block."""
+
+    def load(block_info=None):
+        return load_tile(scratch, name, tuple(block_info[None]["chunk-location"]))
+
+    return da.map_blocks(load, chunks=chunks, dtype=dtype, meta=np.empty((0, 0), dtype))
 
 
 def _spill_tables(ids, spill, r_off, c_off, ncols):
@@ -1106,8 +1128,8 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     """(filled, accumulation, ridge) dask arrays of the DEM ``z``, computing the two small
     global solves eagerly and flooding each tile once (see the section comment).
 
-    ``scratch`` is a directory for the temporary Zarr store; the returned arrays read it, so
-    it must live until they are written.
+    ``scratch`` is a directory (a path or a URL) for the scratch tiles; the returned arrays read
+    it, so it must live until they are written.
     """
     t0 = time.perf_counter()
     # the two solves run here, in the caller's process: their compiled code is loaded from
@@ -1115,29 +1137,15 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     solves = shared_pool("solver-load", 1).submit(_load_solvers)
     z = z.astype(np.float32)
     ncols = z.shape[1]
-    # regular tiles (only the last may be larger, when a thin last chunk is merged into it),
-    # and scratch chunks of the regular tile's size: every scratch chunk is then written by
-    # exactly one tile, so parallel writes never share a chunk
+    # regular tiles (only the last may be larger, when a thin last chunk is merged into it)
     z = z.rechunk((z.chunks[0][0], z.chunks[1][0]))
     z, _, tiles = _tiles(z, 2)
-    g = zarr.open_group(scratch, mode="w", zarr_format=3)
-    tile = (z.chunks[0][0], z.chunks[1][0])
-    # written once, read twice: uncompressed is faster than any codec here
-    g.create_array("floc", shape=z.shape, chunks=tile, dtype="float32", compressors=None)
-    g.create_array("plab", shape=z.shape, chunks=tile, dtype="int32", compressors=None)
-    # each tile's D8 codes (NO_DATA_DIR where no-data), written by the flow summaries: the
-    # accumulation pass then reads them alone, no halo, nothing recomputed
-    g.create_array("dirs", shape=z.shape, chunks=tile, dtype="int8", compressors=None)
+    scratch = str(scratch)
     nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
-    side = max(max(z.chunks[0]), max(z.chunks[1]))  # each tile's four sides, one chunk a tile
-    for name, dtype in (("fside", "float32"), ("pside", "int32")):
-        g.create_array(
-            name, shape=(nbr, nbc, 4, side), chunks=(1, 1, 4, side), dtype=dtype, compressors=None
-        )
     edges = dask.compute(
         *[
             dask.delayed(_scratch_flood, pure=False)(
-                blk, r0, c0, ncols, halo, str(scratch), divmod(k, nbc)
+                blk, r0, c0, ncols, halo, scratch, divmod(k, nbc)
             )
             for k, (blk, r0, c0, halo) in enumerate(tiles)
         ]
@@ -1149,8 +1157,8 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     tables, bases = _spill_tables(ids, spill, r_off, c_off, ncols)
     if log:
         log("fill: tiles flooded and solved (%.1f s)", time.perf_counter() - t0)
-    floc = da.from_zarr(g["floc"]).rechunk(z.chunks)
-    plab = da.from_zarr(g["plab"]).rechunk(z.chunks)
+    floc = _tile_loader(scratch, "floc", z.chunks, np.float32)
+    plab = _tile_loader(scratch, "plab", z.chunks, np.int32)
     fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
     po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
     # large constants travel as single graph keys (sent once to each worker), not in closures;
@@ -1162,7 +1170,7 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     )
     flow = dask.compute(
         *[
-            dask.delayed(_scratch_flow_summary, pure=False)(bi, bj, geometry, str(scratch))
+            dask.delayed(_scratch_flow_summary, pure=False)(bi, bj, geometry, scratch)
             for bi in range(nbr)
             for bj in range(nbc)
         ]
@@ -1172,7 +1180,7 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
         log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
     acc = da.map_blocks(
         _scratch_accumulate,
-        da.from_zarr(g["dirs"]).rechunk(z.chunks),
+        _tile_loader(scratch, "dirs", z.chunks, np.int8),
         solution,
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
@@ -1209,17 +1217,14 @@ NO_DATA_DIR = -2  # the scratch D8 code of a no-data cell (-1: a sink)
 
 
 def _scratch_flow_summary(bi, bj, geometry, scratch):
-    """Pass 2 for one tile: its flow summary; its D8 codes go to the scratch store."""
+    """Pass 2 for one tile: its flow summary; its D8 codes go to the scratch tiles."""
     _, _, r_off, c_off, nbr, nbc, ncols = geometry
-    g = zarr.open_group(scratch, mode="r+", zarr_format=3)
-    fblk = _haloed_from_scratch(g, "floc", bi, bj, geometry)
-    pblk = _haloed_from_scratch(g, "plab", bi, bj, geometry)
+    fblk = _haloed_from_scratch(scratch, "floc", bi, bj, geometry)
+    pblk = _haloed_from_scratch(scratch, "plab", bi, bj, geometry)
     fh = _scratch_finished(fblk, pblk, bi, bj, geometry)
     dirs, nodata = _tile_dirs(fh, _halo(bi, bj, nbr, nbc, 1))
     r0, c0 = int(r_off[bi]), int(c_off[bj])
-    g["dirs"][r0 : r0 + dirs.shape[0], c0 : c0 + dirs.shape[1]] = np.where(
-        nodata, np.int8(NO_DATA_DIR), dirs
-    )
+    save_tile(scratch, "dirs", (bi, bj), np.where(nodata, np.int8(NO_DATA_DIR), dirs))
     return _dirs_flow_summary(dirs, nodata, r0, c0, ncols)
 
 
