@@ -216,6 +216,17 @@ def main() -> None:
             for k, r in enumerate(runs)
         ],
     )
+    if 10000 in rows:  # issue 17's target for the build
+        r = rows[10000]
+        rep.headline(
+            "scale-10000",
+            34,
+            "`build_maps` 10000^2, Zarr to Zarr, 2 workers, no landmark layers",
+            f"{r['seconds']:.1f} s, workers {max(r['worker_peaks_gib']):.2f} GiB (fill done at "
+            f"{r['fill_s']:.1f} s, flow at {r['flow_s']:.1f} s, layers and components at "
+            f"{r['components_s']:.1f} s)",
+            target="< 25 s, < 1 GiB per worker",
+        )
     last = rows[big]
     rep.headline(
         "scale",
