@@ -82,6 +82,16 @@ def _decoded(size: int) -> np.ndarray:
     return buf
 
 
+def _numcodecs_takes_typesize() -> bool:
+    """Whether numcodecs' Blosc takes a ``typesize`` (0.16 and later; zarr passes it then)."""
+    import re
+
+    import numcodecs
+
+    major_minor = re.match(r"(\d+)\.(\d+)", numcodecs.__version__)
+    return major_minor is None or tuple(map(int, major_minor.groups())) >= (0, 16)
+
+
 def _layout(arr):
     """``(the sharding codec or None, the compressor as numcodecs configures it)`` of a Zarr 3
     array laid out as the pipeline writes its layers: the ``bytes`` codec (little-endian)
@@ -120,13 +130,15 @@ def _layout(arr):
         shuffle = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}[
             getattr(c.shuffle, "value", c.shuffle)
         ]
-        compressor = numcodecs.Blosc(
-            cname=getattr(c.cname, "value", c.cname),
-            clevel=c.clevel,
-            shuffle=shuffle,
-            blocksize=c.blocksize,
-            typesize=c.typesize,
-        )
+        config = {
+            "cname": getattr(c.cname, "value", c.cname),
+            "clevel": c.clevel,
+            "shuffle": shuffle,
+            "blocksize": c.blocksize,
+        }
+        if _numcodecs_takes_typesize():  # as zarr does: older numcodecs take the item size
+            config["typesize"] = c.typesize
+        compressor = numcodecs.Blosc.from_config(config)
     elif isinstance(c, ZstdCodec):
         compressor = numcodecs.Zstd(level=c.level, checksum=c.checksum)
     else:
