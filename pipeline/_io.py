@@ -300,6 +300,21 @@ def load_tile(scratch, name: str, tile: tuple):
     return np.load(os.path.join(scratch, name, key), allow_pickle=False)
 
 
+def tile_array(scratch, name: str, chunks, dtype):
+    """The scratch layer ``name`` that :func:`save_tile` kept, as a dask array of ``chunks`` (a
+    tile a block, the block's place in the grid its tile's)."""
+    import dask.array as da
+    import numpy as np
+
+    return da.map_blocks(
+        _load_block, scratch, name, chunks=chunks, dtype=dtype, meta=np.empty((0, 0), dtype)
+    )
+
+
+def _load_block(scratch, name: str, block_info=None):
+    return load_tile(scratch, name, tuple(block_info[None]["chunk-location"]))
+
+
 def require_writable(url: str) -> None:
     """Write and remove one small object under ``url``, before a long computation that ends by
     writing there: a wrong bucket, endpoint or credential is then one line at once."""

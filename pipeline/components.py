@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from ._io import load_tile, save_tile
+from ._io import save_tile, tile_array
 
 CROSS = ndimage.generate_binary_structure(2, 1)
 
@@ -115,10 +115,6 @@ def _solve(counts, firsts, borders, nbr: int, nbc: int) -> tuple[np.ndarray, np.
     return table, offsets
 
 
-def _load_labels(scratch, block_info=None):
-    return load_tile(scratch, "labels", tuple(block_info[None]["chunk-location"]))
-
-
 def _relabel(local, table, offsets, nbc: int, block_info=None):
     bi, bj = block_info[0]["chunk-location"]
     return table[offsets[bi * nbc + bj] + local.astype(np.int64)]
@@ -151,9 +147,7 @@ def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     # the tables travel as graph keys (sent once to each worker), not in closures
     table_key = dask.delayed(table, pure=True)
     offsets_key = dask.delayed(offsets, pure=True)
-    local = da.map_blocks(
-        _load_labels, scratch, chunks=ok.chunks, dtype=np.int32, meta=np.empty((0, 0), np.int32)
-    )
+    local = tile_array(scratch, "labels", ok.chunks, np.int32)
     labels = da.map_blocks(
         _relabel,
         local,

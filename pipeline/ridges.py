@@ -48,7 +48,7 @@ import xarray as xr
 from numba import njit
 
 from ._grid8 import DC, DIST, DR, flat_offsets, inside
-from ._io import load_tile, save_tile
+from ._io import load_tile, save_tile, tile_array
 from ._threads import shared_pool
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
@@ -1094,15 +1094,6 @@ def _haloed_from_scratch(scratch, name, bi, bj, geometry):
     return out
 
 
-def _tile_loader(scratch, name: str, chunks, dtype) -> da.Array:
-    """The scratch layer ``name`` as a dask array of ``chunks``, a tile a block."""
-
-    def load(block_info=None):
-        return load_tile(scratch, name, tuple(block_info[None]["chunk-location"]))
-
-    return da.map_blocks(load, chunks=chunks, dtype=dtype, meta=np.empty((0, 0), dtype))
-
-
 def _spill_tables(ids, spill, r_off, c_off, ncols):
     """Concatenated per-tile spill tables (indexed by perimeter index) and each tile's base."""
     tables, bases, base = [], [], 0
@@ -1186,8 +1177,8 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     tables, bases = _spill_tables(ids, spill, r_off, c_off, ncols)
     if log:
         log("fill: tiles flooded and solved (%.1f s)", time.perf_counter() - t0)
-    floc = _tile_loader(scratch, "floc", z.chunks, np.float32)
-    plab = _tile_loader(scratch, "plab", z.chunks, np.int32)
+    floc = tile_array(scratch, "floc", z.chunks, np.float32)
+    plab = tile_array(scratch, "plab", z.chunks, np.int32)
     fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
     po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
     # large constants travel as single graph keys (sent once to each worker), not in closures;
@@ -1209,7 +1200,7 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
         log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
     acc = da.map_blocks(
         _scratch_accumulate,
-        _tile_loader(scratch, "dirs", z.chunks, np.int8),
+        tile_array(scratch, "dirs", z.chunks, np.int8),
         solution,
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
