@@ -276,15 +276,18 @@ def save_tile(scratch, name: str, tile: tuple, array) -> None:
     import numpy as np
 
     key = f"{tile[0]}.{tile[1]}.npy"
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(array), allow_pickle=False)
     if is_url(scratch):
-        buf = io.BytesIO()
-        np.save(buf, np.asarray(array), allow_pickle=False)
         fs, path = filesystem(join(str(scratch), name, key))
         fs.pipe_file(path, buf.getvalue())
         return
     folder = os.path.join(scratch, name)
     os.makedirs(folder, exist_ok=True)
-    np.save(os.path.join(folder, key), np.asarray(array), allow_pickle=False)
+    # written by Python's file, not numpy's tofile: a full disk then raises the OSError with
+    # its errno (ENOSPC, EFBIG), which the command line turns into its one line
+    with open(os.path.join(folder, key), "wb") as f:
+        f.write(buf.getbuffer())
 
 
 def load_tile(scratch, name: str, tile: tuple):

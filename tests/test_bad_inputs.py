@@ -386,6 +386,30 @@ def test_a_full_disk_is_one_line_and_exit_3(tmp_path):
     assert not (tmp_path / "s.zarr").exists()
 
 
+def test_a_full_disk_while_building_maps_is_one_line_and_exit_3(tmp_path):
+    """The same during `build-maps`, whose tasks write the scratch tiles and the layers' shards
+    themselves: the one line names the full disk (numpy's own file writes said only "N
+    requested and M written")."""
+    import resource
+
+    res = invoke("dem", "synth", tmp_path / "dem.zarr", "--shape", "600", "600")
+    assert res.exit_code == 0, res.output
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+
+    proc = subprocess.run(
+        [str(EXE), "build-maps", str(tmp_path / "dem.zarr"), str(tmp_path / "maps.zarr")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
+    assert proc.returncode == 3, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: file too large")
+    assert not (tmp_path / "maps.zarr").exists()
+
+
 # ------------------------------------------------------------------ store tampering
 
 
