@@ -52,6 +52,9 @@ def _option(param: Param, *, flag: str | None = None):
 def _setup_logging(verbose: bool) -> None:
     import dask
 
+    from . import cluster
+
+    cluster.QUIET_TASK_ERRORS = not verbose
     # distributed installs its own INFO handler when imported: keep it to warnings
     dask.config.set({"logging.distributed": "debug" if verbose else "warning"})
     logging.basicConfig(

@@ -29,6 +29,10 @@ from .exceptions import InvalidParameterError, SchedulerError
 LOCAL_WORKERS = 2
 DASHBOARD_PORT = 8787
 
+# Set by the command line without ``-v``: the LocalClusters of :func:`session` leave a failed
+# task's traceback out of stderr (:mod:`pipeline._quiet`; the command prints the error itself)
+QUIET_TASK_ERRORS = False
+
 
 # glibc's allocator in the workers of a local cluster (set before each worker process starts,
 # so they also hold after a nanny restarts a worker). dask sets MALLOC_TRIM_THRESHOLD_ to 64 KiB,
@@ -290,6 +294,10 @@ def session(scheduler=None, scheduler_file=None, dashboard_address=None):
     else:
         cluster = local_cluster(dashboard_address or _free_dashboard_address())
         client = Client(cluster, set_as_default=False)
+        if QUIET_TASK_ERRORS:
+            from ._quiet import QuietTaskErrors
+
+            client.register_plugin(QuietTaskErrors())
     try:
         # the default only inside the block (a context that is always undone), never the
         # process-wide default: a client closed later cannot stay anyone's scheduler
