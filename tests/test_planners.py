@@ -549,6 +549,97 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
             assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
 
 
+@pytest.mark.parametrize(
+    "shape, seed",
+    [
+        ((30, 34), 0),
+        ((30, 34), 1),
+        ((41, 23), 2),
+        ((1, 17), 3),
+        ((13, 1), 4),
+        ((2, 2), 5),
+        ((3, 40), 6),
+        ((25, 19), 7),
+    ],
+)
+def test_lagrangian_bound_against_scipy(shape, seed):
+    """``lagrangian_bound``, the weighted searches' heuristic (octile + w x it), against scipy's
+    Dijkstra towards the goal: at most the least weighted 3-D cost (length + w x off-ridge
+    length) from every cell; consistent on every move of the graph; at least the octile
+    distance plus w x the off-ridge bound; where its search settled cells (those at most half
+    as far as the start on the horizontal plane), within the rounding of its units of the least
+    weighted horizontal cost (scipy on a flat surface); inf where the goal is out of reach. A*
+    with it finds scipy's optimum. Also on windows one cell thin, start and goal anywhere."""
+    from pipeline.planners.core import (
+        astar_search,
+        lagrangian_bound,
+        off_ridge_to_goal,
+        search_arrays,
+    )
+
+    rng = np.random.default_rng(seed)
+    surface = (
+        random_surface(shape, seed=seed).astype(np.float64)
+        if min(shape) > 2
+        else (rng.random(shape) * 200.0)
+    )
+    passable = rng.random(shape) > 0.15
+    ridge = rng.random(shape) < 0.4
+    cells = np.argwhere(passable)
+    if len(cells) < 2:
+        passable[0, 0] = passable[-1, -1] = True
+        cells = np.argwhere(passable)
+    s, g = endpoints(passable, seed)
+    rows, cols = shape
+    goal, start = g[0] * cols + g[1], s[0] * cols + s[1]
+    rr, cc = np.divmod(np.arange(rows * cols), cols)
+    dr, dc = np.abs(rr - g[0]), np.abs(cc - g[1])
+    octile = 30.0 * (np.maximum(dr, dc) + (math.sqrt(2.0) - 1.0) * np.minimum(dr, dc))
+    hoff = off_ridge_to_goal(ridge, passable, 30.0, *g)
+    flat = np.zeros(shape)
+    for w in (1.0, 3.0, 50.0, 4e5):
+        out = lagrangian_bound(ridge, passable, 30.0, *s, *g, w, hoff)
+        bound = octile + w * out
+        graph = _weighted_graph(surface, ridge, passable, 30.0, w)
+        exact = dijkstra(graph.T.tocsr(), indices=goal)
+        assert np.array_equal(np.isfinite(bound), np.isfinite(exact))
+        fin = np.isfinite(exact)
+        assert (bound[fin] <= exact[fin] * (1 + 1e-12)).all()
+        assert (bound[fin] >= octile[fin] + w * hoff[fin] - 1e-9 * exact[fin]).all()
+        e = graph.tocoo()  # every move u -> v: h(u) <= cost + h(v)
+        both = fin[e.row] & fin[e.col]
+        slack = 1e-9 * exact[e.row][both]
+        assert (bound[e.row][both] <= e.data[both] + bound[e.col][both] + slack).all()
+        horizontal = _weighted_graph(flat, ridge, passable, 30.0, w).T.tocsr()
+        horizontal = dijkstra(horizontal, indices=goal)
+        if np.isfinite(horizontal[start]):
+            near = fin & (horizontal <= 0.5 * horizontal[start])
+            # each move's cost in units rounded down: at most one unit a move (a move costs a
+            # cell's length, 30 m, at least), the unit a 29th of a cell of length and weight
+            # (1 + w) / (400 / 41), 400 units the longest move
+            moves = horizontal[near] / 30.0
+            unit = 30.0 * 41 * (1 + w) / (29 * 400)
+            assert (bound[near] >= horizontal[near] * (1 - 3e-4) - moves * unit).all()
+        ref = dijkstra(graph, indices=start)[goal]
+        _, gs, _, found = astar_search(
+            surface,
+            ridge,
+            passable,
+            30.0,
+            *s,
+            *g,
+            1.0,
+            w,
+            True,
+            np.zeros((0, 0), np.float32),
+            out,
+            *search_arrays(surface.size),
+        )
+        assert found == bool(np.isfinite(ref))
+        if found:
+            assert gs[goal] == pytest.approx(ref, rel=1e-9)
+
+
 @pytest.mark.parametrize("shape", [(1, 17), (13, 1), (1, 1), (2, 2), (3, 40), (25, 19)])
 def test_off_ridge_bound_on_thin_windows_and_goals_at_the_edge(shape):
     """``off_ridge_to_goal`` against scipy's Dijkstra (as above) on windows one cell thin and

@@ -22,6 +22,7 @@ from .core import (
     Planner,
     Search,
     astar_search,
+    lagrangian_bound,
     landmark_rows,
     off_ridge_to_goal,
     path_steps,
@@ -89,6 +90,11 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
         if 0 < off_weight < EXACT_BELOW and not exact:
             lm = goal_layer(lm, surface, passable, a, t)
             exact = True
+        h = hoff if off_weight > 0 else NO_GOAL
+        if off_weight > 0 and off_weight != _OFF_FIRST and lm.shape[0] == 0:
+            # a bound on both terms at once, its own (:func:`lagrangian_bound`); the off-first
+            # search has hoff's
+            h = lagrangian_bound(ridge, passable, a, s[0], s[1], t[0], t[1], off_weight, hoff)
         parent, _, exp, found = astar_search(
             surface,
             ridge,
@@ -102,7 +108,7 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
             off_weight,
             True,
             lm,
-            hoff if off_weight > 0 else NO_GOAL,
+            h,
             *search_arrays(surface.size),  # new ones: the searches' states are kept
         )
         expansions += exp
