@@ -568,8 +568,9 @@ def test_lagrangian_bound_against_scipy(shape, seed):
     length) from every cell; consistent on every move of the graph; at least the octile
     distance plus w x the off-ridge bound; where its search settled cells (those at most half
     as far as the start on the horizontal plane), within the rounding of its units of the least
-    weighted horizontal cost (scipy on a flat surface); inf where the goal is out of reach. A*
-    with it finds scipy's optimum. Also on windows one cell thin, start and goal anywhere."""
+    weighted horizontal cost (scipy on a flat surface); inf where the goal is out of reach. The
+    bound of a larger weight, used for this one (the planner does), is one too. A* with them
+    finds scipy's optimum. Also on windows one cell thin, start and goal anywhere."""
     from pipeline.planners.core import (
         astar_search,
         lagrangian_bound,
@@ -620,6 +621,11 @@ def test_lagrangian_bound_against_scipy(shape, seed):
             moves = horizontal[near] / 30.0
             unit = 30.0 * 41 * (1 + w) / (29 * 400)
             assert (bound[near] >= horizontal[near] * (1 - 3e-4) - moves * unit).all()
+        # the bound of a larger weight serves this one too (the planner's reuse)
+        out = np.maximum(out, lagrangian_bound(ridge, passable, 30.0, *s, *g, 4 * w, hoff))
+        bound = octile + w * out
+        assert (bound[fin] <= exact[fin] * (1 + 1e-12)).all()
+        assert (bound[e.row][both] <= e.data[both] + bound[e.col][both] + slack).all()
         ref = dijkstra(graph, indices=start)[goal]
         _, gs, _, found = astar_search(
             surface,

@@ -82,9 +82,10 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
     lm = landmark_rows(landmarks, surface.shape)
     hoff = None  # the off-ridge bound to the goal, for the weighted searches' heuristic
     exact = False  # whether ``lm`` holds the lengths to the goal (:func:`goal_layer`)
+    joint = None  # (the largest weight so far, its lagrangian_bound)
 
     def search(off_weight):
-        nonlocal expansions, hoff, lm, exact
+        nonlocal expansions, hoff, lm, exact, joint
         if off_weight > 0 and hoff is None:  # one backward search serves every weighting
             hoff = off_ridge_to_goal(ridge, passable, a, t[0], t[1])
         if 0 < off_weight < EXACT_BELOW and not exact:
@@ -92,9 +93,14 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
             exact = True
         h = hoff if off_weight > 0 else NO_GOAL
         if off_weight > 0 and off_weight != _OFF_FIRST and lm.shape[0] == 0:
-            # a bound on both terms at once, its own (:func:`lagrangian_bound`); the off-first
-            # search has hoff's
-            h = lagrangian_bound(ridge, passable, a, s[0], s[1], t[0], t[1], off_weight, hoff)
+            # a bound on both terms at once (:func:`lagrangian_bound`; the off-first search has
+            # hoff's): that of the largest weight so far serves every smaller one
+            if joint is None or off_weight > joint[0]:
+                joint = (
+                    off_weight,
+                    lagrangian_bound(ridge, passable, a, s[0], s[1], t[0], t[1], off_weight, hoff),
+                )
+            h = joint[1]
         parent, _, exp, found = astar_search(
             surface,
             ridge,
