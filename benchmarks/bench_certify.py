@@ -552,11 +552,20 @@ def main() -> None:
     b = big
     rep.h(f"{b['n']}^2: the landmark layers and mission latency with certification")
     secs = b["build_seconds"]
+    reused = (
+        ""
+        if b.get("built_now", True)
+        else """This run reused the store an earlier run of this script had built: the build's
+          time and peaks below are that build's (recorded with the store), and predate any
+          later change to `build_maps` (the build of 10000^2 without landmark layers:
+          section "Ocean-scale maps"). """
+    )
     rep.p(f"""The maps store of the {b["n"]}^2 synthetic map holds {b["landmarks"]} landmark
           layers: {b["landmark_gib"]:.2f} GiB of the store's {b["store_gib"]:.2f} GiB
           (float32, {b.get("landmark_layout", "chunks of 1 x 256 x 256")}, blosc LZ4 with
           byte shuffle); the bound reads one inner chunk of every layer at each end.
-          Building the store took {secs.get("total", float("nan")):.0f} s (2 workers), of which
+          {reused}Building the store took {secs.get("total", float("nan")):.0f} s (2 workers),
+          of which
           the landmark pass (placement, then one exact Dijkstra search of the whole map per
           landmark, two at a time) {secs.get("landmarks", float("nan")):.0f} s; peak memory
           {peak_text(b)} (a landmark's search holds the whole map, 18 bytes a cell).
