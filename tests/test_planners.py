@@ -646,6 +646,45 @@ def test_lagrangian_bound_against_scipy(shape, seed):
             assert gs[goal] == pytest.approx(ref, rel=1e-9)
 
 
+def test_the_lagrangian_planner_takes_its_joint_bound_on_gentle_ground_only(monkeypatch):
+    """The weighted searches take ``lagrangian_bound`` (a bound on the horizontal plane) where
+    the shortest path's 3-D length exceeds its horizontal length by at most ``BOUND_SLACK``,
+    and not on steep ground, where it costs more than it saves; the paths are scipy-optimal
+    for their weights either way (the test above), and equal to those without it here."""
+    from pipeline.planners import lagrangian
+
+    calls = []
+    real = lagrangian.lagrangian_bound
+
+    def counted(*args):
+        calls.append(args[7])
+        return real(*args)
+
+    rng = np.random.default_rng(1)
+    shape = (60, 60)
+    passable = rng.random(shape) > 0.2
+    ridge = rng.random(shape) < 0.5
+    s, g = (2, 2), (57, 55)
+    passable[s] = passable[g] = True
+    gentle = np.full(shape, -1000.0)  # flat: no slack at all
+    steep = gentle + np.random.default_rng(2).random(shape) * 60.0  # 30 m cells, steps to 60 m
+    got = {}
+    for name, surface in (("gentle", gentle), ("steep", steep)):
+        for use in (True, False):
+            calls.clear()
+            monkeypatch.setattr(lagrangian, "BOUND_SLACK", 0.05 if use else -1.0)
+            monkeypatch.setattr(lagrangian, "lagrangian_bound", counted)
+            t = pipeline.plan_window(
+                surface, ridge, passable, s, g, cell_size=30.0, planner="lagrangian", omega=1.3
+            )
+            got[name, use] = (t.length_m, t.ridge_length_m, len(calls), t.extra["searches"])
+    assert got["gentle", True][2] > 0 and got["gentle", True][3] > 2  # weighted searches ran
+    assert got["steep", True][2] == 0 and got["steep", False][2] == 0
+    assert got["gentle", False][2] == 0
+    for name in ("gentle", "steep"):
+        assert got[name, True][:2] == pytest.approx(got[name, False][:2], rel=1e-9)
+
+
 @pytest.mark.parametrize("shape", [(1, 17), (13, 1), (1, 1), (2, 2), (3, 40), (25, 19)])
 def test_off_ridge_bound_on_thin_windows_and_goals_at_the_edge(shape):
     """``off_ridge_to_goal`` against scipy's Dijkstra (as above) on windows one cell thin and

@@ -421,7 +421,8 @@ def lagrangian_bound(ridge, passable, a, sr, sc, gr, gc, off_weight, hoff):
     1.31 (2000^2: 1422 instead of 5997 cells, 1.21 ms instead of 1.38); the same paths, lengths
     and bounds on all 40 missions. Served to the searches of smaller weights too, it ran 65
     times a mission instead of 97 there, for 1293 expansions a search instead of 604: the
-    bounds and searches 84.9-87.8 ms a mission instead of 99.0-99.5."""
+    bounds and searches 84.9-87.8 ms a mission instead of 99.0-99.5. The planner takes it only
+    on gentle ground (``lagrangian.BOUND_SLACK``)."""
     rows, cols = passable.shape
     q = BOUND_SPAN / (OFF_DIAGONAL * (1.0 + off_weight))  # units a 1/OFF_UNITS cell
     s_on = np.int64(math.floor(OFF_UNITS * q))

@@ -34,6 +34,12 @@ from .core import (
 _OFF_FIRST = 1e7
 
 
+def _horizontal(cells, a) -> float:
+    """The horizontal length of a path."""
+    d = np.abs(np.diff(cells, axis=0)).sum(axis=1)  # 1 straight, 2 diagonal
+    return float(a * ((d == 1).sum() + np.sqrt(2.0) * (d == 2).sum()))
+
+
 def _measure(cells, surface, ridge, a):
     """(length, off-ridge length) of a path."""
     step = path_steps(cells, surface[cells[:, 0], cells[:, 1]], a)
@@ -52,6 +58,18 @@ def _measure(cells, surface, ridge, a):
 # paths). Memory: 4 bytes a cell of the window kept, 13 while the backward search runs (each
 # weighted search keeps 9 of its own).
 EXACT_BELOW = 1.0
+
+
+# The weighted searches take bounds of their own (lagrangian_bound) only where the shortest
+# path's 3-D length exceeds its horizontal length by at most this fraction: the bound is one on
+# the horizontal plane, and its search settles most of the window at about a quarter of an
+# expansion's cost a cell, so it pays only where the ground's rise and fall leaves little
+# slack. On the sections of the 10000^2 benchmark missions (30 m cells) the slack was 0.25 %
+# (median; 0.8 % at p90), and a search the bound guided expanded 4 % of the window instead of
+# 40 %. On the Pareto benchmark's whole 400^2 windows of steep ground (30 m cells too) it was
+# 31 % (18 % at p10), a search it guided expanded 29 % of the window instead of 36 %, and the
+# planner took 110-160 ms a mission at omega 1.5 instead of 95-102 ms.
+BOUND_SLACK = 0.05
 
 
 def goal_layer(lm, surface, passable, a, t):
@@ -83,9 +101,10 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
     hoff = None  # the off-ridge bound to the goal, for the weighted searches' heuristic
     exact = False  # whether ``lm`` holds the lengths to the goal (:func:`goal_layer`)
     joint = None  # (the largest weight so far, its lagrangian_bound)
+    fresh = False  # whether a weight above that takes a lagrangian_bound of its own
 
     def search(off_weight):
-        nonlocal expansions, hoff, lm, exact, joint
+        nonlocal expansions, hoff, lm, exact, joint, fresh
         if off_weight > 0 and hoff is None:  # one backward search serves every weighting
             hoff = off_ridge_to_goal(ridge, passable, a, t[0], t[1])
         if 0 < off_weight < EXACT_BELOW and not exact:
@@ -95,12 +114,13 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
         if off_weight > 0 and off_weight != _OFF_FIRST and lm.shape[0] == 0:
             # a bound on both terms at once (:func:`lagrangian_bound`; the off-first search has
             # hoff's): that of the largest weight so far serves every smaller one
-            if joint is None or off_weight > joint[0]:
+            if fresh and (joint is None or off_weight > joint[0]):
                 joint = (
                     off_weight,
                     lagrangian_bound(ridge, passable, a, s[0], s[1], t[0], t[1], off_weight, hoff),
                 )
-            h = joint[1]
+            if joint is not None and off_weight <= joint[0]:
+                h = joint[1]
         parent, _, exp, found = astar_search(
             surface,
             ridge,
@@ -127,6 +147,7 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
     if shortest is None:
         return None, expansions, False, {}
     optimum = shortest[2]
+    fresh = optimum - _horizontal(shortest[1], a) <= BOUND_SLACK * optimum
     bound = omega * optimum
     feasible = shortest
     extra = {"optimum_m": optimum, "searches": 1, "lambda": None}
