@@ -23,7 +23,7 @@ from .core import (
     Planner,
     Search,
     astar_search,
-    edge_length,
+    edge_cost,
     lagrangian_bound,
     landmark_rows,
     off_ridge_to_goal,
@@ -43,22 +43,17 @@ def _horizontal(cells, a) -> float:
 
 @njit(nogil=True, cache=True)
 def _measure(cells, surface, ridge, a):
-    """(length, off-ridge length) of a path: its steps' 3-D lengths (``edge_length`` of the
-    surface's heights in float64, as :func:`~.core.path_steps` computes them) summed in one
-    pass, a step off the ridge network where it ends off it. numpy's version (gather the
-    heights, the steps, the mask, two sums) took 24 us a path of 160 cells, this 2.5 us; the
-    planner measures 3.5 paths a section of the 10000^2 benchmark's missions, 61 sections a
-    mission (about 4.7 ms of its 200 ms saved, the same paths on 20 missions at 2000^2 and
-    10000^2)."""
-    aa = a * a
+    """(length, off-ridge length) of a path: its steps' costs (``edge_cost``, the planners' own
+    3-D length of a move) summed in one pass, a step off the ridge network where it ends off
+    it. numpy's version (gather the heights, the steps, the mask, two sums) took 24 us a path
+    of 160 cells, this 2.5 us; the planner measures 3.5 paths a section of the 10000^2
+    benchmark's missions, 61 sections a mission (about 4.7 ms of its 200 ms saved, the same
+    paths on 20 missions at 2000^2 and 10000^2)."""
     length = 0.0
     off = 0.0
     for i in range(cells.shape[0] - 1):
         r, c = cells[i + 1, 0], cells[i + 1, 1]
-        dr = r - cells[i, 0]
-        dc = c - cells[i, 1]
-        dz = np.float64(surface[r, c]) - np.float64(surface[cells[i, 0], cells[i, 1]])
-        step = edge_length(aa * (dr * dr + dc * dc), dz)
+        step = edge_cost(surface, a, cells[i, 0], cells[i, 1], r, c)
         length += step
         if not ridge[r, c]:
             off += step
