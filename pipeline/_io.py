@@ -44,15 +44,31 @@ def inner_chunks(chunks, largest: int = INNER_CHUNK) -> tuple[int, ...]:
     )
 
 
-def layer_encoding(chunks) -> dict:
+# The layers a mission's sections read window by window. In a local store they are kept
+# uncompressed: a window is then copied straight out of the shard files, memory-mapped
+# (pipeline.store.ChunkCache.window), with no decoding and no decoded chunk held. At 10000^2
+# the decoding (blosc LZ4: 66-99 us a 256^2 float32 inner chunk, 53 us a bool one) and the
+# fresh memory of the decoded chunks made a mission's reads 34 ms, longer than its searches
+# (21 ms); mapped, 14 ms (benchmarks/RESULTS.md, "One mission against pyastar2d"). The cost
+# is disk: 4 + 1 + 1 bytes a cell (a 10000^2 store's three layers 600 MB, against 245 MB
+# compressed). On object storage, where bytes travel, they stay compressed.
+WINDOW_LAYERS = ("safety", "ridge", "passable")
+
+
+def layer_encoding(chunks, compress: bool = True) -> dict:
     """The Zarr encoding of a maps layer written in blocks of ``chunks``: shards of ``chunks``
     (what a dask task writes, what dask reads the layer by) holding inner chunks of
-    :func:`inner_chunks` (what a mission decodes), each compressed with :func:`layer_codec`.
+    :func:`inner_chunks` (what a mission reads), each compressed with :func:`layer_codec`
+    unless ``compress`` is false (:data:`WINDOW_LAYERS` of a local store).
     A section's window (about 150^2 cells) covers a few 256^2 inner chunks; with 1024^2
     chunks it decoded whole chunks: 11.5 M cells a layer for a mission across the 10000^2 map
     against 3.4 M (benchmarks/bench_latency.py)."""
     shards = tuple(int(c) for c in chunks)
-    return {"chunks": inner_chunks(shards), "shards": shards, "compressors": layer_codec()}
+    return {
+        "chunks": inner_chunks(shards),
+        "shards": shards,
+        "compressors": layer_codec() if compress else None,
+    }
 
 
 def storage_chunks(arr) -> tuple[int, ...]:

@@ -33,6 +33,7 @@ import zarr
 from numba import njit
 
 from ._io import (
+    WINDOW_LAYERS,
     is_url,
     join,
     layer_encoding,
@@ -337,7 +338,10 @@ def _write(ds: xr.Dataset, path, ch, *, also=None, mode: str = "w"):
         mode=mode,
         zarr_format=3,
         consolidated=False,
-        encoding={k: layer_encoding(ch) for k in ds.data_vars},
+        encoding={
+            k: layer_encoding(ch, compress=k not in WINDOW_LAYERS or is_url(path))
+            for k in ds.data_vars
+        },
         compute=False,
         write_empty_chunks=True,  # every chunk on disk: a missing one means damage
     )

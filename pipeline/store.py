@@ -118,13 +118,15 @@ def _layout(arr):
             return None
         codecs = tuple(sharding.codecs)
     if (
-        len(codecs) != 2
+        len(codecs) not in (1, 2)
         or not isinstance(codecs[0], BytesCodec)
         or getattr(codecs[0].endian, "value", "little") != "little"
         or arr.dtype.byteorder == ">"
         or arr.dtype.hasobject
     ):
         return None
+    if len(codecs) == 1:
+        return sharding, _Uncompressed()
     c = codecs[1]
     if isinstance(c, BloscCodec):
         shuffle = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}[
@@ -144,6 +146,27 @@ def _layout(arr):
     else:
         return None
     return sharding, compressor
+
+
+class _Uncompressed:
+    """The "compressor" of a layer stored without one (:data:`pipeline._io.WINDOW_LAYERS` of
+    a local store): its bytes copied (out of the thread's scratch buffer they were read into)
+    into ``out`` or a new buffer."""
+
+    @staticmethod
+    def encode(buf) -> bytes:
+        return bytes(memoryview(buf).cast("B"))
+
+    @staticmethod
+    def decode(buf, out=None):
+        if out is None:
+            return bytes(buf)
+        out = np.frombuffer(out, dtype=np.uint8) if not isinstance(out, np.ndarray) else out
+        view = out.reshape(-1).view(np.uint8)
+        if len(buf) != view.size:
+            raise ValueError(f"{len(buf)} bytes where {view.size} were expected")
+        view[:] = np.frombuffer(buf, dtype=np.uint8)
+        return out
 
 
 def direct_reader(arr, store: str, var: str):
@@ -272,6 +295,108 @@ def direct_reader(arr, store: str, var: str):
     return read
 
 
+class MappedLayer:
+    """Windows of a local, sharded, uncompressed layer copied straight out of its shard files,
+    memory-mapped: no read into a buffer, no decoding, no decoded chunk kept (the page cache
+    is the cache). A shard is mapped when first read (its index checked against its CRC32C
+    then) and stays mapped, the last :data:`MAPPED_SHARDS` of the layer. The store's files are
+    never rewritten in place (a rebuild writes a new store and renames it): a mapping holds
+    the file it mapped. ``window`` returns None where a chunk is not there, for the caller to
+    read through zarr (the fill value) or to report the damage."""
+
+    def __init__(self, root: str, arr, store: str, var: str):
+        self.root, self.store, self.var = root, store, var
+        self.chunks = tuple(int(c) for c in arr.chunks)
+        self.per = tuple(s // c for s, c in zip(arr.shards, self.chunks, strict=True))
+        self.shape = tuple(int(n) for n in arr.shape)
+        self.dtype = np.dtype(arr.dtype)
+        self.keys = arr.metadata
+        self.chunk_bytes = math.prod(self.chunks) * self.dtype.itemsize
+        self.shards: OrderedDict = OrderedDict()  # shard index -> (bytes as uint8, table)
+        self.lock = threading.Lock()
+
+    @classmethod
+    def of(cls, arr, store: str, var: str):
+        """The mapped layer of ``arr``, or None when it is not local, sharded, uncompressed."""
+        from zarr.storage import LocalStore
+
+        layout = _layout(arr)
+        if (
+            layout is None
+            or layout[0] is None
+            or not isinstance(layout[1], _Uncompressed)
+            or not isinstance(arr.store, LocalStore)
+            or arr.ndim != 2
+        ):
+            return None
+        return cls(os.path.join(str(arr.store.root), arr.path), arr, store, var)
+
+    def _shard(self, index: tuple):
+        with self.lock:
+            got = self.shards.get(index)
+            if got is not None:
+                self.shards.move_to_end(index)
+                return got
+        import mmap
+
+        from numcodecs.checksum32 import CRC32C
+
+        key = self.keys.encode_chunk_key(index)
+        try:
+            with open(os.path.join(self.root, key), "rb") as f:
+                size = os.fstat(f.fileno()).st_size
+                buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+        except FileNotFoundError:
+            return None
+        n = math.prod(self.per)
+        try:
+            if len(buf) < 16 * n + 4:
+                raise ValueError(f"{len(buf)} bytes, shorter than its index")
+            table = CRC32C(location="end").decode(buf[len(buf) - 16 * n - 4 :])
+            table = np.frombuffer(table, dtype="<u8").reshape(-1, 2)
+        except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
+            raise damaged(
+                self.store,
+                f"chunk {key} of its layer {self.var!r} cannot be decoded (its shard index: {exc})",
+            ) from None
+        got = (np.frombuffer(buf, dtype=np.uint8), table.tolist())
+        with self.lock:
+            self.shards[index] = got
+            while len(self.shards) > MAPPED_SHARDS:
+                self.shards.popitem(last=False)  # unmapped once no window reads it
+        return got
+
+    def window(self, r0: int, r1: int, c0: int, c1: int):
+        (ch, cw), (ph, pw) = self.chunks, self.per
+        out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype)
+        for ci in range(r0 // ch, (r1 - 1) // ch + 1):
+            for cj in range(c0 // cw, (c1 - 1) // cw + 1):
+                shard = self._shard((ci // ph, cj // pw))
+                if shard is None:
+                    return None
+                buf, table = shard
+                offset, size = table[(ci % ph) * pw + cj % pw]
+                if size != self.chunk_bytes or offset + size > buf.size:
+                    if offset == size == 2**64 - 1:  # an inner chunk not written
+                        return None
+                    where = f"{self.keys.encode_chunk_key((ci // ph, cj // pw))} (inner chunk "
+                    raise damaged(
+                        self.store,
+                        f"chunk {where}{(ci, cj)}) of its layer {self.var!r} cannot be decoded "
+                        f"({size} bytes at {offset}, {self.chunk_bytes} expected)",
+                    )
+                block = buf[offset : offset + size].view(self.dtype).reshape(ch, cw)
+                a0, a1 = max(r0, ci * ch), min(r1, ci * ch + ch)
+                b0, b1 = max(c0, cj * cw), min(c1, cj * cw + cw)
+                out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = block[
+                    a0 - ci * ch : a1 - ci * ch, b0 - cj * cw : b1 - cj * cw
+                ]
+        return out
+
+
+MAPPED_SHARDS = 4096  # shard files a mapped layer keeps mapped (a 40000^2 layer has 1600)
+
+
 def _morton(place: tuple, per: tuple) -> int:
     """The compressed Z-order code of an inner chunk's ``place`` in a shard of ``per`` inner
     chunks (zarr's order of the inner chunks in a shard's bytes): the axes' bits interleaved,
@@ -387,7 +512,9 @@ class ChunkCache:
     """Decoded Zarr chunks of the maps stores this process has read (LRU, bounded in bytes).
 
     Sections of one mission, and missions on one map, read overlapping windows: each worker
-    decodes a chunk once and keeps it while it fits in the budget."""
+    decodes a chunk once and keeps it while it fits in the budget. The windows of a local
+    store's uncompressed layers are copied from their mapped shards instead
+    (:class:`MappedLayer`) and hold nothing here."""
 
     def __init__(self, budget: int):
         self.budget = budget
@@ -396,6 +523,7 @@ class ChunkCache:
         self.arrays: dict = {}
         self.readers: dict = {}
         self.layouts: dict = {}  # (store, var) -> (chunk shape, dtype) of a 2-D layer
+        self.mapped: dict = {}  # (store, var) -> its MappedLayer, or None
         self.lock = threading.Lock()
 
     def array(self, store: str, var: str):
@@ -487,6 +615,12 @@ class ChunkCache:
         if layout is None:  # zarr's metadata properties cost microseconds a call
             arr = self.array(store, var)
             layout = self.layouts[(store, var)] = (tuple(arr.chunks), arr.dtype)
+            self.mapped[(store, var)] = MappedLayer.of(arr, store, var)
+        mapped = self.mapped.get((store, var))
+        if mapped is not None:
+            got = mapped.window(r0, r1, c0, c1)
+            if got is not None:
+                return got  # else a chunk is not there: its fill value, or the damage, below
         (ch, cw), dtype = layout
         out = np.empty((r1 - r0, c1 - c0), dtype=dtype)
         for ci in range(r0 // ch, (r1 - 1) // ch + 1):
@@ -529,7 +663,7 @@ class ChunkCache:
         with self.lock:
             for key in [k for k in self.items if k[0] == store]:
                 self.used -= self.items.pop(key).nbytes
-            for d in (self.arrays, self.readers, self.layouts):
+            for d in (self.arrays, self.readers, self.layouts, self.mapped):
                 for key in [k for k in d if k[0] == store]:
                     del d[key]
 
@@ -539,6 +673,7 @@ class ChunkCache:
             self.arrays.clear()
             self.readers.clear()
             self.layouts.clear()
+            self.mapped.clear()
             self.used = 0
 
 

@@ -10,15 +10,24 @@ import numpy as np
 import pytest
 import zarr
 from conftest import metric_dataarray, random_surface
-from zarr.codecs import BloscCodec, ZstdCodec
+from zarr.codecs import BloscCodec, GzipCodec, ZstdCodec
 
 import pipeline
-from pipeline.store import ChunkCache, ShardWriter, ZarrBlockWriter, block_writer, direct_reader
+from pipeline.store import (
+    CACHE,
+    ChunkCache,
+    MappedLayer,
+    ShardWriter,
+    ZarrBlockWriter,
+    block_writer,
+    direct_reader,
+)
 
 CODECS = {
     "blosc-lz4-shuffle": BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),
     "blosc-zstd-bitshuffle": BloscCodec(cname="zstd", clevel=3, shuffle="bitshuffle"),
     "zstd": ZstdCodec(level=0),
+    "none": None,  # the layers a mission reads window by window, in a local store
 }
 # shapes with a last chunk of one cell, and a side modulo the chunk below any window
 SHAPES = [((65, 33), (16, 16)), ((40, 41), (40, 8)), ((7, 300), (3, 256))]
@@ -53,6 +62,9 @@ def test_direct_reads_equal_zarr(tmp_path, codec, shape, chunks, shards, dtype):
     data = data.astype(dtype) if dtype != "bool" else data > 0
     arr = _array(tmp_path / "a", data, chunks, CODECS[codec], shards=shards)
     assert direct_reader(arr, str(tmp_path), "a") is not None  # the direct path is taken
+    # windows of a sharded uncompressed layer are copied from its mapped shards
+    mapped = MappedLayer.of(arr, str(tmp_path), "a")
+    assert (mapped is not None) == (codec == "none" and shards is not None)
     cache = ChunkCache(2**30)
     for _ in range(25):
         r0, c0 = rng.integers(shape[0]), rng.integers(shape[1])
@@ -153,14 +165,14 @@ def test_reads_in_several_threads_at_once_equal_zarr(tmp_path):
 def test_a_chunk_read_into_a_tile_equals_zarr(tmp_path, shape, chunks, shards, dtype, tile):
     """``chunk_into`` (the flight's corridor) decodes a chunk straight into a tile of its full
     shape, or copies it from the cache when the cache holds it, or reads it through zarr for a
-    layout read otherwise (no compressor): each time the part within the layer equals the
+    layout read otherwise (gzip): each time the part within the layer equals the
     data and the returned shape is that part's (clipped at the last row and column of
     chunks)."""
     rng = np.random.default_rng(5)
     data = rng.normal(size=shape).astype(np.float32) * 100
     data = data.astype(dtype) if dtype != "bool" else data > 0
     arr = _array(tmp_path / "a", data, chunks, CODECS["blosc-lz4-shuffle"], shards=shards)
-    other = _array(tmp_path / "b", data, chunks, None, shards=shards)
+    other = _array(tmp_path / "b", data, chunks, GzipCodec(level=1), shards=shards)
     assert direct_reader(arr, str(tmp_path), "a") is not None
     assert direct_reader(other, str(tmp_path), "b") is None
     ch, cw = chunks
@@ -237,7 +249,7 @@ def test_other_layouts_are_read_by_zarr(tmp_path):
     from zarr.codecs import BytesCodec, ShardingCodec
 
     data = np.arange(40 * 40, dtype=np.float32).reshape(40, 40)
-    plain = _array(tmp_path / "p", data, (8, 8), None)  # no compressor
+    plain = _array(tmp_path / "p", data, (8, 8), GzipCodec(level=1))  # not blosc nor zstd
     index_first = zarr.create_array(  # a shard index at the start of each shard
         tmp_path / "s",
         shape=data.shape,
@@ -282,23 +294,24 @@ def test_a_corrupt_chunk_is_damage_not_a_traceback(tmp_path):
         ChunkCache(2**30).window(str(tmp_path), "c", 0, 20, 0, 20, complete=True)
 
 
-def _sharded_layer(tmp_path, name="h"):
+def _sharded_layer(tmp_path, name="h", codec="blosc-lz4-shuffle"):
     data = np.arange(40 * 40, dtype=np.float32).reshape(40, 40)
     _array(
         tmp_path / name,
         data,
         (8, 8),
-        CODECS["blosc-lz4-shuffle"],
+        CODECS[codec],
         shards=(16, 16),
         config={"write_empty_chunks": True},
     )
     return data
 
 
-def test_a_shard_or_an_inner_chunk_missing_is_damage_in_a_complete_store(tmp_path):
+@pytest.mark.parametrize("codec", ["blosc-lz4-shuffle", "none"])
+def test_a_shard_or_an_inner_chunk_missing_is_damage_in_a_complete_store(tmp_path, codec):
     import os
 
-    data = _sharded_layer(tmp_path)
+    data = _sharded_layer(tmp_path, codec=codec)
     os.remove(tmp_path / "h" / "c" / "1" / "0")  # rows 16-31, columns 0-15
     got = ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40)  # not complete: fill
     assert (got[16:32, :16] == 0).all() and (got[:16] == data[:16]).all()
@@ -311,8 +324,9 @@ def test_a_shard_or_an_inner_chunk_missing_is_damage_in_a_complete_store(tmp_pat
         ChunkCache(2**30).window(str(tmp_path), "h", 32, 40, 0, 40, complete=True)
 
 
-def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path):
-    _sharded_layer(tmp_path)
+@pytest.mark.parametrize("codec", ["blosc-lz4-shuffle", "none"])
+def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path, codec):
+    _sharded_layer(tmp_path, codec=codec)
     shard = tmp_path / "h" / "c" / "0" / "1"
     raw = bytearray(shard.read_bytes())
     raw[-10] ^= 0xFF  # inside the index: its checksum no longer matches
@@ -322,6 +336,30 @@ def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path):
     shard.write_bytes(b"short")  # shorter than the index itself
     with pytest.raises(pipeline.PipelineError, match=r"damaged: chunk c/0/1 of its layer 'h'"):
         ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40, complete=True)
+
+
+def test_an_uncompressed_inner_chunk_of_the_wrong_size_is_damage(tmp_path):
+    """A shard whose index (checksum and all) gives an uncompressed inner chunk fewer bytes
+    than its cells need, or bytes past the end of the file."""
+    from numcodecs.checksum32 import CRC32C
+
+    data = _sharded_layer(tmp_path, codec="none")
+    shard = tmp_path / "h" / "c" / "0" / "0"
+    raw = shard.read_bytes()
+    n = 4  # inner chunks a shard (16 / 8 on each side)
+    table = np.frombuffer(raw[-(16 * n + 4) : -4], dtype="<u8").reshape(n, 2).copy()
+    np.testing.assert_array_equal(  # the layer is what it was, read through its mapped shards
+        ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40, complete=True), data
+    )
+    for offset, size in ((table[1, 0], table[1, 1] - 4), (len(raw), table[1, 1])):
+        bad = table.copy()
+        bad[1] = (offset, size)
+        index = CRC32C(location="end").encode(bad.tobytes())
+        shard.write_bytes(raw[: -(16 * n + 4)] + bytes(index))
+        with pytest.raises(
+            pipeline.PipelineError, match=r"damaged: chunk c/0/0 \(inner chunk \(0, 1\)\) of its"
+        ):
+            ChunkCache(2**30).window(str(tmp_path), "h", 0, 16, 0, 16, complete=True)
 
 
 def test_a_store_rebuilt_in_place_is_not_read_through_old_chunks(tmp_path):
@@ -341,6 +379,29 @@ def test_a_store_rebuilt_in_place_is_not_read_through_old_chunks(tmp_path):
     assert not np.array_equal(old, new, equal_nan=True)  # the rebuild changed the layer
     got = pipeline.open_store(path).window("safety", 0, 120, 0, 120)
     np.testing.assert_array_equal(got, new)
+
+
+def test_a_local_store_keeps_the_window_layers_uncompressed_and_reads_them_mapped(tmp_path):
+    """build_maps writes safety, ridge and passable without a compressor in a local store (the
+    other layers compressed); their windows, copied from the mapped shards, equal zarr's."""
+    from pipeline._io import WINDOW_LAYERS
+
+    path = _maps_of(random_surface((70, 45), seed=4) * 400.0, tmp_path)
+    group = zarr.open_group(path, mode="r")
+    for var in ("elevation", "accumulation", *WINDOW_LAYERS):
+        arr = group[var]
+        compressed = var not in WINDOW_LAYERS
+        assert (len(arr.compressors) > 0) == compressed, var
+        assert (MappedLayer.of(arr, str(path), var) is None) == compressed
+    m = pipeline.open_store(path)
+    rng = np.random.default_rng(2)
+    for var in WINDOW_LAYERS:
+        for _ in range(10):
+            r0, c0 = rng.integers(70), rng.integers(45)
+            r1, c1 = rng.integers(r0, 70) + 1, rng.integers(c0, 45) + 1
+            got = m.window(var, r0, r1, c0, c1)
+            np.testing.assert_array_equal(got, group[var][r0:r1, c0:c1])
+    assert all(CACHE.mapped[(m.path, v)] is not None for v in WINDOW_LAYERS)
 
 
 def _maps_of(z, tmp_path):
