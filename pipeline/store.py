@@ -9,11 +9,13 @@ worker, where :func:`open_store` keeps one per store and process (and the chunks
 
 from __future__ import annotations
 
+import array
 import hashlib
 import json
 import math
 import os
 import shutil
+import sys
 import threading
 import uuid
 from collections import OrderedDict
@@ -169,6 +171,19 @@ class _Uncompressed:
         return out
 
 
+def _index_table(index) -> array.array:
+    """A shard's index (offset, size of each inner chunk, little-endian uint64) as one flat
+    ``array.array``: its items read as Python ints, and it is a single object. As a list of
+    pairs (``tolist``), the 257 objects of each shard set off the garbage collector, whose
+    full passes over a process that has imported dask and xarray made mapping a 10000^2
+    store's 300 shards 0.5-0.8 ms a shard instead of 0.13."""
+    table = array.array("Q")
+    table.frombytes(bytes(index))
+    if sys.byteorder != "little":
+        table.byteswap()
+    return table
+
+
 def direct_reader(arr, store: str, var: str):
     """A reader of whole chunks of ``arr`` (``read(index, out=None) -> ndarray``, clipped to the
     array; decoded into ``out``, a buffer of the chunk's bytes, when given)
@@ -273,8 +288,7 @@ def direct_reader(arr, store: str, var: str):
         table = tables.get(key)
         if table is None:
             try:
-                table = np.frombuffer(check.decode(fetch(key, -index_size)), dtype="<u8")
-                table = table.reshape(-1, 2).tolist()  # Python ints: quick to look up
+                table = _index_table(check.decode(fetch(key, -index_size)))
             except FileNotFoundError:
                 return None
             except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
@@ -286,7 +300,7 @@ def direct_reader(arr, store: str, var: str):
         k = 0
         for i, p in zip(index, per, strict=True):  # the inner chunk's place in the shard, C order
             k = k * p + i % p
-        offset, size = table[k]
+        offset, size = table[2 * k], table[2 * k + 1]
         if offset == empty and size == empty:
             return None
         return decode(fetch(key, offset, size), key, index, out)
@@ -352,14 +366,13 @@ class MappedLayer:
         try:
             if len(buf) < 16 * n + 4:
                 raise ValueError(f"{len(buf)} bytes, shorter than its index")
-            table = CRC32C(location="end").decode(buf[len(buf) - 16 * n - 4 :])
-            table = np.frombuffer(table, dtype="<u8").reshape(-1, 2)
+            table = _index_table(CRC32C(location="end").decode(buf[len(buf) - 16 * n - 4 :]))
         except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
             raise damaged(
                 self.store,
                 f"chunk {key} of its layer {self.var!r} cannot be decoded (its shard index: {exc})",
             ) from None
-        got = (np.frombuffer(buf, dtype=np.uint8), table.tolist())
+        got = (np.frombuffer(buf, dtype=np.uint8), table)
         with self.lock:
             self.shards[index] = got
             while len(self.shards) > MAPPED_SHARDS:
@@ -375,7 +388,8 @@ class MappedLayer:
                 if shard is None:
                     return None
                 buf, table = shard
-                offset, size = table[(ci % ph) * pw + cj % pw]
+                k = 2 * ((ci % ph) * pw + cj % pw)
+                offset, size = table[k], table[k + 1]
                 if size != self.chunk_bytes or offset + size > buf.size:
                     if offset == size == 2**64 - 1:  # an inner chunk not written
                         return None
