@@ -317,17 +317,14 @@ def _plan_checked(store, section, planner, omega, a, error, read=None) -> Sectio
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
-        p = search_path(surface, ridge, ok, s, g, a, planner, omega, landmarks=lm)
+        p = search_path(surface, ridge, ok, s, g, a, planner, omega, lm, (r0, c0))
     except PipelineError as e:
         return SectionResult("failed", section.window, message=str(e), read_s=read_s)
-    cells = p.cells.copy()
-    cells[:, 0] += r0
-    cells[:, 1] += c0
     return SectionResult(
         "ok",
         section.window,
-        cells=cells,
-        z=p.z.astype(np.float64),
+        cells=p.cells,
+        z=p.z,
         ridge=p.on_ridge,
         length_m=p.length_m,
         lower_bound_m=p.lower_bound_m,

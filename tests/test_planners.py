@@ -734,3 +734,52 @@ def test_path_steps_are_the_3d_lengths_bit_for_bit(n):
                     dr, dc, dz = int(r1) - int(r0), int(c1) - int(c0), float(z1) - float(z0)
                     want.append(math.sqrt(a * a * float(dr * dr + dc * dc) + dz * dz))
                 assert got.dtype == np.float64 and got.tolist() == want, (n, a, dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_traced_path_and_its_metrics_equal_the_step_by_step_ones(dtype):
+    """traced_path (a section's path, heights, ridge flags and metrics in one kernel pass)
+    against the path read from the parent moves one by one in Python and measured with Python
+    floats, each sum taken by numpy over the same steps: the same cells (offset), heights and
+    flags, the lengths bit for bit."""
+    from pipeline.planners.core import DC, DR, PARENT, traced_path
+    from pipeline.planners.registry import PLANNERS
+
+    surface = (random_surface((40, 50), seed=11) * 600 - 2000).astype(dtype)
+    r, o = random_surface((40, 50), seed=12), random_surface((40, 50), seed=13)
+    ridge, passable = r > np.quantile(r, 0.6), o > np.quantile(o, 0.2)
+    cells_ok = np.argwhere(passable)
+    rng = np.random.default_rng(4)
+    done = 0
+    for _ in range(20):
+        s, t = (tuple(int(v) for v in cells_ok[i]) for i in rng.integers(len(cells_ok), size=2))
+        search = PLANNERS["astar"].search(surface, ridge, passable, 30.0, s, t, 1.0, None)
+        if not search.found:
+            continue
+        done += 1
+        path, (r, c) = [], t
+        while True:  # the parent moves back to the start, in Python
+            path.append((r, c))
+            code = int(search.state[r * 50 + c])
+            if not code & PARENT:
+                break
+            r, c = r - int(DR[code & 7]), c - int(DC[code & 7])
+        path = path[::-1]
+        assert path[0] == s
+        steps = [
+            math.sqrt(900.0 * ((r1 - r0) ** 2 + (c1 - c0) ** 2) + (z1 - z0) ** 2)
+            for (r0, c0), (r1, c1) in zip(path[:-1], path[1:], strict=True)
+            for z0, z1 in [(float(surface[r0, c0]), float(surface[r1, c1]))]
+        ]
+        on = [bool(ridge[r, c]) for r, c in path]
+        cells, z, flags, length, ridge_len, ratio = traced_path(
+            search.state, 50, t, surface, ridge, 30.0, (100, 7)
+        )
+        assert cells.tolist() == [[r + 100, c + 7] for r, c in path]
+        assert z.dtype == np.float64 and z.tolist() == [float(surface[p]) for p in path]
+        assert flags.tolist() == on
+        assert length == float(np.array(steps).sum())
+        want_ridge = float(np.array([x for x, o in zip(steps, on[1:], strict=True) if o]).sum())
+        assert ridge_len == want_ridge
+        assert ratio == (want_ridge / length if length > 0 else 0.0)
+    assert done >= 10

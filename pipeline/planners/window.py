@@ -14,8 +14,7 @@ from .core import (
     check_arrays,
     check_endpoint,
     heuristic,
-    path_metrics,
-    trace_path,
+    traced_path,
 )
 from .registry import PLANNERS
 
@@ -90,11 +89,13 @@ class PathSearch:
 
 
 def search_path(
-    surface, ridge, passable, start, goal, a, planner, omega, landmarks=None
+    surface, ridge, passable, start, goal, a, planner, omega, landmarks=None, offset=(0, 0)
 ) -> PathSearch:
     """The search of :func:`search_window` and the path's metrics, without the path's
     coordinates: an MCPC section needs the heights only (the coordinates took 15 us of the
-    80 us a section spent outside its search, 61 sections a mission at 10000^2)."""
+    80 us a section spent outside its search, 61 sections a mission at 10000^2). The cells
+    come offset by ``offset`` (a section's window's first row and column: the map's cells),
+    the heights as float64."""
     s = check_endpoint("start", start, passable)
     t = check_endpoint("goal", goal, passable)
     t0 = time.perf_counter()
@@ -105,10 +106,9 @@ def search_path(
             f"no path from start {s} to goal {t} through passable "
             "cells: they lie in separate regions"
         )
-    cells = trace_path(search.state, surface.shape[1], t)
-    z = surface[cells[:, 0], cells[:, 1]]
-    on_ridge = ridge[cells[:, 0], cells[:, 1]]
-    length, ridge_len, ratio = path_metrics(cells, z, on_ridge, a)
+    cells, z, on_ridge, length, ridge_len, ratio = traced_path(
+        search.state, surface.shape[1], t, surface, ridge, a, offset
+    )
     # the planner's proven bound, or the octile distance when that is larger
     lower = max(search.lower_bound(length), heuristic(a, s[0], s[1], t[0], t[1], True))
     return PathSearch(
