@@ -313,10 +313,12 @@ class MappedLayer:
     """Windows of a local, sharded, uncompressed layer copied straight out of its shard files,
     memory-mapped: no read into a buffer, no decoding, no decoded chunk kept (the page cache
     is the cache). A shard is mapped when first read (its index checked against its CRC32C
-    then) and stays mapped, the last :data:`MAPPED_SHARDS` of the layer. The store's files are
-    never rewritten in place (a rebuild writes a new store and renames it): a mapping holds
-    the file it mapped. ``window`` returns None where a chunk is not there, for the caller to
-    read through zarr (the fill value) or to report the damage."""
+    then), and each inner chunk read is kept as a view of its mapping (a window then costs a
+    dictionary lookup and a copy a chunk); the last :data:`MAPPED_SHARDS` shards of the layer
+    stay mapped. The store's files are never rewritten in place (a rebuild writes a new store
+    and renames it): a mapping holds the file it mapped. ``window`` returns None where a chunk
+    is not there, for the caller to read through zarr (the fill value) or to report the
+    damage."""
 
     def __init__(self, root: str, arr, store: str, var: str):
         self.root, self.store, self.var = root, store, var
@@ -326,7 +328,8 @@ class MappedLayer:
         self.dtype = np.dtype(arr.dtype)
         self.keys = arr.metadata
         self.chunk_bytes = math.prod(self.chunks) * self.dtype.itemsize
-        self.shards: OrderedDict = OrderedDict()  # shard index -> (bytes as uint8, table)
+        self.shards: OrderedDict = OrderedDict()  # shard index -> (bytes as uint8, its index)
+        self.blocks: dict = {}  # inner chunk index -> its 2-D view of the mapped shard
         self.lock = threading.Lock()
 
     @classmethod
@@ -346,6 +349,7 @@ class MappedLayer:
         return cls(os.path.join(str(arr.store.root), arr.path), arr, store, var)
 
     def _shard(self, index: tuple):
+        """Shard ``index`` mapped, with its index; None when its file is not there."""
         with self.lock:
             got = self.shards.get(index)
             if got is not None:
@@ -373,37 +377,56 @@ class MappedLayer:
                 f"chunk {key} of its layer {self.var!r} cannot be decoded (its shard index: {exc})",
             ) from None
         got = (np.frombuffer(buf, dtype=np.uint8), table)
+        (ph, pw) = self.per
         with self.lock:
             self.shards[index] = got
-            while len(self.shards) > MAPPED_SHARDS:
-                self.shards.popitem(last=False)  # unmapped once no window reads it
+            while len(self.shards) > MAPPED_SHARDS:  # unmapped once no window reads it
+                (si, sj), _ = self.shards.popitem(last=False)
+                for i in range(si * ph, si * ph + ph):
+                    for j in range(sj * pw, sj * pw + pw):
+                        self.blocks.pop((i, j), None)
         return got
 
+    def _block(self, ci: int, cj: int):
+        """Inner chunk ``(ci, cj)`` as a view of its mapped shard (kept), or None where it is
+        not there (its shard, or its entry in the shard's index)."""
+        (ph, pw) = self.per
+        shard = self._shard((ci // ph, cj // pw))
+        if shard is None:
+            return None
+        buf, table = shard
+        k = 2 * ((ci % ph) * pw + cj % pw)
+        offset, size = table[k], table[k + 1]
+        if size != self.chunk_bytes or offset + size > buf.size:
+            if offset == size == 2**64 - 1:  # an inner chunk not written
+                return None
+            where = f"{self.keys.encode_chunk_key((ci // ph, cj // pw))} (inner chunk "
+            raise damaged(
+                self.store,
+                f"chunk {where}{(ci, cj)}) of its layer {self.var!r} cannot be decoded "
+                f"({size} bytes at {offset}, {self.chunk_bytes} expected)",
+            )
+        block = buf[offset : offset + size].view(self.dtype).reshape(self.chunks)
+        self.blocks[(ci, cj)] = block
+        return block
+
     def window(self, r0: int, r1: int, c0: int, c1: int):
-        (ch, cw), (ph, pw) = self.chunks, self.per
+        ch, cw = self.chunks
+        blocks = self.blocks
         out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype)
         for ci in range(r0 // ch, (r1 - 1) // ch + 1):
+            b0 = ci * ch
+            a0, a1 = max(r0, b0), min(r1, b0 + ch)
             for cj in range(c0 // cw, (c1 - 1) // cw + 1):
-                shard = self._shard((ci // ph, cj // pw))
-                if shard is None:
-                    return None
-                buf, table = shard
-                k = 2 * ((ci % ph) * pw + cj % pw)
-                offset, size = table[k], table[k + 1]
-                if size != self.chunk_bytes or offset + size > buf.size:
-                    if offset == size == 2**64 - 1:  # an inner chunk not written
+                block = blocks.get((ci, cj))
+                if block is None:
+                    block = self._block(ci, cj)
+                    if block is None:
                         return None
-                    where = f"{self.keys.encode_chunk_key((ci // ph, cj // pw))} (inner chunk "
-                    raise damaged(
-                        self.store,
-                        f"chunk {where}{(ci, cj)}) of its layer {self.var!r} cannot be decoded "
-                        f"({size} bytes at {offset}, {self.chunk_bytes} expected)",
-                    )
-                block = buf[offset : offset + size].view(self.dtype).reshape(ch, cw)
-                a0, a1 = max(r0, ci * ch), min(r1, ci * ch + ch)
-                b0, b1 = max(c0, cj * cw), min(c1, cj * cw + cw)
-                out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = block[
-                    a0 - ci * ch : a1 - ci * ch, b0 - cj * cw : b1 - cj * cw
+                d0 = cj * cw
+                e0, e1 = max(c0, d0), min(c1, d0 + cw)
+                out[a0 - r0 : a1 - r0, e0 - c0 : e1 - c0] = block[
+                    a0 - b0 : a1 - b0, e0 - d0 : e1 - d0
                 ]
         return out
 
