@@ -338,6 +338,25 @@ def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path, codec):
         ChunkCache(2**30).window(str(tmp_path), "h", 0, 40, 0, 40, complete=True)
 
 
+def test_mapped_shards_stay_within_a_bound_and_their_chunks_go_with_them(tmp_path, monkeypatch):
+    """A mapped layer keeps at most MAPPED_SHARDS shards mapped; the chunk views of a shard it
+    unmaps go with it, and windows across every shard still equal zarr's reads."""
+    import pipeline.store as store_mod
+
+    monkeypatch.setattr(store_mod, "MAPPED_SHARDS", 2)
+    data = _sharded_layer(tmp_path, codec="none")  # 40 x 40, shards 16^2 of inner chunks 8^2
+    cache = ChunkCache(2**30)
+    rng = np.random.default_rng(8)
+    for _ in range(40):
+        r0, c0 = rng.integers(40), rng.integers(40)
+        r1, c1 = rng.integers(r0, 40) + 1, rng.integers(c0, 40) + 1
+        got = cache.window(str(tmp_path), "h", r0, r1, c0, c1, complete=True)
+        np.testing.assert_array_equal(got, data[r0:r1, c0:c1])
+        layer = cache.mapped[(str(tmp_path), "h")]
+        assert len(layer.shards) <= 2
+        assert {(i // 2, j // 2) for i, j in layer.blocks} <= set(layer.shards)
+
+
 def test_an_uncompressed_inner_chunk_of_the_wrong_size_is_damage(tmp_path):
     """A shard whose index (checksum and all) gives an uncompressed inner chunk fewer bytes
     than its cells need, or bytes past the end of the file."""
