@@ -193,12 +193,14 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     from ._io import is_url, require_writable
     from .cluster import session
     from .dem import open_dem
-    from .maps import build_maps
+    from .maps import build_maps, check_build_arguments
 
     with _errors():
         t0 = time.perf_counter()
         dem = open_dem(dem_path, chunks=chunks or DEM.chunks.default)
-        if is_url(out):  # a wrong bucket or credential before a cluster is started
+        # a wrong argument, a wrong bucket or credential before a cluster is started
+        check_build_arguments(dem, out, chunks=chunks, overwrite=overwrite, **params)
+        if is_url(out):
             require_writable(out)
         with (
             session(scheduler, scheduler_file),

@@ -146,27 +146,19 @@ def build_maps(
     >>> sorted(maps.data_vars)                                           # doctest: +SKIP
     ['accumulation', 'elevation', 'passable', 'ridge', 'safety']
     """
-    if not isinstance(dem, xr.DataArray):
-        dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
-    store = location(store) if is_url(store) else Path(store)
-    if store_exists(store) and not overwrite:
-        raise StoreExistsError(
-            f"maps store {store} exists already; pass overwrite=True (--overwrite) to rebuild it"
-        )
-    if chunks is None:
-        chunks = dem.data.chunksize if isinstance(dem.data, da.Array) else DEFAULT_CHUNK
-    ch = chunks2d(chunks, dem.shape)
-    dem = dem.chunk(dict(zip(("y", "x"), ch, strict=True))).astype(np.float32)
-    a = cell_size(dem)  # checks the cells are square
-    # validate every parameter before any compute
-    S = safety_map(
-        dem, method=method, clearance=clearance, horizontal_clearance=horizontal_clearance
+    dem, store, ch, a, S, ok, min_accumulation, landmarks = _checked(
+        dem,
+        store,
+        method,
+        clearance,
+        horizontal_clearance,
+        sea_level,
+        surface_clearance,
+        min_accumulation,
+        landmarks,
+        chunks,
+        overwrite,
     )
-    ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
-    if min_accumulation is None:
-        min_accumulation = default_min_accumulation(a)
-    min_accumulation = MAPS.min_accumulation.check(min_accumulation)
-    landmarks = MAPS.landmarks.check(landmarks)
     if landmarks:
         _check_landmark_memory(dem.shape)
     require_valid_cells(dem, "the DEM is entirely no-data (NaN); nothing to build maps from")
@@ -284,6 +276,66 @@ def build_maps(
         time.perf_counter() - t0,
     )
     return open_maps(store)
+
+
+def check_build_arguments(dem, store, **kwargs) -> None:
+    """Raise what :func:`build_maps` would raise for its arguments before it computes anything
+    (a store that exists, cells that are not square, a clearance, sea level, threshold or
+    landmark count out of range), without a cluster: the command line checks them before it
+    starts one (the workers took 3-5 s to start before a mistyped clearance was reported).
+    The landmark layers' memory is checked by :func:`build_maps` only, against the workers'
+    memory limits."""
+    names = build_maps.__kwdefaults__
+    unknown = set(kwargs) - set(names)
+    if unknown:
+        raise TypeError(f"unknown arguments {sorted(unknown)}")
+    args = {**names, **kwargs}
+    _checked(
+        dem,
+        store,
+        *(args[k] for k in ("method", "clearance", "horizontal_clearance", "sea_level")),
+        *(args[k] for k in ("surface_clearance", "min_accumulation", "landmarks", "chunks")),
+        args["overwrite"],
+    )
+
+
+def _checked(
+    dem,
+    store,
+    method,
+    clearance,
+    horizontal_clearance,
+    sea_level,
+    surface_clearance,
+    min_accumulation,
+    landmarks,
+    chunks,
+    overwrite,
+):
+    """:func:`build_maps`' arguments checked, before any compute: ``(dem as float32 in the
+    store's chunks, store, chunks, cell size, safety map, passable map (both lazy),
+    min_accumulation, landmarks)``."""
+    if not isinstance(dem, xr.DataArray):
+        dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
+    store = location(store) if is_url(store) else Path(store)
+    if store_exists(store) and not overwrite:
+        raise StoreExistsError(
+            f"maps store {store} exists already; pass overwrite=True (--overwrite) to rebuild it"
+        )
+    if chunks is None:
+        chunks = dem.data.chunksize if isinstance(dem.data, da.Array) else DEFAULT_CHUNK
+    ch = chunks2d(chunks, dem.shape)
+    dem = dem.chunk(dict(zip(("y", "x"), ch, strict=True))).astype(np.float32)
+    a = cell_size(dem)  # checks the cells are square
+    S = safety_map(
+        dem, method=method, clearance=clearance, horizontal_clearance=horizontal_clearance
+    )
+    ok = passable(dem, S, sea_level=sea_level, surface_clearance=surface_clearance)
+    if min_accumulation is None:
+        min_accumulation = default_min_accumulation(a)
+    min_accumulation = MAPS.min_accumulation.check(min_accumulation)
+    landmarks = MAPS.landmarks.check(landmarks)
+    return dem, store, ch, a, S, ok, min_accumulation, landmarks
 
 
 def _check_landmark_memory(shape) -> None:

@@ -342,6 +342,8 @@ def test_bad_cli_arguments(tmp_path, args, match):
     res = invoke(*[a.format(t=tmp_path) for a in args])
     one_line_error(res, 2, match)
     assert not (tmp_path / "m.zarr").exists()
+    # reported before a cluster is started (its workers took seconds to start first)
+    assert "building" not in res.output, res.output
 
 
 # ------------------------------------------------------------------ the environment
