@@ -146,18 +146,9 @@ def build_maps(
     >>> sorted(maps.data_vars)                                           # doctest: +SKIP
     ['accumulation', 'elevation', 'passable', 'ridge', 'safety']
     """
+    safety_args = (method, clearance, horizontal_clearance, sea_level, surface_clearance)
     dem, store, ch, a, S, ok, min_accumulation, landmarks = _checked(
-        dem,
-        store,
-        method,
-        clearance,
-        horizontal_clearance,
-        sea_level,
-        surface_clearance,
-        min_accumulation,
-        landmarks,
-        chunks,
-        overwrite,
+        dem, store, *safety_args, min_accumulation, landmarks, chunks, overwrite
     )
     if landmarks:
         _check_landmark_memory(dem.shape)
@@ -299,22 +290,12 @@ def check_build_arguments(dem, store, **kwargs) -> None:
     )
 
 
-def _checked(
-    dem,
-    store,
-    method,
-    clearance,
-    horizontal_clearance,
-    sea_level,
-    surface_clearance,
-    min_accumulation,
-    landmarks,
-    chunks,
-    overwrite,
-):
+def _checked(dem, store, method, clearance, horizontal_clearance, sea_level, *more):
     """:func:`build_maps`' arguments checked, before any compute: ``(dem as float32 in the
     store's chunks, store, chunks, cell size, safety map, passable map (both lazy),
-    min_accumulation, landmarks)``."""
+    min_accumulation, landmarks)``; ``more``: surface_clearance, min_accumulation, landmarks,
+    chunks, overwrite."""
+    surface_clearance, min_accumulation, landmarks, chunks, overwrite = more
     if not isinstance(dem, xr.DataArray):
         dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = location(store) if is_url(store) else Path(store)
