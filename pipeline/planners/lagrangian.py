@@ -14,6 +14,8 @@ returned, with the dual lower bound on the off-ridge length in ``extra``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -35,10 +37,20 @@ from .core import (
 _OFF_FIRST = 1e7
 
 
-def _horizontal(cells, a) -> float:
-    """The horizontal length of a path."""
-    d = np.abs(np.diff(cells, axis=0)).sum(axis=1)  # 1 straight, 2 diagonal
-    return float(a * ((d == 1).sum() + np.sqrt(2.0) * (d == 2).sum()))
+@njit(nogil=True, cache=True)
+def _horizontal(cells, a):
+    """The horizontal length of a path: its straight and diagonal moves counted, the sum as
+    numpy's diff, abs, sum and masks formed it (equal to the last bit on 900 random paths;
+    15.6 -> 0.55 us a path of 150 cells, once a section)."""
+    straight = 0
+    diagonal = 0
+    for i in range(cells.shape[0] - 1):
+        d = abs(cells[i + 1, 0] - cells[i, 0]) + abs(cells[i + 1, 1] - cells[i, 1])
+        if d == 1:
+            straight += 1
+        elif d == 2:
+            diagonal += 1
+    return a * (straight + math.sqrt(2.0) * diagonal)
 
 
 @njit(nogil=True, cache=True)
