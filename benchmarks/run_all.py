@@ -111,15 +111,25 @@ def git_commit() -> str:
             cwd=ROOT,
             check=True,
         ).stdout.strip()
-        dirty = subprocess.run(
+        changed = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no"],
             capture_output=True,
             text=True,
             cwd=ROOT,
-        ).stdout.strip()
+        ).stdout.splitlines()
+        # what the benchmarks write themselves (a run after another --only run) is not code
+        dirty = [line for line in changed if not _is_output(line[3:].strip())]
         return out + (" (with uncommitted changes)" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+def _is_output(path: str) -> bool:
+    """Whether a path of the repository is what ``./dev bench`` writes: the report, the
+    README's results block, the figures."""
+    return path in ("benchmarks/RESULTS.md", "README.md") or (
+        path.startswith("docs/") and path.endswith(".png")
+    )
 
 
 def run_script(name: str, quick: bool, extra: list[str] = ()) -> tuple[int, float]:
