@@ -49,7 +49,7 @@ def inner_chunks(chunks, largest: int = INNER_CHUNK) -> tuple[int, ...]:
 # (pipeline.store.ChunkCache.window), with no decoding and no decoded chunk held. At 10000^2
 # the decoding (blosc LZ4: 66-99 us a 256^2 float32 inner chunk, 53 us a bool one) and the
 # fresh memory of the decoded chunks made a mission's reads 34 ms, longer than its searches
-# (21 ms); mapped, 14 ms (benchmarks/RESULTS.md, "One mission against pyastar2d"). The cost
+# (21 ms); mapped, 13-16 ms (benchmarks/RESULTS.md, "One mission against pyastar2d"). The cost
 # is disk: 4 + 1 + 1 bytes a cell (a 10000^2 store's three layers 600 MB, against 245 MB
 # compressed). On object storage, where bytes travel, they stay compressed.
 WINDOW_LAYERS = ("safety", "ridge", "passable")
