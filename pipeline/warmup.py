@@ -226,7 +226,7 @@ def ensure_compiled(client=None, *, force: bool = False) -> float:
     spent (0 when skipped)."""
     if not force and is_compiled():
         return 0.0
-    log.info("compiling kernels, first run only (under a minute on 2 cores) ...")
+    log.info("compiling kernels, first run only (about a minute on 2 cores) ...")
     t0 = time.perf_counter()
     try:
         _compile(client)
