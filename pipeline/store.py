@@ -171,6 +171,25 @@ class _Uncompressed:
         return out
 
 
+NOT_WRITTEN = 2**64 - 1  # a shard index's offset and size of an inner chunk never written
+
+
+def _shard_index(raw, entries: int, store, key: str, var: str) -> array.array:
+    """The index at the end of a shard (``raw``: its last ``16 entries + 4`` bytes, the
+    offsets and sizes then their CRC32C) as :func:`_index_table`; damage when it is short or
+    its checksum differs."""
+    from numcodecs.checksum32 import CRC32C
+
+    try:
+        if len(raw) != 16 * entries + 4:
+            raise ValueError(f"{len(raw)} bytes, not the {16 * entries + 4} of its index")
+        return _index_table(CRC32C(location="end").decode(raw))
+    except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
+        raise damaged(
+            store, f"chunk {key} of its layer {var!r} cannot be decoded (its shard index: {exc})"
+        ) from None
+
+
 def _index_table(index) -> array.array:
     """A shard's index (offset, size of each inner chunk, little-endian uint64) as one flat
     ``array.array``: its items read as Python ints, and it is a single object. As a list of
@@ -198,7 +217,6 @@ def direct_reader(arr, store: str, var: str):
     In a sharded array ``index`` is an inner chunk's: the reader reads the shard's index (the
     offset and size of each inner chunk, checked against its CRC32C) once, then each inner
     chunk's own bytes, so a window decodes the inner chunks it covers, not whole shards."""
-    from numcodecs.checksum32 import CRC32C
     from zarr.storage import FsspecStore, LocalStore
 
     meta = arr.metadata
@@ -278,30 +296,25 @@ def direct_reader(arr, store: str, var: str):
         return read
 
     per = tuple(s // c for s, c in zip(arr.shards, chunks, strict=True))  # inner chunks a shard
-    index_size = 16 * math.prod(per) + 4
-    empty = 2**64 - 1  # an inner chunk that was not written
-    tables: dict = {}  # shard key -> its index, (inner chunks, 2) of offset and size
-    check = CRC32C(location="end")
+    entries = math.prod(per)
+    tables: dict = {}  # shard key -> its index, offset and size of each inner chunk in turn
 
     def read(index: tuple, out=None):
         key = meta.encode_chunk_key(tuple(i // p for i, p in zip(index, per, strict=True)))
         table = tables.get(key)
         if table is None:
             try:
-                table = _index_table(check.decode(fetch(key, -index_size)))
+                raw = fetch(key, -(16 * entries + 4))
             except FileNotFoundError:
                 return None
-            except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
-                raise damaged(
-                    store,
-                    f"chunk {key} of its layer {var!r} cannot be decoded (its shard index: {exc})",
-                ) from None
-            tables[key] = table
+            except OSError:  # a file shorter than its index: the seek before its start fails
+                raw = b""
+            table = tables[key] = _shard_index(raw, entries, store, key, var)
         k = 0
         for i, p in zip(index, per, strict=True):  # the inner chunk's place in the shard, C order
             k = k * p + i % p
         offset, size = table[2 * k], table[2 * k + 1]
-        if offset == empty and size == empty:
+        if offset == size == NOT_WRITTEN:
             return None
         return decode(fetch(key, offset, size), key, index, out)
 
@@ -324,7 +337,6 @@ class MappedLayer:
         self.root, self.store, self.var = root, store, var
         self.chunks = tuple(int(c) for c in arr.chunks)
         self.per = tuple(s // c for s, c in zip(arr.shards, self.chunks, strict=True))
-        self.shape = tuple(int(n) for n in arr.shape)
         self.dtype = np.dtype(arr.dtype)
         self.keys = arr.metadata
         self.chunk_bytes = math.prod(self.chunks) * self.dtype.itemsize
@@ -357,8 +369,6 @@ class MappedLayer:
                 return got
         import mmap
 
-        from numcodecs.checksum32 import CRC32C
-
         key = self.keys.encode_chunk_key(index)
         try:
             with open(os.path.join(self.root, key), "rb") as f:
@@ -367,15 +377,7 @@ class MappedLayer:
         except FileNotFoundError:
             return None
         n = math.prod(self.per)
-        try:
-            if len(buf) < 16 * n + 4:
-                raise ValueError(f"{len(buf)} bytes, shorter than its index")
-            table = _index_table(CRC32C(location="end").decode(buf[len(buf) - 16 * n - 4 :]))
-        except Exception as exc:  # noqa: BLE001 - a short file, a checksum that differs
-            raise damaged(
-                self.store,
-                f"chunk {key} of its layer {self.var!r} cannot be decoded (its shard index: {exc})",
-            ) from None
+        table = _shard_index(buf[max(0, len(buf) - 16 * n - 4) :], n, self.store, key, self.var)
         got = (np.frombuffer(buf, dtype=np.uint8), table)
         (ph, pw) = self.per
         with self.lock:
@@ -398,7 +400,7 @@ class MappedLayer:
         k = 2 * ((ci % ph) * pw + cj % pw)
         offset, size = table[k], table[k + 1]
         if size != self.chunk_bytes or offset + size > buf.size:
-            if offset == size == 2**64 - 1:  # an inner chunk not written
+            if offset == size == NOT_WRITTEN:
                 return None
             where = f"{self.keys.encode_chunk_key((ci // ph, cj // pw))} (inner chunk "
             raise damaged(
@@ -411,24 +413,32 @@ class MappedLayer:
         return block
 
     def window(self, r0: int, r1: int, c0: int, c1: int):
-        ch, cw = self.chunks
         blocks = self.blocks
-        out = np.empty((r1 - r0, c1 - c0), dtype=self.dtype)
-        for ci in range(r0 // ch, (r1 - 1) // ch + 1):
-            b0 = ci * ch
-            a0, a1 = max(r0, b0), min(r1, b0 + ch)
-            for cj in range(c0 // cw, (c1 - 1) // cw + 1):
-                block = blocks.get((ci, cj))
-                if block is None:
-                    block = self._block(ci, cj)
-                    if block is None:
-                        return None
-                d0 = cj * cw
-                e0, e1 = max(c0, d0), min(c1, d0 + cw)
-                out[a0 - r0 : a1 - r0, e0 - c0 : e1 - c0] = block[
-                    a0 - b0 : a1 - b0, e0 - d0 : e1 - d0
-                ]
-        return out
+
+        def block(ci, cj):
+            got = blocks.get((ci, cj))
+            return got if got is not None else self._block(ci, cj)
+
+        return _assemble(r0, r1, c0, c1, self.chunks, self.dtype, block)
+
+
+def _assemble(r0: int, r1: int, c0: int, c1: int, chunks, dtype, block):
+    """Rows ``r0:r1`` and columns ``c0:c1`` of a layer of ``chunks``, copied from the chunks
+    ``block(ci, cj)`` returns (each a chunk's array, which may be clipped at the layer's last
+    row and column), or None as soon as one returns None."""
+    ch, cw = chunks
+    out = np.empty((r1 - r0, c1 - c0), dtype=dtype)
+    for ci in range(r0 // ch, (r1 - 1) // ch + 1):
+        b0 = ci * ch
+        for cj in range(c0 // cw, (c1 - 1) // cw + 1):
+            blk = block(ci, cj)
+            if blk is None:
+                return None
+            d0 = cj * cw
+            a0, a1 = max(r0, b0), min(r1, b0 + blk.shape[0])
+            e0, e1 = max(c0, d0), min(c1, d0 + blk.shape[1])
+            out[a0 - r0 : a1 - r0, e0 - c0 : e1 - c0] = blk[a0 - b0 : a1 - b0, e0 - d0 : e1 - d0]
+    return out
 
 
 MAPPED_SHARDS = 4096  # shard files a mapped layer keeps mapped (a 40000^2 layer has 1600)
@@ -483,7 +493,7 @@ class ShardWriter:
         if block.shape != want:
             raise ValueError(f"shard {index} of shape {want} given a block of {block.shape}")
         per = tuple(s // c for s, c in zip(self.shards, self.inner, strict=True))
-        table = np.full((math.prod(per), 2), 2**64 - 1, dtype="<u8")  # not written: empty
+        table = np.full((math.prod(per), 2), NOT_WRITTEN, dtype="<u8")
         parts, offset = [], 0
         for place in sorted(np.ndindex(*per), key=lambda p: _morton(p, per)):
             lo = tuple(p * c for p, c in zip(place, self.inner, strict=True))
@@ -658,18 +668,10 @@ class ChunkCache:
             got = mapped.window(r0, r1, c0, c1)
             if got is not None:
                 return got  # else a chunk is not there: its fill value, or the damage, below
-        (ch, cw), dtype = layout
-        out = np.empty((r1 - r0, c1 - c0), dtype=dtype)
-        for ci in range(r0 // ch, (r1 - 1) // ch + 1):
-            for cj in range(c0 // cw, (c1 - 1) // cw + 1):
-                blk = self.chunk(store, var, ci, cj, complete)
-                br0, bc0 = ci * ch, cj * cw
-                a0, a1 = max(r0, br0), min(r1, br0 + blk.shape[0])
-                b0, b1 = max(c0, bc0), min(c1, bc0 + blk.shape[1])
-                out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = blk[
-                    a0 - br0 : a1 - br0, b0 - bc0 : b1 - bc0
-                ]
-        return out
+        chunks, dtype = layout
+        return _assemble(
+            r0, r1, c0, c1, chunks, dtype, lambda ci, cj: self.chunk(store, var, ci, cj, complete)
+        )
 
     def stack_values(
         self, store: str, var: str, r: int, c: int, complete: bool = False
