@@ -146,9 +146,18 @@ def build_maps(
     >>> sorted(maps.data_vars)                                           # doctest: +SKIP
     ['accumulation', 'elevation', 'passable', 'ridge', 'safety']
     """
-    safety_args = (method, clearance, horizontal_clearance, sea_level, surface_clearance)
     dem, store, ch, a, S, ok, min_accumulation, landmarks = _checked(
-        dem, store, *safety_args, min_accumulation, landmarks, chunks, overwrite
+        dem,
+        store,
+        method=method,
+        clearance=clearance,
+        horizontal_clearance=horizontal_clearance,
+        sea_level=sea_level,
+        surface_clearance=surface_clearance,
+        min_accumulation=min_accumulation,
+        landmarks=landmarks,
+        chunks=chunks,
+        overwrite=overwrite,
     )
     if landmarks:
         _check_landmark_memory(dem.shape)
@@ -276,26 +285,30 @@ def check_build_arguments(dem, store, **kwargs) -> None:
     starts one (the workers took 3-5 s to start before a mistyped clearance was reported).
     The landmark layers' memory is checked by :func:`build_maps` only, against the workers'
     memory limits."""
-    names = build_maps.__kwdefaults__
-    unknown = set(kwargs) - set(names)
-    if unknown:
-        raise TypeError(f"unknown arguments {sorted(unknown)}")
-    args = {**names, **kwargs}
-    _checked(
-        dem,
-        store,
-        *(args[k] for k in ("method", "clearance", "horizontal_clearance", "sea_level")),
-        *(args[k] for k in ("surface_clearance", "min_accumulation", "landmarks", "chunks")),
-        args["overwrite"],
-    )
+    import inspect
+
+    args = inspect.signature(build_maps).bind(dem, store, **kwargs)  # its defaults, its errors
+    args.apply_defaults()
+    _checked(**args.arguments)
 
 
-def _checked(dem, store, method, clearance, horizontal_clearance, sea_level, *more):
+def _checked(
+    dem,
+    store,
+    *,
+    method,
+    clearance,
+    horizontal_clearance,
+    sea_level,
+    surface_clearance,
+    min_accumulation,
+    landmarks,
+    chunks,
+    overwrite,
+):
     """:func:`build_maps`' arguments checked, before any compute: ``(dem as float32 in the
     store's chunks, store, chunks, cell size, safety map, passable map (both lazy),
-    min_accumulation, landmarks)``; ``more``: surface_clearance, min_accumulation, landmarks,
-    chunks, overwrite."""
-    surface_clearance, min_accumulation, landmarks, chunks, overwrite = more
+    min_accumulation, landmarks)``."""
     if not isinstance(dem, xr.DataArray):
         dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = location(store) if is_url(store) else Path(store)
