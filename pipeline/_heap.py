@@ -57,6 +57,19 @@ def heap_pop(keys, items, n):
     return key, item
 
 
+@njit(cache=True)
+def grown(arr, n, size):
+    """A new array of ``size`` entries (arr's dtype) holding ``arr``'s first ``n``.
+
+    An element loop, not a slice copy (``new[:n] = arr[:n]``): numba compiles a slice copy
+    with the text of its shape-mismatch error (string formatting: 3.5 s of the first kernel
+    compiled in each process on a new machine; the warm-up, the workers)."""
+    new = np.empty(size, dtype=arr.dtype)
+    for j in range(n):
+        new[j] = arr[j]
+    return new
+
+
 @njit(inline="always", cache=True)
 def heap_reserve(keys, items, n, extra):
     """The heap's arrays with room for ``extra`` more entries beyond its size ``n`` (doubled, or
@@ -67,8 +80,4 @@ def heap_reserve(keys, items, n, extra):
     if n + extra <= keys.size:
         return keys, items
     size = max(2 * keys.size, n + extra)
-    k2 = np.empty(size, dtype=keys.dtype)
-    i2 = np.empty(size, dtype=items.dtype)
-    k2[:n] = keys[:n]
-    i2[:n] = items[:n]
-    return k2, i2
+    return grown(keys, n, size), grown(items, n, size)

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from ._grid8 import DC, DR, flat_offsets, inside
+from ._heap import grown
 from ._io import inner_chunks, layer_codec, storage_chunks
 from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
@@ -87,11 +88,9 @@ def dijkstra(surface, passable, a, sources):
         dist[s] = 0.0
         bk = buckets[0]
         if fill[0] == cap[0]:
-            grown = np.empty(2 * cap[0], dtype=np.int64)
-            grown[: fill[0]] = bk[: fill[0]]
-            buckets[0] = grown
+            bk = grown(bk, fill[0], 2 * cap[0])
+            buckets[0] = bk
             cap[0] *= 2
-            bk = grown
         bk[fill[0]] = s
         fill[0] += 1
         queued += 1
@@ -126,9 +125,7 @@ def dijkstra(surface, passable, a, sources):
                     dist[v] = nd
                     b = max(int(nd / w), cur) % nb
                     if fill[b] == cap[b]:
-                        grown = np.empty(2 * cap[b], dtype=np.int64)
-                        grown[: fill[b]] = buckets[b][: fill[b]]
-                        buckets[b] = grown
+                        buckets[b] = grown(buckets[b], fill[b], 2 * cap[b])
                         cap[b] *= 2
                     buckets[b][fill[b]] = v
                     fill[b] += 1

@@ -48,6 +48,7 @@ import xarray as xr
 from numba import njit
 
 from ._grid8 import DC, DIST, DR, flat_offsets, inside
+from ._heap import grown
 from ._io import load_tile, save_tile, tile_array
 from ._threads import shared_pool
 from .dem import cell_size as _cell_size
@@ -213,9 +214,7 @@ def _basin_fill(z, seed, want_labels):
         x = c
         while node[x] < 0:
             if np_ == path.size:
-                grown = np.empty(2 * path.size, dtype=np.int64)
-                grown[:np_] = path[:np_]
-                path = grown
+                path = grown(path, np_, 2 * path.size)
             path[np_] = x
             np_ += 1
             x = x + off[down[x]]

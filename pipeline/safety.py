@@ -227,18 +227,25 @@ def _dilate(z, widths, b):
             slot = row % ring
             for e in range(r + 1):
                 _row_dilation(zr, m, widths, b, e, t)
-                tbuf[slot, e] = t  # rounds each maximum to float32 once
+                kept = tbuf[slot, e]
+                for j in range(cols):  # rounds each maximum to float32 once
+                    kept[j] = t[j]
         i = row - r
         if i < 0:
             continue
-        acc[:] = tbuf[i % ring, 0]
+        # element loops, not slice copies: a slice copy compiles numba's text for a shape
+        # mismatch (3.5 s of a new machine's first compile in each process)
+        first = tbuf[i % ring, 0]
+        for j in range(cols):
+            acc[j] = first[j]
         for d in range(1, r + 1):
             if i - d >= 0:
                 _max_of(acc, tbuf[(i - d) % ring, d])
             if i + d < rows:
                 _max_of(acc, tbuf[(i + d) % ring, d])
         if near.size == 0:
-            out[i] = acc
+            for j in range(cols):
+                out[i, j] = acc[j]
         else:
             for j in range(cols):
                 out[i, j] = np.nan if near[i, j] else acc[j]
