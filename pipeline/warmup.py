@@ -8,13 +8,17 @@ workers compile the same kernels side by side. :func:`ensure_compiled` instead c
 in two halves at once on two workers, before the job starts, says so in the log, and leaves a
 stamp so that later runs skip it.
 
-The halves: one builds a tiny maps store (safety, ridges, components, landmarks) and plans on
-it with every planner; the other compiles the safety kernels first (the store needs them),
-generates a tiny synthetic DEM, then, once that store exists, plans one mission on it, flies
-it (the flight's kernels), widens its corners for a wide turn radius (the kernels of corners
-too close for it, which the tiny flight does not meet) and checks its clearance as a job
-does. Each kernel is compiled with the argument types the pipeline uses, so later calls load
-it from the cache.
+The halves: one builds a tiny maps store (ridges, components, landmarks, the coarse levels),
+then plans one mission on it, flies it (the flight's kernels), widens its corners for a wide
+turn radius (the kernels of corners too close for it, which the tiny flight does not meet) and
+checks its clearance as a job does. The other compiles, meanwhile, what the store's build
+reaches later (the safety kernels, the landmarks' search) and what needs no store (every
+planner's search on in-memory arrays, the synthetic DEM), then plans on the store with every
+planner once it exists. The flight, the longest part after the store, thus follows it at
+once, and no process waits idle for the store (the halves were the store and the planners
+against the safety kernels, the DEM and the flight, which waited a third of its time for the
+store: 80-84 s on this project's 2-core VM). Each kernel is compiled with the argument types
+the pipeline uses, so later calls load it from the cache.
 """
 
 from __future__ import annotations
@@ -35,10 +39,10 @@ from .dem import open_dem, write_dem
 log = logging.getLogger(__name__)
 
 # the parts of the warm-up, in the order one process runs them all
-PARTS = ("maps", "planners", "dem", "flight")
-# how the parts are shared between two processes (about 40 s each on this project's 2-core VM):
-# the second compiles the safety kernels before the first needs them in its maps store
-HALVES = (("maps", "planners"), ("safety", "dem", "flight"))
+PARTS = ("maps", "search", "planners", "dem", "flight")
+# how the parts are shared between two processes: the second compiles the safety kernels and
+# the landmarks' before the first's maps store needs them, and the searches before its planners
+HALVES = (("maps", "flight"), ("safety", "landmarks", "search", "dem", "planners"))
 # how long a part waits for the tiny maps store another process builds, before building its own
 STORE_WAIT_S = 300.0
 
@@ -161,6 +165,10 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 _safety(open_dem(tmp / "dem-safety.zarr", chunks=24))
             elif part == "maps":
                 _store(tmp, build=True)
+            elif part == "landmarks":
+                _landmarks()
+            elif part == "search":
+                _search_each()
             elif part == "planners":
                 _plan_each(_store(tmp, build=False))
             elif part == "flight":
@@ -175,9 +183,45 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                     min_clearance(store, t, 60.0)  # a job's independent check of each mission
                     crc16(b"IMC")  # a mission's IMC plan, written by a job's client
             else:
-                raise ValueError(f"unknown warm-up part {part!r}; known: {PARTS}")
+                known = sorted({*PARTS, *HALVES[0], *HALVES[1]})
+                raise ValueError(f"unknown warm-up part {part!r}; known: {known}")
             took[part] = round(time.perf_counter() - t0, 1)
     return took
+
+
+def _landmarks() -> None:
+    """The kernels of landmark placement and of a landmark's layer (an exact search of the whole
+    map), on a map of the types the store's build gives them."""
+    from .landmarks import landmark_layer, place_landmarks
+
+    z = _tiny_dem().values
+    ok = z < -100.0
+    place_landmarks(z, ok, 30.0, 2)
+    landmark_layer(z, ok, 30.0, tuple(np.argwhere(ok)[0]))
+
+
+def _search_each() -> None:
+    """Every planner's search on in-memory arrays of the types a section's window has (no
+    store needed): what :func:`_plan_each` then finds compiled."""
+    import pipeline
+
+    z = _tiny_dem().values
+    ok = z < -100.0
+    rdg = np.random.default_rng(2).random(z.shape) < 0.3
+    cells = np.argwhere(ok)
+    s, g = tuple(cells[0]), tuple(cells[-1])
+    for planner in tuple(pipeline.PLANNERS)[::-1]:
+        for omega in (1.0, 1.5):  # at omega 1 the Lagrangian planner's exact goal layer
+            try:
+                pipeline.plan_window(z, rdg, ok, s, g, cell_size=30.0, planner=planner, omega=omega)
+            except pipeline.PipelineError:
+                continue
+    # on nearly flat ground the Lagrangian planner's weighted searches take a bound of their own
+    # (lagrangian.BOUND_SLACK), which the rough tiny map never asks for
+    from .planners.core import lagrangian_bound, off_ridge_to_goal
+
+    hoff = off_ridge_to_goal(rdg, ok, 30.0, g[0], g[1])
+    lagrangian_bound(rdg, ok, 30.0, s[0], s[1], g[0], g[1], 2.0, hoff)
 
 
 def _widen(store: Path, t) -> None:
