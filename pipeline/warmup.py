@@ -218,10 +218,23 @@ def _search_each() -> None:
                 continue
     # on nearly flat ground the Lagrangian planner's weighted searches take a bound of their own
     # (lagrangian.BOUND_SLACK), which the rough tiny map never asks for
-    from .planners.core import lagrangian_bound, off_ridge_to_goal
+    from .planners.core import (
+        NO_GOAL,
+        NO_LANDMARKS,
+        astar_search_bucketed,
+        lagrangian_bound,
+        off_ridge_to_goal,
+        search_arrays,
+    )
 
     hoff = off_ridge_to_goal(rdg, ok, 30.0, g[0], g[1])
     lagrangian_bound(rdg, ok, 30.0, s[0], s[1], g[0], g[1], 2.0, hoff)
+    # the search of windows from BUCKET_CELLS on (whole large maps), which the tiny map is not
+    r0, c0, r1, c1 = (int(v) for v in (*s, *g))
+    lm = NO_LANDMARKS
+    astar_search_bucketed(
+        z, rdg, ok, 30.0, r0, c0, r1, c1, 1.0, 0.0, True, lm, NO_GOAL, *search_arrays(z.size)
+    )
 
 
 def _widen(store: Path, t) -> None:

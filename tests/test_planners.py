@@ -115,6 +115,70 @@ def test_optimal_against_scipy(planner, seed):
     assert t.ridge_ratio == pytest.approx(ridge_len / length, rel=1e-12)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_bucketed_search_against_scipy(seed):
+    """The two-level open list of large windows (``astar_search_bucketed``), run here on small
+    ones: Dijkstra (weight 0) and A* find scipy's optimum, weighted A* a path within its
+    weight, each traced path measured independently equals its g; with a 100 km cliff in the
+    map (moves up it cost more than all the buckets ahead span: the far heap) as well."""
+    from pipeline.planners.core import (
+        BUCKET_WIDTH,
+        BUCKETS,
+        NO_GOAL,
+        NO_LANDMARKS,
+        TIE,
+        astar_search_bucketed,
+        search_arrays,
+        trace_path,
+    )
+
+    surface, ridge, passable = obstacle_map((45, 38), seed, density=0.15 + 0.05 * seed)
+    if seed % 2:
+        surface[:, 20:] += 1e5  # each move onto the cliff costs more than the buckets ahead
+        assert 1e5 > BUCKETS * BUCKET_WIDTH * 30.0
+    z = surface.astype(np.float32)
+    s, g = endpoints(passable, seed)
+    if seed % 2:  # across the cliff
+        cells = np.argwhere(passable)
+        s, g = tuple(cells[cells[:, 1] < 10][0]), tuple(cells[cells[:, 1] > 25][-1])
+    goal = g[0] * z.shape[1] + g[1]
+    ref = reference_length(z.astype(np.float64), passable, 30.0, s, g)
+    for weight in (0.0, 1.0, 2.0):
+        state, gs, exp, found = astar_search_bucketed(
+            z, ridge, passable, 30.0, *s, *g, weight, 0.0, True, NO_LANDMARKS, NO_GOAL,
+            *search_arrays(z.size),
+        )  # fmt: skip
+        assert found == bool(np.isfinite(ref))
+        if not found:
+            continue
+        cells = trace_path(state, z.shape[1], g)
+        assert tuple(cells[0]) == s and tuple(cells[-1]) == g
+        steps = np.diff(cells, axis=0)
+        assert np.all(np.abs(steps).max(axis=1) == 1) and passable[cells[:, 0], cells[:, 1]].all()
+        dz = np.diff(z[cells[:, 0], cells[:, 1]].astype(np.float64))
+        length = np.sqrt(900.0 * (steps**2).sum(axis=1) + dz * dz).sum()
+        assert length == pytest.approx(gs[goal], rel=1e-12)
+        if weight <= 1.0:
+            assert gs[goal] == pytest.approx(ref, rel=1e-9)
+        else:
+            assert ref * (1 - 1e-12) <= gs[goal] <= weight * (1 + TIE) * ref * (1 + 1e-12)
+
+
+def test_whole_large_map_takes_the_bucketed_search():
+    """A window from ``BUCKET_CELLS`` cells on is searched with the two-level open list, and A*
+    there finds the optimum: on flat open ground the octile distance, in closed form."""
+    from pipeline.planners.core import BUCKET_CELLS, astar_search_bucketed, search_kernel
+
+    rows, cols = 2100, 2000
+    assert rows * cols >= BUCKET_CELLS and search_kernel(rows * cols) is astar_search_bucketed
+    z = np.full((rows, cols), -3000.0, np.float32)
+    ok = np.ones(z.shape, bool)
+    s, g = (3, 1990), (2090, 7)
+    t = pipeline.plan_window(z, ok, ok, s, g, cell_size=30.0, planner="astar")
+    assert t.length_m == pytest.approx(30.0 * (2087 + (math.sqrt(2) - 1) * 1983), rel=1e-12)
+    check_path(t, ok, s, g)
+
+
 def test_heap_keeps_order_while_it_grows():
     """The searches' heap (``pipeline._heap``), grown by ``heap_reserve`` between pushes from
     1 slot to thousands, pops every key in sorted order (against numpy's sort)."""
@@ -503,6 +567,7 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
         OFF_DIAGONAL,
         OFF_UNITS,
         astar_search,
+        astar_search_bucketed,
         off_ridge_to_goal,
         search_arrays,
     )
@@ -543,10 +608,11 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
         if not np.isfinite(ref):
             return
         for hoff, lm in ((got, none), (np.zeros(0), none), (got, to_goal)):
-            _, gs, _, found = astar_search(
-                z, ridge, passable, 30.0, *s, *g, 1.0, w, True, lm, hoff, *search_arrays(z.size)
-            )
-            assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
+            for kernel in (astar_search, astar_search_bucketed):
+                _, gs, _, found = kernel(
+                    z, ridge, passable, 30.0, *s, *g, 1.0, w, True, lm, hoff, *search_arrays(z.size)
+                )
+                assert found and gs[goal] == pytest.approx(ref, rel=1e-9)
 
 
 @pytest.mark.parametrize(

@@ -4,7 +4,7 @@ ties broken towards the goal."""
 
 from __future__ import annotations
 
-from .core import NO_GOAL, TIE, Planner, Search, astar_search, landmark_rows, search_arrays
+from .core import NO_GOAL, TIE, Planner, Search, landmark_rows, search_arrays, search_kernel
 
 
 def _weighted(weight_of):
@@ -13,7 +13,7 @@ def _weighted(weight_of):
         arrays are the thread's own (:func:`~.core.search_arrays`), kept for the next search
         (the coarse search of every mission on a map)."""
         weight = weight_of(omega)
-        state, _, expansions, found = astar_search(
+        state, _, expansions, found = search_kernel(surface.size)(
             surface,
             ridge,
             passable,

@@ -24,12 +24,12 @@ from .core import (
     TIE,
     Planner,
     Search,
-    astar_search,
     edge_cost,
     lagrangian_bound,
     landmark_rows,
     off_ridge_to_goal,
     search_arrays,
+    search_kernel,
     trace_path,
 )
 
@@ -147,7 +147,7 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
                 )
             if joint is not None and off_weight <= joint[0]:
                 h = joint[1]
-        parent, _, exp, found = astar_search(
+        parent, _, exp, found = search_kernel(surface.size)(
             surface,
             ridge,
             passable,
