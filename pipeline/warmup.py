@@ -189,13 +189,18 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
     return took
 
 
+def _tiny_arrays():
+    """The tiny DEM in memory as a window's safety surface (float32) and its passable cells."""
+    z = _tiny_dem().values
+    return z, z < -100.0
+
+
 def _landmarks() -> None:
     """The kernels of landmark placement and of a landmark's layer (an exact search of the whole
     map), on a map of the types the store's build gives them."""
     from .landmarks import landmark_layer, place_landmarks
 
-    z = _tiny_dem().values
-    ok = z < -100.0
+    z, ok = _tiny_arrays()
     place_landmarks(z, ok, 30.0, 2)
     landmark_layer(z, ok, 30.0, tuple(np.argwhere(ok)[0]))
 
@@ -205,8 +210,16 @@ def _search_each() -> None:
     store needed): what :func:`_plan_each` then finds compiled."""
     import pipeline
 
-    z = _tiny_dem().values
-    ok = z < -100.0
+    from .planners.core import (
+        NO_GOAL,
+        NO_LANDMARKS,
+        astar_search_bucketed,
+        lagrangian_bound,
+        off_ridge_to_goal,
+        search_arrays,
+    )
+
+    z, ok = _tiny_arrays()
     rdg = np.random.default_rng(2).random(z.shape) < 0.3
     cells = np.argwhere(ok)
     s, g = tuple(cells[0]), tuple(cells[-1])
@@ -218,22 +231,11 @@ def _search_each() -> None:
                 continue
     # on nearly flat ground the Lagrangian planner's weighted searches take a bound of their own
     # (lagrangian.BOUND_SLACK), which the rough tiny map never asks for
-    from .planners.core import (
-        NO_GOAL,
-        NO_LANDMARKS,
-        astar_search_bucketed,
-        lagrangian_bound,
-        off_ridge_to_goal,
-        search_arrays,
-    )
-
-    hoff = off_ridge_to_goal(rdg, ok, 30.0, g[0], g[1])
-    lagrangian_bound(rdg, ok, 30.0, s[0], s[1], g[0], g[1], 2.0, hoff)
+    hoff = off_ridge_to_goal(rdg, ok, 30.0, *g)
+    lagrangian_bound(rdg, ok, 30.0, *s, *g, 2.0, hoff)
     # the search of windows from BUCKET_CELLS on (whole large maps), which the tiny map is not
-    r0, c0, r1, c1 = (int(v) for v in (*s, *g))
-    lm = NO_LANDMARKS
     astar_search_bucketed(
-        z, rdg, ok, 30.0, r0, c0, r1, c1, 1.0, 0.0, True, lm, NO_GOAL, *search_arrays(z.size)
+        z, rdg, ok, 30.0, *s, *g, 1.0, 0.0, True, NO_LANDMARKS, NO_GOAL, *search_arrays(z.size)
     )
 
 

@@ -359,6 +359,17 @@ def _bucket_put(pk, pi, pn, head, free, top, nfree, b, key, item):
     return free, top, nfree
 
 
+@njit(cache=True)
+def _pool_reserve(pk, pi, pn, top, nfree, extra):
+    """The bucket pool's arrays with room for ``extra`` more nodes (its free list's ``nfree``
+    first, then the slots from ``top``), grown as :func:`~pipeline._heap.heap_reserve` grows a
+    heap; outside a search's inner loop, for the same reason."""
+    if nfree >= extra or top + extra <= pk.size:
+        return pk, pi, pn
+    size = max(2 * pk.size, top + extra)
+    return grown(pk, top, size), grown(pi, top, size), grown(pn, top, size)
+
+
 @njit(nogil=True, cache=True)
 def astar_search_bucketed(
     surface,
@@ -423,9 +434,7 @@ def astar_search_bucketed(
                 if bcount[cur & mask] > 0 or (fn > 0 and int((fk[0] - base) * inv) < cur + BUCKETS):
                     break
             hk, hi = heap_reserve(hk, hi, hn, bcount[cur & mask] + fn + 8)
-            if top + fn > pk.size:
-                size = max(2 * pk.size, top + fn)
-                pk, pi, pn = grown(pk, top, size), grown(pi, top, size), grown(pn, top, size)
+            pk, pi, pn = _pool_reserve(pk, pi, pn, top, nfree, fn)
             while fn > 0 and int((fk[0] - base) * inv) < cur + BUCKETS:
                 key, v = heap_pop(fk, fi, fn)
                 fn -= 1
@@ -452,9 +461,7 @@ def astar_search_bucketed(
         # room for one expansion's 8 pushes, made outside the inner loop (heap_reserve)
         hk, hi = heap_reserve(hk, hi, hn, 8)
         fk, fi = heap_reserve(fk, fi, fn, 8)
-        if nfree < 8 and top + 8 > pk.size:
-            size = 2 * pk.size
-            pk, pi, pn = grown(pk, top, size), grown(pi, top, size), grown(pn, top, size)
+        pk, pi, pn = _pool_reserve(pk, pi, pn, top, nfree, 8)
         while (
             hn > 0
             and hn + 8 <= hk.size
