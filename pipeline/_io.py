@@ -306,8 +306,9 @@ def save_tile(scratch, name: str, tile: tuple, array) -> None:
         f.write(buf.getbuffer())
 
 
-def load_tile(scratch, name: str, tile: tuple):
-    """The tile :func:`save_tile` kept."""
+def load_tile(scratch, name: str, tile: tuple, mapped: bool = False):
+    """The tile :func:`save_tile` kept; with ``mapped``, a local tile is memory-mapped (read
+    only: a caller that copies part of it reads only that part's pages)."""
     import io
 
     import numpy as np
@@ -316,7 +317,34 @@ def load_tile(scratch, name: str, tile: tuple):
     if is_url(scratch):
         fs, path = filesystem(join(str(scratch), name, key))
         return np.load(io.BytesIO(fs.cat_file(path)), allow_pickle=False)
-    return np.load(os.path.join(scratch, name, key), allow_pickle=False)
+    return np.load(
+        os.path.join(scratch, name, key), mmap_mode="r" if mapped else None, allow_pickle=False
+    )
+
+
+def load_window(scratch, name: str, r_off, c_off, r0: int, r1: int, c0: int, c1: int, dtype):
+    """Rows ``r0:r1`` and columns ``c0:c1`` of the scratch layer ``name`` whose tiles
+    :func:`save_tile` kept on the grid of row and column offsets ``r_off`` and ``c_off``
+    (tile ``(i, j)`` covers rows ``r_off[i]:r_off[i + 1]``): a window across as many tiles as
+    it spans, so a halo of any width is read from the tiles that hold it, with no dask task
+    that slices one tile for another."""
+    import numpy as np
+
+    out = np.empty((r1 - r0, c1 - c0), dtype=dtype)
+    i0 = int(np.searchsorted(r_off, r0, side="right")) - 1
+    i1 = int(np.searchsorted(r_off, r1, side="left"))
+    j0 = int(np.searchsorted(c_off, c0, side="right")) - 1
+    j1 = int(np.searchsorted(c_off, c1, side="left"))
+    for i in range(i0, i1):
+        a0, a1 = max(r0, int(r_off[i])), min(r1, int(r_off[i + 1]))
+        for j in range(j0, j1):
+            b0, b1 = max(c0, int(c_off[j])), min(c1, int(c_off[j + 1]))
+            tile = load_tile(scratch, name, (i, j), mapped=True)
+            out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = tile[
+                a0 - int(r_off[i]) : a1 - int(r_off[i]), b0 - int(c_off[j]) : b1 - int(c_off[j])
+            ]
+            del tile
+    return out
 
 
 def tile_array(scratch, name: str, chunks, dtype):

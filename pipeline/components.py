@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from ._io import save_tile, tile_array
+from ._io import load_tile, save_tile, tile_array
 
 CROSS = ndimage.generate_binary_structure(2, 1)
 
@@ -35,7 +35,7 @@ def label_components(passable: np.ndarray) -> tuple[np.ndarray, int]:
     return labels.astype(np.int32), int(n)
 
 
-def _label_tile(block, r0: int, c0: int, ncols: int, scratch: str, tile: tuple):
+def label_tile(block, r0: int, c0: int, ncols: int, scratch: str, tile: tuple):
     """Pass 1 for one tile (``tile``: its place in the tile grid): label it, keep the labels as
     a scratch tile (uint16 when they fit: half the bytes); return its count, the global
     row-major index of each label's first cell, and its borders."""
@@ -68,7 +68,7 @@ def _first_cells(labels, n):
     return first
 
 
-def _solve(counts, firsts, borders, nbr: int, nbc: int) -> tuple[np.ndarray, np.ndarray]:
+def join_tiles(counts, firsts, borders, nbr: int, nbc: int) -> tuple[np.ndarray, np.ndarray]:
     """(table, offsets): the global label of tile t's local label k is ``table[offsets[t] +
     k]``, with ``table[offsets[t]] == 0`` for k == 0."""
     from scipy.sparse import coo_matrix
@@ -120,6 +120,13 @@ def _relabel(local, table, offsets, nbc: int, block_info=None):
     return table[offsets[bi * nbc + bj] + local.astype(np.int64)]
 
 
+def relabel_tile(scratch: str, tile: tuple, table, offsets, nbc: int) -> np.ndarray:
+    """Pass 2 for one tile: its global labels, from the local labels :func:`label_tile` kept
+    and the table :func:`join_tiles` solved."""
+    local = load_tile(scratch, "labels", tile)
+    return table[offsets[tile[0] * nbc + tile[1]] + local.astype(np.int64)]
+
+
 def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     """``(labels, count)``: the component labels of a chunked passable array (see the module
     doc) and how many components there are (known once the labels are joined, before the
@@ -134,14 +141,14 @@ def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     blocks = ok.to_delayed()
     parts = dask.compute(
         *[
-            dask.delayed(_label_tile, pure=False)(
+            dask.delayed(label_tile, pure=False)(
                 blocks[bi, bj], int(r_off[bi]), int(c_off[bj]), ok.shape[1], scratch, (bi, bj)
             )
             for bi in range(nbr)
             for bj in range(nbc)
         ]
     )
-    table, offsets = _solve(
+    table, offsets = join_tiles(
         [p[0] for p in parts], [p[1] for p in parts], [p[2] for p in parts], nbr, nbc
     )
     # the tables travel as graph keys (sent once to each worker), not in closures

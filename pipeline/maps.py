@@ -23,6 +23,7 @@ import json
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import dask
@@ -35,8 +36,8 @@ from numba import njit
 from ._io import (
     WINDOW_LAYERS,
     is_url,
-    join,
     layer_encoding,
+    load_window,
     location,
     remove_settled,
     remove_tree,
@@ -44,13 +45,13 @@ from ._io import (
     target,
 )
 from .cluster import computing_client
-from .components import components_staged
+from .components import join_tiles, label_tile, relabel_tile
 from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError, StoreExistsError
 from .landmarks import landmarks_staged, memory_per_landmark
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
-from .ridges import default_min_accumulation, ridge_layers_staged
-from .safety import passable, safety_map
+from .ridges import default_min_accumulation, flood_and_solve, tile_accumulation
+from .safety import block_kernel, passable, passable_cells, safety_map
 from .store import MAPS_VERSION, attrs_signature, block_writer, open_maps
 
 log = logging.getLogger(__name__)
@@ -88,8 +89,14 @@ def dem_hash(dem: xr.DataArray):
 
 def _hash_part(block, block_info=None, *, ncols):
     (r0, _), (c0, _) = block_info[0]["array-location"]
+    return np.array([[_hash_tile(block, r0, c0, ncols)]], dtype=np.uint64)
+
+
+def _hash_tile(block, r0: int, c0: int, ncols: int) -> np.uint64:
+    """The hash partial of ``block``, whose first cell is ``(r0, c0)`` of a DEM of ``ncols``
+    columns (NaN payloads made one)."""
     b = np.ascontiguousarray(np.where(np.isnan(block), np.float32(np.nan), block), dtype=np.float32)
-    return np.array([[_block_hash(b, r0, c0, ncols)]], dtype=np.uint64)
+    return _block_hash(b, r0, c0, ncols)
 
 
 def _hex(partials) -> str:
@@ -180,57 +187,76 @@ def build_maps(
         # beside the store, on the same storage: every worker reads and writes them
         scratch, labels = tmp + "-scratch", tmp + "-components"
         try:
-            # passes 1-2: tiles flooded once, fill and flow summaries solved globally
-            _, acc, ridge = ridge_layers_staged(
+            # passes 1-2: tiles flooded once (each keeping its DEM tile in the scratch), the
+            # fill and flow summaries solved globally
+            st = flood_and_solve(
                 dem.data,
                 scratch,
-                min_accumulation,
                 log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a),
             )
-            # pass 3: every layer written, a band of chunk rows at a time (+ the DEM hash)
-            ds = xr.Dataset(
+            # pass 3: every layer of every tile written and its components labelled, one task
+            # a tile that reads its haloed DEM from the scratch tiles
+            kernel, depth = block_kernel(
+                method, S.attrs["clearance_m"], S.attrs.get("horizontal_clearance_m"), a
+            )
+            tiles = _Tiles(
+                scratch,
+                labels,
+                *st.offsets,
+                ch,
+                dem.shape,
+                kernel,
+                depth,
+                ok.attrs["sea_level_m"],
+                ok.attrs["surface_clearance_m"],
+                min_accumulation,
+            )
+            writers = _create(
                 {
                     "elevation": elev,
                     "safety": S,
                     "passable": ok,
                     "accumulation": (
-                        ("y", "x"),
-                        acc,
+                        np.int32,
                         {
                             "long_name": "flow accumulation of the inverted filled DEM",
                             "units": "cells",
                         },
                     ),
                     "ridge": (
-                        ("y", "x"),
-                        ridge,
+                        bool,
                         {"long_name": "ridge cells", "min_accumulation": min_accumulation},
                     ),
-                }
+                },
+                dem,
+                tmp,
+                ch,
             )
-            partials = _write(ds, tmp, ch, also=dem_hash(dem))
+            parts = tiles.run(_layers_tile, st.solution, writers)
+            partials = [p[0] for p in parts]
             log.info(
                 "maps %s: layers written (elevation, safety, passable, accumulation, ridge)",
                 store,
             )
-            # pass 4: connected components of the passable layer just written
-            component, count = components_staged(
-                da.from_zarr(join(tmp, "passable"), chunks=ch), labels
+            # pass 4: the labels that touch across tiles joined, the component layer written
+            table, offsets = join_tiles(
+                *([p[2][k] for p in parts] for k in range(3)), len(tiles.r_off) - 1, tiles.nbc
             )
-            _write(
-                xr.Dataset(
-                    {
-                        "component": (
-                            ("y", "x"),
-                            component,
-                            {"long_name": "connected component of the passable graph (0: none)"},
-                        )
-                    }
-                ),
+            count = int(table.max(initial=0))
+            (joined,) = dask.persist(dask.delayed((table, offsets), pure=True))
+            writers = _create(
+                {
+                    "component": (
+                        np.int32,
+                        {"long_name": "connected component of the passable graph (0: none)"},
+                    )
+                },
+                dem,
                 tmp,
                 ch,
                 mode="a",
             )
+            tiles.run(_component_tile, joined, writers)
             log.info("maps %s: components labelled", store)
             # pass 5: landmark distance layers (the proven lower bound)
             tl = time.perf_counter()
@@ -358,69 +384,113 @@ def _check_landmark_memory(shape) -> None:
         )
 
 
-BAND_CHUNKS = 64  # pass 3 writes bands of whole chunk rows of at least this many chunks
+@dataclass(frozen=True)
+class _Tiles:
+    """The tile grid of a build's passes 3 and 4 (the scratch tiles' grid: the store's chunks,
+    a last one thinner than the fill's halo merged into the one before) and what a tile's
+    task needs besides its scratch tiles."""
+
+    scratch: str
+    labels: str
+    r_off: np.ndarray
+    c_off: np.ndarray
+    ch: tuple
+    shape: tuple
+    kernel: object
+    depth: int
+    sea_level: float
+    surface_clearance: float
+    min_accumulation: int
+
+    @property
+    def nbc(self) -> int:
+        return len(self.c_off) - 1
+
+    def extent(self, bi: int, bj: int) -> tuple:
+        """Rows ``r0:r1`` and columns ``c0:c1`` of tile ``(bi, bj)``."""
+        return (
+            int(self.r_off[bi]),
+            int(self.r_off[bi + 1]),
+            int(self.c_off[bj]),
+            int(self.c_off[bj + 1]),
+        )
+
+    def run(self, task, shared, writers) -> list:
+        """``task(self, bi, bj, shared, writers)`` for every tile, one dask task each (no task
+        depends on another: each reads its tiles from the scratch), in the tile grid's order;
+        ``shared`` is a dask key (persisted on a cluster)."""
+        return list(
+            dask.compute(
+                *[
+                    dask.delayed(task, pure=False)(self, bi, bj, shared, writers)
+                    for bi in range(len(self.r_off) - 1)
+                    for bj in range(self.nbc)
+                ]
+            )
+        )
+
+    def put(self, writer, bi: int, bj: int, array) -> int:
+        """Write the store's blocks (its shards) that tile ``(bi, bj)`` holds, of ``array`` (the
+        tile's values of one layer): one block, or two or four where a thin last chunk was
+        merged into the tile; the bytes written."""
+        r0, r1, c0, c1 = self.extent(bi, bj)
+        h, w = self.ch
+        return sum(
+            writer((i // h, j // w), array[i - r0 : i - r0 + h, j - c0 : j - c0 + w])
+            for i in range(r0, r1, h)
+            for j in range(c0, c1, w)
+        )
 
 
-def _write(ds: xr.Dataset, path, ch, *, also=None, mode: str = "w"):
-    """Write ``ds`` (dask-backed 2-D layers in blocks of ``ch``) into the Zarr store ``path``
-    (``mode`` "w": a new store; "a": layers added), band by band (whole block rows, at least
-    :data:`BAND_CHUNKS` blocks a band); ``also`` (per-block partials of a dask collection
-    sharing its inputs, one per block) is computed with each band and returned.
+def _layers_tile(t: _Tiles, bi: int, bj: int, solution, writers) -> tuple:
+    """Pass 3 for one tile: its DEM with the safety kernel's halo read from the scratch tiles,
+    its elevation, safety, passable, accumulation and ridge blocks written, its components
+    labelled (kept in the labels scratch); returns ``(its DEM hash partial, the bytes written,
+    (label count, first cells, borders))``."""
+    r0, r1, c0, c1 = t.extent(bi, bj)
+    n, m = t.shape
+    d = t.depth
+    w0, v0 = max(0, r0 - d), max(0, c0 - d)
+    zw = load_window(
+        t.scratch, "dem", t.r_off, t.c_off, w0, min(n, r1 + d), v0, min(m, c1 + d), np.float32
+    )
+    inner = (slice(r0 - w0, r1 - w0), slice(c0 - v0, c1 - v0))
+    z = zw[inner]
+    safety = t.kernel(zw)[inner]
+    ok = passable_cells(z, safety, t.sea_level, t.surface_clearance)
+    acc = tile_accumulation(t.scratch, t.r_off, t.c_off, bi, bj, solution)
+    layers = (z, safety, ok, acc, acc >= t.min_accumulation)
+    written = sum(t.put(w, bi, bj, v) for w, v in zip(writers, layers, strict=True))
+    parts = label_tile(ok, r0, c0, m, t.labels, (bi, bj))
+    return _hash_tile(z, r0, c0, m), written, parts
 
-    One computation of the whole map let the workers hold intermediate chunks of every layer
-    (the shared DEM chunks, their halos, the flow tiles) across much of the map: 1.50 GiB per
-    worker at 20000^2 and growing with the map. A band at a time bounds that by the band
-    (0.81 GiB at 20000^2, the same 2.3 min); each band rereads the DEM chunks of its halo rows
-    from the source.
 
-    xarray writes the metadata and the coordinates; each block is then written as its shard by
-    :func:`pipeline.store.block_writer` (the bytes zarr writes, in half its time for a 1024^2
-    float32 shard and a fifth for a bool one: the 10000^2 build's layers pass, 5 layers of 100
-    shards, took 15.2 s through xarray's region writes, 11.3 s this way)."""
-    for v in ds.data_vars.values():
-        v.encoding = {}
-    ds.to_zarr(  # the metadata and the coordinates now, the layers band by band
+def _component_tile(t: _Tiles, bi: int, bj: int, joined, writers) -> int:
+    """Pass 4 for one tile: its component block(s) from its local labels and the join."""
+    table, offsets = joined
+    (writer,) = writers
+    return t.put(writer, bi, bj, relabel_tile(t.labels, (bi, bj), table, offsets, t.nbc))
+
+
+def _create(layers: dict, dem: xr.DataArray, path, ch, *, mode: str = "w") -> tuple:
+    """Create the 2-D ``layers`` (each a DataArray on the DEM's grid, or ``(dtype, attrs)``)
+    in the Zarr store ``path`` (``mode`` "w": a new store; "a": layers added) in blocks of
+    ``ch``, with no values yet (xarray writes the metadata and the coordinates); return
+    their block writers (:func:`pipeline.store.block_writer`: the bytes zarr writes, in half
+    its time for a 1024^2 float32 shard and a fifth for a bool one), in ``layers``' order."""
+    ds = xr.Dataset(coords=dem.coords)
+    for k, v in layers.items():
+        dtype, attrs = (v.dtype, v.attrs) if isinstance(v, xr.DataArray) else v
+        ds[k] = (("y", "x"), da.empty(dem.shape, chunks=ch, dtype=dtype), attrs)
+    ds.to_zarr(  # the metadata and the coordinates now; the blocks by the passes' tasks
         path,
         mode=mode,
         zarr_format=3,
         consolidated=False,
         encoding={
-            k: layer_encoding(ch, compress=k not in WINDOW_LAYERS or is_url(path))
-            for k in ds.data_vars
+            k: layer_encoding(ch, compress=k not in WINDOW_LAYERS or is_url(path)) for k in layers
         },
         compute=False,
         write_empty_chunks=True,  # every chunk on disk: a missing one means damage
     )
-    writers = {k: block_writer(str(path), k) for k in ds.data_vars}
-    ny, per_row = ds.sizes["y"], -(-ds.sizes["x"] // ch[1])
-    step = ch[0] * max(1, -(-BAND_CHUNKS // per_row))
-    # blocks of the shards (dask's overlap merges a last chunk thinner than its depth into the
-    # one before: a no-op where the chunks are the shards already)
-    layers = {k: v.data.rechunk(da.core.normalize_chunks(ch, v.shape)) for k, v in ds.items()}
-    parts = []
-    for r0 in range(0, ny, step):
-        r1 = min(ny, r0 + step)
-        # one task a block writes every layer's shard: the layers' own steps (the passable
-        # test, the ridge threshold, the accumulation) fuse into it, and a block computed for
-        # two layers (the safety surface: its own and the passable layer) is held by none
-        writes = da.map_blocks(
-            _put_blocks,
-            *(data[r0:r1] for data in layers.values()),
-            writers=tuple(writers[k] for k in layers),
-            first_row=r0 // ch[0],
-            chunks=tuple((1,) * len(c) for c in layers[next(iter(layers))][r0:r1].chunks),
-            dtype=np.int64,
-            meta=np.empty((0, 0), np.int64),
-        )
-        band = [] if also is None else also[r0 // ch[0] : -(-r1 // ch[0])]
-        _, part = dask.compute(writes, band)
-        parts.append(np.asarray(part))
-    return None if also is None else np.concatenate(parts)
-
-
-def _put_blocks(*blocks, writers, first_row: int, block_info=None):
-    """Write one block of each layer of a band through its writer (the block row in the band
-    offset by the band's ``first_row``); the bytes written, as a 1x1 block."""
-    bi, bj = block_info[0]["chunk-location"]
-    n = sum(w((first_row + bi, bj), b) for w, b in zip(writers, blocks, strict=True))
-    return np.full((1, 1), n, dtype=np.int64)
+    return tuple(block_writer(str(path), k) for k in layers)

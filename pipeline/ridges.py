@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import NamedTuple
 
 import dask
 import dask.array as da
@@ -49,7 +50,7 @@ from numba import njit
 
 from ._grid8 import DC, DIST, DR, flat_offsets, inside
 from ._heap import grown
-from ._io import load_tile, save_tile, tile_array
+from ._io import load_tile, load_window, save_tile, tile_array
 from ._threads import shared_pool
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
@@ -869,9 +870,15 @@ def _flow_finish(fh, solution, block_info=None):
 def _inflow_into(solution, block_info):
     """The cells of a block (rows, columns in the block) that the global solve sends flow
     into, and the amounts."""
-    targets, inflow = solution
     (r0, r1), (c0, c1) = block_info[None]["array-location"]
-    ncols = block_info[None]["shape"][1]
+    return _inflow_rect(solution, r0, r1, c0, c1, block_info[None]["shape"][1])
+
+
+def _inflow_rect(solution, r0, r1, c0, c1, ncols):
+    """:func:`_inflow_into` the block of rows ``r0:r1`` and columns ``c0:c1`` of a map of
+    ``ncols`` columns."""
+    targets, inflow = solution
+    r0, r1, c0, c1 = int(r0), int(r1), int(c0), int(c1)
     lo = np.searchsorted(targets, r0 * ncols)
     hi = np.searchsorted(targets, (r1 - 1) * ncols + c1)
     r, c = np.divmod(targets[lo:hi], ncols)
@@ -1029,10 +1036,32 @@ def ridge_map(
 # no D8 code is computed twice.
 
 
-def _scratch_flood(zh, r0, c0, ncols, halo, scratch, tile):
-    """Pass 1 for one tile (``tile``: its place in the tile grid): fill, keep its local fill
-    and label indices and the four sides of both (the flow pass's one-cell halos, see
-    :func:`_haloed_from_scratch`) as scratch tiles; return spill edges."""
+def _keep_dem(block, scratch, block_info=None):
+    """Pass 0 for one tile: the DEM's tile kept in the scratch as ``"dem"`` (float32)."""
+    save_tile(scratch, "dem", tuple(block_info[0]["chunk-location"]), block)
+    return np.zeros((1, 1), dtype=np.int8)
+
+
+def _scratch_flood(scratch, tile, r_off, c_off):
+    """Pass 1 for one tile (``tile``: its place in the tile grid of offsets ``r_off``,
+    ``c_off``): its DEM with a halo of 2 read from the scratch, filled; its local fill and
+    label indices and the four sides of both (the flow pass's one-cell halos, see
+    :func:`_haloed_from_scratch`) kept as scratch tiles; returns the spill edges."""
+    bi, bj = tile
+    halo = _halo(bi, bj, len(r_off) - 1, len(c_off) - 1, 2)
+    top, left, bottom, right = halo
+    r0, c0, ncols = int(r_off[bi]), int(c_off[bj]), int(c_off[-1])
+    zh = load_window(
+        scratch,
+        "dem",
+        r_off,
+        c_off,
+        r0 - top,
+        int(r_off[bi + 1]) + bottom,
+        c0 - left,
+        int(c_off[bj + 1]) + right,
+        np.float32,
+    )
     filled, label, _, edges = _tile_flood(zh, r0, c0, ncols, halo, True)
     label = _narrow_labels(label)
     save_tile(scratch, "floc", tile, filled)
@@ -1143,47 +1172,66 @@ def _raise_to_levels(floc, plab, tables, bases, ti, tj, ntc):
     return out
 
 
-def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
-    """(filled, accumulation, ridge) dask arrays of the DEM ``z``, computing the two small
-    global solves eagerly and flooding each tile once (see the section comment).
+class Staged(NamedTuple):
+    """What the first two passes of the staged build leave (:func:`flood_and_solve`): the
+    scratch tiles under ``scratch`` on the tile grid ``chunks``, and the two global solves
+    as dask keys (persisted on a cluster): ``geometry`` (the fill's spill tables and the tile
+    grid) and ``solution`` (the flow solve's inflow into the tiles)."""
 
-    ``scratch`` is a directory (a path or a URL) for the scratch tiles; the returned arrays read
-    it, so it must live until they are written.
-    """
+    chunks: tuple
+    geometry: object
+    solution: object
+    scratch: str
+
+    @property
+    def offsets(self) -> tuple:
+        """The tile grid's row and column offsets (each ends with the map's side)."""
+        return tuple(np.concatenate([[0], np.cumsum(c)]).astype(np.int64) for c in self.chunks)
+
+
+def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
+    """Passes 1 and 2 of the staged build of the DEM ``z`` (see the section comment): every
+    tile flooded once, the fill's spill edges solved, every tile's D8 codes and flow summary,
+    the flow solved. Each tile's DEM is kept in the scratch as ``"dem"`` (float32) first.
+    ``scratch`` is a directory (a path or a URL) for the scratch tiles."""
     t0 = time.perf_counter()
     # the two solves run here, in the caller's process: their compiled code is loaded from
     # numba's cache meanwhile (0.3-0.8 s in a new process, once the tiles are done otherwise)
     solves = shared_pool("solver-load", 1).submit(_load_solvers)
-    z = z.astype(np.float32)
-    ncols = z.shape[1]
     # regular tiles (only the last may be larger, when a thin last chunk is merged into it)
-    z = z.rechunk((z.chunks[0][0], z.chunks[1][0]))
-    z, _, tiles = _tiles(z, 2)
+    z = z.astype(np.float32).rechunk((z.chunks[0][0], z.chunks[1][0]))
+    z = z.rechunk(_min_chunks(z.chunks, 2))
     scratch = str(scratch)
+    ncols = z.shape[1]
     nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
+    r_off = np.concatenate([[0], np.cumsum(z.chunks[0])]).astype(np.int64)
+    c_off = np.concatenate([[0], np.cumsum(z.chunks[1])]).astype(np.int64)
+    # pass 0: the DEM's tiles kept in the scratch, where each later pass reads a tile with the
+    # halo it needs (dask's overlap of the source took 9 tasks a tile, slices moved between
+    # the workers, and the scheduler's time for them on the same two cores)
+    z.map_blocks(
+        _keep_dem,
+        scratch,
+        chunks=((1,) * nbr, (1,) * nbc),
+        dtype=np.int8,
+        meta=np.empty((0, 0), np.int8),
+    ).compute()
     edges = dask.compute(
         *[
-            dask.delayed(_scratch_flood, pure=False)(
-                blk, r0, c0, ncols, halo, scratch, divmod(k, nbc)
-            )
-            for k, (blk, r0, c0, halo) in enumerate(tiles)
+            dask.delayed(_scratch_flood, pure=False)(scratch, (bi, bj), r_off, c_off)
+            for bi in range(nbr)
+            for bj in range(nbc)
         ]
     )
     solves.result()
     ids, spill = _solve_fill(*edges)
-    r_off = np.concatenate([[0], np.cumsum(z.chunks[0])]).astype(np.int64)
-    c_off = np.concatenate([[0], np.cumsum(z.chunks[1])]).astype(np.int64)
     tables, bases = _spill_tables(ids, spill, r_off, c_off, ncols)
     if log:
         log("fill: tiles flooded and solved (%.1f s)", time.perf_counter() - t0)
-    floc = tile_array(scratch, "floc", z.chunks, np.float32)
-    plab = tile_array(scratch, "plab", z.chunks, np.int32)
-    fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
-    po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
     # large constants travel as single graph keys (sent once to each worker), not in closures;
     # on a cluster they are kept there (persisted), so that each later computation that reads
-    # them (the layers are written band by band) names them instead of carrying them again
-    # (12.6 MiB a band at 20000^2, and distributed's "Sending large graph" warning each time)
+    # them names them instead of carrying them again (12.6 MiB at 20000^2, and distributed's
+    # "Sending large graph" warning each time)
     (geometry,) = dask.persist(
         dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
     )
@@ -1197,10 +1245,25 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     (solution,) = dask.persist(dask.delayed(_solve_flow(*flow), pure=True))
     if log:
         log("flow: tiles summarised and solved (%.1f s)", time.perf_counter() - t0)
+    return Staged(z.chunks, geometry, solution, scratch)
+
+
+def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
+    """(filled, accumulation, ridge) dask arrays of the DEM ``z``, computing the two small
+    global solves eagerly and flooding each tile once (see the section comment).
+
+    ``scratch`` is a directory (a path or a URL) for the scratch tiles; the returned arrays read
+    it, so it must live until they are written.
+    """
+    st = flood_and_solve(z, scratch, log)
+    floc = tile_array(st.scratch, "floc", st.chunks, np.float32)
+    plab = tile_array(st.scratch, "plab", st.chunks, np.int32)
+    fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
+    po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
     acc = da.map_blocks(
         _scratch_accumulate,
-        tile_array(scratch, "dirs", z.chunks, np.int8),
-        solution,
+        tile_array(st.scratch, "dirs", st.chunks, np.int8),
+        st.solution,
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
     )
@@ -1208,8 +1271,8 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
         _scratch_inner_fill,
         fo,
         po,
-        geometry,
-        chunks=z.chunks,
+        st.geometry,
+        chunks=st.chunks,
         dtype=np.float32,
         meta=np.empty((0, 0), np.float32),
     )
@@ -1250,6 +1313,19 @@ def _scratch_flow_summary(bi, bj, geometry, scratch):
 def _scratch_accumulate(dirs, solution, block_info=None):
     """Pass 3 for one block: the accumulation from its stored D8 codes and the flow solve."""
     return _accumulate_codes(np.ascontiguousarray(dirs), *_inflow_into(solution, block_info))
+
+
+def tile_accumulation(scratch: str, r_off, c_off, bi: int, bj: int, solution) -> np.ndarray:
+    """The accumulation of tile ``(bi, bj)`` of a staged build on the tile grid of offsets
+    ``r_off``, ``c_off`` (:attr:`Staged.offsets`; pass 3 for one tile): its D8 codes stored
+    under ``scratch`` walked with the inflow that the flow solve (``solution``, the value of
+    :attr:`Staged.solution`) sends into it."""
+    dirs = load_tile(scratch, "dirs", (bi, bj))
+    ncols = int(c_off[-1])
+    return _accumulate_codes(
+        np.ascontiguousarray(dirs),
+        *_inflow_rect(solution, r_off[bi], r_off[bi + 1], c_off[bj], c_off[bj + 1], ncols),
+    )
 
 
 def _scratch_inner_fill(fblk, pblk, geometry, block_info=None):

@@ -339,6 +339,26 @@ def _map_overlap(z: da.Array, kernel, depth: int, meta) -> da.Array:
     return data if data.chunks == chunks else data.rechunk(chunks)
 
 
+def block_kernel(method: str, clearance: float, horizontal_clearance: float, a: float):
+    """``(kernel, depth)``: the safety surface of a block with a halo of ``depth`` cells (none
+    at the map's edges) is ``kernel(haloed block)`` trimmed by the halo; arguments checked as
+    :func:`safety_map` checks them."""
+    # module-level functions bound with partial: a task pickles them by reference, so a
+    # worker reuses its compiled kernels (a closure would carry the numba dispatcher by value,
+    # and every new client would make the workers compile it again)
+    if method == "vertical":
+        return functools.partial(_vertical_block, clearance=clearance), 0
+    if method == "horizontal":
+        widths = disc_widths(horizontal_clearance, a)
+        return (
+            functools.partial(_horizontal_block, widths=widths, clearance=clearance),
+            widths.size - 1,
+        )
+    widths = disc_widths(clearance, a)
+    b = sphere_heights(clearance, a, widths)
+    return functools.partial(_dilate_block, widths=widths, b=b), widths.size - 1
+
+
 def safety_map(
     dem: xr.DataArray,
     method: str = MAPS.method.default,
@@ -383,22 +403,7 @@ def safety_map(
         radius = horizontal_clearance if method == "horizontal" else clearance
         _check_memory(dem, radius, a)
 
-    # module-level functions bound with partial: a task pickles them by reference, so a
-    # worker reuses its compiled kernels (a closure would carry the numba dispatcher by value,
-    # and every new client would make the workers compile it again)
-    if method == "vertical":
-        kernel = functools.partial(_vertical_block, clearance=clearance)
-        depth = 0
-    elif method == "horizontal":
-        widths = disc_widths(horizontal_clearance, a)
-        kernel = functools.partial(_horizontal_block, widths=widths, clearance=clearance)
-        depth = widths.size - 1
-    else:
-        widths = disc_widths(clearance, a)
-        b = sphere_heights(clearance, a, widths)
-        kernel = functools.partial(_dilate_block, widths=widths, b=b)
-        depth = widths.size - 1
-
+    kernel, depth = block_kernel(method, clearance, horizontal_clearance, a)
     z = dem.data
     if isinstance(z, da.Array):
         z = z.astype(np.float32)
@@ -450,11 +455,8 @@ def passable(
     if surface_clearance is None:
         surface_clearance = float(safety.attrs.get("clearance_m", 0.0))
     surface_clearance = MAPS.surface_clearance.check(surface_clearance)
-    z = dem.data
-    s = safety.data
-    ok = (z == z) & (z < sea_level) & (s == s) & (s <= np.float32(sea_level - surface_clearance))
     return xr.DataArray(
-        ok,
+        passable_cells(dem.data, safety.data, sea_level, surface_clearance),
         dims=dem.dims,
         coords=dem.coords,
         name="passable",
@@ -466,3 +468,8 @@ def passable(
             "clearance_m": safety.attrs.get("clearance_m", float("nan")),
         },
     )
+
+
+def passable_cells(z, s, sea_level: float, surface_clearance: float):
+    """:func:`passable` on the arrays (numpy or dask) of elevation ``z`` and safety ``s``."""
+    return (z == z) & (z < sea_level) & (s == s) & (s <= np.float32(sea_level - surface_clearance))

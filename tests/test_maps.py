@@ -61,19 +61,15 @@ def test_build_maps_store(tmp_path):
         ((2, 2), 2),  # the smallest DEM
     ],
 )
-def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(
-    tmp_path, shape, chunks, monkeypatch
-):
+def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, shape, chunks):
     """Each layer of build_maps against the single-array references (scipy's grey dilation
     for the safety surface, the in-memory fill and accumulation checked against pysheds in
-    test_ridges.py), built by dask's threads so that tiles are written in parallel, and
-    written one band of chunk rows at a time (the last band a row of one cell where the
-    shape has one), each band's halo read across its edges."""
-    import pipeline.maps
+    test_ridges.py), built by dask's threads so that tiles are written in parallel, each
+    tile's safety halo read across as many scratch tiles as it spans (a last chunk of one
+    cell is merged into the tile before it, and its store block written from there)."""
     from pipeline.components import label_components
     from pipeline.ridges import accumulation_single, fill_single
 
-    monkeypatch.setattr(pipeline.maps, "BAND_CHUNKS", 1)  # one chunk row a band
     dem = pipeline.synthetic_dem(shape, cell_size=30.0, seed=3, chunks=chunks)
     maps = pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=300.0, min_accumulation=8)
     z = dem.values
@@ -101,6 +97,37 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(
     for k, v in maps.data_vars.items():
         if k != landmarks.VARIABLE:
             assert v.encoding["chunks"] == (min(chunks, shape[0]), min(chunks, shape[1]))
+
+
+@pytest.mark.parametrize("method", ["horizontal", "vertical"])
+def test_other_safety_methods_build_the_brute_force_layers_across_tiles(tmp_path, method):
+    """The horizontal and vertical safety surfaces written by build_maps (each tile's halo read
+    from its neighbours' scratch tiles, a last chunk of one row and of 3 columns, no-data
+    cells next to tile borders) against the brute-force transcription of the method, and the
+    passable layer against its definition."""
+    from test_safety import assert_correctly_rounded, brute_force
+
+    dem = pipeline.synthetic_dem((49, 35), cell_size=30.0, seed=5, chunks=16)
+    z = dem.values.copy()
+    z[15:18, 30] = np.nan  # at a tile corner: its neighbours' halos see it
+    z[0, 0] = np.nan
+    dem = dem.copy(data=z).chunk(16)
+    maps = pipeline.build_maps(
+        dem,
+        tmp_path / "m.zarr",
+        method=method,
+        clearance=200.0,
+        horizontal_clearance=95.0 if method == "horizontal" else None,
+        min_accumulation=8,
+        landmarks=0,
+    )
+    ref = brute_force(z, 30.0, method, 200.0, 95.0)
+    assert_correctly_rounded(maps["safety"].values, ref)
+    np.testing.assert_array_equal(maps["elevation"].values, z)
+    with np.errstate(invalid="ignore"):
+        want = (z < 0) & np.isfinite(ref) & (ref.astype(np.float32) <= np.float32(-200.0))
+    np.testing.assert_array_equal(maps["passable"].values, want)
+    assert 0 < want.sum() < want.size
 
 
 def test_dem_hash_is_chunking_independent_and_content_sensitive():
