@@ -331,6 +331,7 @@ def load_window(scratch, name: str, r_off, c_off, r0: int, r1: int, c0: int, c1:
     import numpy as np
 
     out = np.empty((r1 - r0, c1 - c0), dtype=dtype)
+    remote = is_url(scratch)
     i0 = int(np.searchsorted(r_off, r0, side="right")) - 1
     i1 = int(np.searchsorted(r_off, r1, side="left"))
     j0 = int(np.searchsorted(c_off, c0, side="right")) - 1
@@ -339,12 +340,38 @@ def load_window(scratch, name: str, r_off, c_off, r0: int, r1: int, c0: int, c1:
         a0, a1 = max(r0, int(r_off[i])), min(r1, int(r_off[i + 1]))
         for j in range(j0, j1):
             b0, b1 = max(c0, int(c_off[j])), min(c1, int(c_off[j + 1]))
-            tile = load_tile(scratch, name, (i, j), mapped=True)
+            top = a0 - int(r_off[i])
+            if remote:  # only the rows wanted, in one range request
+                tile = _tile_rows(scratch, name, (i, j), top, a1 - int(r_off[i]))
+                top = 0
+            else:
+                tile = load_tile(scratch, name, (i, j), mapped=True)
             out[a0 - r0 : a1 - r0, b0 - c0 : b1 - c0] = tile[
-                a0 - int(r_off[i]) : a1 - int(r_off[i]), b0 - int(c_off[j]) : b1 - int(c_off[j])
+                top : top + a1 - a0, b0 - int(c_off[j]) : b1 - int(c_off[j])
             ]
             del tile
     return out
+
+
+def _tile_rows(scratch: str, name: str, tile: tuple, a: int, b: int):
+    """Rows ``a:b`` of a 2-D tile :func:`save_tile` kept on object storage: its ``.npy``
+    header, then those rows' bytes (C order), each in one range request."""
+    import io
+
+    import numpy as np
+
+    fs, path = filesystem(join(str(scratch), name, f"{tile[0]}.{tile[1]}.npy"))
+    head = io.BytesIO(fs.cat_file(path, start=0, end=4096))
+    fmt = np.lib.format
+    version = fmt.read_magic(head)
+    read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+    shape, fortran, dtype = read(head)
+    if fortran:  # rows not contiguous: the whole tile
+        return load_tile(scratch, name, tile)[a:b]
+    row = shape[1] * dtype.itemsize
+    start = head.tell() + a * row
+    data = fs.cat_file(path, start=start, end=start + (b - a) * row)
+    return np.frombuffer(data, dtype=dtype).reshape(b - a, shape[1])
 
 
 def tile_array(scratch, name: str, chunks, dtype):
