@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from ._io import load_tile, save_tile, tile_array
+from ._io import load_tile, save_tile
 
 CROSS = ndimage.generate_binary_structure(2, 1)
 
@@ -115,16 +115,16 @@ def join_tiles(counts, firsts, borders, nbr: int, nbc: int) -> tuple[np.ndarray,
     return table, offsets
 
 
-def _relabel(local, table, offsets, nbc: int, block_info=None):
-    bi, bj = block_info[0]["chunk-location"]
-    return table[offsets[bi * nbc + bj] + local.astype(np.int64)]
-
-
 def relabel_tile(scratch: str, tile: tuple, table, offsets, nbc: int) -> np.ndarray:
     """Pass 2 for one tile: its global labels, from the local labels :func:`label_tile` kept
     and the table :func:`join_tiles` solved."""
     local = load_tile(scratch, "labels", tile)
     return table[offsets[tile[0] * nbc + tile[1]] + local.astype(np.int64)]
+
+
+def _relabel_block(scratch: str, table, offsets, nbc: int, block_info=None):
+    """:func:`relabel_tile` as a dask block of the tile grid."""
+    return relabel_tile(scratch, tuple(block_info[None]["chunk-location"]), table, offsets, nbc)
 
 
 def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
@@ -154,13 +154,13 @@ def components_staged(passable: da.Array, scratch) -> tuple[da.Array, int]:
     # the tables travel as graph keys (sent once to each worker), not in closures
     table_key = dask.delayed(table, pure=True)
     offsets_key = dask.delayed(offsets, pure=True)
-    local = tile_array(scratch, "labels", ok.chunks, np.int32)
     labels = da.map_blocks(
-        _relabel,
-        local,
+        _relabel_block,
+        scratch,
         table_key,
         offsets_key,
         nbc,
+        chunks=ok.chunks,
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
     )

@@ -1186,7 +1186,12 @@ class Staged(NamedTuple):
     @property
     def offsets(self) -> tuple:
         """The tile grid's row and column offsets (each ends with the map's side)."""
-        return tuple(np.concatenate([[0], np.cumsum(c)]).astype(np.int64) for c in self.chunks)
+        return _offsets(self.chunks)
+
+
+def _offsets(chunks) -> tuple:
+    """The row and column offsets of a grid of ``chunks`` (each ends with the map's side)."""
+    return tuple(np.concatenate([[0], np.cumsum(c)]).astype(np.int64) for c in chunks)
 
 
 def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
@@ -1204,8 +1209,7 @@ def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
     scratch = str(scratch)
     ncols = z.shape[1]
     nbr, nbc = len(z.chunks[0]), len(z.chunks[1])
-    r_off = np.concatenate([[0], np.cumsum(z.chunks[0])]).astype(np.int64)
-    c_off = np.concatenate([[0], np.cumsum(z.chunks[1])]).astype(np.int64)
+    r_off, c_off = _offsets(z.chunks)
     # pass 0: the DEM's tiles kept in the scratch, where each later pass reads a tile with the
     # halo it needs (dask's overlap of the source took 9 tasks a tile, slices moved between
     # the workers, and the scheduler's time for them on the same two cores)
@@ -1261,9 +1265,11 @@ def ridge_layers_staged(z: da.Array, scratch, min_accumulation: int, log=None):
     fo = da.overlap.overlap(floc, depth={0: 1, 1: 1}, boundary="none")
     po = da.overlap.overlap(plab, depth={0: 1, 1: 1}, boundary="none")
     acc = da.map_blocks(
-        _scratch_accumulate,
-        tile_array(st.scratch, "dirs", st.chunks, np.int8),
+        _accumulate_block,
+        st.scratch,
+        *st.offsets,
         st.solution,
+        chunks=st.chunks,
         dtype=np.int32,
         meta=np.empty((0, 0), np.int32),
     )
@@ -1310,11 +1316,6 @@ def _scratch_flow_summary(bi, bj, geometry, scratch):
     return _dirs_flow_summary(dirs, nodata, r0, c0, ncols)
 
 
-def _scratch_accumulate(dirs, solution, block_info=None):
-    """Pass 3 for one block: the accumulation from its stored D8 codes and the flow solve."""
-    return _accumulate_codes(np.ascontiguousarray(dirs), *_inflow_into(solution, block_info))
-
-
 def tile_accumulation(scratch: str, r_off, c_off, bi: int, bj: int, solution) -> np.ndarray:
     """The accumulation of tile ``(bi, bj)`` of a staged build on the tile grid of offsets
     ``r_off``, ``c_off`` (:attr:`Staged.offsets`; pass 3 for one tile): its D8 codes stored
@@ -1326,6 +1327,11 @@ def tile_accumulation(scratch: str, r_off, c_off, bi: int, bj: int, solution) ->
         np.ascontiguousarray(dirs),
         *_inflow_rect(solution, r_off[bi], r_off[bi + 1], c_off[bj], c_off[bj + 1], ncols),
     )
+
+
+def _accumulate_block(scratch, r_off, c_off, solution, block_info=None):
+    """:func:`tile_accumulation` as a dask block of the tile grid."""
+    return tile_accumulation(scratch, r_off, c_off, *block_info[None]["chunk-location"], solution)
 
 
 def _scratch_inner_fill(fblk, pblk, geometry, block_info=None):
