@@ -16,7 +16,6 @@ import warnings
 # is kept, and worker processes inherit it.
 os.environ.setdefault("GDAL_CACHEMAX", "64")
 
-from .dem import cell_size, import_dem, open_dem, write_dem
 from .exceptions import (
     InvalidDEMError,
     InvalidEndpointError,
@@ -27,16 +26,61 @@ from .exceptions import (
     StoreExistsError,
     UnreachableGoalError,
 )
-from .flight import Flight, Vehicle, fly
-from .jobs import run_job
-from .maps import build_maps, dem_hash
-from .mcpc import plan
-from .missions import plan_missions
-from .planners import PLANNERS, Trajectory, plan_window
-from .ridges import fill_depressions, flow_accumulation, ridge_map
-from .safety import passable, safety_map
-from .store import MapsStore, open_maps, open_store
-from .synthetic import synthetic_dem
+
+# The rest of the API is imported on first use (PEP 562): ``import pipeline`` itself then costs
+# milliseconds, not the 2.8 s of dask.array, xarray, zarr and numba that its stages need, so the
+# command line answers ``--help`` and a wrong job file at once. ``pipeline.plan`` and
+# ``from pipeline import plan`` work as before; so does a submodule reached as an attribute
+# (``pipeline.jobs``).
+_LAZY = {
+    "cell_size": "dem",
+    "import_dem": "dem",
+    "open_dem": "dem",
+    "write_dem": "dem",
+    "Flight": "flight",
+    "Vehicle": "flight",
+    "fly": "flight",
+    "run_job": "jobs",
+    "build_maps": "maps",
+    "dem_hash": "maps",
+    "plan": "mcpc",
+    "plan_missions": "missions",
+    "PLANNERS": "planners",
+    "Trajectory": "planners",
+    "plan_window": "planners",
+    "fill_depressions": "ridges",
+    "flow_accumulation": "ridges",
+    "ridge_map": "ridges",
+    "passable": "safety",
+    "safety_map": "safety",
+    "MapsStore": "store",
+    "open_maps": "store",
+    "open_store": "store",
+    "synthetic_dem": "synthetic",
+}
+
+
+def __getattr__(name: str):
+    import importlib
+
+    module = _LAZY.get(name)
+    if module is None:
+        if name.startswith("__"):
+            raise AttributeError(name)
+        try:  # a submodule, as the eager imports of the API used to bind them
+            return importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
 
 # odc-geo warps lon/lat grids into numpy arrays and gives GDAL their transform itself, and
 # rasterio still warns, at every chunk, that those arrays have none

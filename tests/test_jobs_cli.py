@@ -209,3 +209,48 @@ def test_console_script_runs_a_job(tmp_path, local_client):
         [str(exe), "run", str(bad)], capture_output=True, text=True, timeout=300, env=env
     )
     assert proc.returncode == 2 and "error: job file" in proc.stderr
+
+
+LIGHT = """
+import sys
+import pipeline
+from pipeline.cli import main
+
+HEAVY = ("dask.array", "distributed", "xarray", "pandas", "zarr", "numba", "scipy", "rasterio")
+def loaded():
+    return sorted(m for m in HEAVY if m in sys.modules)
+
+assert loaded() == [], loaded()
+for args in (["--help"], ["run", "--help"], ["run", sys.argv[1]]):
+    try:
+        main.main(args, prog_name="pipeline", standalone_mode=True)
+    except SystemExit as exc:
+        print("exit", exc.code)
+assert loaded() == [], loaded()
+# every public name still resolves, to the object its module defines
+import importlib
+for name in pipeline.__all__:
+    value = getattr(pipeline, name)
+    owner = getattr(value, "__module__", None)
+    if owner and owner.startswith("pipeline."):
+        assert getattr(importlib.import_module(owner), name) is value, name
+assert pipeline.jobs.load_job is importlib.import_module("pipeline.jobs").load_job
+print("heavy after the API:", loaded())
+"""
+
+
+def test_the_command_line_answers_help_and_a_wrong_job_file_without_the_heavy_imports(tmp_path):
+    """``import pipeline`` binds its API on first use (PEP 562), so the command line's help and
+    a wrong job file's one-line error come without importing dask.array, distributed, xarray,
+    zarr, numba or scipy (3 s on the benchmark machine; the command line imports dask itself
+    for its logging settings); every public name still resolves to its module's
+    object, and a submodule is still an attribute of the package."""
+    bad = _job(tmp_path, "[dem]\n", "bad.toml")
+    proc = subprocess.run(
+        [sys.executable, "-c", LIGHT, str(bad)], capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("exit 0") == 2 and "exit 2" in proc.stdout, proc.stdout
+    assert "error: job file" in proc.stderr and "Traceback" not in proc.stderr
+    # the names resolved: the stages' libraries were imported then, not before
+    assert "heavy after the API: []" not in proc.stdout
