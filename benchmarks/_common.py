@@ -215,3 +215,14 @@ def far_missions(ok, n: int, count: int, seed: int) -> list:
         ):
             out.append((tuple(int(v) for v in s), tuple(int(v) for v in g)))
     return out
+
+
+def passable_neighbour(ok, cell) -> tuple[int, int]:
+    """A passable cell next to ``cell`` (east, south, west or north, the first that is): the
+    goal of a peer's search of one step, whose time is then its own fixed cost."""
+    r, c = cell
+    return next(
+        (r + dr, c + dc)
+        for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))
+        if 0 <= r + dr < ok.shape[0] and 0 <= c + dc < ok.shape[1] and ok[r + dr, c + dc]
+    )

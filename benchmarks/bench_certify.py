@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import OUT, far_missions, machine, maps_store
+from _common import OUT, far_missions, machine, maps_store, passable_neighbour
 from _report import Report, figure_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -398,13 +398,7 @@ def exact_search(n: int, k: int) -> list[dict]:
         row["pyastar2d"] = dict(s=time.perf_counter() - t0)
         # its own fixed cost: from the start to a neighbouring cell, a search of one or two
         # expansions that still allocates and fills its cost and parent arrays of the grid
-        near = next(
-            (s[0] + dr, s[1] + dc)
-            for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))
-            if 0 <= s[0] + dr < ok.shape[0]
-            and 0 <= s[1] + dc < ok.shape[1]
-            and ok[s[0] + dr, s[1] + dc]
-        )
+        near = passable_neighbour(ok, s)
         t0 = time.perf_counter()
         pyastar2d.astar_path(weights, s, near, allow_diagonal=True)
         row["pyastar2d, neighbouring cells"] = dict(s=time.perf_counter() - t0)

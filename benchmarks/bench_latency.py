@@ -26,7 +26,7 @@ import time
 import uuid
 
 import numpy as np
-from _common import OUT, machine, maps_store
+from _common import OUT, machine, maps_store, passable_neighbour
 from _report import Report, faster
 from bench_mcpc import missions
 
@@ -81,11 +81,7 @@ def run_side(client, n: int, k: int) -> dict:
     # its own fixed cost: a search between two neighbouring cells, which expands one or two
     # cells but allocates and fills its cost and parent arrays for the whole grid
     s = ms[0][0]
-    near = next(
-        (s[0] + dr, s[1] + dc)
-        for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))
-        if 0 <= s[0] + dr < n and 0 <= s[1] + dc < n and ok[s[0] + dr, s[1] + dc]
-    )
+    near = passable_neighbour(ok, s)
     times = []
     for _ in range(20):
         t0 = time.perf_counter()
