@@ -210,11 +210,13 @@ def _search_each() -> None:
     store needed): what :func:`_plan_each` then finds compiled."""
     import pipeline
 
+    from .planners import sweep
     from .planners.core import (
         NO_GOAL,
         NO_LANDMARKS,
         astar_search_bucketed,
         lagrangian_bound,
+        measured_path,
         off_ridge_to_goal,
         search_arrays,
     )
@@ -233,10 +235,14 @@ def _search_each() -> None:
     # (lagrangian.BOUND_SLACK), which the rough tiny map never asks for
     hoff = off_ridge_to_goal(rdg, ok, 30.0, *g)
     lagrangian_bound(rdg, ok, 30.0, *s, *g, 2.0, hoff)
-    # the search of windows from BUCKET_CELLS on (whole large maps), which the tiny map is not
+    # the searches of windows from BUCKET_CELLS and SWEEP_CELLS on (whole large maps), which
+    # the tiny map is not
     astar_search_bucketed(
         z, rdg, ok, 30.0, *s, *g, 1.0, 0.0, True, NO_LANDMARKS, NO_GOAL, *search_arrays(z.size)
     )
+    got = sweep.search(z, ok, 30.0, s, g)
+    if got is not None:
+        measured_path(got[0], z, rdg, 30.0)
 
 
 def _widen(store: Path, t) -> None:

@@ -165,17 +165,35 @@ def test_bucketed_search_against_scipy(seed):
 
 
 def test_whole_large_map_takes_the_bucketed_search():
-    """A window from ``BUCKET_CELLS`` cells on is searched with the two-level open list, and A*
-    there finds the optimum: on flat open ground the octile distance, in closed form."""
-    from pipeline.planners.core import BUCKET_CELLS, astar_search_bucketed, search_kernel
+    """A window from ``BUCKET_CELLS`` cells on is searched with the two-level open list (by
+    Dijkstra, weighted A*, and A* where the sweeps give up), and A* there finds the optimum: on
+    flat open ground the octile distance, in closed form."""
+    from pipeline.planners.core import (
+        BUCKET_CELLS,
+        NO_GOAL,
+        NO_LANDMARKS,
+        astar_search_bucketed,
+        search_arrays,
+        search_kernel,
+        trace_path,
+    )
 
     rows, cols = 2100, 2000
     assert rows * cols >= BUCKET_CELLS and search_kernel(rows * cols) is astar_search_bucketed
     z = np.full((rows, cols), -3000.0, np.float32)
     ok = np.ones(z.shape, bool)
     s, g = (3, 1990), (2090, 7)
+    state, gs, _, found = astar_search_bucketed(
+        z, ok, ok, 30.0, *s, *g, 1.0, 0.0, True, NO_LANDMARKS, NO_GOAL, *search_arrays(z.size)
+    )
+    assert found
+    want = 30.0 * (2087 + (math.sqrt(2) - 1) * 1983)
+    assert gs[g[0] * cols + g[1]] == pytest.approx(want, rel=1e-12)
+    cells = trace_path(state, cols, g)
+    assert tuple(cells[0]) == s and np.all(np.abs(np.diff(cells, axis=0)).max(axis=1) == 1)
+    # the planner's own search of that window (the sweeps) finds the same length
     t = pipeline.plan_window(z, ok, ok, s, g, cell_size=30.0, planner="astar")
-    assert t.length_m == pytest.approx(30.0 * (2087 + (math.sqrt(2) - 1) * 1983), rel=1e-12)
+    assert t.length_m == pytest.approx(want, rel=1e-12)
     check_path(t, ok, s, g)
 
 

@@ -871,7 +871,12 @@ def _steps(cells, z, a):
 def _trace_measured(state, cols, gr, gc, surface, ridge, a, r0, c0):
     """:func:`_trace` and the path's heights (float64), ridge flags and steps (:func:`_steps`),
     and the steps that end on the ridge network, in one pass; the cells offset by (r0, c0)."""
-    cells = _trace(state, cols, gr, gc)
+    return _measured(_trace(state, cols, gr, gc), surface, ridge, a, r0, c0)
+
+
+@njit(nogil=True, cache=True)
+def _measured(cells, surface, ridge, a, r0, c0):
+    """What :func:`_trace_measured` returns for a path's ``cells`` (written in place)."""
     n = cells.shape[0]
     z = np.empty(n)
     on = np.empty(n, dtype=np.bool_)
@@ -907,6 +912,15 @@ def traced_path(state, cols: int, goal, surface, ridge, a: float, offset=(0, 0))
     cells, z, on, steps, on_steps = _trace_measured(
         state, cols, int(goal[0]), int(goal[1]), surface, ridge, float(a), *offset
     )
+    return _summed(cells, z, on, steps, on_steps)
+
+
+def measured_path(cells, surface, ridge, a: float, offset=(0, 0)):
+    """:func:`traced_path` for a path given as its cells (k x 2, int64; offset in place)."""
+    return _summed(*_measured(cells, surface, ridge, float(a), *offset))
+
+
+def _summed(cells, z, on, steps, on_steps):
     if len(cells) < 2:
         return cells, z, on, 0.0, 0.0, 0.0
     length = float(steps.sum())
@@ -937,6 +951,7 @@ class Search:
     found: bool
     lower_bound: Callable[[float], float]  # a proven lower bound on L*, given the path length
     extra: dict = field(default_factory=dict)
+    cells: np.ndarray | None = None  # the path itself (k x 2), for a search without a state
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from .core import (
     check_arrays,
     check_endpoint,
     heuristic,
+    measured_path,
     traced_path,
 )
 from .registry import PLANNERS
@@ -106,9 +107,14 @@ def search_path(
             f"no path from start {s} to goal {t} through passable "
             "cells: they lie in separate regions"
         )
-    cells, z, on_ridge, length, ridge_len, ratio = traced_path(
-        search.state, surface.shape[1], t, surface, ridge, a, offset
-    )
+    if search.cells is not None:
+        cells, z, on_ridge, length, ridge_len, ratio = measured_path(
+            search.cells, surface, ridge, a, offset
+        )
+    else:
+        cells, z, on_ridge, length, ridge_len, ratio = traced_path(
+            search.state, surface.shape[1], t, surface, ridge, a, offset
+        )
     # the planner's proven bound, or the octile distance when that is larger
     lower = max(search.lower_bound(length), heuristic(a, s[0], s[1], t[0], t[1], True))
     return PathSearch(

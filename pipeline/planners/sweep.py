@@ -1,0 +1,405 @@
+"""The exact shortest path over a large window by row sweeps over a bounded region: the engine of
+the ``astar`` planner from :data:`SWEEP_CELLS` cells on (a whole large map, ``mcpc=False``),
+with the same optimal length (docs/method.md section 5).
+
+Why not A* there: every octile-monotone path between two cells has the same horizontal length,
+and the terrain adds only 0.1-3 % to it, so every cell of the parallelogram the mission spans
+has ``f = g + h`` below the optimum ``L*``, and A* must expand all of them (millions at
+10000^2) through a heap whose entries miss the caches: about a microsecond an expansion.
+
+The sweeps visit the same cells in memory order instead, a few nanoseconds each:
+
+1. **Region.** The octile distance is a lower bound on the length between two cells, so a path
+   of length at most ``U`` from ``s`` to ``g`` stays in ``R(U) = {v : oct(s, v) + oct(v, g) <=
+   U}``. The left side is a convex function of ``v``, so ``R(U)`` is one interval of columns
+   per row (:func:`region_rows`).
+2. **Distances in the region** (:func:`sweep_distances`): Gauss-Seidel relaxation (Bellman-Ford
+   in row order). A row is relaxed from the row before it in the sweep's direction (its three
+   neighbours above or below: one pass the compiler vectorises), then along itself from left to
+   right and back. Sweeps go down and up in turn; a row is relaxed again only when the row it
+   pulls from has changed since it last did, and only over the columns where a neighbour of
+   that row lies within one cell's length ``a`` of its value (no move is shorter, so nowhere
+   else can it lower anything). It stops when no row waits for a pull: then no move of the
+   region can shorten any distance, and every distance is the length of a path, so each is the
+   shortest within the region (the fixpoint of Bellman-Ford).
+3. **Proof and growth.** With ``L`` the goal's distance in ``R(U)``: if ``L <= U``, any path that
+   leaves the region is longer than ``U >= L``, so ``L = L*``. Otherwise the region grows to
+   ``R(L)``, which holds the path found, so the next round proves its optimum (or, without a
+   path in the region, ``U - oct(s, g)`` grows fourfold, up to the whole map). The first
+   ``U`` is ``(1 + SLACK)`` times the octile distance.
+4. **Path.** From the goal back to the start, each cell's predecessor is the neighbour ``u``
+   that minimises ``d(u) + c(u, v)``: at the fixpoint that minimum is ``d(v)`` itself, computed
+   with the same floating-point operations as the sweeps, and ``d`` strictly falls along the
+   way (every move is at least ``a`` long), so the walk ends at the start.
+
+Work is bounded: a round that has relaxed more than :data:`BUDGET` times its region's cells, or
+taken :data:`MAX_SWEEPS` sweeps (a maze that turns back on itself needs a sweep per turn),
+gives up, and the caller runs A* instead.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .._grid8 import DC, DR
+from .core import heuristic
+
+# the first bound is (1 + SLACK) times the octile distance: the benchmark maps' optima lie
+# 0.1-1.3 % above it (benchmarks/bench_certify.py); a larger slack widens the region (at
+# 10000^2 1.5 % took 10-25 % more cells than 0.5 %), a smaller one asks more missions for a
+# second round
+SLACK = 0.015
+BUDGET = 8.0  # cell relaxations per region cell before a round gives up (A* then)
+MAX_SWEEPS = 64  # and sweeps
+INF = np.inf
+
+
+@njit(inline="always", cache=True)
+def _f(a, i, j, sr, sc, gr, gc):
+    return heuristic(a, i, j, sr, sc, True) + heuristic(a, i, j, gr, gc, True)
+
+
+@njit(cache=True)
+def region_rows(rows, cols, a, sr, sc, gr, gc, bound):
+    """Per row ``i`` the columns ``lo[i] .. hi[i]`` of the cells ``v`` with ``oct(s, v) + oct(v,
+    g) <= bound`` (``lo[i] > hi[i]``: none). ``f(j) = oct(s, (i, j)) + oct((i, j), g)`` is
+    convex in ``j``: its minimum is where its forward difference first stops falling, and the
+    interval grows from there both ways (binary searches, O(rows log cols))."""
+    lo = np.ones(rows, dtype=np.int64)
+    hi = np.zeros(rows, dtype=np.int64)
+    for i in range(rows):
+        # the first j whose step to j + 1 does not fall
+        x, y = 0, cols - 1
+        while x < y:
+            mid = (x + y) // 2
+            if _f(a, i, mid + 1, sr, sc, gr, gc) - _f(a, i, mid, sr, sc, gr, gc) >= 0.0:
+                y = mid
+            else:
+                x = mid + 1
+        jm = x
+        if _f(a, i, jm, sr, sc, gr, gc) > bound:
+            continue
+        x, y = 0, jm  # the first j <= jm inside
+        while x < y:
+            mid = (x + y) // 2
+            if _f(a, i, mid, sr, sc, gr, gc) <= bound:
+                y = mid
+            else:
+                x = mid + 1
+        lo[i] = x
+        x, y = jm, cols - 1  # the last j >= jm inside
+        while x < y:
+            mid = (x + y + 1) // 2
+            if _f(a, i, mid, sr, sc, gr, gc) <= bound:
+                x = mid
+            else:
+                y = mid - 1
+        hi[i] = x
+    return lo, hi
+
+
+@njit(inline="always", cache=True)
+def _move(surface, a2, r, c, nr, nc):
+    """The length of the move (r, c) -> (nr, nc) of squared horizontal length ``a2``: the
+    same operations, in the same order, as every relaxation here (``edge_cost``'s value)."""
+    dz = np.float64(surface[nr, nc]) - np.float64(surface[r, c])
+    return math.sqrt(a2 + dz * dz)
+
+
+@njit(inline="always", cache=True)
+def _along(surface, ok, a2, i, j0, j1):
+    """The move (i, j0) -> (i, j1) along a row, inf where a cell is not passable."""
+    if not (ok[i, j0] and ok[i, j1]):
+        return INF
+    return _move(surface, a2, i, j0, i, j1)
+
+
+@njit(inline="always", cache=True)
+def _lowest_of_three(d, pbase, lp, hp, j):
+    """The least distance of row ``p``'s columns ``j - 1 .. j + 1`` (inf outside its span)."""
+    m = INF
+    for k in range(j - 1, j + 2):
+        if lp <= k <= hp:
+            v = d[pbase + k]
+            if v < m:
+                m = v
+    return m
+
+
+@njit(inline="always", cache=True)
+def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
+    """The first column of ``j0 .. j1`` whose distance a neighbour in row ``p`` comes within
+    ``low`` of (``j1 + 1``: none). Most rows a sweep revisits have none: the columns whose three
+    neighbours all lie in row ``p``'s span are tested 16 at a time without a branch (which
+    the compiler vectorises), and the block that holds one is searched again one by one."""
+    j = j0
+    while j <= j1 and (j - 1 < lp or j + 1 > hp):
+        if _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]:
+            return j
+        j += 1
+    inner = min(j1, hp - 1)
+    while j + 16 <= inner + 1:
+        hit = False
+        for q in range(j, j + 16):
+            x = d[pbase + q - 1]
+            y = d[pbase + q]
+            z = d[pbase + q + 1]
+            m = x if x < y else y
+            m = m if m < z else z
+            hit |= m + low < d[base + q]
+        if hit:
+            break
+        j += 16
+    while j <= j1:
+        if _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]:
+            return j
+        j += 1
+    return j1 + 1
+
+
+@njit(inline="always", cache=True)
+def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist):
+    """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (0 where not
+    passable, so that no NaN of a no-data cell enters a sum), penalties (inf where not
+    passable) and distances (inf outside the row's span ``first .. last``)."""
+    cols = surface.shape[1]
+    for q in range(n):
+        j = j0 + q
+        if 0 <= j < cols and ok[r, j]:
+            z[q] = surface[r, j]
+            pen[q] = 0.0
+        else:
+            z[q] = 0.0
+            pen[q] = INF
+        dist[q] = d[base + j] if first <= j <= last else INF
+
+
+@njit(cache=True, nogil=True)
+def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
+    """Relax row ``i`` from row ``p`` (``p < 0``: from nothing, the start's row) and along
+    itself; returns the cells relaxed and whether any distance fell. ``s``: scratch rows (9 x
+    the widest row + 2)."""
+    a2 = a * a
+    d2 = 2.0 * a2
+    zi, zp, pi, pp, dp, best, hz, wv, wd = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8]
+    first, last = lo[i], hi[i]
+    base = off[i] - first
+    changed = False
+    if p >= 0:
+        lp, hp = lo[p], hi[p]
+        pbase = off[p] - lp
+        j0 = max(first, lp - 1)
+        j1 = min(last, hp + 1)
+        # the columns a pull can lower: a neighbour in row p within a move of the cell. No
+        # move is shorter than a; computed, sqrt(a*a + dz*dz) may fall an ulp below it
+        low = a * (1.0 - 1e-12)
+        kmin = _first_lowered(d, base, pbase, lp, hp, low, j0, j1)
+        if kmin > j1:
+            return 0, False
+        kmax = j1
+        while not (_lowest_of_three(d, pbase, lp, hp, kmax) + low < d[base + kmax]):
+            kmax -= 1
+    else:
+        kmin, kmax = first, last
+    n = kmax - kmin + 1
+    _load(surface, ok, d, i, base, first, last, kmin - 1, n + 2, zi, pi, best)
+    if p >= 0:
+        _load(surface, ok, d, p, pbase, lp, hp, kmin - 1, n + 2, zp, pp, dp)
+        for q in range(1, n + 1):
+            dz = zi[q] - zp[q]
+            wv[q] = math.sqrt(a2 + dz * dz)
+        for q in range(1, n + 1):  # from (p, j - 1): it passes between (p, j) and (i, j - 1)
+            dz = zi[q] - zp[q - 1]
+            wd[q] = dp[q - 1] + math.sqrt(d2 + dz * dz) + pi[q - 1]
+        for q in range(1, n + 1):
+            dz = zi[q] - zp[q + 1]
+            c = dp[q + 1] + math.sqrt(d2 + dz * dz) + pi[q + 1]
+            c = c if c < wd[q] else wd[q]
+            v = dp[q] + wv[q]
+            c = (c if c < v else v) + pp[q] + pi[q]
+            b = best[q]
+            changed |= c < b
+            best[q] = c if c < b else b
+        if not changed:
+            return n, False
+    for q in range(1, n + 2):
+        dz = zi[q] - zi[q - 1]
+        hz[q] = math.sqrt(a2 + dz * dz) + pi[q] + pi[q - 1]
+    # along the row, left to right, on past kmax while it lowers
+    for q in range(1, n + 1):
+        c = best[q - 1] + hz[q]
+        if c < best[q]:
+            best[q] = c
+            changed = True
+    for q in range(1, n + 1):
+        d[base + kmin - 1 + q] = best[q]
+    right = kmax
+    for j in range(kmax + 1, last + 1):
+        c = d[base + j - 1] + _along(surface, ok, a2, i, j - 1, j)
+        if not c < d[base + j]:
+            break
+        d[base + j] = c
+        right = j
+        changed = True
+    # and back, right to left, on past kmin while it lowers
+    for j in range(right - 1, kmax, -1):
+        c = d[base + j + 1] + _along(surface, ok, a2, i, j + 1, j)
+        if c < d[base + j]:
+            d[base + j] = c
+    if kmax < last:
+        best[n + 1] = d[base + kmax + 1]
+    for q in range(n, 0, -1):
+        c = best[q + 1] + hz[q + 1]
+        if c < best[q]:
+            best[q] = c
+            changed = True
+    for q in range(1, n + 1):
+        d[base + kmin - 1 + q] = best[q]
+    left = kmin
+    for j in range(kmin - 1, first - 1, -1):
+        c = d[base + j + 1] + _along(surface, ok, a2, i, j + 1, j)
+        if not c < d[base + j]:
+            break
+        d[base + j] = c
+        left = j
+        changed = True
+    return n + (right - kmax) + (kmin - left), changed
+
+
+@njit(cache=True, nogil=True)
+def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
+    """The shortest distances from (sr, sc) within the region ``lo``/``hi`` (step 2 of the
+    module's method): ``(d, off, relaxed, sweeps, done)``, ``d[off[i] + j - lo[i]]`` the
+    distance of cell (i, j) (inf: not reached), ``done`` False when the relaxations passed
+    ``budget`` or the sweeps ``max_sweeps`` (the distances are then upper bounds only)."""
+    rows = surface.shape[0]
+    off = np.zeros(rows + 1, dtype=np.int64)
+    width = 0
+    for i in range(rows):
+        w = max(hi[i] - lo[i] + 1, 0)
+        off[i + 1] = off[i] + w
+        width = max(width, w)
+    d = np.full(off[rows], INF)
+    scratch = np.empty((9, width + 2))
+    d[off[sr] + sc - lo[sr]] = 0.0
+    # stamps: when a row last changed, and last pulled from the row above / below
+    stamp = 1
+    changed = np.zeros(rows, dtype=np.int64)
+    from_above = np.zeros(rows, dtype=np.int64)
+    from_below = np.zeros(rows, dtype=np.int64)
+    relaxed, _ = _relax_row(surface, ok, a, sr, -1, lo, hi, off, d, scratch)
+    changed[sr] = stamp
+    sweeps = 0
+    while True:
+        waiting = False
+        for i in range(rows):
+            if lo[i] <= hi[i] and (
+                (i > 0 and changed[i - 1] > from_above[i])
+                or (i < rows - 1 and changed[i + 1] > from_below[i])
+            ):
+                waiting = True
+                break
+        if not waiting:
+            return d, off, relaxed, sweeps, True
+        for step in (1, -1):
+            sweeps += 1
+            for k in range(rows):
+                i = k if step == 1 else rows - 1 - k
+                p = i - step
+                if lo[i] > hi[i] or p < 0 or p >= rows or lo[p] > hi[p]:
+                    continue
+                last = from_above if step == 1 else from_below
+                if changed[p] <= last[i]:
+                    continue
+                stamp += 1
+                last[i] = stamp
+                n, fell = _relax_row(surface, ok, a, i, p, lo, hi, off, d, scratch)
+                relaxed += n
+                if fell:
+                    stamp += 1
+                    changed[i] = stamp
+            if relaxed > budget or sweeps >= max_sweeps:
+                return d, off, relaxed, sweeps, False
+
+
+@njit(cache=True, nogil=True)
+def _backtrack(surface, ok, a, sr, sc, gr, gc, lo, hi, off, d):
+    """Step 4: the path's cells (k x 2, start to goal), or an empty array if a cell has no
+    neighbour that gives its distance (not a fixpoint: never, but the caller then runs A*)."""
+    rows, cols = surface.shape
+    a2 = a * a
+    d2 = 2.0 * a2
+    moves = np.empty(1024, dtype=np.int8)
+    n = 0
+    r, c = gr, gc
+    while r != sr or c != sc:
+        if n == off[rows]:  # longer than the region: not a fixpoint
+            return np.empty((0, 2), dtype=np.int64)
+        here = d[off[r] + c - lo[r]]
+        best = INF
+        move = -1
+        for k in range(8):
+            pr = r - DR[k]  # the neighbour the move k leaves from
+            pc = c - DC[k]
+            if pr < 0 or pr >= rows or pc < lo[pr] or pc > hi[pr] or not ok[pr, pc]:
+                continue
+            if k % 2 == 1 and not (ok[pr, c] and ok[r, pc]):
+                continue  # a diagonal must not cut a corner
+            v = d[off[pr] + pc - lo[pr]] + _move(surface, d2 if k % 2 else a2, pr, pc, r, c)
+            if v < best:
+                best = v
+                move = k
+        if move < 0 or not best <= here:
+            return np.empty((0, 2), dtype=np.int64)
+        if n == moves.size:
+            grown = np.empty(2 * n, dtype=np.int8)
+            grown[:n] = moves
+            moves = grown
+        moves[n] = move
+        n += 1
+        r -= DR[move]
+        c -= DC[move]
+    cells = np.empty((n + 1, 2), dtype=np.int64)
+    cells[0, 0] = sr
+    cells[0, 1] = sc
+    for i in range(n):  # the moves were found goal first
+        k = moves[n - 1 - i]
+        cells[i + 1, 0] = cells[i, 0] + DR[k]
+        cells[i + 1, 1] = cells[i, 1] + DC[k]
+    return cells
+
+
+def search(surface, passable, a: float, s, t):
+    """The shortest path from ``s`` to ``t`` by the module's method: ``(cells, relaxed,
+    extra)``, ``cells`` the path (k x 2; none: no path), ``relaxed`` the cell relaxations,
+    ``extra`` the region's cells, the sweeps and rounds; or None when a round ran out of its
+    budget (the caller then runs A*)."""
+    rows, cols = surface.shape
+    octile = heuristic(a, s[0], s[1], t[0], t[1], True)
+    bound = octile * (1.0 + SLACK)
+    relaxed = rounds = sweeps = 0
+    while True:
+        # a hair wider than the bound: the floating point of oct(s, v) + oct(v, g)
+        lo, hi = region_rows(rows, cols, a, s[0], s[1], t[0], t[1], bound * (1.0 + 1e-9))
+        cells = int(np.maximum(hi - lo + 1, 0).sum())
+        d, off, n, k, done = sweep_distances(
+            surface, passable, a, s[0], s[1], lo, hi, BUDGET * cells, MAX_SWEEPS
+        )
+        rounds += 1
+        relaxed += int(n)
+        sweeps += int(k)
+        if not done:
+            return None
+        length = d[off[t[0]] + t[1] - lo[t[0]]] if lo[t[0]] <= t[1] <= hi[t[0]] else INF
+        if length <= bound or cells == rows * cols:
+            break
+        # the path found lies in R(length): the next round proves its optimum
+        bound = length if length < INF else octile + 4.0 * (bound - octile)
+    extra = {"engine": "sweep", "region_cells": cells, "sweeps": sweeps, "rounds": rounds}
+    if length == INF:
+        return np.empty((0, 2), dtype=np.int64), relaxed, extra
+    path = _backtrack(surface, passable, a, s[0], s[1], t[0], t[1], lo, hi, off, d)
+    return (path, relaxed, extra) if len(path) else None
