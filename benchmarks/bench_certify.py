@@ -603,7 +603,7 @@ def main() -> None:
     rep.p("""The shortest path over a whole map in memory (the store's reads not timed), on
           missions at least half the map apart: the `astar` planner as a user calls it
           (`plan_window(planner="astar")`, its check of the arrays included), which on a
-          window of 2^18 cells or more runs as row sweeps over the region every shorter path
+          window of 2^16 cells or more runs as row sweeps over the region every shorter path
           must cross (docs/method.md section 5; its "expansions" are the cells it relaxed);
           A* with the octile heuristic and the two-level heap, the search the planner ran
           before (its kernel called directly, its arrays allocated inside the clock as the

@@ -229,12 +229,16 @@ def test_heap_keeps_order_while_it_grows():
 
 @pytest.mark.parametrize("planner", ["dijkstra", "astar", "ra_star"])
 def test_large_window_where_the_heaps_outgrow_their_first_size(planner):
-    """260 x 260 cells from the middle to a corner: the open lists hold well over the 1024
-    entries the searches start with (1.4-1.6 thousand for A* and Dijkstra), so they grow
-    between passes of the inner loop. Optimal lengths against scipy, RA*'s bound."""
-    surface, ridge, passable = obstacle_map((260, 260), 11, density=0.04)
-    s = (130, 130)
-    g = tuple(np.argwhere(passable[-20:, :20])[-1] + (240, 0))
+    """250 x 250 cells (below the sweeps' SWEEP_CELLS: A*) from the middle to a corner: the
+    open lists hold well over the 1024 entries the searches start with (1.4-1.6 thousand for
+    A* and Dijkstra), so they grow between passes of the inner loop. Optimal lengths against
+    scipy, RA*'s bound."""
+    from pipeline.planners.astar import SWEEP_CELLS
+
+    assert 250 * 250 < SWEEP_CELLS
+    surface, ridge, passable = obstacle_map((250, 250), 11, density=0.04)
+    s = (125, 125)
+    g = tuple(np.argwhere(passable[-20:, :20])[-1] + (230, 0))
     passable[s] = True
     ref = reference_length(surface, passable, 30.0, s, g)
     assert np.isfinite(ref)
