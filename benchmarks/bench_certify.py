@@ -590,7 +590,7 @@ def main() -> None:
           byte shuffle); the bound reads one inner chunk of every layer at each end.
           {reused}Building the store took {secs.get("total", float("nan")):.0f} s (2 workers),
           of which
-          the landmark pass (placement, then one exact Dijkstra search of the whole map per
+          the landmark pass (placement, then one exact search of the whole map per
           landmark, two at a time) {secs.get("landmarks", float("nan")):.0f} s; peak memory
           {peak_text(b)} (a landmark's search holds the whole map, 18 bytes a cell).
           {b["missions"]} missions (ra_star, omega 2, MCPC, 2 workers) at least half the map

@@ -25,9 +25,11 @@ carries a relative error of at most 2^-24 plus the float64 summation error (at m
 ``REL_MARGIN = 2^-22`` (``LANDMARK_MARGIN`` of the planners' core, which uses the same bound as
 its A* heuristic), a margin that covers both with room to spare.
 
-The Dijkstra search runs on the whole map in one process: it holds the safety surface (float32),
-the passable mask, a float64 distance per cell and the frontier; 13 bytes a cell, 1.3 GB at
-10000^2 (:func:`memory_per_landmark`).
+A layer's search runs on the whole map in one process: row sweeps (the exact search of
+:mod:`pipeline.planners.sweep` with the whole map as its region), or where they give up
+Dijkstra's algorithm with a bucket queue; either holds the safety surface (float32), the
+passable mask, a float64 distance per cell and its working state, at most 18 bytes a cell
+(:func:`memory_per_landmark`).
 """
 
 from __future__ import annotations
@@ -166,7 +168,7 @@ def place_coarse(surface, ok, a: float, k: int) -> list[tuple[int, int]]:
     if cells.size == 0 or k <= 0:
         return []
     cols = ok.shape[1]
-    far = dijkstra(surface, ok, a, cells[:1]).ravel()
+    far = distances_from(surface, ok, a, divmod(int(cells[0]), cols)).ravel()
     nearest = np.full(ok.size, np.inf)  # distance to the nearest landmark placed
     out: list[tuple[int, int]] = []
     score = np.where(np.isfinite(far), far, -1.0)
@@ -179,7 +181,7 @@ def place_coarse(surface, ok, a: float, k: int) -> list[tuple[int, int]]:
         if out and cand[v] <= 0.0:
             break  # every cell is a landmark already
         out.append((v // cols, v % cols))
-        d = dijkstra(surface, ok, a, np.array([v])).ravel()
+        d = distances_from(surface, ok, a, (v // cols, v % cols)).ravel()
         nearest = np.minimum(nearest, d)
     return out
 
@@ -227,14 +229,27 @@ def place_landmarks(surface, passable, a: float, k: int = DEFAULT_LANDMARKS, com
     return out
 
 
-def landmark_layer(surface, passable, a: float, cell) -> np.ndarray:
-    """The float32 distance layer of one landmark (``inf`` outside its component)."""
+def distances_from(surface, passable, a: float, cell) -> np.ndarray:
+    """The exact shortest distances (float64, ``inf`` where unreached) from the passable
+    ``cell`` to every cell: by the row sweeps of :func:`pipeline.planners.sweep.distances`
+    (the same values as :func:`dijkstra`, bit for bit, 12-20x faster at 10000^2), by
+    :func:`dijkstra` where they give up (a maze that turns back on itself many times)."""
+    from .planners import sweep
+
     surface = np.ascontiguousarray(surface)
     if surface.dtype != np.float32:
         surface = surface.astype(np.float32)
     passable = np.ascontiguousarray(passable, dtype=np.bool_)
-    src = np.array([int(cell[0]) * passable.shape[1] + int(cell[1])], dtype=np.int64)
-    return dijkstra(surface, passable, float(a), src).astype(np.float32)
+    r, c = int(cell[0]), int(cell[1])
+    d = sweep.distances(surface, passable, float(a), (r, c)) if passable[r, c] else None
+    if d is None:
+        d = dijkstra(surface, passable, float(a), np.array([r * passable.shape[1] + c]))
+    return d
+
+
+def landmark_layer(surface, passable, a: float, cell) -> np.ndarray:
+    """The float32 distance layer of one landmark (``inf`` outside its component)."""
+    return distances_from(surface, passable, a, cell).astype(np.float32)
 
 
 def lower_bound(ds: np.ndarray, dg: np.ndarray) -> float:

