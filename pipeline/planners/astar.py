@@ -9,11 +9,12 @@ from .core import NO_GOAL, TIE, Planner, Search, landmark_rows, search_arrays, s
 
 # A* (weight 1) over windows of at least this many cells (a whole map, ``mcpc=False``, and the
 # exact coarse search of astar and dijkstra missions) runs as row sweeps over a bounded region
-# (:mod:`.sweep`): the same optimal length, 6-44x faster than the two-level A* on the missions of
-# the 4000^2 and 10000^2 benchmark maps and 1.3-7.4x faster than pyastar2d there
-# (benchmarks/bench_certify.py). On random missions in square windows of the 2000^2 map the
-# median sweep took 0.30 / 0.22 / 0.64 ms at 181^2 / 256^2 / 362^2 cells, A* 0.31 / 0.33 / 1.60
-# ms: from 2^16 cells on the sweeps; below, A* (an MCPC section's window: 125^2 cells at 30 m)
+# (:mod:`.sweep`): the same optimal length, 5.5-35x faster than the two-level A* on the 16
+# missions of the 4000^2 and 10000^2 benchmark maps and 1.1-6.2x faster than pyastar2d there
+# (benchmarks/RESULTS.md, "The exact search over the whole map"). On random missions in square
+# windows of the 2000^2 map the median sweep took 0.30 / 0.22 / 0.64 ms at 181^2 / 256^2 /
+# 362^2 cells, A* 0.31 / 0.33 / 1.60 ms: from 2^16 cells on the sweeps; below, A* (an MCPC
+# section's window: 125^2 cells at 30 m)
 SWEEP_CELLS = 2**16
 
 
