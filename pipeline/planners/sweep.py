@@ -133,6 +133,17 @@ def _lowest_of_three(d, pbase, lp, hp, j):
 
 
 @njit(inline="always", cache=True)
+def _inner_lowest(d, pbase, j):
+    """:func:`_lowest_of_three` where all three columns lie in row ``p``'s span, without a
+    branch (so that the loops over them vectorise)."""
+    x = d[pbase + j - 1]
+    y = d[pbase + j]
+    z = d[pbase + j + 1]
+    m = x if x < y else y
+    return m if m < z else z
+
+
+@njit(inline="always", cache=True)
 def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
     """The first column of ``j0 .. j1`` whose distance a neighbour in row ``p`` comes within
     ``low`` of (``j1 + 1``: none). Most rows a sweep revisits have none: the columns whose three
@@ -147,12 +158,7 @@ def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
     while j + 16 <= inner + 1:
         hit = False
         for q in range(j, j + 16):
-            x = d[pbase + q - 1]
-            y = d[pbase + q]
-            z = d[pbase + q + 1]
-            m = x if x < y else y
-            m = m if m < z else z
-            hit |= m + low < d[base + q]
+            hit |= _inner_lowest(d, pbase, q) + low < d[base + q]
         if hit:
             break
         j += 16
@@ -240,12 +246,7 @@ def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
     for j in range(j0, min(j1, inner0 - 1) + 1):
         count += _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
     for q in range(inner0, inner1 + 1):
-        x = d[pbase + q - 1]
-        y = d[pbase + q]
-        z = d[pbase + q + 1]
-        m = x if x < y else y
-        m = m if m < z else z
-        count += m + low < d[base + q]
+        count += _inner_lowest(d, pbase, q) + low < d[base + q]
     for j in range(max(j0, inner1 + 1), j1 + 1):
         count += _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
     return count
