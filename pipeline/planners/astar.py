@@ -9,8 +9,8 @@ from .core import NO_GOAL, TIE, Planner, Search, landmark_rows, search_arrays, s
 
 # A* (weight 1) over windows of at least this many cells (a whole map, ``mcpc=False``, and the
 # exact coarse search of astar and dijkstra missions) runs as row sweeps over a bounded region
-# (:mod:`.sweep`): the same optimal length, 5.5-35x faster than the two-level A* on the 16
-# missions of the 4000^2 and 10000^2 benchmark maps and 1.1-6.2x faster than pyastar2d there
+# (:mod:`.sweep`): the same optimal length, 5.8-49x faster than the two-level A* on the 16
+# missions of the 4000^2 and 10000^2 benchmark maps and 1.2-6.1x faster than pyastar2d there
 # (benchmarks/RESULTS.md, "The exact search over the whole map"). On random missions in square
 # windows of the 2000^2 map the median sweep took 0.30 / 0.22 / 0.64 ms at 181^2 / 256^2 /
 # 362^2 cells, A* 0.31 / 0.33 / 1.60 ms: from 2^16 cells on the sweeps; below, A* (an MCPC
