@@ -2,9 +2,10 @@
 
 ``core``: the graph, edge cost, heuristic, search state, A*, tracing, path metrics, endpoint
 checks and ``Trajectory``; one module per planner (``astar``: dijkstra, astar, wastar;
-``ra_star``; ``lagrangian``), each registered in ``registry.PLANNERS``; ``window``:
-``plan_window``, which runs any of them. ``dijkstra`` and ``astar`` are optimal; ``wastar``,
-``ra_star`` and ``lagrangian`` keep ``length <= omega * L*``.
+``ra_star``; ``lagrangian``), each registered in ``registry.PLANNERS``; ``sweep``: the exact
+search by row sweeps over a bounded region, ``astar``'s engine on large windows and the
+landmark layers'; ``window``: ``plan_window``, which runs any of them. ``dijkstra`` and
+``astar`` are optimal; ``wastar``, ``ra_star`` and ``lagrangian`` keep ``length <= omega * L*``.
 """
 
 from .core import Trajectory
