@@ -45,7 +45,7 @@ import numpy as np
 from numba import njit
 
 from .._grid8 import DC, DR
-from .core import heuristic
+from .core import edge_cost, heuristic
 
 # the first bound is (1 + SLACK) times the octile distance: the benchmark maps' optima lie
 # 0.1-1.3 % above it (benchmarks/bench_certify.py); a larger slack widens the region (at
@@ -105,19 +105,12 @@ def region_rows(rows, cols, a, sr, sc, gr, gc, bound):
 
 
 @njit(inline="always", cache=True)
-def _move(surface, a2, r, c, nr, nc):
-    """The length of the move (r, c) -> (nr, nc) of squared horizontal length ``a2``: the
-    same operations, in the same order, as every relaxation here (``edge_cost``'s value)."""
-    dz = np.float64(surface[nr, nc]) - np.float64(surface[r, c])
-    return math.sqrt(a2 + dz * dz)
-
-
-@njit(inline="always", cache=True)
-def _along(surface, ok, a2, i, j0, j1):
-    """The move (i, j0) -> (i, j1) along a row, inf where a cell is not passable."""
+def _along(surface, ok, a, i, j0, j1):
+    """The move (i, j0) -> (i, j1) along a row (``edge_cost``, whose operations every
+    relaxation here repeats in the same order), inf where a cell is not passable."""
     if not (ok[i, j0] and ok[i, j1]):
         return INF
-    return _move(surface, a2, i, j0, i, j1)
+    return edge_cost(surface, a, i, j0, i, j1)
 
 
 @njit(inline="always", cache=True)
@@ -130,6 +123,13 @@ def _lowest_of_three(d, pbase, lp, hp, j):
             if v < m:
                 m = v
     return m
+
+
+@njit(inline="always", cache=True)
+def _lowered(d, base, pbase, lp, hp, low, j):
+    """Whether a pull from row ``p`` may lower column ``j``: a neighbour there within ``low``
+    (a lower bound on every move) of its distance."""
+    return _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
 
 
 @njit(inline="always", cache=True)
@@ -151,7 +151,7 @@ def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
     the compiler vectorises), and the block that holds one is searched again one by one."""
     j = j0
     while j <= j1 and (j - 1 < lp or j + 1 > hp):
-        if _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]:
+        if _lowered(d, base, pbase, lp, hp, low, j):
             return j
         j += 1
     inner = min(j1, hp - 1)
@@ -163,7 +163,7 @@ def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
             break
         j += 16
     while j <= j1:
-        if _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]:
+        if _lowered(d, base, pbase, lp, hp, low, j):
             return j
         j += 1
     return j1 + 1
@@ -211,7 +211,7 @@ def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
     if kmin > j1:
         return 0, False
     kmax = j1
-    while not (_lowest_of_three(d, pbase, lp, hp, kmax) + low < d[base + kmax]):
+    while not _lowered(d, base, pbase, lp, hp, low, kmax):
         kmax -= 1
     if 2 * _count_lowered(d, base, pbase, lp, hp, low, kmin, kmax) >= kmax - kmin + 1:
         # dense (a row the sweeps reach for the first time): one span
@@ -226,7 +226,7 @@ def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
         end = kmin
         j = kmin + 1
         while j <= j1 and j - end <= GAP:
-            if _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]:
+            if _lowered(d, base, pbase, lp, hp, low, j):
                 end = j
             j += 1
         n, fell = _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, end)
@@ -244,11 +244,11 @@ def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
     inner0 = max(j0, lp + 1)
     inner1 = min(j1, hp - 1)
     for j in range(j0, min(j1, inner0 - 1) + 1):
-        count += _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
+        count += _lowered(d, base, pbase, lp, hp, low, j)
     for q in range(inner0, inner1 + 1):
         count += _inner_lowest(d, pbase, q) + low < d[base + q]
     for j in range(max(j0, inner1 + 1), j1 + 1):
-        count += _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
+        count += _lowered(d, base, pbase, lp, hp, low, j)
     return count
 
 
@@ -300,7 +300,7 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
         d[base + kmin - 1 + q] = best[q]
     right = kmax
     for j in range(kmax + 1, last + 1):
-        c = d[base + j - 1] + _along(surface, ok, a2, i, j - 1, j)
+        c = d[base + j - 1] + _along(surface, ok, a, i, j - 1, j)
         if not c < d[base + j]:
             break
         d[base + j] = c
@@ -308,7 +308,7 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
         changed = True
     # and back, right to left, on past kmin while it lowers
     for j in range(right - 1, kmax, -1):
-        c = d[base + j + 1] + _along(surface, ok, a2, i, j + 1, j)
+        c = d[base + j + 1] + _along(surface, ok, a, i, j + 1, j)
         if c < d[base + j]:
             d[base + j] = c
     if kmax < last:
@@ -322,7 +322,7 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
         d[base + kmin - 1 + q] = best[q]
     left = kmin
     for j in range(kmin - 1, first - 1, -1):
-        c = d[base + j + 1] + _along(surface, ok, a2, i, j + 1, j)
+        c = d[base + j + 1] + _along(surface, ok, a, i, j + 1, j)
         if not c < d[base + j]:
             break
         d[base + j] = c
@@ -335,8 +335,9 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
 def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
     """The shortest distances from (sr, sc) within the region ``lo``/``hi`` (step 2 of the
     module's method): ``(d, off, relaxed, sweeps, done)``, ``d[off[i] + j - lo[i]]`` the
-    distance of cell (i, j) (inf: not reached), ``done`` False when the relaxations passed
-    ``budget`` or the sweeps ``max_sweeps`` (the distances are then upper bounds only)."""
+    distance of cell (i, j) (inf: not reached; ``off[-1]`` the region's cells), ``done`` False
+    when the relaxations passed ``budget`` times the region's cells or the sweeps
+    ``max_sweeps`` (the distances are then upper bounds only)."""
     rows = surface.shape[0]
     off = np.zeros(rows + 1, dtype=np.int64)
     width = 0
@@ -345,6 +346,7 @@ def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
         off[i + 1] = off[i] + w
         width = max(width, w)
     d = np.full(off[rows], INF)
+    budget = budget * off[rows]
     scratch = np.empty((9, width + 2))
     d[off[sr] + sc - lo[sr]] = 0.0
     # stamps: when a row last changed, and last pulled from the row above / below
@@ -392,8 +394,6 @@ def _backtrack(surface, ok, a, sr, sc, gr, gc, lo, hi, off, d):
     """Step 4: the path's cells (k x 2, start to goal), or an empty array if a cell has no
     neighbour that gives its distance (not a fixpoint: never, but the caller then runs A*)."""
     rows, cols = surface.shape
-    a2 = a * a
-    d2 = 2.0 * a2
     moves = np.empty(1024, dtype=np.int8)
     n = 0
     r, c = gr, gc
@@ -410,7 +410,7 @@ def _backtrack(surface, ok, a, sr, sc, gr, gc, lo, hi, off, d):
                 continue
             if k % 2 == 1 and not (ok[pr, c] and ok[r, pc]):
                 continue  # a diagonal must not cut a corner
-            v = d[off[pr] + pc - lo[pr]] + _move(surface, d2 if k % 2 else a2, pr, pc, r, c)
+            v = d[off[pr] + pc - lo[pr]] + edge_cost(surface, a, pr, pc, r, c)
             if v < best:
                 best = v
                 move = k
@@ -446,10 +446,10 @@ def search(surface, passable, a: float, s, t):
     while True:
         # a hair wider than the bound: the floating point of oct(s, v) + oct(v, g)
         lo, hi = region_rows(rows, cols, a, s[0], s[1], t[0], t[1], bound * (1.0 + 1e-9))
-        cells = int(np.maximum(hi - lo + 1, 0).sum())
         d, off, n, k, done = sweep_distances(
-            surface, passable, a, s[0], s[1], lo, hi, BUDGET * cells, MAX_SWEEPS
+            surface, passable, a, s[0], s[1], lo, hi, BUDGET, MAX_SWEEPS
         )
+        cells = int(off[-1])
         rounds += 1
         relaxed += int(n)
         sweeps += int(k)
@@ -479,7 +479,6 @@ def distances(surface, passable, a: float, source):
     lo = np.zeros(rows, dtype=np.int64)
     hi = np.full(rows, cols - 1, dtype=np.int64)
     d, _, _, _, done = sweep_distances(
-        surface, passable, a, int(source[0]), int(source[1]), lo, hi, BUDGET * rows * cols,
-        WHOLE_MAP_SWEEPS,
+        surface, passable, a, int(source[0]), int(source[1]), lo, hi, BUDGET, WHOLE_MAP_SWEEPS,
     )  # fmt: skip
     return d.reshape(rows, cols) if done else None
