@@ -57,7 +57,11 @@ def reference_distances(surface, passable, a, start):
 
 
 def check_path(t, passable, start, goal):
-    cells = t.cells
+    check_cells(t.cells, passable, start, goal)
+
+
+def check_cells(cells, passable, start, goal):
+    """Start to goal in 8-neighbour moves over passable cells, no corner cut, no cell twice."""
     assert tuple(cells[0]) == tuple(start) and tuple(cells[-1]) == tuple(goal)
     assert passable[cells[:, 0], cells[:, 1]].all()
     steps = np.diff(cells, axis=0)
@@ -69,8 +73,13 @@ def check_path(t, passable, start, goal):
 
 
 def independent_metrics(t, surface, ridge, a):
+    return cell_metrics(t.cells, surface, ridge, a)
+
+
+def cell_metrics(cells, surface, ridge, a):
+    """A path's length and ridge length, step by step in Python."""
     length = ridge_len = 0.0
-    for (r0, c0), (r1, c1) in zip(t.cells[:-1], t.cells[1:], strict=True):
+    for (r0, c0), (r1, c1) in zip(cells[:-1], cells[1:], strict=True):
         step = math.sqrt(
             a * a * ((r1 - r0) ** 2 + (c1 - c0) ** 2)
             + (float(surface[r1, c1]) - float(surface[r0, c0])) ** 2

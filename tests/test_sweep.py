@@ -11,7 +11,14 @@ import math
 import numpy as np
 import pytest
 from conftest import random_surface
-from test_planners import check_path, independent_metrics, obstacle_map, reference_distances
+from test_planners import (
+    cell_metrics,
+    check_cells,
+    check_path,
+    independent_metrics,
+    obstacle_map,
+    reference_distances,
+)
 
 import pipeline
 from pipeline.planners import astar, sweep
@@ -22,24 +29,6 @@ A = 30.0
 def octile(s, g):
     dr, dc = abs(s[0] - g[0]), abs(s[1] - g[1])
     return A * (max(dr, dc) + (math.sqrt(2) - 1) * min(dr, dc))
-
-
-def check_cells(cells, passable, s, g):
-    """Start to goal in 8-neighbour moves over passable cells, no corner cut, no cell twice."""
-    assert tuple(cells[0]) == tuple(s) and tuple(cells[-1]) == tuple(g)
-    assert passable[cells[:, 0], cells[:, 1]].all()
-    steps = np.diff(cells, axis=0)
-    assert np.all(np.abs(steps).max(axis=1) == 1)
-    for (r, c), (dr, dc) in zip(cells[:-1], steps, strict=True):
-        if dr and dc:
-            assert passable[r, c + dc] and passable[r + dr, c]
-    assert len({tuple(x) for x in cells}) == len(cells)
-
-
-def length_of(cells, surface):
-    z = surface[cells[:, 0], cells[:, 1]].astype(np.float64)
-    steps = np.diff(cells, axis=0)
-    return float(np.sqrt(A * A * (steps**2).sum(axis=1) + np.diff(z) ** 2).sum())
 
 
 def solve_and_check(surface, passable, s, g):
@@ -53,7 +42,7 @@ def solve_and_check(surface, passable, s, g):
         assert extra["region_cells"] == surface.size  # grown to the whole map to prove it
         return extra
     check_cells(cells, passable, s, g)
-    assert length_of(cells, surface) == pytest.approx(ref, rel=1e-12)
+    assert cell_metrics(cells, surface, passable, A)[0] == pytest.approx(ref, rel=1e-12)
     assert relaxed >= 1
     return extra
 
