@@ -252,6 +252,20 @@ def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
     return count
 
 
+@njit(inline="always", cache=True)
+def _extend(surface, ok, a, i, d, base, j, end, step):
+    """Carry row ``i``'s distances on from column ``j`` towards ``end`` (``step`` +1 or -1)
+    while each move along the row lowers the next; returns the last column lowered (``j``:
+    none)."""
+    while j != end:
+        c = d[base + j] + _along(surface, ok, a, i, j, j + step)
+        if not c < d[base + j + step]:
+            break
+        j += step
+        d[base + j] = c
+    return j
+
+
 @njit(cache=True, nogil=True)
 def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
     """:func:`_relax_row` over columns ``kmin .. kmax``: the pull (none with ``p < 0``), then
@@ -298,14 +312,8 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
             changed = True
     for q in range(1, n + 1):
         d[base + kmin - 1 + q] = best[q]
-    right = kmax
-    for j in range(kmax + 1, last + 1):
-        c = d[base + j - 1] + _along(surface, ok, a, i, j - 1, j)
-        if not c < d[base + j]:
-            break
-        d[base + j] = c
-        right = j
-        changed = True
+    right = _extend(surface, ok, a, i, d, base, kmax, last, 1)
+    changed |= right > kmax
     # and back, right to left, on past kmin while it lowers
     for j in range(right - 1, kmax, -1):
         c = d[base + j + 1] + _along(surface, ok, a, i, j + 1, j)
@@ -320,14 +328,8 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
             changed = True
     for q in range(1, n + 1):
         d[base + kmin - 1 + q] = best[q]
-    left = kmin
-    for j in range(kmin - 1, first - 1, -1):
-        c = d[base + j + 1] + _along(surface, ok, a, i, j + 1, j)
-        if not c < d[base + j]:
-            break
-        d[base + j] = c
-        left = j
-        changed = True
+    left = _extend(surface, ok, a, i, d, base, kmin, first, -1)
+    changed |= left < kmin
     return n + (right - kmax) + (kmin - left), changed
 
 
