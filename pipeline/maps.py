@@ -248,7 +248,6 @@ def build_maps(
             table, offsets = join_tiles(
                 *([p[2][k] for p in parts] for k in range(3)), len(tiles.r_off) - 1, tiles.nbc
             )
-            count = int(table.max(initial=0))
             (joined,) = dask.persist(dask.delayed((table, offsets), pure=True))
             writers = _create(
                 {
@@ -275,7 +274,6 @@ def build_maps(
                 landmarks,
                 a,
                 log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a),
-                components=count,
             )
             landmarks_s = time.perf_counter() - tl
             log.info("maps %s: %d landmarks written (%.1f s)", store, len(cells), landmarks_s)
@@ -385,7 +383,7 @@ def _check_landmark_memory(shape) -> None:
     if need > 0.9 * have:
         raise InvalidParameterError(
             f"the landmark layers need about {need / 2**30:.1f} GiB per landmark search (an "
-            f"exact search of the whole {shape[0]} x {shape[1]} map, 18 bytes a cell), more "
+            f"exact search of the whole {shape[0]} x {shape[1]} map, 14 bytes a cell), more "
             f"than the {have / 2**30:.1f} GiB one search can have here; set landmarks = 0 "
             "(--landmarks 0): missions are then certified by the octile bound or say they "
             "are not"

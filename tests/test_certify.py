@@ -219,6 +219,79 @@ def test_every_landmark_chunk_is_written_also_where_it_does_not_reach(tmp_path):
     assert m.lower_bound((5, 5), (190, 30)) > 0 and m.lower_bound((280, 5), (295, 30)) > 0
 
 
+@pytest.mark.parametrize(
+    "shape, chunks, factor",
+    [((65, 33), (16, 16), 3), ((40, 41), (40, 8), 7), ((7, 300), (3, 256), 2), ((9, 9), (9, 9), 9)],
+)
+def test_placement_regions_tile_the_map_in_whole_blocks(shape, chunks, factor):
+    """Every cell in exactly one region (counted cell by cell), every region starting on a
+    block's first row and column, about a chunk a side (a last region of one cell included)."""
+    regions = lm.placement_regions(shape, chunks, factor)
+    hits = np.zeros(shape, dtype=int)
+    for r0, r1, c0, c1 in regions:
+        assert r0 % factor == 0 and c0 % factor == 0 and r1 > r0 and c1 > c0
+        hits[r0:r1, c0:c1] += 1
+    assert (hits == 1).all()
+
+
+@pytest.mark.parametrize("factor", [1, 3, 7, 16])
+def test_block_sums_of_regions_assemble_the_whole_maps_against_brute_force(factor):
+    """The coarse grid the maps build assembles from its regions' block sums: the kept cells
+    per block exactly, and the sums of the surface, against a loop over each block's cells;
+    NaN under land counts as 0, padded blocks at the right and bottom edges hold fewer cells."""
+    rng = np.random.default_rng(factor)
+    shape = (53, 38)
+    surface = (rng.normal(size=shape) * 100).astype(np.float32)
+    surface[rng.random(shape) < 0.1] = np.nan
+    keep = rng.random(shape) < 0.7
+    nb = (-(-shape[0] // factor), -(-shape[1] // factor))
+    n = np.zeros(nb, dtype=np.int64)
+    zs = np.zeros(nb)
+    for r0, r1, c0, c1 in lm.placement_regions(shape, (16, 20), factor):
+        rn, rz = lm.block_sums(surface[r0:r1, c0:c1], keep[r0:r1, c0:c1], factor)
+        at = (slice(r0 // factor, r0 // factor + rn.shape[0]),)
+        at += (slice(c0 // factor, c0 // factor + rn.shape[1]),)
+        n[at], zs[at] = rn, rz
+    for i in range(nb[0]):
+        for j in range(nb[1]):
+            blk = (slice(i * factor, (i + 1) * factor), slice(j * factor, (j + 1) * factor))
+            k = keep[blk]
+            assert n[i, j] == k.sum()
+            assert zs[i, j] == pytest.approx(float(np.nansum(surface[blk][k], dtype=np.float64)))
+    mean, ok = lm.coarse_mean(n, zs, factor)
+    ref_mean, ref_ok = lm.coarse_grid(surface, None, keep, factor)
+    np.testing.assert_array_equal(ok, ref_ok)
+    np.testing.assert_allclose(mean, ref_mean, rtol=1e-6)
+
+
+@pytest.mark.parametrize("codec", ["none", "blosc"])
+def test_a_landmark_task_reads_the_whole_layer_as_zarr_does(tmp_path, codec):
+    """The layers a landmark task holds (copied from the mapped shards of an uncompressed
+    sharded layer, else read through zarr) equal zarr's reads, also with a shard missing
+    (read as the fill value) and with a last shard of one row and column."""
+    import zarr
+    from zarr.codecs import BloscCodec
+
+    rng = np.random.default_rng(5)
+    data = (rng.normal(size=(65, 33)) * 100).astype(np.float32)
+    data[0, 0] = np.nan
+    comp = None if codec == "none" else BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
+    g = zarr.open_group(tmp_path / "s.zarr", mode="w", zarr_format=3)
+    for name, shards in (("full", (32, 32)), ("holed", (32, 32))):
+        arr = g.create_array(
+            name, shape=data.shape, chunks=(16, 16), shards=shards, dtype="float32",
+            fill_value=-7.0, compressors=comp,
+        )  # fmt: skip
+        arr[...] = data
+    (tmp_path / "s.zarr" / "holed" / "c" / "1" / "0").unlink()
+    g = zarr.open_group(tmp_path / "s.zarr", mode="r", zarr_format=3)
+    for name in ("full", "holed"):
+        got = lm.whole_layer(str(tmp_path / "s.zarr"), g, name)
+        np.testing.assert_array_equal(got, g[name][:])
+        assert got.dtype == np.float32
+    assert (lm.whole_layer(str(tmp_path / "s.zarr"), g, "holed")[32:64, :32] == -7.0).all()
+
+
 def test_a_store_without_landmarks_has_no_bound(tmp_path):
     import dask
 
