@@ -382,8 +382,8 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     whole blocks of its coarse grid (:func:`placement_regions`): the components' sizes, then
     the block sums of the coarse grid of at most ``PLACEMENT_SIDE`` cells a side
     (:func:`block_sums`, as :func:`coarse_grid` computes them in memory). On the 10000^2
-    benchmark map the two passes took 2.4 s where dask's ``bincount`` of the raveled layer
-    and xarray's ``coarsen`` (which rechunked it to the blocks) took 10.2 s. Each layer is
+    benchmark map (2 workers) the two passes took 5.3-5.6 s where dask's ``bincount`` of the
+    raveled layer and xarray's ``coarsen`` (which rechunked it to the blocks) took 10.2 s. Each layer is
     one task, run where the dask scheduler in use puts it (several in parallel), that holds
     the whole map (:func:`memory_per_landmark`). Returns the landmark cells."""
     import dask
