@@ -299,12 +299,13 @@ def memory_per_landmark(shape) -> int:
     return 14 * int(shape[0]) * int(shape[1])
 
 
-def _layer_task(store: str, i: int, cell, a: float) -> None:
-    """Landmark ``i``'s layer computed and written shard by shard (:func:`~.store.block_writer`:
-    on a local store the shards' bytes written directly, 1.2 s for a 10000^2 layer where
-    zarr's own write of it took 6.4 s). The safety and passable layers are read as
-    :func:`whole_layer` reads them, and freed before the write, which rounds the distances to
-    float32 shard by shard (no float32 copy of the map)."""
+def _layers_task(store: str, items: list, a: float) -> None:
+    """The layers of the landmarks ``items`` (``(index, cell)`` pairs) computed in turn, each
+    written shard by shard (:func:`~.store.block_writer`: on a local store the shards' bytes
+    written directly, 1.2 s for a 10000^2 layer where zarr's own write of it took 6.4 s) and
+    rounded to float32 shard by shard as it is written (no float32 copy of the map). The
+    safety and passable layers are read once for all of them, as :func:`whole_layer` reads
+    them (1.1 s at 10000^2)."""
     import zarr
 
     from .store import block_writer
@@ -312,14 +313,35 @@ def _layer_task(store: str, i: int, cell, a: float) -> None:
     g = zarr.open_group(store, mode="r", zarr_format=3)
     surface = whole_layer(store, g, "safety")
     passable = whole_layer(store, g, "passable")
-    d = distances_from(surface, passable, a, cell)
-    del surface, passable
     _, bh, bw = storage_chunks(g[VARIABLE])
     write = block_writer(store, VARIABLE)
-    for si in range(-(-d.shape[0] // bh)):
-        for sj in range(-(-d.shape[1] // bw)):
-            block = d[None, si * bh : (si + 1) * bh, sj * bw : (sj + 1) * bw]
-            write((i, si, sj), block.astype(np.float32))
+    for i, cell in items:
+        d = distances_from(surface, passable, a, cell)
+        for si in range(-(-d.shape[0] // bh)):
+            for sj in range(-(-d.shape[1] // bw)):
+                part = (slice(si * bh, (si + 1) * bh), slice(sj * bw, (sj + 1) * bw))
+                write((i, si, sj), d[None, *part].astype(np.float32))
+        del d  # (no view of it left) before the next search allocates its own
+
+
+def search_slots() -> int:
+    """How many landmark searches run at once: the worker threads of the distributed client
+    dask computes on, else two (this process's threads, half of its memory each)."""
+    from .cluster import computing_client
+
+    client = computing_client()
+    if client is None:
+        return 2
+    return max(1, sum(client.nthreads().values()))
+
+
+def component_sizes(parts) -> np.ndarray:
+    """The cells of each component label (index 0: not passable), from the ``np.bincount`` of
+    each part of the component layer (the parts tiling the map)."""
+    counts = np.zeros(max((p.size for p in parts), default=1), dtype=np.int64)
+    for p in parts:
+        counts[: p.size] += p
+    return counts
 
 
 def whole_layer(store: str, group, var: str) -> np.ndarray:
@@ -373,19 +395,22 @@ def _region_sums(store: str, region, factor: int, big) -> tuple:
     return r0 // factor, c0 // factor, n, zs
 
 
-def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]:
+def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tuple[int, int]]:
     """Place ``k`` landmarks on the maps store being built at ``store`` (its safety, passable
     and component layers written) and write their distance layers into it: the variable
-    ``landmark_distance`` (landmark, y, x).
+    ``landmark_distance`` (landmark, y, x). ``counts``: the cells of each component label,
+    when the caller has them (:func:`component_sizes`; the maps build's component pass).
 
     Placement reads the store in two passes of tasks over parts of about a storage chunk, in
-    whole blocks of its coarse grid (:func:`placement_regions`): the components' sizes, then
-    the block sums of the coarse grid of at most ``PLACEMENT_SIDE`` cells a side
+    whole blocks of its coarse grid (:func:`placement_regions`): the components' sizes (unless
+    given), then the block sums of the coarse grid of at most ``PLACEMENT_SIDE`` cells a side
     (:func:`block_sums`, as :func:`coarse_grid` computes them in memory). On the 10000^2
-    benchmark map (2 workers) the two passes took 5.3-5.6 s where dask's ``bincount`` of the
-    raveled layer and xarray's ``coarsen`` (which rechunked it to the blocks) took 10.2 s. Each layer is
-    one task, run where the dask scheduler in use puts it (several in parallel), that holds
-    the whole map (:func:`memory_per_landmark`). Returns the landmark cells."""
+    benchmark map (2 workers) the two passes took 5.3-5.6 s (the sums 3.3-3.7 s; the maps
+    build counts the sizes in its component pass) where dask's ``bincount`` of the raveled
+    layer and xarray's ``coarsen`` (which rechunked it to the blocks) took 10.2 s. The
+    layers are computed by one task per search slot (:func:`search_slots`), each holding the
+    whole map (:func:`memory_per_landmark`), which reads the map once and computes its share
+    of the landmarks in turn (every slot-th one). Returns the landmark cells."""
     import dask
     import zarr
 
@@ -396,11 +421,9 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
     shape = tuple(int(n) for n in comp_arr.shape)
     f = placement_factor(shape)
     regions = placement_regions(shape, storage_chunks(comp_arr), f)
-    task = dask.delayed(_region_counts, pure=True)
-    parts = dask.compute(*[task(store, r) for r in regions])
-    counts = np.zeros(max(p.size for p in parts), dtype=np.int64)
-    for p in parts:
-        counts[: p.size] += p
+    if counts is None:
+        task = dask.delayed(_region_counts, pure=True)
+        counts = component_sizes(dask.compute(*[task(store, r) for r in regions]))
     if counts.size <= 1:
         return []  # no passable cell
     big = large_components(None, counts)
@@ -445,7 +468,8 @@ def landmarks_staged(store, k: int, a: float, log=None) -> list[tuple[int, int]]
         },
         overwrite=True,
     )
-    dask.compute(
-        *[dask.delayed(_layer_task, pure=False)(store, i, c, a) for i, c in enumerate(cells)]
-    )
+    items = list(enumerate(cells))
+    slots = min(len(items), search_slots())
+    task = dask.delayed(_layers_task, pure=False)
+    dask.compute(*[task(store, items[j::slots], a) for j in range(slots)])
     return cells

@@ -54,7 +54,7 @@ from .cluster import computing_client
 from .components import join_tiles, label_tile, relabel_tile
 from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError, StoreExistsError
-from .landmarks import landmarks_staged, memory_per_landmark
+from .landmarks import component_sizes, landmarks_staged, memory_per_landmark
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
 from .ridges import default_min_accumulation, flood_and_solve, tile_accumulation
 from .safety import block_kernel, passable, passable_cells, safety_map
@@ -261,7 +261,7 @@ def build_maps(
                 ch,
                 mode="a",
             )
-            tiles.run(_component_tile, joined, writers)
+            sizes = tiles.run(_component_tile, joined, writers)
             log.info("maps %s: components labelled", store)
             # the scratch tiles (about 13 bytes a cell) go before the landmark searches,
             # which read the store's layers back through the page cache
@@ -274,6 +274,7 @@ def build_maps(
                 landmarks,
                 a,
                 log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a),
+                counts=component_sizes(sizes),
             )
             landmarks_s = time.perf_counter() - tl
             log.info("maps %s: %d landmarks written (%.1f s)", store, len(cells), landmarks_s)
@@ -471,11 +472,15 @@ def _layers_tile(t: _Tiles, bi: int, bj: int, solution, writers) -> tuple:
     return _hash_tile(z, r0, c0, m), written, parts
 
 
-def _component_tile(t: _Tiles, bi: int, bj: int, joined, writers) -> int:
-    """Pass 4 for one tile: its component block(s) from its local labels and the join."""
+def _component_tile(t: _Tiles, bi: int, bj: int, joined, writers) -> np.ndarray:
+    """Pass 4 for one tile: its component block(s) from its local labels and the join
+    written; returns the cells of each component label in the tile (the landmarks' placement
+    needs the components' sizes)."""
     table, offsets = joined
     (writer,) = writers
-    return t.put(writer, bi, bj, relabel_tile(t.labels, (bi, bj), table, offsets, t.nbc))
+    block = relabel_tile(t.labels, (bi, bj), table, offsets, t.nbc)
+    t.put(writer, bi, bj, block)
+    return np.bincount(block.ravel())
 
 
 def _create(layers: dict, dem: xr.DataArray, path, ch, *, mode: str = "w") -> tuple:
