@@ -422,14 +422,14 @@ def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tup
     f = placement_factor(shape)
     regions = placement_regions(shape, storage_chunks(comp_arr), f)
     if counts is None:
-        task = dask.delayed(_region_counts, pure=True)
+        task = dask.delayed(_region_counts, pure=False)  # it reads the store
         counts = component_sizes(dask.compute(*[task(store, r) for r in regions]))
     if counts.size <= 1:
         return []  # no passable cell
     big = large_components(None, counts)
     n = np.zeros((-(-shape[0] // f), -(-shape[1] // f)), dtype=np.int64)
     zs = np.zeros(n.shape, dtype=np.float64)
-    task = dask.delayed(_region_sums, pure=True)
+    task = dask.delayed(_region_sums, pure=False)
     for br, bc, rn, rz in dask.compute(*[task(store, r, f, big) for r in regions]):
         n[br : br + rn.shape[0], bc : bc + rn.shape[1]] = rn
         zs[br : br + rz.shape[0], bc : bc + rz.shape[1]] = rz
