@@ -374,25 +374,36 @@ def placement_regions(shape, chunks, factor: int) -> list[tuple[int, int, int, i
     ]
 
 
-def _region_counts(store: str, region) -> np.ndarray:
-    """The cells of each component label in ``region`` of the store's component layer."""
+def _region(store: str, var: str, region) -> np.ndarray:
+    """Cells ``region`` ``(r0, r1, c0, c1)`` of layer ``var`` of the store, through zarr."""
     import zarr
 
     r0, r1, c0, c1 = region
-    comp = zarr.open_array(f"{store}/component", mode="r", zarr_format=3)[r0:r1, c0:c1]
-    return np.bincount(comp.ravel())
+    return zarr.open_array(f"{store}/{var}", mode="r", zarr_format=3)[r0:r1, c0:c1]
+
+
+def _region_counts(store: str, region) -> np.ndarray:
+    """The cells of each component label in ``region`` of the store's component layer."""
+    return np.bincount(_region(store, "component", region).ravel())
 
 
 def _region_sums(store: str, region, factor: int, big) -> tuple:
     """:func:`block_sums` of ``region`` (its first cell's coarse block, the sums), the kept
     cells those of the components ``big``."""
-    import zarr
+    keep = np.isin(_region(store, "component", region), big)
+    n, zs = block_sums(_region(store, "safety", region), keep, factor)
+    return region[0] // factor, region[2] // factor, n, zs
 
-    r0, r1, c0, c1 = region
-    comp = zarr.open_array(f"{store}/component", mode="r", zarr_format=3)[r0:r1, c0:c1]
-    surface = zarr.open_array(f"{store}/safety", mode="r", zarr_format=3)[r0:r1, c0:c1]
-    n, zs = block_sums(surface, np.isin(comp, big), factor)
-    return r0 // factor, c0 // factor, n, zs
+
+def assembled(shape, factor: int, parts) -> tuple:
+    """The :func:`block_sums` of a map of ``shape`` from those of its parts (each as
+    :func:`_region_sums` returns it: its first block's row and column, then its sums)."""
+    n = np.zeros((-(-shape[0] // factor), -(-shape[1] // factor)), dtype=np.int64)
+    zs = np.zeros(n.shape, dtype=np.float64)
+    for br, bc, rn, rz in parts:
+        n[br : br + rn.shape[0], bc : bc + rn.shape[1]] = rn
+        zs[br : br + rz.shape[0], bc : bc + rz.shape[1]] = rz
+    return n, zs
 
 
 def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tuple[int, int]]:
@@ -427,21 +438,12 @@ def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tup
     if counts.size <= 1:
         return []  # no passable cell
     big = large_components(None, counts)
-    n = np.zeros((-(-shape[0] // f), -(-shape[1] // f)), dtype=np.int64)
-    zs = np.zeros(n.shape, dtype=np.float64)
     task = dask.delayed(_region_sums, pure=False)
-    for br, bc, rn, rz in dask.compute(*[task(store, r, f, big) for r in regions]):
-        n[br : br + rn.shape[0], bc : bc + rn.shape[1]] = rn
-        zs[br : br + rz.shape[0], bc : bc + rz.shape[1]] = rz
-    mean, ok = coarse_mean(n, zs, f)
+    parts = dask.compute(*[task(store, r, f, big) for r in regions])
+    mean, ok = coarse_mean(*assembled(shape, f, parts), f)
     cells: list[tuple[int, int]] = []
     for cr, cc in place_coarse(mean, ok, a * f, k):
-        block = np.isin(
-            zarr.open_array(f"{store}/component", mode="r", zarr_format=3)[
-                cr * f : (cr + 1) * f, cc * f : (cc + 1) * f
-            ],
-            big,
-        )
+        block = np.isin(comp_arr[cr * f : (cr + 1) * f, cc * f : (cc + 1) * f], big)
         cell = fine_cell(block, cr * f, cc * f)
         if cell is not None and cell not in cells:
             cells.append(cell)

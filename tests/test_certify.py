@@ -244,14 +244,17 @@ def test_block_sums_of_regions_assemble_the_whole_maps_against_brute_force(facto
     surface = (rng.normal(size=shape) * 100).astype(np.float32)
     surface[rng.random(shape) < 0.1] = np.nan
     keep = rng.random(shape) < 0.7
+    parts = [
+        (
+            r0 // factor,
+            c0 // factor,
+            *lm.block_sums(surface[r0:r1, c0:c1], keep[r0:r1, c0:c1], factor),
+        )
+        for r0, r1, c0, c1 in lm.placement_regions(shape, (16, 20), factor)
+    ]
+    n, zs = lm.assembled(shape, factor, parts)
     nb = (-(-shape[0] // factor), -(-shape[1] // factor))
-    n = np.zeros(nb, dtype=np.int64)
-    zs = np.zeros(nb)
-    for r0, r1, c0, c1 in lm.placement_regions(shape, (16, 20), factor):
-        rn, rz = lm.block_sums(surface[r0:r1, c0:c1], keep[r0:r1, c0:c1], factor)
-        at = (slice(r0 // factor, r0 // factor + rn.shape[0]),)
-        at += (slice(c0 // factor, c0 // factor + rn.shape[1]),)
-        n[at], zs[at] = rn, rz
+    assert n.shape == zs.shape == nb
     for i in range(nb[0]):
         for j in range(nb[1]):
             blk = (slice(i * factor, (i + 1) * factor), slice(j * factor, (j + 1) * factor))
