@@ -7,7 +7,8 @@ and int32 items, the searches float64 keys and int64 items. Ties pop in no set o
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from ._jit import njit
 
 
 @njit(inline="always", cache=True)

@@ -21,10 +21,10 @@ from __future__ import annotations
 import dask
 import dask.array as da
 import numpy as np
-from numba import njit
 from scipy import ndimage
 
 from ._io import load_tile, save_tile
+from ._jit import njit
 
 CROSS = ndimage.generate_binary_structure(2, 1)
 

@@ -20,7 +20,8 @@ from pathlib import Path
 from xml.sax.saxutils import escape
 
 import numpy as np
-from numba import njit
+
+from ._jit import njit
 
 PARQUET = "application/vnd.apache.parquet"
 # the files that need latitudes and longitudes: not written for a DEM without a CRS

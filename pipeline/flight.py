@@ -39,8 +39,8 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from numba import njit
 
+from ._jit import njit
 from ._threads import shared_pool
 from .exceptions import InvalidParameterError
 from .params import VEHICLE

@@ -37,11 +37,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from ._grid8 import DC, DR, flat_offsets, inside
 from ._heap import grown
 from ._io import inner_chunks, layer_codec, storage_chunks
+from ._jit import njit
 from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
 

@@ -37,7 +37,6 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 import zarr
-from numba import njit
 
 from ._io import (
     WINDOW_LAYERS,
@@ -50,6 +49,7 @@ from ._io import (
     store_exists,
     target,
 )
+from ._jit import njit
 from .cluster import computing_client
 from .components import join_tiles, label_tile, relabel_tile
 from .dem import cell_size, open_dem, require_valid_cells

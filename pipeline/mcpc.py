@@ -38,9 +38,9 @@ from dataclasses import dataclass, field, replace
 from numbers import Integral
 
 import numpy as np
-from numba import njit
 
 from ._inbox import Inbox, post
+from ._jit import njit
 from ._share import Claims
 from ._threads import shared_pool
 from .cluster import get_client

@@ -21,8 +21,8 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 
 import numpy as np
-from numba import njit
 
+from ._jit import njit
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight

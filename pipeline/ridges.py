@@ -46,11 +46,11 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
-from numba import njit
 
 from ._grid8 import DC, DIST, DR, flat_offsets, inside
 from ._heap import grown
 from ._io import load_tile, load_window, save_tile, tile_array
+from ._jit import njit
 from ._threads import shared_pool
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells

@@ -29,9 +29,9 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from llvmlite import ir
-from numba import njit
 from numba.core.extending import intrinsic
 
+from ._jit import njit
 from .dem import check_dem
 from .exceptions import InvalidParameterError
 from .params import MAPS

@@ -22,8 +22,8 @@ import math
 import dask.array as da
 import numpy as np
 import xarray as xr
-from numba import njit
 
+from ._jit import njit
 from .params import DEFAULT_CHUNK, SYNTHETIC, chunks2d, shape2d
 
 GENERATOR_VERSION = 1

@@ -58,3 +58,32 @@ def test_the_check_sees_private_names():
         "from pipeline.planners.core import _trace",
         "pipeline.store._STORES",
     ]
+
+
+def _numba_jit_imports(source: str) -> list:
+    """The lines of ``source`` that take numba's compilers (``njit``, ``jit``) from numba."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "numba":
+            if any(a.name in ("njit", "jit") for a in node.names):
+                out.append(node.lineno)
+        elif isinstance(node, ast.Attribute) and node.attr in ("njit", "jit"):
+            if isinstance(node.value, ast.Name) and node.value.id == "numba":
+                out.append(node.lineno)
+    return out
+
+
+def test_the_packages_kernels_compile_through_one_module():
+    """Every kernel of the package is compiled by ``pipeline._jit.njit``, whose module makes
+    numba's on-disk cache safe for processes that compile at once: no other module takes
+    numba's compilers itself."""
+    assert _numba_jit_imports("from numba import njit, prange\nimport numba\nnumba.njit(f)\n") == [
+        1,
+        3,
+    ]
+    found = {
+        str(p.relative_to(ROOT)): lines
+        for p in sorted((ROOT / "pipeline").rglob("*.py"))
+        if p.name != "_jit.py" and (lines := _numba_jit_imports(p.read_text()))
+    }
+    assert not found, f"kernels compiled past pipeline._jit: {found}"

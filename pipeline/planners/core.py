@@ -16,10 +16,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 
 from .._grid8 import DC, DR, flat_offsets
 from .._heap import grown, heap_pop, heap_push, heap_reserve
+from .._jit import njit
 from ..exceptions import InvalidEndpointError, InvalidParameterError
 
 

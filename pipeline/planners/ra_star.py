@@ -29,10 +29,10 @@ below the limit, so RA* is A*.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from .._grid8 import DC, DR
 from .._heap import heap_pop, heap_push, heap_reserve
+from .._jit import njit
 from .core import (
     CLOSED,
     INWAIT,

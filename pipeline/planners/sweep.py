@@ -42,9 +42,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from .._grid8 import DC, DR
+from .._jit import njit
 from .core import edge_cost, heuristic
 
 # the first bound is (1 + SLACK) times the octile distance: the benchmark maps' optima lie
