@@ -356,7 +356,9 @@ def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
     changed = np.zeros(rows, dtype=np.int64)
     from_above = np.zeros(rows, dtype=np.int64)
     from_below = np.zeros(rows, dtype=np.int64)
-    relaxed, _ = _relax_row(surface, ok, a, sr, -1, lo, hi, off, d, scratch)
+    # the first row has no row to pull from: -1 as an int64, not the literal -1, whose own
+    # compiled copies of _relax_row and _relax_span cost 8-9 s of compilation per surface type
+    relaxed, _ = _relax_row(surface, ok, a, sr, np.int64(-1), lo, hi, off, d, scratch)
     changed[sr] = stamp
     sweeps = 0
     while True:
