@@ -4,12 +4,17 @@ finish in seconds):
 
     python tests/_warm_numba.py first|second MARKS
 
-- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``) and the argument
-  types only the tests use (writes MARKS/first), then the pysheds kernels the comparisons call
-  (conftest.pysheds_ridges on a small grid; writes MARKS/pysheds).
+- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``; writes
+  MARKS/first), then the argument types only the tests use (MARKS/tests), then the pysheds
+  kernels the comparisons call (conftest.pysheds_ridges on a small grid; MARKS/pysheds).
 - second: the other half, then (once the first is done) the library's whole warm-up from the
   cache, which stamps it compiled; writes MARKS/library, which every test process waits for.
-  In a fresh environment the two take about 50 s each on this project's 2-core VM.
+
+In a fresh environment on this project's 2-core VM: MARKS/first after 56 s, MARKS/library
+after 66 s (the tests start), MARKS/tests after 81 s, MARKS/pysheds after 103 s. With the
+tests' own types compiled before MARKS/first, as they were, the tests started after 79-84 s. A
+test that needs a kernel still being compiled here compiles it itself: numba's cache takes
+both (pipeline._jit).
 """
 
 import sys
@@ -27,9 +32,12 @@ work = marks / "work"
 if half == "first":
     try:
         compile_parts(work, HALVES[0])
-        compile_test_kernels()
     finally:
         (marks / "first").touch()
+    try:  # after the mark: the tests start once the library is compiled, not these too
+        compile_test_kernels()
+    finally:
+        (marks / "tests").touch()
     try:
         import numpy as np
         from conftest import pysheds_ridges

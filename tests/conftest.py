@@ -22,13 +22,14 @@ _WARM_DIR = "PIPELINE_TEST_WARM_DIR"  # where they write a file per step done
 
 
 def pytest_sessionstart(session):
-    """In a fresh environment numba compiles every kernel on first use (about a minute of one
-    core for the library's, about 15 s for the pysheds kernels the comparisons call), then
+    """In a fresh environment numba compiles every kernel on first use (about two minutes of
+    one core for the library's, about 20 s for the pysheds kernels the comparisons call), then
     caches it on disk. Two processes (tests/_warm_numba.py) compile the library's kernels in
-    the two halves of ``pipeline.warmup`` at once, then one compiles pysheds' while the tests
-    run. Under pytest-xdist (``./dev test`` runs one test process per core, up to 4) only the
-    controller starts them; every test process waits for the library's kernels (the cores are
-    busy compiling them meanwhile), the pysheds comparisons for pysheds'."""
+    the two halves of ``pipeline.warmup`` at once; then one compiles the argument types only
+    the tests use, then pysheds', while the tests run. Under pytest-xdist (``./dev test`` runs
+    one test process per core, up to 4) only the controller starts them; every test process
+    waits for the library's kernels (the cores are busy compiling them meanwhile), the pysheds
+    comparisons for pysheds'."""
     if hasattr(session.config, "workerinput"):  # an xdist worker: the controller started them
         return
     from pipeline.warmup import is_compiled
@@ -165,6 +166,14 @@ def compile_test_kernels() -> None:
         pipeline.plan_window(
             surface, ridge, ok, (0, 0), (11, 11), cell_size=30.0, planner=planner, omega=1.5
         )
+    # what the tests call directly: the landmarks' Dijkstra on float64 heights (the library
+    # runs it on a store's float32 ones), the searches' heap on its own
+    from pipeline._heap import heap_pop, heap_push, heap_reserve
+    from pipeline.landmarks import dijkstra
+
+    dijkstra(surface, ok, 30.0, np.array([0], dtype=np.int64))
+    keys, items = heap_reserve(np.empty(1), np.empty(1, dtype=np.int64), 0, 2)
+    heap_pop(keys, items, heap_push(keys, items, 0, 1.0, 0))
 
 
 @pytest.fixture(scope="session")

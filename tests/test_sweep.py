@@ -32,8 +32,16 @@ def octile(s, g):
 
 
 def solve_and_check(surface, passable, s, g):
-    """sweep.search against scipy's Dijkstra; returns its extra."""
-    ref = float(reference_distances(surface, passable, A, s)[g[0] * surface.shape[1] + g[1]])
+    """sweep.search against scipy's Dijkstra; returns its extra. The surface is searched as a
+    maps store's windows hold it, float32 (the type the kernels are compiled for before the
+    tests; float64 would compile the sweeps again, about 20 s of a core); scipy's graph takes
+    the same heights as float64."""
+    surface = np.asarray(surface, dtype=np.float32)
+    ref = float(
+        reference_distances(surface.astype(np.float64), passable, A, s)[
+            g[0] * surface.shape[1] + g[1]
+        ]
+    )
     got = sweep.search(surface, passable, A, s, g)
     assert got is not None
     cells, relaxed, extra = got
@@ -168,7 +176,7 @@ def maze(rows: int, walls: int, gap: int = 2):
             passable[rows - gap :, c] = True
         else:
             passable[:gap, c] = True
-    surface = random_surface((rows, cols), seed=walls).astype(np.float64)
+    surface = random_surface((rows, cols), seed=walls).astype(np.float32)
     return surface, passable
 
 
@@ -193,7 +201,7 @@ def test_a_wall_across_the_straight_line_grows_the_region_to_the_detour():
     """A wall with one gap near its end: the optimum is far above the first bound, so a
     second round (the region of the path found) proves it."""
     rows, cols = 60, 80
-    surface = random_surface((rows, cols), seed=4).astype(np.float64)
+    surface = random_surface((rows, cols), seed=4).astype(np.float32)
     passable = np.ones((rows, cols), bool)
     passable[:, 40] = False
     passable[-3:, 40] = True
@@ -209,7 +217,7 @@ def test_a_maze_past_the_budget_goes_to_astar(monkeypatch):
     assert sweep.search(surface, passable, A, s, g) is None
     monkeypatch.setattr(astar, "SWEEP_CELLS", 1)
     t = pipeline.plan_window(surface, passable, passable, s, g, cell_size=A, planner="astar")
-    ref = float(reference_distances(surface, passable, A, s)[g[1]])
+    ref = float(reference_distances(surface.astype(np.float64), passable, A, s)[g[1]])
     assert t.length_m == pytest.approx(ref, rel=1e-9)
     assert "engine" not in t.extra
     check_path(t, passable, s, g)
@@ -221,9 +229,10 @@ def test_the_astar_planner_sweeps_a_large_window_exactly():
     the same, its metrics those measured step by step."""
     assert 300 * 300 >= astar.SWEEP_CELLS
     surface, ridge, passable = obstacle_map((300, 300), 21, density=0.1)
+    surface = surface.astype(np.float32)  # a maps store's type (see solve_and_check)
     cells = np.argwhere(passable)
     s = tuple(cells[0])
-    d = reference_distances(surface, passable, A, s)
+    d = reference_distances(surface.astype(np.float64), passable, A, s)
     for g in [tuple(cells[-1]), tuple(cells[len(cells) // 2]), tuple(cells[297])]:
         ref = float(d[g[0] * 300 + g[1]])
         t = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=A, planner="astar")
