@@ -29,6 +29,7 @@ A job file::
     [output]
     catalog = "catalogs/demo"
     quicklooks = true           # a plan view and depth profile PNG per mission (~0.4 s each)
+    performance_report = true   # dask's performance report of each run (~1 s, a few MB)
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ import socket
 import time
 import tomllib
 import uuid
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,6 +61,7 @@ from .params import (
     LATITUDE,
     LONGITUDE,
     MAPS,
+    PERFORMANCE_REPORT,
     PLANNING,
     QUICKLOOKS,
     SYNTHETIC,
@@ -77,7 +79,7 @@ _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy"
 _MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS
 _DEM_KEYS = {"path", "synthetic"} | DEM.names()
 _SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
-_OUTPUT_KEYS = {"catalog", "quicklooks"}
+_OUTPUT_KEYS = {"catalog", "quicklooks", "performance_report"}
 
 # Raised whenever a change of the code makes a mission's result differ for the same inputs (the
 # planners' paths, the flight), so that a job plans its finished missions again instead of
@@ -109,6 +111,8 @@ class Job:
     planning: dict = field(default_factory=dict)
     vehicle: dict = field(default_factory=dict)  # the [vehicle] keys given
     quicklooks: bool = QUICKLOOKS.default  # [output] quicklooks: a PNG per mission
+    # [output] performance_report: dask's performance report of each run that computed
+    performance_report: bool = PERFORMANCE_REPORT.default
     missions: list = field(default_factory=list)
 
     def maps_fingerprint(self) -> str:
@@ -292,11 +296,12 @@ def load_job(path: str | os.PathLike) -> Job:
     if "catalog" in out:
         p = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
         job.catalog = p if p.is_absolute() else path.parent / p
-    if "quicklooks" in out:
-        try:
-            job.quicklooks = QUICKLOOKS.check(out["quicklooks"], "output.quicklooks")
-        except InvalidParameterError as exc:
-            _fail(path, str(exc))
+    for key, param in (("quicklooks", QUICKLOOKS), ("performance_report", PERFORMANCE_REPORT)):
+        if key in out:
+            try:
+                setattr(job, key, param.check(out[key], f"output.{key}"))
+            except InvalidParameterError as exc:
+                _fail(path, str(exc))
     # relative paths are the job file's (a cron job run from elsewhere finds its results), made
     # absolute so that workers in other directories or on other machines write where the
     # client reads
@@ -455,7 +460,8 @@ def run_job(
     Item exists) are skipped unless ``overwrite``; each mission is written atomically as it
     finishes, so a killed job loses at most the missions in flight. With no ``scheduler``, a
     LocalCluster of 2 single-threaded workers. A performance report (HTML) is saved as
-    ``<catalog>/performance-report.html``. ``scheduler`` (an address or a
+    ``<catalog>/performance-report.html`` unless ``[output] performance_report = false``.
+    ``scheduler`` (an address or a
     ``distributed.Client``) or ``scheduler_file`` name the cluster to run on
     (:func:`pipeline.cluster.session`).
 
@@ -524,10 +530,19 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         # no stage (and no mission's recorded runtime) holds the compilation
         ensure_compiled(client)
         tmp_report = job.catalog / f".performance-report.tmp-{res.run_id}.html"
-        with performance_report(filename=str(tmp_report), mode="inline"):
+        # dask's report takes about a second to draw at the end of a run (the scheduler's
+        # task stream, profiles and bandwidths, with bokeh's scripts inlined)
+        recording = (
+            performance_report(filename=str(tmp_report), mode="inline")
+            if job.performance_report
+            else nullcontext()
+        )
+        with recording:
             res.reused = _dem_store(job, dem_store, overwrite)
             built = _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
             _missions(job, maps_store, client, overwrite, res)
+    if not job.performance_report:
+        return res  # none asked for: an earlier run's report stays as it is
     if res.reused and not built and not res.ran:
         tmp_report.unlink(missing_ok=True)  # nothing was computed: keep the last report
         return res

@@ -168,6 +168,9 @@ CELL_SIZE = Param("cell_size", "float", None, "cell side", "metres", above=0)
 LONGITUDE = Param("longitude", "float", None, "", "degrees", minimum=-180.0, maximum=360.0)
 LATITUDE = Param("latitude", "float", None, "", "degrees", minimum=-90.0, maximum=90.0)
 QUICKLOOKS = Param("quicklooks", "bool", True, "a plan view and depth profile PNG per mission")
+PERFORMANCE_REPORT = Param(
+    "performance_report", "bool", True, "a dask performance report (HTML) of each run"
+)
 MISSIONS_PER_TASK = Param(
     "missions_per_task", "int", None, "missions one cluster task plans, in turn", minimum=1
 )

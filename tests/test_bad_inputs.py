@@ -244,6 +244,10 @@ JOB_CASES = [
     ("extra:[output]\ncatalog = 3", "output.catalog must be"),
     ("extra:[output]\nbucket = 'x'", "unknown key output.'bucket'"),
     ("extra:[output]\nquicklooks = 'yes'", "output.quicklooks must be true or false"),
+    (
+        "extra:[output]\nperformance_report = 1",
+        "output.performance_report must be true or false",
+    ),
     ("extra:[vehicle]\nmax_pitch_deg = 95", "vehicle.max_pitch_deg must be"),
     ("extra:[vehicle]\nbattery_wh = 100", "without a power"),
     ("extra:[vehicle]\nspeed = 2", "unknown key vehicle.'speed'"),

@@ -563,6 +563,7 @@ rho = 4
 {missions}
 [output]
 catalog = "{catalog}"
+performance_report = false
 quicklooks = false
 """
 

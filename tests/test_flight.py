@@ -445,6 +445,7 @@ vehicle = { battery_wh = 50.0 }
 [output]
 catalog = "cat"
 quicklooks = false         # the quick-look is tested with the other job tests
+performance_report = false
 """
 
 

@@ -29,6 +29,7 @@ seed = 4
 landmarks = 1              # the job's steps are tested here, not the bound: one layer is enough
 [output]
 catalog = "{catalog}"
+performance_report = false
 """
 
 

@@ -47,6 +47,7 @@ omega = 2.0
 [output]
 catalog = "{catalog}"
 quicklooks = {quicklooks}
+performance_report = {performance_report}
 """
 
 MISSIONS4 = """
@@ -73,8 +74,17 @@ planner = "astar"
 """
 
 
-def write_job(tmp_path, n=300, missions=MISSIONS4, name="t", file="job.toml", quicklooks=False):
-    """A job file; without quick-looks unless the test looks at them (each takes a second)."""
+def write_job(
+    tmp_path,
+    n=300,
+    missions=MISSIONS4,
+    name="t",
+    file="job.toml",
+    quicklooks=False,
+    performance_report=False,
+):
+    """A job file; without quick-looks (each takes a second) and dask's performance report
+    (a second a run) unless the test looks at them."""
     p = tmp_path / file
     p.write_text(
         JOB.format(
@@ -83,6 +93,7 @@ def write_job(tmp_path, n=300, missions=MISSIONS4, name="t", file="job.toml", qu
             missions=missions,
             catalog=tmp_path / "cat",
             quicklooks=str(quicklooks).lower(),
+            performance_report=str(performance_report).lower(),
         )
     )
     return p
@@ -109,7 +120,7 @@ def with_stores(stores, tmp_path):
 def done(tmp_path_factory, stores, local_client):
     tmp = tmp_path_factory.mktemp("job")
     with_stores(stores, tmp)
-    job = write_job(tmp, quicklooks=True)
+    job = write_job(tmp, quicklooks=True, performance_report=True)
     return job, run_job(job, scheduler=local_client)
 
 
@@ -642,7 +653,7 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
 ):
     with_stores(stores, tmp_path)
     root = tmp_path / "cat"
-    job = write_job(tmp_path, missions=TWO, name="tmp")
+    job = write_job(tmp_path, missions=TWO, name="tmp", performance_report=True)
     run_job(job, scheduler=local_client)
     report = root / "performance-report.html"
     html = report.read_text()
@@ -663,6 +674,20 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
     assert not list(root.glob(".*.tmp-*"))
     assert report.stat().st_mtime_ns == before  # the no-op run kept the last report
     assert len(list((root / "reports").glob("performance-*.html"))) == 1
+
+
+def test_a_job_without_the_performance_report_writes_none_and_keeps_the_last(
+    tmp_path, stores, local_client
+):
+    """[output] performance_report = false: the run computes, writes its missions and no dask
+    performance report; the report an earlier run left stays as it is."""
+    with_stores(stores, tmp_path)
+    root = tmp_path / "cat"
+    (root / "performance-report.html").write_text("an earlier run's report")
+    res = run_job(write_job(tmp_path, missions=TWO, name="quiet"), scheduler=local_client)
+    assert res.ok and res.planned == 2
+    assert (root / "performance-report.html").read_text() == "an earlier run's report"
+    assert not (root / "reports").exists() and not list(root.glob(".performance-report*"))
 
 
 def test_a_mission_that_cannot_be_written_fails_alone(tmp_path, stores, local_client):
