@@ -201,6 +201,15 @@ def _tiny_arrays():
     return z, z < -100.0
 
 
+def _tiny_window():
+    """:func:`_tiny_arrays` as a section's window: the surface, a ridge mask, the passable
+    cells, and a start and goal (the first and last passable cells)."""
+    z, ok = _tiny_arrays()
+    rdg = np.random.default_rng(2).random(z.shape) < 0.3
+    cells = np.argwhere(ok)
+    return z, rdg, ok, tuple(cells[0]), tuple(cells[-1])
+
+
 def _landmarks() -> None:
     """The kernels of landmark placement and of a landmark's layer (an exact search of the whole
     map), on a map of the types the store's build gives them."""
@@ -219,10 +228,7 @@ def _search_each() -> None:
     from .planners import sweep
     from .planners.core import lagrangian_bound, measured_path, off_ridge_to_goal
 
-    z, ok = _tiny_arrays()
-    rdg = np.random.default_rng(2).random(z.shape) < 0.3
-    cells = np.argwhere(ok)
-    s, g = tuple(cells[0]), tuple(cells[-1])
+    z, rdg, ok, s, g = _tiny_window()
     for planner in tuple(pipeline.PLANNERS)[::-1]:
         for omega in (1.0, 1.5):  # at omega 1 the Lagrangian planner's exact goal layer
             try:
@@ -245,10 +251,7 @@ def _search_bucketed() -> None:
     part of its own, so that the process with less of the rest to compile takes it."""
     from .planners.core import NO_GOAL, NO_LANDMARKS, astar_search_bucketed, search_arrays
 
-    z, ok = _tiny_arrays()
-    rdg = np.random.default_rng(2).random(z.shape) < 0.3
-    cells = np.argwhere(ok)
-    s, g = tuple(cells[0]), tuple(cells[-1])
+    z, rdg, ok, s, g = _tiny_window()
     astar_search_bucketed(
         z, rdg, ok, 30.0, *s, *g, 1.0, 0.0, True, NO_LANDMARKS, NO_GOAL, *search_arrays(z.size)
     )
