@@ -591,7 +591,7 @@ def remove_temporaries(catalog: Path) -> list[Path]:
     """Remove what killed runs left in ``catalog`` (half-written stores, scratch stores,
     mission folders, reports, coarse maps); call it holding :func:`catalog_lock`, when no
     other run can be writing them. Returns what was removed."""
-    patterns = (".*.tmp-*", "missions/.*.tmp-*", "*.zarr/.coarse-rho*.tmp-*")
+    patterns = (".*.tmp-*", "missions/.*.tmp-*", "report/.*.tmp-*", "*.zarr/.coarse-rho*.tmp-*")
     gone = [p for pattern in patterns for p in catalog.glob(pattern)]
     for p in gone:
         if p.is_dir() and not p.is_symlink():

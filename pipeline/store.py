@@ -767,6 +767,8 @@ class MapsStore:
                 f"its coordinates ({spacing[0]:g} x {spacing[1]:g} m)",
             )
         self.all_chunks_written = bool(attrs.get("all_chunks_written"))
+        # what the store holds, as a hash (:func:`attrs_signature`; None: built before it)
+        self.signature = attrs.get("signature")
         # stores built before the components layer have none: reachability then is not known
         self.has_components = "component" in group
         try:

@@ -667,13 +667,44 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
     for p in left:
         (p / "c").mkdir(parents=True)
     (root / ".performance-report.tmp-1234.html").write_text("half")
+    half = [root / "report" / ".hillshade.png.tmp-1234abcd.png", root / "report" / ".x.tmp-1"]
+    for p in half:
+        p.write_text("half")
     before = report.stat().st_mtime_ns
+    shade = (root / "report" / "hillshade.png").stat().st_mtime_ns
     res = run_job(job, scheduler=local_client)  # nothing to do
     assert res.skipped == 2 and res.ran == 0
-    assert not any(p.exists() for p in left)
+    assert not any(p.exists() for p in left + half)
     assert not list(root.glob(".*.tmp-*"))
     assert report.stat().st_mtime_ns == before  # the no-op run kept the last report
+    # and the hillshade of the same maps store (pipeline.report.hillshade)
+    assert (root / "report" / "hillshade.png").stat().st_mtime_ns == shade
     assert len(list((root / "reports").glob("performance-*.html"))) == 1
+
+
+def test_the_reports_hillshade_is_drawn_once_per_maps_store(tmp_path, stores):
+    """A second report on the same maps store reuses the picture the first drew (the same
+    pixels as one drawn anew); another store, or a note that does not read, draws it again."""
+    from pipeline.report import _hillshade, hillshade
+    from pipeline.store import open_store
+
+    src = next(stores.glob("maps-*.zarr"))
+    maps = open_store(src)
+    png, note = tmp_path / "report" / "hillshade.png", tmp_path / "report" / "hillshade.json"
+    first = hillshade(tmp_path, maps)
+    drawn = png.stat().st_mtime_ns
+    assert hillshade(tmp_path, maps) == first and png.stat().st_mtime_ns == drawn
+    fresh = _hillshade(maps, tmp_path / "fresh.png")
+    assert fresh == {**first, "href": "report/fresh.png"}
+    assert np.array_equal(image.imread(png), image.imread(tmp_path / "fresh.png"))
+    note.write_text("{not json")
+    hillshade(tmp_path, maps)
+    assert png.stat().st_mtime_ns != drawn
+    drawn = png.stat().st_mtime_ns
+    import shutil
+
+    other = open_store(shutil.copytree(src, tmp_path / "elsewhere.zarr"))
+    assert hillshade(tmp_path, other) == first and png.stat().st_mtime_ns != drawn
 
 
 def test_a_job_without_the_performance_report_writes_none_and_keeps_the_last(
