@@ -516,6 +516,20 @@ def run_job(
 def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
     import datetime as dt
 
+    scheduler, scheduler_file, _ = cluster
+    if (
+        scheduler is None
+        and scheduler_file is None
+        and _nothing_to_do(job, dem_store, maps_store, overwrite)
+    ):
+        # no cluster of its own to start (its 2 worker processes took 2-3 s to start and stop)
+        # when the run computes nothing; a scheduler given is still reached (its address checked)
+        log.info("job %s: nothing to compute: no cluster started", job.name)
+        reused = _dem_store(job, dem_store, overwrite)
+        res = JobResult(job, dem_store, reused, 0.0, maps_store=maps_store)
+        _maps_store(job, dem_store, maps_store, False)
+        _missions(job, maps_store, None, overwrite, res)
+        return res
     from distributed import performance_report
 
     from .cluster import session
@@ -601,6 +615,20 @@ def remove_temporaries(catalog: Path) -> list[Path]:
     if gone:
         log.info("removed %d temporaries left by earlier runs that were killed", len(gone))
     return gone
+
+
+def _nothing_to_do(job: Job, dem_store: Path, maps_store: Path, overwrite: bool) -> bool:
+    """Whether a run of ``job`` would compute nothing: its DEM and maps stores are there, and
+    every mission finished as it is defined now (:func:`_missions` skips them all)."""
+    from .catalog import finished
+
+    if overwrite or not dem_store.exists() or not maps_store.exists():
+        return False
+    for m in job.missions:
+        done = finished(job.catalog, m["name"])
+        if done is None or done["properties"].get("auv:fingerprint") != job.mission_fingerprint(m):
+            return False
+    return True
 
 
 def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:

@@ -484,6 +484,14 @@ def test_killed_job_resumes_with_every_mission_once(tmp_path, stores):
     assert not list((root / "missions").glob(".*tmp*"))  # nothing half-written left
     cat = pystac.Catalog.from_file(str(root / "catalog.json"))
     assert len(list(cat.get_items(recursive=True))) == 8
+    # a third run computes nothing, and starts no cluster for it (its workers would log)
+    (root / "index.html").unlink()
+    idle = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True, timeout=600)
+    assert idle.returncode == 0, idle.stderr[-3000:]
+    assert "0 missions planned, 8 skipped" in idle.stdout
+    assert "no cluster started" in idle.stderr
+    assert "dask dashboard" not in idle.stderr and "distributed." not in idle.stderr
+    assert _items(root) == final and (root / "index.html").exists()
 
 
 def test_job_on_a_real_scheduler_survives_a_killed_worker(tmp_path, stores):
