@@ -71,6 +71,8 @@ def local_cluster(dashboard_address: str = ":0"):
     import dask
     from distributed import LocalCluster
 
+    from ._exit import PromptExit
+
     key = "distributed.nanny.pre-spawn-environ"
     env = {**dask.config.get(key, {}), **WORKER_ENV}
     cfg = {k: v for k, (v, default) in HOUSEKEEPING.items() if dask.config.get(k, None) == default}
@@ -82,6 +84,7 @@ def local_cluster(dashboard_address: str = ":0"):
             threads_per_worker=1,
             processes=True,
             dashboard_address=dashboard_address,
+            plugins=(PromptExit(),),  # each worker, and each its nanny restarts
         )
     try:
         cluster.sync(_add_prompt_streams, cluster.scheduler)
