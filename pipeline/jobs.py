@@ -620,15 +620,23 @@ def remove_temporaries(catalog: Path) -> list[Path]:
 def _nothing_to_do(job: Job, dem_store: Path, maps_store: Path, overwrite: bool) -> bool:
     """Whether a run of ``job`` would compute nothing: its DEM and maps stores are there, and
     every mission finished as it is defined now (:func:`_missions` skips them all)."""
-    from .catalog import finished
-
     if overwrite or not dem_store.exists() or not maps_store.exists():
         return False
-    for m in job.missions:
-        done = finished(job.catalog, m["name"])
-        if done is None or done["properties"].get("auv:fingerprint") != job.mission_fingerprint(m):
-            return False
-    return True
+    return all(_finished(job, m)[0] is not None for m in job.missions)
+
+
+def _finished(job: Job, mission: dict) -> tuple[dict | None, bool]:
+    """(the Item of ``mission`` when it finished as it is defined now, else None; whether it
+    finished under another definition: its fields, the maps, the DEM, the library's defaults
+    or results revision, :meth:`Job.mission_fingerprint`)."""
+    from .catalog import finished
+
+    done = finished(job.catalog, mission["name"])
+    if done is None:
+        return None, False
+    if done["properties"].get("auv:fingerprint") != job.mission_fingerprint(mission):
+        return None, True
+    return done, False
 
 
 def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
@@ -687,7 +695,6 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
 
 def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResult) -> None:
     """Plan the missions not finished yet (or changed since), writing each as it ends."""
-    from .catalog import finished
     from .missions import failed_trajectory, plan_missions
     from .store import open_store
 
@@ -695,16 +702,15 @@ def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResul
     res.crs_wkt = maps.crs_wkt
     todo = []
     for m in job.missions:
+        done, changed = (None, False) if overwrite else _finished(job, m)
         m = {**m, "fingerprint": job.mission_fingerprint(m)}
-        done = None if overwrite else finished(job.catalog, m["name"])
-        if done is not None and done["properties"].get("auv:fingerprint") != m["fingerprint"]:
+        if changed:
             log.info(
                 "%s: its definition, the maps, the DEM, or the library's defaults or results "
                 "revision changed since it was planned: planning it again",
                 m["name"],
             )
             res.replanned += 1
-            done = None
         if done is None:
             todo.append(m)
         else:
