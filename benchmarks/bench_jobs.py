@@ -14,6 +14,7 @@ import argparse
 import os
 import re
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -134,7 +135,7 @@ def rerun(times: int = 3) -> dict:
     """``pipeline run tasks/demo.toml`` again on the catalog :func:`demo` filled, ``times``
     times: every mission finished, nothing to plan. Wall times, and whether each run said it
     started no cluster."""
-    exe = ROOT / ".venv" / "bin" / "pipeline"
+    exe = Path(sys.executable).parent / "pipeline"  # as run_job_timed runs it
     walls, quiet = [], []
     for _ in range(times):
         t0 = time.perf_counter()

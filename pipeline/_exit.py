@@ -37,7 +37,7 @@ class PromptExit(WorkerPlugin):
         self._closed = True  # distributed's Worker.close tears the plugins down
 
     def _exit(self) -> None:
-        if not getattr(self, "_closed", False):
+        if not self._closed:
             return
         logging.shutdown()
         for stream in (sys.stdout, sys.stderr):

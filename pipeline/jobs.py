@@ -517,10 +517,14 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
     import datetime as dt
 
     scheduler, scheduler_file, _ = cluster
+    missions = _sorted_missions(job, overwrite)
     if (
         scheduler is None
         and scheduler_file is None
-        and _nothing_to_do(job, dem_store, maps_store, overwrite)
+        and not overwrite
+        and dem_store.exists()
+        and maps_store.exists()
+        and all(done is not None for _, done, _ in missions)
     ):
         # no cluster of its own to start (its 2 worker processes took 2-3 s to start and stop)
         # when the run computes nothing; a scheduler given is still reached (its address checked)
@@ -528,7 +532,7 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         reused = _dem_store(job, dem_store, overwrite)
         res = JobResult(job, dem_store, reused, 0.0, maps_store=maps_store)
         _maps_store(job, dem_store, maps_store, False)
-        _missions(job, maps_store, None, overwrite, res)
+        _missions(job, maps_store, None, missions, res)
         return res
     from distributed import performance_report
 
@@ -554,7 +558,7 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         with recording:
             res.reused = _dem_store(job, dem_store, overwrite)
             built = _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
-            _missions(job, maps_store, client, overwrite, res)
+            _missions(job, maps_store, client, missions, res)
     if not job.performance_report:
         return res  # none asked for: an earlier run's report stays as it is
     if res.reused and not built and not res.ran:
@@ -617,26 +621,20 @@ def remove_temporaries(catalog: Path) -> list[Path]:
     return gone
 
 
-def _nothing_to_do(job: Job, dem_store: Path, maps_store: Path, overwrite: bool) -> bool:
-    """Whether a run of ``job`` would compute nothing: its DEM and maps stores are there, and
-    every mission finished as it is defined now (:func:`_missions` skips them all)."""
-    if overwrite or not dem_store.exists() or not maps_store.exists():
-        return False
-    return all(_finished(job, m)[0] is not None for m in job.missions)
-
-
-def _finished(job: Job, mission: dict) -> tuple[dict | None, bool]:
-    """(the Item of ``mission`` when it finished as it is defined now, else None; whether it
-    finished under another definition: its fields, the maps, the DEM, the library's defaults
-    or results revision, :meth:`Job.mission_fingerprint`)."""
+def _sorted_missions(job: Job, overwrite: bool) -> list[tuple[dict, dict | None, bool]]:
+    """Each mission of ``job`` (with its ``fingerprint``, :meth:`Job.mission_fingerprint`), its
+    Item when it finished as it is defined now (None: to be planned; always with
+    ``overwrite``), and whether it finished under another definition (its fields, the maps, the
+    DEM, the library's defaults or results revision). Read once a run, before its cluster."""
     from .catalog import finished
 
-    done = finished(job.catalog, mission["name"])
-    if done is None:
-        return None, False
-    if done["properties"].get("auv:fingerprint") != job.mission_fingerprint(mission):
-        return None, True
-    return done, False
+    out = []
+    for m in job.missions:
+        m = {**m, "fingerprint": job.mission_fingerprint(m)}
+        done = None if overwrite else finished(job.catalog, m["name"])
+        changed = done is not None and done["properties"].get("auv:fingerprint") != m["fingerprint"]
+        out.append((m, None if changed else done, changed))
+    return out
 
 
 def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
@@ -693,17 +691,16 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
     return True
 
 
-def _missions(job: Job, maps_store: Path, client, overwrite: bool, res: JobResult) -> None:
-    """Plan the missions not finished yet (or changed since), writing each as it ends."""
+def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult) -> None:
+    """Plan the missions not finished yet (or changed since; ``missions`` as
+    :func:`_sorted_missions` gives them), writing each as it ends."""
     from .missions import failed_trajectory, plan_missions
     from .store import open_store
 
     maps = open_store(maps_store)
     res.crs_wkt = maps.crs_wkt
     todo = []
-    for m in job.missions:
-        done, changed = (None, False) if overwrite else _finished(job, m)
-        m = {**m, "fingerprint": job.mission_fingerprint(m)}
+    for m, done, changed in missions:
         if changed:
             log.info(
                 "%s: its definition, the maps, the DEM, or the library's defaults or results "
