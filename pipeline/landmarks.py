@@ -42,7 +42,6 @@ from ._grid8 import DC, DR, flat_offsets, inside
 from ._heap import grown
 from ._io import inner_chunks, layer_codec, storage_chunks
 from ._jit import njit
-from .components import label_components
 from .planners.core import LANDMARK_MARGIN, edge_length
 
 MIN_COMPONENT_FRACTION = 0.01
@@ -228,6 +227,8 @@ def place_landmarks(surface, passable, a: float, k: int = DEFAULT_LANDMARKS, com
     """The landmark cells of an in-memory map (see the module doc)."""
     passable = np.asarray(passable, dtype=bool)
     if component is None:
+        from .components import label_components  # dask and scipy.ndimage: not on a mission's path
+
         component, _ = label_components(passable)
     keep = np.isin(component, large_components(component, np.bincount(component.ravel())))
     f = placement_factor(passable.shape)

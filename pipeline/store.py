@@ -862,12 +862,12 @@ class MapsStore:
         (group ``coarse-rho{rho}``) and read from there afterwards, so that many missions and
         processes share it.
         """
-        import xarray as xr
-
         rho = PLANNING.rho.check(rho)
         name = f"coarse-rho{rho}"
 
         def build():
+            import xarray as xr
+
             ds = self.dataset[["safety", "ridge", "passable"]]
             cs = ds.astype("float32").coarsen(y=rho, x=rho, boundary="pad").mean()
             out = xr.Dataset(
@@ -887,16 +887,14 @@ class MapsStore:
 
             try:  # once: every mission searches these arrays (planners.window.search_window)
                 safety, ridge_cells, passable = check_arrays(
-                    ds["safety"].values,
-                    ds["ridge"].values >= COARSE_RIDGE_FRACTION,
-                    ds["passable"].values,
+                    ds["safety"], ds["ridge"] >= COARSE_RIDGE_FRACTION, ds["passable"]
                 )
             except InvalidParameterError as exc:
                 what = f"its coarse level {name} does not hold together ({exc})"
                 raise damaged(self.path, what) from None
             return {
                 "safety": safety,
-                "ridge": ds["ridge"].values,
+                "ridge": ds["ridge"],
                 "passable": passable,
                 "ridge_cells": ridge_cells,
             }
@@ -911,13 +909,13 @@ class MapsStore:
         read from there afterwards: a mission's quick-look draws its plan view from it instead
         of reading every chunk of the elevation under the mission's extent (at 10000^2, 0.2 s
         of each quick-look)."""
-        import xarray as xr
-
         factor = int(factor)
         if factor < 2:
             raise InvalidParameterError(f"an overview factor must be 2 or more, got {factor}")
 
         def build():
+            import xarray as xr
+
             # as float32: coarsen pads the partial blocks with NaN (a bool layer becomes an
             # object array), which the block mean and maximum pass over
             ds = self.dataset[["elevation", "ridge"]].astype("float32")
@@ -932,7 +930,7 @@ class MapsStore:
             return out
 
         def finish(ds):
-            return {"elevation": ds["elevation"].values, "ridge": ds["ridge"].values.astype(bool)}
+            return {"elevation": ds["elevation"], "ridge": ds["ridge"].astype(bool)}
 
         return self._reduced(("overview", factor), f"overview-f{factor}", build, finish)
 
@@ -940,8 +938,11 @@ class MapsStore:
         """A reduced level of the maps (:meth:`coarse`, :meth:`overview`), kept by this object
         under ``key``: ``finish`` of group ``name`` of the store, read as numpy arrays in the
         caller's thread (a mission task's), after writing it there once from ``build()`` when
-        it is not there yet (so that many missions and processes share it)."""
-        import xarray as xr
+        it is not there yet (so that many missions and processes share it). ``finish`` gets the
+        group's arrays by name, read through zarr: a mission's task then needs neither xarray
+        nor dask.array, whose imports took a worker 0.6 s at its first mission (the arrays are
+        float32 with NaN as the fill value, and bool: nothing for xarray to decode)."""
+        import zarr
 
         with self._lock:
             got = self._coarse.get(key)
@@ -949,10 +950,8 @@ class MapsStore:
             return got
         if not _coarse_written(self.path, name):
             _write_coarse(build(), self.path, name)
-        ds = xr.open_zarr(
-            self.path, group=name, consolidated=False, zarr_format=3, chunks=None
-        ).load()
-        res = finish(ds)
+        group = zarr.open_group(join(self.path, name), mode="r", zarr_format=3)
+        res = finish({var: arr[...] for var, arr in group.arrays()})
         with self._lock:
             self._coarse[key] = res
         return res
@@ -1069,11 +1068,10 @@ _STORES_LOCK = threading.Lock()
 def open_store(maps) -> MapsStore:
     """The :class:`MapsStore` of a path, of a Dataset from :func:`open_maps`, or ``maps``
     itself; one per store and process while the store is unchanged."""
-    import xarray as xr
-
     if isinstance(maps, MapsStore):
         return maps
-    if isinstance(maps, xr.Dataset):
+    xr = sys.modules.get("xarray")  # not imported: ``maps`` is no Dataset (a mission's task)
+    if xr is not None and isinstance(maps, xr.Dataset):
         path = maps.attrs.get("store")
         if not path:
             raise InvalidParameterError(

@@ -459,6 +459,77 @@ def test_a_coarse_level_that_does_not_hold_together_is_damage(store, tmp_path):
         pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client="synchronous", **SMALL)
 
 
+@pytest.mark.parametrize("rho", [4, 7])
+def test_the_coarse_level_is_the_block_means_of_the_fine_maps(store, arrays, tmp_path, rho):
+    """The coarse level against numpy's block means of the fine layers (240 cells a side: at
+    rho 7 the last blocks hold 2 rows and columns): the mean of the finite safety heights, the
+    share of ridge cells, passable where half the cells are and the mean is finite, coarse
+    ridge cells from ``COARSE_RIDGE_FRACTION`` on; written once, then read back by another
+    MapsStore (as in another process) equal."""
+    import shutil
+
+    from pipeline.store import COARSE_RIDGE_FRACTION
+
+    copy = tmp_path / "maps.zarr"
+    shutil.copytree(store, copy)
+    co = pipeline.store.MapsStore(copy).coarse(rho)
+    n = -(-240 // rho)
+    want = {k: np.full((n, n), np.nan) for k in ("safety", "ridge", "passable")}
+    for i in range(n):
+        for j in range(n):
+            blk = (slice(i * rho, (i + 1) * rho), slice(j * rho, (j + 1) * rho))
+            z = arrays["safety"][blk].astype(np.float64)
+            want["safety"][i, j] = z[np.isfinite(z)].mean() if np.isfinite(z).any() else np.nan
+            want["ridge"][i, j] = arrays["ridge"][blk].mean()
+            want["passable"][i, j] = arrays["passable"][blk].mean()
+    np.testing.assert_allclose(co["safety"], want["safety"], rtol=1e-6)
+    np.testing.assert_allclose(co["ridge"], want["ridge"], rtol=1e-6)
+    passable = (want["passable"] >= 0.5) & np.isfinite(want["safety"])
+    np.testing.assert_array_equal(co["passable"], passable)
+    np.testing.assert_array_equal(co["ridge_cells"], want["ridge"] >= COARSE_RIDGE_FRACTION)
+    assert co["safety"].dtype == np.float32 and co["passable"].dtype == bool
+    assert 0 < co["passable"].sum() < n * n and co["ridge_cells"].any()
+    again = pipeline.store.MapsStore(copy).coarse(rho)  # read from the store this time
+    for key, value in co.items():
+        np.testing.assert_array_equal(again[key], value)
+        assert again[key].dtype == value.dtype
+
+
+MISSION_PROCESS = """
+import sys
+import numpy as np
+import pipeline
+
+HEAVY = ("xarray", "dask.array", "pandas", "scipy.ndimage", "scipy.sparse")
+store, out = sys.argv[1], sys.argv[2]
+t = pipeline.plan(store, (20, 20), (225, 30), client="synchronous", rho=4, section_size=24,
+                  margin=6)
+pipeline.fly(store, t)
+np.save(out, np.asarray(t.cells))
+print("heavy:", sorted(m for m in HEAVY if m in sys.modules))
+"""
+
+
+def test_a_mission_in_a_new_process_needs_neither_xarray_nor_dask_array(store, tmp_path):
+    """What a worker's first mission on a built store imports (each worker of a job pays it
+    once): the mission planned and flown in a new process, its coarse level already written,
+    loads neither xarray, dask.array, pandas nor scipy's image and sparse modules (0.6-1 s of
+    a worker's first mission), and plans the path this process plans."""
+    import subprocess
+
+    want = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)  # the level written
+    out = tmp_path / "cells.npy"
+    proc = subprocess.run(
+        [sys.executable, "-c", MISSION_PROCESS, str(store), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "heavy: []" in proc.stdout, proc.stdout
+    np.testing.assert_array_equal(np.load(out), want.cells)
+
+
 def _released(start: str, finish: str) -> bool:
     """A task's release by its client: once done, or while the scheduler has not yet heard it
     done (its results reached the client through the queue, pipeline._inbox)."""
