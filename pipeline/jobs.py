@@ -58,6 +58,7 @@ from .exceptions import (
 from .params import (
     DEFAULT_CHUNK,
     DEM,
+    GENERATOR_VERSION,
     LATITUDE,
     LONGITUDE,
     MAPS,
@@ -68,6 +69,7 @@ from .params import (
     VEHICLE,
     Param,
     Schema,
+    check_clearance,
     check_region,
     shape2d,
 )
@@ -163,8 +165,6 @@ class Job:
                 if getattr(self, key) is not None:
                     what[key] = getattr(self, key)
         else:
-            from .synthetic import GENERATOR_VERSION
-
             what = {"synthetic": self.synthetic, "version": GENERATOR_VERSION}
         what["chunks"] = self.chunks
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
@@ -310,8 +310,6 @@ def load_job(path: str | os.PathLike) -> Job:
 
 
 def _load_maps(path, doc, job, cell_size: float | None):
-    from .safety import check_clearance
-
     t = doc.get("maps", {})
     if not isinstance(t, dict):
         _fail(path, "[maps] must be a table")
@@ -638,12 +636,13 @@ def _sorted_missions(job: Job, overwrite: bool) -> list[tuple[dict, dict | None,
 
 
 def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
-    from .dem import import_dem, write_dem
-    from .synthetic import synthetic_dem
-
     if store.exists() and not overwrite:
         log.info("DEM store %s is up to date: reusing it", store)
         return True
+    # here, not above: a run on stores it reuses imports neither xarray nor dask.array
+    from .dem import import_dem, write_dem
+    from .synthetic import synthetic_dem
+
     log.info("writing the DEM store %s", store)
     try:
         if job.dem_path is not None:  # read, checked and written in one pass over the file
@@ -669,12 +668,12 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
 
 
 def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
-    from .dem import open_dem
-    from .maps import build_maps
-
     if store.exists() and not rebuild:
         log.info("maps store %s is up to date: reusing it", store)
         return False
+    from .dem import open_dem
+    from .maps import build_maps
+
     log.info("building the maps store %s (%s)", store, job.maps)
     try:
         build_maps(

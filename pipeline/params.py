@@ -175,6 +175,10 @@ MISSIONS_PER_TASK = Param(
     "missions_per_task", "int", None, "missions one cluster task plans, in turn", minimum=1
 )
 
+# the synthetic generator's version: a DEM store made by another version is made again (a job
+# fingerprints its DEM with it); its seed stream takes it too
+GENERATOR_VERSION = 1
+
 SYNTHETIC = Schema(
     "the generated seabed (synthetic_dem, [dem.synthetic])",
     Param("cell_size", "float", 30.0, "cell side", "metres", above=0),
@@ -464,3 +468,18 @@ def chunks2d(value, shape: tuple[int, int]) -> tuple[int, int] | None:
     r = side.check(pair[0], "`chunks[0]`")
     c = side.check(pair[1], "`chunks[1]`")
     return min(r, shape[0]), min(c, shape[1])
+
+
+def check_clearance(
+    value, a: float | None, label: str = "`clearance`", param=MAPS.clearance
+) -> float:
+    """A clearance in metres (``param``'s bounds), refused when a DEM of cell side ``a`` cannot
+    resolve it (below half a cell); ``a`` None skips that part (cell side not known yet)."""
+    value = param.check(value, label)
+    if a is not None and value < a / 2:
+        raise InvalidParameterError(
+            f"{label} = {value:g} m is smaller than half a cell ({a / 2:g} m): the clearance "
+            "zone would hold no grid point but the cell itself, so the DEM cannot resolve it; "
+            "use a larger clearance or a finer DEM"
+        )
+    return value

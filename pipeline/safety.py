@@ -34,7 +34,7 @@ from numba.core.extending import intrinsic
 from ._jit import njit
 from .dem import check_dem
 from .exceptions import InvalidParameterError
-from .params import MAPS
+from .params import MAPS, check_clearance
 
 # --------------------------------------------------------------------------- structuring element
 
@@ -272,21 +272,6 @@ def _vertical(z, clearance):
 
 
 # --------------------------------------------------------------------------- public API
-
-
-def check_clearance(
-    value, a: float | None, label: str = "`clearance`", param=MAPS.clearance
-) -> float:
-    """A clearance in metres (``param``'s bounds), refused when a DEM of cell side ``a`` cannot
-    resolve it (below half a cell); ``a`` None skips that part (cell side not known yet)."""
-    value = param.check(value, label)
-    if a is not None and value < a / 2:
-        raise InvalidParameterError(
-            f"{label} = {value:g} m is smaller than half a cell ({a / 2:g} m): the clearance "
-            "zone would hold no grid point but the cell itself, so the DEM cannot resolve it; "
-            "use a larger clearance or a finer DEM"
-        )
-    return value
 
 
 def _vertical_block(block, clearance):

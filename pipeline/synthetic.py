@@ -24,9 +24,8 @@ import numpy as np
 import xarray as xr
 
 from ._jit import njit
-from .params import DEFAULT_CHUNK, SYNTHETIC, chunks2d, shape2d
+from .params import DEFAULT_CHUNK, GENERATOR_VERSION, SYNTHETIC, chunks2d, shape2d
 
-GENERATOR_VERSION = 1
 _LATTICE = 9  # seamount lattice cells per map side
 
 _GX = np.array([1.0, -1.0, 0.0, 0.0, 0.70710678, -0.70710678, 0.70710678, -0.70710678])

@@ -35,8 +35,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .dem import open_dem, write_dem
-
 log = logging.getLogger(__name__)
 
 # the parts of the warm-up, in the order one process runs them all
@@ -132,6 +130,7 @@ def _store(tmp: Path, build: bool) -> Path:
     """The tiny maps store: built here (``build``), or waited for (another process builds it)."""
     store, ready = tmp / "maps.zarr", tmp / "maps.ready"
     if build:
+        from .dem import open_dem, write_dem
         from .maps import build_maps
 
         write_dem(_tiny_dem(), tmp / "dem.zarr", chunks=24, overwrite=True)
@@ -165,6 +164,8 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
             if part == "dem":
                 pipeline.synthetic_dem((64, 64), chunks=32).compute()
             elif part == "safety":
+                from .dem import open_dem, write_dem
+
                 write_dem(_tiny_dem(), tmp / "dem-safety.zarr", chunks=24, overwrite=True)
                 _safety(open_dem(tmp / "dem-safety.zarr", chunks=24))
             elif part == "maps":

@@ -690,6 +690,38 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
     assert len(list((root / "reports").glob("performance-*.html"))) == 1
 
 
+NO_OP_RUN = """
+import sys
+from pipeline.cli import main
+
+HEAVY = ("xarray", "dask.array", "scipy.ndimage")
+try:
+    main.main(["run", sys.argv[1]], prog_name="pipeline", standalone_mode=True)
+except SystemExit as exc:
+    print("exit", exc.code)
+print("heavy:", sorted(m for m in HEAVY if m in sys.modules))
+"""
+
+
+def test_a_run_on_stores_it_reuses_imports_neither_xarray_nor_dask_array(tmp_path, stores):
+    """A job run again on the DEM and maps stores it made (or with a new mission on built
+    maps) checks and reuses them without importing xarray or dask.array (about a second of its
+    client's start; the first run on a catalog draws the report's hillshade, which takes them).
+    This one has nothing to plan, so it starts no cluster either."""
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions="", name="reuse")
+    for _ in range(2):
+        proc = subprocess.run(
+            [sys.executable, "-c", NO_OP_RUN, str(job)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert proc.returncode == 0 and "exit 0" in proc.stdout, proc.stderr
+    assert "heavy: []" in proc.stdout, proc.stdout + proc.stderr
+    assert proc.stderr.count("is up to date: reusing it") == 2
+
+
 def test_the_reports_hillshade_is_drawn_once_per_maps_store(tmp_path, stores):
     """A second report on the same maps store reuses the picture the first drew (the same
     pixels as one drawn anew); another store, or a note that does not read, draws it again."""
