@@ -246,7 +246,8 @@ def main() -> None:
           **{r["per_s"]:.1f} missions/s** ({r["ok"]} of {r["missions"]} ok; mean ridge ratio
           {100 * r["ridge"]:.0f} %), against {1 / r["sequential_s"]:.1f} missions/s one `plan()`
           at a time. The missions ran in {r["tasks"]} tasks (`missions_per_task` by default:
-          groups of up to 4 missions, in turn on one worker, the last 2 per thread alone). The
+          groups of up to 8 missions, an eighth of a thread's share, in turn on one worker,
+          the last 2 per thread alone). The
           workers ran a mission task {r["occupied"]} % of the time (by their own clocks) and
           used CPU {r["busy"]} % of the time (their CPU time over the wall time); the client
           process, which also runs the scheduler, used {r["client_cpu"]:.0f} % of a core, on

@@ -345,9 +345,10 @@ def test_plan_missions_in_groups_per_task(store, local_client):
         groups = mission_groups(n, threads, per)
         assert [i for g in groups for i in g] == list(range(n))  # each once, in order
         assert all(len(g) == 1 for g in groups[-min(n, 2 * threads) :])
-        assert max(len(g) for g in groups) <= (per or 4)
-    assert max(len(g) for g in mission_groups(100, 2, None)) == 3  # 100 // (16 x 2)
-    assert max(len(g) for g in mission_groups(31, 2, None)) == 1  # up to 16 a thread: alone
+        assert max(len(g) for g in groups) <= (per or 8)
+    assert max(len(g) for g in mission_groups(100, 2, None)) == 6  # 100 // (8 x 2)
+    assert max(len(g) for g in mission_groups(15, 2, None)) == 1  # up to 8 a thread: alone
+    assert max(len(g) for g in mission_groups(1000, 2, None)) == 8  # at most 8
 
     missions = [
         {"start": (20 + 6 * i, 20), "goal": (225 - 4 * i, 30 + 10 * i), **SMALL} for i in range(6)
