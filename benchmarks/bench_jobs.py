@@ -131,44 +131,46 @@ def demo() -> dict:
     return d
 
 
+def _demo_again() -> tuple[float, subprocess.CompletedProcess]:
+    """``pipeline run tasks/demo.toml`` on the catalog :func:`demo` filled, as run_job_timed
+    runs it: its wall time and the finished process."""
+    exe = Path(sys.executable).parent / "pipeline"
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [str(exe), "run", "tasks/demo.toml"], capture_output=True, text=True, cwd=ROOT
+    )
+    return time.perf_counter() - t0, proc
+
+
 def rerun(times: int = 3) -> dict:
-    """``pipeline run tasks/demo.toml`` again on the catalog :func:`demo` filled, ``times``
-    times: every mission finished, nothing to plan. Wall times, and whether each run said it
-    started no cluster."""
-    exe = Path(sys.executable).parent / "pipeline"  # as run_job_timed runs it
-    walls, quiet = [], []
-    for _ in range(times):
-        t0 = time.perf_counter()
-        proc = subprocess.run(
-            [str(exe), "run", "tasks/demo.toml"], capture_output=True, text=True, cwd=ROOT
-        )
-        walls.append(time.perf_counter() - t0)
-        quiet.append(proc.returncode == 0 and "no cluster started" in proc.stderr)
-    return dict(walls=walls, no_cluster=all(quiet))
+    """:func:`_demo_again` ``times`` times: every mission finished, nothing to plan. Wall
+    times, and whether each run said it started no cluster."""
+    runs = [_demo_again() for _ in range(times)]
+    return dict(
+        walls=[w for w, _ in runs],
+        no_cluster=all(p.returncode == 0 and "no cluster started" in p.stderr for _, p in runs),
+    )
 
 
 def replan(times: int = 3) -> dict:
-    """``pipeline run tasks/demo.toml`` on the catalog :func:`demo` filled with its missions'
-    results removed first, ``times`` times: both stores reused, every mission planned again
-    (as when a job's missions change on built maps). Wall times, and whether each run reused
-    both stores and planned the 8 missions."""
+    """:func:`_demo_again` ``times`` times, the missions' results removed before each: both
+    stores reused, every mission planned again (as when a job's missions change on built
+    maps). Wall times, and whether each run reused both stores and planned the 8 missions."""
     import shutil
 
-    exe = Path(sys.executable).parent / "pipeline"
-    walls, right = [], []
+    runs = []
     for _ in range(times):
         shutil.rmtree(ROOT / "catalogs" / "demo" / "missions", ignore_errors=True)
-        t0 = time.perf_counter()
-        proc = subprocess.run(
-            [str(exe), "run", "tasks/demo.toml"], capture_output=True, text=True, cwd=ROOT
-        )
-        walls.append(time.perf_counter() - t0)
-        right.append(
-            proc.returncode == 0
-            and proc.stderr.count("is up to date: reusing it") == 2
-            and "8 missions planned" in proc.stdout
-        )
-    return dict(walls=walls, right=all(right))
+        runs.append(_demo_again())
+    return dict(
+        walls=[w for w, _ in runs],
+        right=all(
+            p.returncode == 0
+            and p.stderr.count("is up to date: reusing it") == 2
+            and "8 missions planned" in p.stdout
+            for _, p in runs
+        ),
+    )
 
 
 def cold_start() -> dict:
