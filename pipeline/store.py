@@ -421,6 +421,22 @@ class MappedLayer:
 
         return _assemble(r0, r1, c0, c1, self.chunks, self.dtype, block)
 
+    def values(self, cells) -> np.ndarray | None:
+        """The layer's values at ``cells`` (pairs of row and column), or None where a chunk
+        is not there (as :meth:`window`)."""
+        ch, cw = self.chunks
+        blocks = self.blocks
+        out = np.empty(len(cells), dtype=self.dtype)
+        for k, (r, c) in enumerate(cells):
+            ci, cj = r // ch, c // cw
+            blk = blocks.get((ci, cj))
+            if blk is None:
+                blk = self._block(ci, cj)
+                if blk is None:
+                    return None
+            out[k] = blk[r - ci * ch, c - cj * cw]
+        return out
+
 
 def _assemble(r0: int, r1: int, c0: int, c1: int, chunks, dtype, block):
     """Rows ``r0:r1`` and columns ``c0:c1`` of a layer of ``chunks``, copied from the chunks
@@ -655,15 +671,19 @@ class ChunkCache:
         out[: got.shape[0], : got.shape[1]] = got
         return got.shape
 
-    def window(
-        self, store: str, var: str, r0: int, r1: int, c0: int, c1: int, complete: bool = False
-    ) -> np.ndarray:
+    def _layer(self, store: str, var: str) -> tuple:
+        """``((chunk shape, dtype), its MappedLayer or None)`` of the 2-D layer ``var``."""
         layout = self.layouts.get((store, var))
         if layout is None:  # zarr's metadata properties cost microseconds a call
             arr = self.array(store, var)
             layout = self.layouts[(store, var)] = (tuple(arr.chunks), arr.dtype)
             self.mapped[(store, var)] = MappedLayer.of(arr, store, var)
-        mapped = self.mapped.get((store, var))
+        return layout, self.mapped.get((store, var))
+
+    def window(
+        self, store: str, var: str, r0: int, r1: int, c0: int, c1: int, complete: bool = False
+    ) -> np.ndarray:
+        layout, mapped = self._layer(store, var)
         if mapped is not None:
             got = mapped.window(r0, r1, c0, c1)
             if got is not None:
@@ -672,6 +692,19 @@ class ChunkCache:
         return _assemble(
             r0, r1, c0, c1, chunks, dtype, lambda ci, cj: self.chunk(store, var, ci, cj, complete)
         )
+
+    def values(self, store: str, var: str, cells, complete: bool = False) -> np.ndarray:
+        """The values of the 2-D layer ``var`` at ``cells`` (pairs of row and column): looked
+        up in the mapped shards or the cached chunks, with no window copied around each."""
+        ((ch, cw), dtype), mapped = self._layer(store, var)
+        got = mapped.values(cells) if mapped is not None else None
+        if got is not None:
+            return got
+        out = np.empty(len(cells), dtype=dtype)
+        for k, (r, c) in enumerate(cells):
+            ci, cj = r // ch, c // cw
+            out[k] = self.chunk(store, var, ci, cj, complete)[r - ci * ch, c - cj * cw]
+        return out
 
     def stack_values(
         self, store: str, var: str, r: int, c: int, complete: bool = False
@@ -807,6 +840,11 @@ class MapsStore:
         """Rows ``r0:r1`` and columns ``c0:c1`` of layer ``var``, through the chunk cache. A
         chunk missing from a store that wrote every chunk is an error, not NaN."""
         return CACHE.window(self.path, var, r0, r1, c0, c1, complete=self.all_chunks_written)
+
+    def values(self, var: str, cells) -> np.ndarray:
+        """Layer ``var`` at ``cells`` (pairs of row and column, on the map), through the chunk
+        cache (:meth:`ChunkCache.values`)."""
+        return CACHE.values(self.path, var, cells, complete=self.all_chunks_written)
 
     def component(self, cell) -> int | None:
         """The connected component of a cell (0: not passable), or None for a store without

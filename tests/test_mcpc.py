@@ -105,6 +105,65 @@ def test_segment_follows_the_rule_on_random_paths():
         assert segment(pts, size, margin, shape) == want
 
 
+def test_joints_are_snapped_to_the_nearest_passable_cell_of_both_windows(tmp_path):
+    """On a seabed with many land blocks (chunks of 16, a last chunk of one cell), random walks
+    cut by ``segment``: each inner joint is itself where passable, else the passable cell
+    nearest it (squared distance, the first in row order on a tie) in both windows it joins,
+    within rho, then 4 rho, then the margin (written out here over the whole passable layer);
+    with none, the mission cannot be cut there."""
+    import dask
+
+    import pipeline.mcpc as mcpc
+
+    rng = np.random.default_rng(11)
+    z = random_surface((81, 65), seed=11) * 100.0 - 2000.0
+    for _ in range(40):
+        r, c = rng.integers(0, 78), rng.integers(0, 62)
+        z[r : r + rng.integers(1, 9), c : c + rng.integers(1, 9)] = 20.0
+    path = tmp_path / "maps.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(
+            metric_dataarray(z.astype(np.float32), a=A).chunk(16), path, clearance=45.0
+        )
+    ok = pipeline.open_maps(path)["passable"].values.astype(bool)
+    m = pipeline.open_store(path)
+    moved = failed = 0
+    for _ in range(300):
+        n = int(rng.integers(2, 60))
+        pts = np.cumsum(rng.integers(-3, 4, size=(n, 2)), axis=0) + rng.integers(0, 81, size=2)
+        pts = np.clip(pts, 0, [80, 64])
+        rho, size, margin = (int(v) for v in rng.integers([1, 2, 1], [4, 12, 6]))
+        secs = segment(pts, size, margin, ok.shape)
+        want = [tuple(int(v) for v in pts[i0]) for i0, _, _ in secs] + [(9, 9)]
+        for k in range(1, len(secs)):
+            j = want[k]
+            if ok[j]:
+                continue
+            (a0, a1, b0, b1), (c0, c1, d0, d1) = secs[k - 1][2], secs[k][2]
+            near = None
+            for radius in (rho, 4 * rho, margin):
+                r0, r1 = max(a0, c0, j[0] - radius), min(a1, c1, j[0] + radius + 1)
+                q0, q1 = max(b0, d0, j[1] - radius), min(b1, d1, j[1] + radius + 1)
+                cand = [
+                    (r, c) for r in range(r0, r1) for c in range(q0, q1) if ok[r, c]
+                ]  # row order
+                if cand:
+                    near = min(cand, key=lambda v: (v[0] - j[0]) ** 2 + (v[1] - j[1]) ** 2)
+                    break
+            if near is None:
+                want = None
+                break
+            want[k] = near
+            moved += 1
+        if want is None:
+            failed += 1
+            with pytest.raises(pipeline.UnreachableGoalError, match="no passable cell near"):
+                mcpc._snapped_joints(m, pts, secs, (9, 9), rho, margin)
+        else:
+            assert mcpc._snapped_joints(m, pts, secs, (9, 9), rho, margin) == want
+    assert moved > 50 and failed > 0
+
+
 def test_restore_by_hand():
     coarse = np.array([(0, 0), (1, 1), (2, 2), (3, 2)])
     got = restore(coarse, 10, (35, 100), (1, 2), (33, 27))
@@ -695,7 +754,7 @@ def _loaded(dask_worker=None) -> dict:
     from pipeline.planners.core import off_ridge_to_goal
 
     ok = np.ones((3, 3), dtype=bool)
-    off_ridge_to_goal(ok, ok, 30.0, 1, 1)
+    off_ridge_to_goal(ok, ok, 30.0, 1, 1, -1, -1)
     return {
         "pid": os.getpid(),
         "dir": dask_worker.local_directory,
@@ -886,8 +945,12 @@ def test_a_mission_in_this_process_reads_its_windows_ahead_and_frees_the_helper(
     assert [w for _, w in readers] == windows  # each window once, in order
     assert all(name.startswith("pipeline-section-reads") for name, _ in readers), readers
     assert set(switch) == {0.0005} and sys.getswitchinterval() == 0.005
+
+    def no_joint(*args, **kwargs):
+        raise pipeline.UnreachableGoalError("no passable cell near the joint (1, 2)")
+
     with monkeypatch.context() as mp:
-        mp.setattr(mcpc, "_snap", lambda *args, **kwargs: None)
+        mp.setattr(mcpc, "_snapped_joints", no_joint)
         whole = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
     assert "no passable cell near the joint" in whole.extra["fallback"]
     readers.clear()

@@ -423,6 +423,28 @@ def test_a_local_store_keeps_the_window_layers_uncompressed_and_reads_them_mappe
     assert all(CACHE.mapped[(m.path, v)] is not None for v in WINDOW_LAYERS)
 
 
+def test_values_at_cells_equal_zarr_in_mapped_and_compressed_layers(tmp_path):
+    """``MapsStore.values`` (one value per cell, as the snapping of a mission's joints reads
+    the passable layer) against zarr's whole layer, at random cells and at the corners of the
+    last chunks (one cell wide: 70 x 49 in chunks of 16), for the mapped, uncompressed layers
+    and the compressed ones read through the chunk cache."""
+    from pipeline._io import WINDOW_LAYERS
+
+    path = _maps_of(random_surface((70, 49), seed=6) * 400.0, tmp_path)
+    group = zarr.open_group(path, mode="r")
+    m = pipeline.open_store(path)
+    rng = np.random.default_rng(3)
+    cells = [(int(r), int(c)) for r, c in rng.integers(0, [70, 49], size=(200, 2))]
+    cells += [(0, 0), (69, 48), (64, 48), (69, 0), (63, 47)]
+    for var in (*WINDOW_LAYERS, "component", "elevation"):
+        whole = group[var][:]
+        got = m.values(var, cells)
+        assert got.dtype == whole.dtype and got.shape == (len(cells),)
+        np.testing.assert_array_equal(got, whole[tuple(np.array(cells).T)])
+        assert (CACHE.mapped[(m.path, var)] is None) == (var not in WINDOW_LAYERS)
+    assert m.values("passable", []).shape == (0,)
+
+
 def _maps_of(z, tmp_path):
     """The maps store of the seabed ``z`` (50 m cells, chunks of 16), built in this process."""
     import dask
