@@ -867,10 +867,15 @@ def _steps(cells, z, a):
     return out
 
 
-@njit(nogil=True, cache=True)
+@njit(cache=True)
 def _trace_measured(state, cols, gr, gc, surface, ridge, a, r0, c0):
     """:func:`_trace` and the path's heights (float64), ridge flags and steps (:func:`_steps`),
-    and the steps that end on the ridge network, in one pass; the cells offset by (r0, c0)."""
+    and the steps that end on the ridge network, in one pass; the cells offset by (r0, c0).
+
+    It keeps the GIL (a section's path: 5-30 us): in one process a helper thread reads the
+    next windows meanwhile, and a kernel that lets the GIL go waits for it to come back, up to
+    the switch interval (in turn, mission by mission, 30 missions at 10000^2 three times: the
+    missions' fixed cost 0.4 ms lower)."""
     return _measured(_trace(state, cols, gr, gc), surface, ridge, a, r0, c0)
 
 
