@@ -238,7 +238,7 @@ def _search_each() -> None:
                 continue
     # on nearly flat ground the Lagrangian planner's weighted searches take a bound of their own
     # (lagrangian.BOUND_SLACK), which the rough tiny map never asks for
-    hoff = off_ridge_to_goal(rdg, ok, 30.0, *g)
+    hoff = off_ridge_to_goal(rdg, ok, 30.0, *g, *s)
     lagrangian_bound(rdg, ok, 30.0, *s, *g, 2.0, hoff)
     # the exact search of windows from SWEEP_CELLS on (whole large maps), which the tiny map
     # is not

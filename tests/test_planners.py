@@ -591,8 +591,9 @@ def test_lagrangian_at_omega_one_takes_the_most_ridge_among_shortest_paths():
 def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     """``off_ridge_to_goal`` equals scipy's Dijkstra towards the goal on the graph whose moves
     cost their horizontal length when they end off the ridge (0 on it), a diagonal counted as
-    41 / 29 cells, and is at most the distance with diagonals of sqrt 2 (within 0.03 %); A*
-    with it in the heuristic finds scipy's optimum of length + w x off-ridge length, for
+    41 / 29 cells, and is at most the distance with diagonals of sqrt 2 (within 0.03 %); given
+    the start, it stops there: each cell's bound the smaller of that and the start's. A* with
+    either in the heuristic finds scipy's optimum of length + w x off-ridge length, for
     several w, also with the exact lengths to the goal (``goal_layer``, scipy's too)."""
     from pipeline.planners.core import (
         OFF_DIAGONAL,
@@ -614,8 +615,12 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
         surface, ridge, passable, 30.0, 0.0, horizontal_off=True, diagonal=41 / 29
     ).T.tocsr()
     want = dijkstra(rev, indices=goal)
-    got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1])
+    got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1], -1, -1)
     np.testing.assert_allclose(got, want, rtol=1e-12)
+    # given the start, the search stops there: each bound the smaller of its own and the start's
+    start = s[0] * surface.shape[1] + s[1]
+    part = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1], s[0], s[1])
+    np.testing.assert_allclose(part, np.minimum(want, want[start]), rtol=1e-12)
     exact = _weighted_graph(surface, ridge, passable, 30.0, 0.0, horizontal_off=True).T.tocsr()
     exact = dijkstra(exact, indices=goal)
     assert np.array_equal(np.isfinite(got), np.isfinite(exact))
@@ -638,7 +643,7 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
         ref = dijkstra(graph, indices=s[0] * surface.shape[1] + s[1])[goal]
         if not np.isfinite(ref):
             return
-        for hoff, lm in ((got, none), (np.zeros(0), none), (got, to_goal)):
+        for hoff, lm in ((got, none), (np.zeros(0), none), (got, to_goal), (part, none)):
             for kernel in (astar_search, astar_search_bucketed):
                 _, gs, _, found = kernel(
                     z, ridge, passable, 30.0, *s, *g, 1.0, w, True, lm, hoff, *search_arrays(z.size)
@@ -693,7 +698,7 @@ def test_lagrangian_bound_against_scipy(shape, seed):
     rr, cc = np.divmod(np.arange(rows * cols), cols)
     dr, dc = np.abs(rr - g[0]), np.abs(cc - g[1])
     octile = 30.0 * (np.maximum(dr, dc) + (math.sqrt(2.0) - 1.0) * np.minimum(dr, dc))
-    hoff = off_ridge_to_goal(ridge, passable, 30.0, *g)
+    hoff = off_ridge_to_goal(ridge, passable, 30.0, *g, -1, -1)
     flat = np.zeros(shape)
     for w in (1.0, 3.0, 50.0, 4e5):
         out = lagrangian_bound(ridge, passable, 30.0, *s, *g, w, hoff)
@@ -804,10 +809,13 @@ def test_off_ridge_bound_on_thin_windows_and_goals_at_the_edge(shape):
     ).T.tocsr()
     for g in goals:
         want = dijkstra(rev, indices=g[0] * cols + g[1])
-        got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1])
+        got = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1], -1, -1)
         assert got.shape == (rows * cols,)
         np.testing.assert_allclose(got, want, rtol=1e-12)
         assert np.isinf(got[~passable.ravel()]).all()
+        for s in goals:  # stopped at a start: the smaller of each cell's bound and the start's
+            part = off_ridge_to_goal(ridge, passable, 30.0, g[0], g[1], s[0], s[1])
+            np.testing.assert_allclose(part, np.minimum(want, want[s[0] * cols + s[1]]), 1e-12)
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 3, 257])

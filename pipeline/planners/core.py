@@ -549,7 +549,7 @@ OFF_DIAGONAL = 41
 
 
 @njit(nogil=True, cache=True)
-def off_ridge_to_goal(ridge, passable, a, gr, gc):
+def off_ridge_to_goal(ridge, passable, a, gr, gc, sr, sc):
     """Per cell (flat), a lower bound on the off-ridge length of any path from it to the goal
     (gr, gc): the least horizontal length of the moves that end off the ridge network, over
     the paths of the planners' graph, a diagonal move counted as ``OFF_DIAGONAL / OFF_UNITS``
@@ -560,19 +560,27 @@ def off_ridge_to_goal(ridge, passable, a, gr, gc):
     windows of 22000 cells, against a binary heap of exact lengths: its time is the moves it
     scans).
 
+    With a start (sr, sc) in the window (``-1, -1``: none) the search stops once it has settled
+    the start, and every cell's bound is the smaller of its distance and the start's: a cell not
+    settled then is at least as far as the start, and the smaller of two consistent bounds is
+    consistent. A search from the start needs no more; on the 2000^2 benchmark's Lagrangian
+    sections the backward search took 330 instead of 475 us a window and its searches expanded
+    1 % more cells; the same paths on 50 missions at 2000^2, 4000^2 and 10000^2.
+
     Its lengths are integers, turned into metres in place at the end, in the same buffer (the
     frame dropped). 0.77 -> 0.48 ms a window of the 2000^2 benchmark's Lagrangian sections,
     the same bounds bit for bit, in the same memory (9 bytes a cell)."""
     rows, cols = passable.shape
-    d, _, far = _dial_to_goal(ridge, passable, gr, gc, 0, 0, OFF_UNITS, OFF_DIAGONAL, -1)
     w = cols + 2  # the framed grid's row
+    stop = (sr + 1) * w + sc + 1 if 0 <= sr < rows and 0 <= sc < cols else -1
+    d, reach, far = _dial_to_goal(ridge, passable, gr, gc, 0, 0, OFF_UNITS, OFF_DIAGONAL, stop)
     unit = a / OFF_UNITS * (1.0 - 1e-13)  # never above the length it bounds, after rounding
     out = d.view(np.float64)  # in place: cell v of the window is read from slot >= v first
     v = 0
     for r in range(rows):
         row = (r + 1) * w + 1
         for c in range(cols):
-            dv = d[row + c]
+            dv = min(d[row + c], reach)  # reach: far unless the search stopped at the start
             out[v] = np.inf if dv == far else dv * unit
             v += 1
     return out[: rows * cols]

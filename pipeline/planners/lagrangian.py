@@ -132,7 +132,7 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
     def search(off_weight):
         nonlocal expansions, hoff, lm, exact, joint, fresh
         if off_weight > 0 and hoff is None:  # one backward search serves every weighting
-            hoff = off_ridge_to_goal(ridge, passable, a, t[0], t[1])
+            hoff = off_ridge_to_goal(ridge, passable, a, t[0], t[1], s[0], s[1])
         if 0 < off_weight < EXACT_BELOW and not exact:
             lm = goal_layer(lm, surface, passable, a, t)
             exact = True
