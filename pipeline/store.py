@@ -849,10 +849,14 @@ class MapsStore:
     def component(self, cell) -> int | None:
         """The connected component of a cell (0: not passable), or None for a store without
         the components layer."""
+        return self.components(cell)[0]
+
+    def components(self, *cells) -> list:
+        """The connected components of the cells (:meth:`component`), in one lookup."""
         if not self.has_components:
-            return None
-        r, c = int(cell[0]), int(cell[1])
-        return int(self.window("component", r, r + 1, c, c + 1)[0, 0])
+            return [None] * len(cells)
+        got = self.values("component", [(int(r), int(c)) for r, c in cells])
+        return [int(v) for v in got]
 
     def landmark_distances(self, cell) -> np.ndarray:
         """The distances of ``cell`` from every landmark (metres, ``inf`` where a landmark does

@@ -88,9 +88,18 @@ def wall_store(tmp_path_factory):
 
 
 @pytest.mark.timeout(60)
-def test_unreachable_is_proven_and_instant(wall_store):
+@pytest.mark.parametrize("mcpc, rho", [(True, None), (True, 20), (False, None)])
+def test_unreachable_is_proven_and_instant(wall_store, mcpc, rho, monkeypatch):
+    """The goal inside the closed ring: the components say so before any window is read,
+    whether the coarse search finds no path (rho 2) or one through the ring (rho 20, blocks
+    wider than its wall), and for the whole map."""
+    import pipeline.mcpc as mcpc_module
+
+    read = []
+    monkeypatch.setattr(mcpc_module, "read_section", lambda *args: read.append(args))
     with pytest.raises(pipeline.UnreachableGoalError, match="separate passable regions"):
-        pipeline.plan(wall_store, (180, 20), (40, 60), client="synchronous")
+        pipeline.plan(wall_store, (180, 20), (40, 60), mcpc=mcpc, rho=rho, client="synchronous")
+    assert read == []
 
 
 @pytest.mark.parametrize("rho", [5, 10, 20])
