@@ -86,6 +86,16 @@ def offline_stac_schemas():
 
 
 @pytest.fixture(scope="session")
+def test_kernels_compiled():
+    """The warm-up has compiled the argument types only the tests use (compile_test_kernels):
+    the modules that call the kernels with them wait for it rather than compile them a second
+    time beside it (in a fresh clone the two test processes compiled the landmarks' Dijkstra and
+    RA* on float64 heights while the warm-up was compiling them: about 18 s of CPU twice over,
+    the session cluster's set-up among them)."""
+    _wait_for_warm_up("tests")
+
+
+@pytest.fixture(scope="session")
 def pysheds_ready():
     """The warm-up has compiled the pysheds kernels the comparisons call."""
     _wait_for_warm_up("pysheds")
@@ -177,10 +187,12 @@ def compile_test_kernels() -> None:
 
 
 @pytest.fixture(scope="session")
-def local_client(tmp_path_factory):
+def local_client(tmp_path_factory, test_kernels_compiled):
     """One LocalCluster of 2 single-threaded worker processes for every test that needs a
     cluster but does not test starting one (jobs take it as their scheduler): its workers
-    import the library and load the compiled kernels once."""
+    import the library and load the compiled kernels once. Every kernel is in numba's cache
+    before they start (compile_kernels; in a fresh clone it waits for the warm-up's test
+    kernels rather than compile them a second time beside it)."""
     from distributed import Client
 
     from pipeline.cluster import local_cluster

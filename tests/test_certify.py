@@ -27,6 +27,8 @@ from pipeline.components import label_components
 from pipeline.store import MapsStore
 
 EXE = Path(sys.executable).parent / "pipeline"
+# the landmarks' Dijkstra on float64 heights: the test kernels of the warm-up (conftest)
+pytestmark = pytest.mark.usefixtures("test_kernels_compiled")
 
 
 def obstacle_map(seed: int, shape, land: float):

@@ -19,6 +19,9 @@ from scipy.sparse.csgraph import dijkstra
 import pipeline
 from pipeline.exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
 
+# the planners on float64 heights: the test kernels of the warm-up (conftest)
+pytestmark = pytest.mark.usefixtures("test_kernels_compiled")
+
 MOVES = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
 
 

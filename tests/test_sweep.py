@@ -158,6 +158,7 @@ def test_lengths_against_scipy_on_awkward_shapes(seed):
 
 def test_start_is_goal_and_neighbours():
     surface, _, passable = obstacle_map((20, 20), 1, density=0.0)
+    surface = surface.astype(np.float32)  # as solve_and_check searches it (the compiled type)
     cells, _, extra = sweep.search(surface, passable, A, (5, 5), (5, 5))
     assert cells.tolist() == [[5, 5]] and extra["rounds"] == 1
     for g in [(5, 6), (6, 6), (4, 5), (4, 4)]:
