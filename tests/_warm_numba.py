@@ -12,9 +12,11 @@ finish in seconds):
 
 In a fresh environment on this project's 2-core VM: MARKS/first after 56 s, MARKS/library
 after 66 s (the tests start), MARKS/tests after 81 s, MARKS/pysheds after 103 s. With the
-tests' own types compiled before MARKS/first, as they were, the tests started after 79-84 s. A
-test that needs a kernel still being compiled here compiles it itself: numba's cache takes
-both (pipeline._jit).
+tests' own types compiled before MARKS/first, as they were, the tests started after 79-84 s.
+The modules that call kernels with the tests' own types, and the session's cluster, wait for
+MARKS/tests (conftest.test_kernels_compiled): compiling them beside this process cost the two
+test processes 75 s of compilation in a fresh clone. Any other test that needs a kernel still
+being compiled here compiles it itself: numba's cache takes both (pipeline._jit).
 """
 
 import sys
