@@ -345,7 +345,9 @@ def _plan_checked(store, section, planner, omega, a, error, read=None) -> Sectio
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
     try:
-        p = search_path(surface, ridge, ok, s, g, a, planner, omega, lm, (r0, c0))
+        # a whole map's search proves the mission's bound (_plan_whole); a section's is unused
+        whole = (r0, r1, c0, c1) == (0, store.shape[0], 0, store.shape[1])
+        p = search_path(surface, ridge, ok, s, g, a, planner, omega, lm, (r0, c0), whole)
     except PipelineError as e:
         return SectionResult("failed", section.window, message=str(e), read_s=read_s)
     return SectionResult(

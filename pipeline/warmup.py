@@ -227,7 +227,7 @@ def _search_each() -> None:
     import pipeline
 
     from .planners import sweep
-    from .planners.core import lagrangian_bound, measured_path, off_ridge_to_goal
+    from .planners.core import lagrangian_bound, measured_path, off_ridge_to_goal, raised_bound
 
     z, rdg, ok, s, g = _tiny_window()
     for planner in tuple(pipeline.PLANNERS)[::-1]:
@@ -239,7 +239,9 @@ def _search_each() -> None:
     # on nearly flat ground the Lagrangian planner's weighted searches take a bound of their own
     # (lagrangian.BOUND_SLACK), which the rough tiny map never asks for
     hoff = off_ridge_to_goal(rdg, ok, 30.0, *g, *s)
-    lagrangian_bound(rdg, ok, 30.0, *s, *g, 2.0, hoff)
+    raised_bound(
+        lagrangian_bound(rdg, ok, 30.0, *s, *g, 2.0, hoff), hoff, 2.0, 4.0, *z.shape, *g, 30.0
+    )
     # the exact search of windows from SWEEP_CELLS on (whole large maps), which the tiny map
     # is not
     got = sweep.search(z, ok, 30.0, s, g)

@@ -590,6 +590,42 @@ def test_lagrangian_at_omega_one_takes_the_most_ridge_among_shortest_paths():
     assert a_off_more >= 8
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_lagrangian_takes_the_least_off_ridge_path_without_the_shortest_when_octile_proves_it(
+    seed,
+):
+    """Where the least off-ridge path (length as the tie-break) is within omega times the
+    octile distance, a lower bound on L*, it is the answer whatever L* is: the planner then
+    searches that path only, not the shortest one, and its answer is scipy's optimum of
+    length + 1e7 x off-ridge length; the proven lower bound it reports is still scipy's L*
+    (the shortest path searched when asked for)."""
+    rng = np.random.default_rng(seed)
+    surface, _, passable = obstacle_map((30, 36), seed, 0.1)
+    ridge = rng.random(surface.shape) < 0.4
+    s, g = endpoints(passable, seed)
+    ref = reference_length(surface, passable, 30.0, s, g)
+    assert np.isfinite(ref)  # connected on these seeds
+    cols = surface.shape[1]
+    least = dijkstra(
+        _weighted_graph(surface, ridge, passable, 30.0, 1e7), indices=s[0] * cols + s[1]
+    )
+    octile = 30.0 * (
+        max(abs(s[0] - g[0]), abs(s[1] - g[1]))
+        + (math.sqrt(2) - 1) * min(abs(s[0] - g[0]), abs(s[1] - g[1]))
+    )
+    t = pipeline.plan_window(
+        surface, ridge, passable, s, g, cell_size=30.0, planner="lagrangian", omega=4.0
+    )
+    check_path(t, passable, s, g)
+    length, ridge_len = independent_metrics(t, surface, ridge, 30.0)
+    assert length + 1e7 * (length - ridge_len) == pytest.approx(
+        least[g[0] * cols + g[1]], rel=1e-12
+    )
+    assert length <= 4.0 * octile  # these missions are such cases
+    assert t.extra["searches"] == 1
+    assert t.lower_bound_m == pytest.approx(ref, rel=1e-9)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     """``off_ridge_to_goal`` equals scipy's Dijkstra towards the goal on the graph whose moves
@@ -674,12 +710,14 @@ def test_lagrangian_bound_against_scipy(shape, seed):
     distance plus w x the off-ridge bound; where its search settled cells (those at most half
     as far as the start on the horizontal plane), within the rounding of its units of the least
     weighted horizontal cost (scipy on a flat surface); inf where the goal is out of reach. The
-    bound of a larger weight, used for this one (the planner does), is one too. A* with them
-    finds scipy's optimum. Also on windows one cell thin, start and goal anywhere."""
+    bound of a larger weight, used for this one (the planner does), is one too, and so is the
+    bound of a smaller weight raised to this one (``raised_bound``). A* with them finds scipy's
+    optimum. Also on windows one cell thin, start and goal anywhere."""
     from pipeline.planners.core import (
         astar_search,
         lagrangian_bound,
         off_ridge_to_goal,
+        raised_bound,
         search_arrays,
     )
 
@@ -726,29 +764,43 @@ def test_lagrangian_bound_against_scipy(shape, seed):
             moves = horizontal[near] / 30.0
             unit = 30.0 * 41 * (1 + w) / (29 * 400)
             assert (bound[near] >= horizontal[near] * (1 - 3e-4) - moves * unit).all()
-        # the bound of a larger weight serves this one too (the planner's reuse)
-        out = np.maximum(out, lagrangian_bound(ridge, passable, 30.0, *s, *g, 4 * w, hoff))
-        bound = octile + w * out
-        assert (bound[fin] <= exact[fin] * (1 + 1e-12)).all()
-        assert (bound[e.row][both] <= e.data[both] + bound[e.col][both] + slack).all()
-        ref = dijkstra(graph, indices=start)[goal]
-        _, gs, _, found = astar_search(
-            surface,
-            ridge,
-            passable,
-            30.0,
-            *s,
-            *g,
-            1.0,
+        # the bound of a larger weight serves this one too (the planner's reuse), and that of
+        # a smaller one raised to this one (raised_bound), at least the octile distance plus
+        # w x the off-ridge bound
+        raised = raised_bound(
+            lagrangian_bound(ridge, passable, 30.0, *s, *g, w / 3, hoff),
+            hoff,
+            w / 3,
             w,
-            True,
-            np.zeros((0, 0), np.float32),
-            out,
-            *search_arrays(surface.size),
+            *shape,
+            *g,
+            30.0,
         )
-        assert found == bool(np.isfinite(ref))
-        if found:
-            assert gs[goal] == pytest.approx(ref, rel=1e-9)
+        assert (octile + w * raised >= octile + w * hoff - 1e-9 * np.nan_to_num(exact)).all()
+        for other in (lagrangian_bound(ridge, passable, 30.0, *s, *g, 4 * w, hoff), raised):
+            bound = octile + w * other
+            assert (bound[fin] <= exact[fin] * (1 + 1e-12)).all()
+            assert (bound[e.row][both] <= e.data[both] + bound[e.col][both] + slack).all()
+        out = np.maximum(out, lagrangian_bound(ridge, passable, 30.0, *s, *g, 4 * w, hoff))
+        ref = dijkstra(graph, indices=start)[goal]
+        for h in (out, raised):
+            _, gs, _, found = astar_search(
+                surface,
+                ridge,
+                passable,
+                30.0,
+                *s,
+                *g,
+                1.0,
+                w,
+                True,
+                np.zeros((0, 0), np.float32),
+                h,
+                *search_arrays(surface.size),
+            )
+            assert found == bool(np.isfinite(ref))
+            if found:
+                assert gs[goal] == pytest.approx(ref, rel=1e-9)
 
 
 def test_the_lagrangian_planner_takes_its_joint_bound_on_gentle_ground_only(monkeypatch):

@@ -640,20 +640,52 @@ def lagrangian_bound(ridge, passable, a, sr, sc, gr, gc, off_weight, hoff):
     )
     unit = a / (OFF_UNITS * q) * (1.0 - 1e-12)
     out = np.empty(rows * cols)
-    sq2 = math.sqrt(2.0) - 1.0
     v = 0
     for r in range(rows):
         row = (r + 1) * w + 1
-        dr = abs(r - gr)
         for c in range(cols):
-            dc = abs(c - gc)
-            octile = a * (max(dr, dc) + sq2 * min(dr, dc))
             dv = d[row + c]
             h = np.inf if dv == far and reach == far else min(dv, reach) * unit
-            b = octile + off_weight * hoff[v]
-            if b > h:
-                h = b
-            out[v] = (h - octile) / off_weight if h > octile else 0.0
+            out[v] = _per_weight(h, heuristic(a, r, c, gr, gc, True), hoff[v], off_weight)
+            v += 1
+    return out
+
+
+@njit(inline="always", cache=True)
+def _per_weight(h, octile, hoff, off_weight):
+    """A cell's entry of :func:`lagrangian_bound` from a bound ``h`` on its cost to the goal:
+    the larger of ``h`` and ``octile + off_weight hoff``, less the octile distance, over the
+    weight (0 where the octile distance is larger)."""
+    b = octile + off_weight * hoff
+    if b > h:
+        h = b
+    return (h - octile) / off_weight if h > octile else 0.0
+
+
+@njit(nogil=True, cache=True)
+def raised_bound(bound, hoff, w0, off_weight, rows, cols, gr, gc, a):
+    """:func:`lagrangian_bound` of weight ``w0`` (``bound``) raised to a larger weight
+    ``off_weight``, in the same form (per cell ``(B(v) - octile(v)) / off_weight``), without a
+    search: ``B`` is the larger of
+
+    - ``B0 + (off_weight - w0) hoff``, with ``B0 = octile + w0 bound`` the bound of weight
+      ``w0`` on ``length + w0 off_ridge`` and ``hoff`` (:func:`off_ridge_to_goal`) one on
+      ``off_ridge``: a path's cost of weight ``off_weight`` is the sum of those two terms, so
+      the sum of their bounds bounds it, consistently (each is consistent on its own term);
+    - the octile distance plus ``off_weight`` times ``hoff``, as in :func:`lagrangian_bound`.
+
+    A pass over the window (19 us on the 2000^2 benchmark's windows of 15625 cells) instead of
+    a search (440 us): the planner computes one bound a window, at twice its first weighted
+    search's weight, and raises it for the larger weights that follow (``lagrangian.JOINT``)."""
+    out = np.empty(rows * cols)
+    rise = off_weight - w0
+    v = 0
+    for r in range(rows):
+        for c in range(cols):
+            octile = heuristic(a, r, c, gr, gc, True)
+            out[v] = _per_weight(
+                octile + w0 * bound[v] + rise * hoff[v], octile, hoff[v], off_weight
+            )
             v += 1
     return out
 

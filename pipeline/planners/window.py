@@ -90,13 +90,25 @@ class PathSearch:
 
 
 def search_path(
-    surface, ridge, passable, start, goal, a, planner, omega, landmarks=None, offset=(0, 0)
+    surface,
+    ridge,
+    passable,
+    start,
+    goal,
+    a,
+    planner,
+    omega,
+    landmarks=None,
+    offset=(0, 0),
+    bound: bool = True,
 ) -> PathSearch:
     """The search of :func:`search_window` and the path's metrics, without the path's
     coordinates: an MCPC section needs the heights only (the coordinates took 15 us of the
     80 us a section spent outside its search, 61 sections a mission at 10000^2). The cells
     come offset by ``offset`` (a section's window's first row and column: the map's cells),
-    the heights as float64."""
+    the heights as float64. Without ``bound`` (an MCPC section, whose mission has a bound of
+    its own) ``lower_bound_m`` is the octile distance: the planner's own bound may cost a
+    search (the Lagrangian planner's shortest path, where it did not need it)."""
     s = check_endpoint("start", start, passable)
     t = check_endpoint("goal", goal, passable)
     t0 = time.perf_counter()
@@ -116,7 +128,9 @@ def search_path(
             search.state, surface.shape[1], t, surface, ridge, a, offset
         )
     # the planner's proven bound, or the octile distance when that is larger
-    lower = max(search.lower_bound(length), heuristic(a, s[0], s[1], t[0], t[1], True))
+    lower = heuristic(a, s[0], s[1], t[0], t[1], True)
+    if bound:
+        lower = max(search.lower_bound(length), lower)
     return PathSearch(
         cells=cells,
         z=z,
