@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 from conftest import random_surface
+from scipy import ndimage
 from test_planners import (
     cell_metrics,
     check_cells,
@@ -244,6 +245,31 @@ def test_the_astar_planner_sweeps_a_large_window_exactly():
         length, ridge_len = independent_metrics(t, surface, ridge, A)
         assert t.length_m == pytest.approx(length, rel=1e-12)
         assert t.ridge_length_m == pytest.approx(ridge_len, rel=1e-12)
+
+
+def test_the_astar_planner_takes_astar_on_flat_ground_exactly():
+    """On a flat window (over SWEEP_CELLS cells, with obstacles) the planner runs A*, which
+    follows the straight line there, not the sweeps: scipy's optimum all the same. ``flat``
+    against numpy: one height over the passable cells, whatever lies under the obstacles."""
+    rng = np.random.default_rng(5)
+    passable = ~ndimage.binary_dilation(rng.random((300, 300)) < 0.002, iterations=4)
+    surface = np.full(passable.shape, -2500.0, np.float32)
+    surface[~passable] = rng.random(int((~passable).sum())) * 100  # under land: not looked at
+    cells = np.argwhere(passable)
+    s = tuple(cells[0])
+    d = reference_distances(surface.astype(np.float64), passable, A, s)
+    for g in [tuple(cells[-1]), tuple(cells[len(cells) // 3])]:
+        t = pipeline.plan_window(surface, passable, passable, s, g, cell_size=A, planner="astar")
+        assert "engine" not in t.extra  # A*
+        assert t.length_m == pytest.approx(float(d[g[0] * 300 + g[1]]), rel=1e-12)
+        check_path(t, passable, s, g)
+    for z, ok in [
+        (surface, passable),
+        (surface, np.ones_like(passable)),
+        (np.where(np.arange(300) == 299, np.float32(1.0), surface), passable),  # last column
+        (surface, np.zeros_like(passable)),
+    ]:
+        assert sweep.flat(z, ok) == (np.unique(z[ok]).size <= 1)
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -438,6 +438,27 @@ def _backtrack(surface, ok, a, sr, sc, gr, gc, lo, hi, off, d):
     return cells
 
 
+@njit(nogil=True, cache=True)
+def flat(surface, passable):
+    """Whether every passable cell of the window has one height (a flat seabed, the planners'
+    benchmark obstacle map): there the octile distance is the exact length wherever no obstacle
+    stands in the way, every cell of the parallelogram a mission spans ties on ``f`` with the
+    optimum, and A*, its ties broken towards the goal, walks the straight line, expanding a few
+    cells a step of the path. It stops at the first cell that differs (at once on real relief)."""
+    z0 = np.float32(0.0)
+    seen = False
+    rows, cols = surface.shape
+    for i in range(rows):
+        for j in range(cols):
+            if passable[i, j]:
+                if not seen:
+                    z0 = surface[i, j]
+                    seen = True
+                elif surface[i, j] != z0:
+                    return False
+    return True
+
+
 def search(surface, passable, a: float, s, t):
     """The shortest path from ``s`` to ``t`` by the module's method: ``(cells, relaxed,
     extra)``, ``cells`` the path (k x 2; none: no path), ``relaxed`` the cell relaxations,
