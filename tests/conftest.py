@@ -108,7 +108,14 @@ def _import_pysheds():
     them all: about a minute of one core in a fresh environment (then 4-5 s per process to load
     them from the cache), though the comparisons call a handful. The import here drops those
     signatures: the same functions, compiled on first call for the argument types they are
-    given (the filled DEM, D8 codes and accumulation are equal bit for bit either way)."""
+    given (the filled DEM, D8 codes and accumulation are equal bit for bit either way).
+
+    Its generator ``count`` (``itertools.count`` in numba, used by the priority flood) is not
+    cached on disk: numba cannot compile a function that uses a generator it loaded from the
+    cache (``KeyError: int64 generator(func=count ...)`` in ``get_generator_impl``). With
+    ``count`` cached and the priority flood not (a warm-up ended between the two saves: a short
+    test selection ends it), every later process failed the pysheds comparisons until the cache
+    was cleared. Compiled afresh in each process instead, in a fraction of a second."""
     import inspect
 
     if "pysheds.grid" not in sys.modules:
@@ -116,10 +123,15 @@ def _import_pysheds():
 
         eager = numba.njit
 
+        def jit(f, options):
+            if inspect.isgeneratorfunction(f):
+                options = {**options, "cache": False}
+            return eager(f, **options)
+
         def lazy(*args, **options):
             if args and inspect.isfunction(args[0]):
-                return eager(args[0], **options)
-            return lambda f: eager(f, **options)  # @njit(signature, ...): drop the signature
+                return jit(args[0], options)
+            return lambda f: jit(f, options)  # @njit(signature, ...): drop the signature
 
         numba.njit = lazy
         try:

@@ -82,6 +82,20 @@ def test_large_flat_and_big_hole_chunked():
 # ----------------------------------------------------------------------------- pysheds
 
 
+def test_pysheds_generator_is_compiled_in_each_process_not_cached():
+    """The reference's numba generator (pysheds' ``count``) is compiled afresh in each process:
+    numba cannot compile a function using a generator it loaded from its disk cache, so a cached
+    ``count`` beside an uncached priority flood (a warm-up ended between their saves) failed
+    every later process's comparison with pysheds, ``KeyError: int64 generator(func=count``."""
+    from numba.core.caching import NullCache
+
+    pysheds_ridges(np.zeros((3, 3), np.float32))  # imports pysheds as the comparisons do
+    from pysheds import _sgrid
+
+    assert isinstance(_sgrid.count._cache, NullCache)
+    assert not isinstance(_sgrid._priority_flood._cache, NullCache)  # the rest is cached
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_against_pysheds(seed, pysheds_ready):
     """Filled DEM: exactly pysheds' fill_depressions. Ridge cells at the default threshold:
