@@ -228,7 +228,12 @@ def assemble(quick: bool, run: dict) -> str:
         "the package starts, `pipeline.cluster.local_cluster`, its workers' allocator set by "
         "`pipeline.cluster.WORKER_ENV`). Peers run "
         "in the same script, on the same data, right before or after ours. This VM's timings "
-        "vary by 10-40 % from run to run. The paper's figures come from a 16-core desktop "
+        "vary by 10-40 % from run to run within an hour and by up to 3x between hours "
+        "(pyastar2d's missions in the latency benchmark took 2.4-2.5x as long in its run "
+        "before 11:12 UTC on 2026-11-27 as in its run at 13:40, the same code), so compare "
+        "ratios within one part, not figures of parts run at different times. The paper's "
+        "figures come "
+        "from a 16-core desktop "
         "running MATLAB, on its own survey data, with the maps built beforehand; ours include "
         "building the maps, reported separately.",
         "",
