@@ -88,7 +88,11 @@ def is_compiled() -> bool:
         return False
 
 
-def _mark_compiled(seconds: float) -> None:
+def mark_compiled(seconds: float = 0.0) -> None:
+    """Stamp the kernels compiled for this installation and these sources (what
+    :func:`ensure_compiled` does once it has compiled them), for a caller that ran every part
+    of the warm-up itself (:func:`compile_parts`, say each of :data:`HALVES` in a process of
+    its own): later runs then skip it."""
     path = _stamp_path()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -320,7 +324,7 @@ def ensure_compiled(client=None, *, force: bool = False) -> float:
         )
         return time.perf_counter() - t0
     seconds = time.perf_counter() - t0
-    _mark_compiled(seconds)
+    mark_compiled(seconds)
     log.info("kernels compiled in %.1f s (cached for the next runs)", seconds)
     return seconds
 
