@@ -18,18 +18,35 @@ cell, so every large component gets its own landmarks. Components of fewer than
 ``MIN_COMPONENT_FRACTION`` of the passable cells get none (their missions fall back on the
 octile distance).
 
-Distances are computed in float64 and stored as float32, rounded to nearest; every value then
-carries a relative error of at most 2^-24 plus the float64 summation error (at most
-``n * 2^-53`` relative for a path of ``n`` edges, ``n < 2^32``), so
+A layer's distances are computed in whole units of ``unit = a * 2^-b`` (``a`` the cell size;
+``b`` from 16 to 24 bits as the map's size allows, :func:`fixed_point_bits`), 4 bytes a cell:
+each move's cost is rounded down to whole units, so the layer holds the exact shortest
+distances ``D_l`` (integer arithmetic, which float64 carries exactly) of a graph whose every
+edge is at most as long as the planners'. A path of the planners' graph is no shorter in it,
+so ``|D_l(s) - D_l(g)| unit <= L*(s, g)`` by the triangle inequality in that graph: the
+rounding never makes the bound exceed the optimum, it only loosens it, by less than one unit a
+move (a relative ``2^-b``: 1.5e-5 at most, where rows and columns add up to more than 4096).
+Values are held at ``2^31`` units (``2^(31 - b)`` cells' lengths, four times the way round the
+map where ``b`` is above 16, 32 768 where it is 16): ``min(D, cap)`` keeps the triangle
+inequality. Where a distance reaches the cap (a maze whose paths wind further), the layer is
+computed again in units 16 times as long, down to ``2^-8`` of a cell (0.4 %); where a move
+could cost ``2^30`` units (a relief of more than ``2^(30 - b)`` cells' lengths), in coarser
+units from the start; only a relief of ``2^30`` cells' lengths would leave float64
+(:func:`distances_from`, exact up to the float64 summation, ``n * 2^-53`` for a path of ``n``
+moves).
+
+The layer stores ``D_l unit`` as float32, rounded to nearest: a relative error of at most
+2^-24 (plus 2^-53 for the product and for the float64 rounding of each move's cost), so
 :func:`lower_bound` takes ``|d_l(s) - d_l(g)| - REL_MARGIN * (d_l(s) + d_l(g))`` with
-``REL_MARGIN = 2^-22`` (``LANDMARK_MARGIN`` of the planners' core, which uses the same bound as
-its A* heuristic), a margin that covers both with room to spare.
+``REL_MARGIN = 2^-22`` (``LANDMARK_MARGIN`` of the planners' core, which uses the same bound
+as its A* heuristic), a margin that covers it with room to spare.
 
 A layer's search runs on the whole map in one process: row sweeps (the exact search of
 :mod:`pipeline.planners.sweep` with the whole map as its region), or where they give up
-Dijkstra's algorithm with a bucket queue; either holds the safety surface (float32), the
-passable mask, a float64 distance per cell and its working state, at most 14 bytes a cell
-(:func:`memory_per_landmark`).
+Dijkstra's algorithm with a bucket queue in the same fixed point (:func:`fixed_point_dijkstra`:
+the same integers), holding the safety surface (float32, NaN on its impassable cells: no mask
+beside it) and the distances, 8 bytes a cell (10000^2: 0.75 GiB), 9 with Dijkstra's settled
+flags (:func:`memory_per_landmark`).
 """
 
 from __future__ import annotations
@@ -43,6 +60,13 @@ from ._heap import grown
 from ._io import inner_chunks, layer_codec, storage_chunks
 from ._jit import njit
 from .planners.core import LANDMARK_MARGIN, edge_length
+from .planners.sweep import (
+    FIXED_CAP,
+    FIXED_UNREACHED,
+    METRES,
+    passable_flat,
+    whole_units,
+)
 
 MIN_COMPONENT_FRACTION = 0.01
 REL_MARGIN = LANDMARK_MARGIN
@@ -52,7 +76,38 @@ DEFAULT_LANDMARKS = 8
 @njit(nogil=True, cache=True)
 def dijkstra(surface, passable, a, sources):
     """Exact shortest path lengths (float64, ``inf`` where unreached) from the cells
-    ``sources`` (flat indices, distance 0) to every cell, on the planners' graph.
+    ``sources`` (flat indices, distance 0) to every cell, on the planners' graph
+    (:func:`_dijkstra_into`)."""
+    rows, cols = surface.shape
+    dist = np.full(rows * cols, np.inf)
+    _dijkstra_into(surface, passable, a, METRES, sources, dist)
+    return dist.reshape(rows, cols)
+
+
+@njit(nogil=True, cache=True)
+def fixed_point_dijkstra(surface, a, source, bits):
+    """The distances of :func:`~.planners.sweep.fixed_point_distances` (whole units of ``a *
+    2^-bits``, uint32) by :func:`_dijkstra_into`, for a map where the sweeps give up: from the
+    cell ``source`` of ``surface``, NaN on its impassable cells. The same values (both are the
+    one solution of ``D(v) = min(cap, min_u D(u) + c'(u, v))`` in integers), in 5 bytes a cell
+    besides the surface."""
+    rows, cols = surface.shape
+    dist = np.full(rows * cols, FIXED_UNREACHED, dtype=np.uint32)
+    units = 2.0**bits
+    u = (units / a, FIXED_CAP, np.float64(FIXED_UNREACHED))
+    start = np.array([source[0] * cols + source[1]], dtype=np.int64)
+    _dijkstra_into(surface, surface, units, u, start, dist)
+    return dist.reshape(rows, cols)
+
+
+@njit(nogil=True, cache=True)
+def _dijkstra_into(surface, passable, a, un, sources, dist):
+    """Shortest path lengths from the cells ``sources`` (flat indices, distance 0) into
+    ``dist`` (flat, all not reached), in the units ``un`` of the row sweeps
+    (:data:`~.planners.sweep.METRES`: float64 metres; the fixed point of
+    :func:`~.planners.sweep.fixed_point_distances`: each move's cost rounded down to whole
+    units, values held at the cap); ``passable`` a mask, or the surface with NaN on its
+    impassable cells.
 
     A bucket queue (Dial's algorithm with buckets narrower than the shortest edge, ``a``): a
     cell taken from the lowest bucket cannot be improved by any other cell of that bucket, so
@@ -65,13 +120,12 @@ def dijkstra(surface, passable, a, sources):
     n = rows * cols
     zf = surface.ravel()
     okf = passable.ravel()
-    dist = np.full(n, np.inf)
     done = np.zeros(n, dtype=np.bool_)
     lo = np.inf
     hi = -np.inf
     for i in range(n):
-        if okf[i]:
-            z = np.float64(zf[i])
+        if passable_flat(okf, i):
+            z = np.float64(zf[i]) * un[0]
             lo = min(lo, z)
             hi = max(hi, z)
     w = a * (1.0 - 1e-7)
@@ -108,8 +162,8 @@ def dijkstra(surface, passable, a, sources):
             if done[u]:
                 continue
             done[u] = True
-            du = dist[u]
-            zu = np.float64(zf[u])
+            du = np.float64(dist[u])
+            zu = np.float64(zf[u]) * un[0]
             r = u // cols
             c = u - r * cols
             inner = 0 < r < rows - 1 and 0 < c < cols - 1
@@ -117,13 +171,16 @@ def dijkstra(surface, passable, a, sources):
                 if not inner and not inside(r, c, k, rows, cols):
                     continue
                 v = u + off[k]
-                if done[v] or not okf[v]:
+                if done[v] or not passable_flat(okf, v):
                     continue
-                if k & 1 and not (okf[u + DC[k]] and okf[u + DR[k] * cols]):
+                if k & 1 and not (
+                    passable_flat(okf, u + DC[k]) and passable_flat(okf, u + DR[k] * cols)
+                ):
                     continue  # no corner cutting
-                nd = du + edge_length(h2[k], np.float64(zf[v]) - zu)  # the planners' edge
+                zv = np.float64(zf[v]) * un[0]
+                nd = du + whole_units(edge_length(h2[k], zv - zu), dist)  # the planners' edge
                 if nd < dist[v]:
-                    dist[v] = nd
+                    dist[v] = min(nd, un[1])
                     b = max(int(nd / w), cur) % nb
                     if fill[b] == cap[b]:
                         buckets[b] = grown(buckets[b], fill[b], 2 * cap[b])
@@ -133,7 +190,6 @@ def dijkstra(surface, passable, a, sources):
                     queued += 1
         fill[cb] = 0
         cur += 1
-    return dist.reshape(rows, cols)
 
 
 # --------------------------------------------------------------------------- placement
@@ -259,9 +315,110 @@ def distances_from(surface, passable, a: float, cell) -> np.ndarray:
     return d
 
 
+@njit(nogil=True, cache=True)
+def relief(surface) -> float:
+    """The highest less the lowest height of a surface whose impassable cells are NaN (0: no
+    passable cell)."""
+    lo = np.inf
+    hi = -np.inf
+    for i in range(surface.shape[0]):
+        for j in range(surface.shape[1]):
+            z = np.float64(surface[i, j])
+            if z == z:
+                lo = min(lo, z)
+                hi = max(hi, z)
+    return hi - lo if hi >= lo else 0.0
+
+
+MIN_BITS = 16  # the unit the map's size asks for: at most 2^-16 of a cell (a bound 1.5e-5 looser)
+MAX_BITS = 24  # at least 2^-24 of a cell: finer is below the float32 layer's resolution
+CAPPED_BITS = 8  # where distances pass the cap, coarser units down to 2^-8 of a cell (0.4 %)
+
+
+def fixed_point_bits(shape, relief_m: float, a: float) -> int | None:
+    """The ``b`` of the layer's first unit ``a * 2^-b`` (module doc) for a map of ``shape``: the
+    finest (at most :data:`MAX_BITS`) whose cap ``2^31`` units holds four times the way round
+    the map (a path across it and back, twice), at least :data:`MIN_BITS`; coarser where the
+    longest move (its rise ``relief_m``) would cost ``2^30`` units or more (a relief of more
+    than ``2^14`` cells' lengths); None where even whole cells would not do (the layer is then
+    computed in float64)."""
+    extent = 4.0 * (int(shape[0]) + int(shape[1]))
+    bits = min(MAX_BITS, max(MIN_BITS, math.floor(math.log2(FIXED_CAP / extent))))
+    longest = math.sqrt(2.0 + (float(relief_m) / a) ** 2)  # in cells' lengths
+    while bits >= 0 and longest * 2.0**bits >= 2.0**30:
+        bits -= 1
+    return bits if bits >= 0 else None
+
+
+@njit(nogil=True, cache=True)
+def _reaches_cap(d) -> bool:
+    """Whether a fixed-point distance is held at the cap."""
+    for v in d.ravel():
+        if v == FIXED_CAP:
+            return True
+    return False
+
+
+def layer_distances(surface, passable, a: float, cell):
+    """One landmark's distances as its layer is computed (module doc): ``(D, unit)``, ``D`` the
+    whole units of ``unit`` metres (uint32; ``FIXED_UNREACHED`` where not reached), or, where
+    the fixed point does not serve, float64 metres with ``unit`` None. Convert a part of it
+    with :func:`layer_values`. ``passable`` None: ``surface`` is float32 with NaN on its
+    impassable cells (:func:`_layers_task`: no mask held besides it).
+
+    The row sweeps compute it, or Dijkstra's algorithm where they give up; where a distance
+    reaches the cap (a maze whose paths run more than four times round the map), again in
+    units 16 times as long, down to :data:`CAPPED_BITS`."""
+    from .planners import sweep
+
+    surface = np.ascontiguousarray(surface, dtype=np.float32)
+    if passable is not None:  # the kernels are compiled for the NaN-marked surface only
+        passable = np.ascontiguousarray(passable, dtype=np.bool_)
+        marked = np.where(passable, surface, np.float32(np.nan))
+    else:
+        marked = surface
+    r, c = int(cell[0]), int(cell[1])
+    bits = fixed_point_bits(surface.shape, relief(marked), float(a))
+    if bits is None:
+        del marked
+        if passable is None:
+            passable = ~np.isnan(surface)
+        return distances_from(surface, passable, a, cell), None
+    if marked[r, c] != marked[r, c]:  # not passable: reaches nothing
+        return np.full(surface.shape, FIXED_UNREACHED, dtype=np.uint32), float(a) * 2.0**-bits
+    while True:
+        d = sweep.fixed_point_distances(marked, marked, float(a), (r, c), bits)
+        if d is None:
+            d = fixed_point_dijkstra(marked, float(a), (r, c), bits)
+        if bits <= CAPPED_BITS or not _reaches_cap(d):
+            return d, float(a) * 2.0**-bits
+        del d  # before the next search allocates its own
+        bits = max(CAPPED_BITS, bits - 4)
+
+
+def layer_values(d: np.ndarray, unit: float | None) -> np.ndarray:
+    """Distances of :func:`layer_distances` (any part of them) as the layer stores them:
+    float32 metres, ``inf`` where not reached."""
+    if unit is None:
+        return d.astype(np.float32)
+    return _in_metres(d, unit)
+
+
+@njit(nogil=True, cache=True)
+def _in_metres(d, unit):
+    """Fixed-point distances ``d`` (rows x cols) as float32 metres (each ``d * unit`` in
+    float64, then rounded to nearest), ``inf`` where not reached, with no temporary array."""
+    out = np.empty(d.shape, dtype=np.float32)
+    for i in range(d.shape[0]):
+        for j in range(d.shape[1]):
+            v = d[i, j]
+            out[i, j] = np.inf if v == FIXED_UNREACHED else np.float32(np.float64(v) * unit)
+    return out
+
+
 def landmark_layer(surface, passable, a: float, cell) -> np.ndarray:
     """The float32 distance layer of one landmark (``inf`` outside its component)."""
-    return distances_from(surface, passable, a, cell).astype(np.float32)
+    return layer_values(*layer_distances(surface, passable, a, cell))
 
 
 def lower_bound(ds: np.ndarray, dg: np.ndarray) -> float:
@@ -292,19 +449,23 @@ VARIABLE = "landmark_distance"  # (landmark, y, x), float32, shards (1, *the map
 
 
 def memory_per_landmark(shape) -> int:
-    """Bytes one landmark's task holds: the safety surface (float32), the passable mask, the
-    float64 distances and a byte a cell of the search's state (Dijkstra's settled flags; the
-    row sweeps keep a few values a row). The float32 layer is rounded shard by shard as it is
-    written. Measured on 2 workers, 10000^2: 1.61 GiB a worker at the peak (14 bytes a cell
-    is 1.30 GiB)."""
-    return 14 * int(shape[0]) * int(shape[1])
+    """Bytes one landmark's task may hold: the safety surface (float32, NaN on its impassable
+    cells) and the fixed-point distances (uint32), 8 bytes a cell, and where the row sweeps
+    give up (a maze) Dijkstra's settled flags besides: 9 bytes a cell (the row sweeps keep a
+    few values a row; the float32 layer is converted shard by shard as it is written). Only a
+    relief of 2^30 cells' lengths (float64 distances and a mask: 14 bytes a cell)
+    would need more. Measured on 2 workers, 10000^2 (8 bytes a cell: 0.75 GiB): 0.99 GiB a
+    worker at the peak for the landmark pass on its own, 1.08-1.11 GiB in a whole build (the
+    worker holds 0.34 GiB when the pass starts)."""
+    return 9 * int(shape[0]) * int(shape[1])
 
 
 def _layers_task(store: str, items: list, a: float) -> None:
     """The layers of the landmarks ``items`` (``(index, cell)`` pairs) computed in turn, each
     written shard by shard (:func:`~.store.block_writer`: on a local store the shards' bytes
     written directly, 1.2 s for a 10000^2 layer where zarr's own write of it took 6.4 s) and
-    rounded to float32 shard by shard as it is written (no float32 copy of the map). The
+    converted to float32 metres shard by shard as it is written (:func:`layer_values`; no
+    float32 copy of the map). The
     safety and passable layers are read once for all of them, as :func:`whole_layer` reads
     them (1.1 s at 10000^2)."""
     import zarr
@@ -312,17 +473,35 @@ def _layers_task(store: str, items: list, a: float) -> None:
     from .store import block_writer
 
     g = zarr.open_group(store, mode="r", zarr_format=3)
-    surface = whole_layer(store, g, "safety")
-    passable = whole_layer(store, g, "passable")
+    surface = masked_surface(store, g)
+    _return_freed_memory()
     _, bh, bw = storage_chunks(g[VARIABLE])
     write = block_writer(store, VARIABLE)
     for i, cell in items:
-        d = distances_from(surface, passable, a, cell)
+        d, unit = layer_distances(surface, None, a, cell)
         for si in range(-(-d.shape[0] // bh)):
             for sj in range(-(-d.shape[1] // bw)):
                 part = (slice(si * bh, (si + 1) * bh), slice(sj * bw, (sj + 1) * bw))
-                write((i, si, sj), d[None, *part].astype(np.float32))
+                write((i, si, sj), layer_values(d[part], unit)[None])
         del d  # (no view of it left) before the next search allocates its own
+
+
+def _return_freed_memory() -> None:
+    """Hand the memory this process has freed back to the system (glibc's ``malloc_trim``,
+    which dask's documentation suggests for a worker's unmanaged memory), before a landmark
+    search takes the most: what the maps build's earlier tasks left in the worker's heap
+    (0.03 GiB of a worker's 0.09 after the placement passes at 10000^2) would otherwise add
+    to its peak. Nothing where there is no glibc."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    name = ctypes.util.find_library("c")
+    try:
+        ctypes.CDLL(name).malloc_trim(0)
+    except (OSError, AttributeError, TypeError):
+        pass
 
 
 def search_slots() -> int:
@@ -345,21 +524,40 @@ def component_sizes(parts) -> np.ndarray:
     return counts
 
 
-def whole_layer(store: str, group, var: str) -> np.ndarray:
-    """Layer ``var`` of the maps store ``store`` (its zarr ``group``) in memory: copied from its
-    memory-mapped shards where it is local, sharded and uncompressed
-    (:class:`~.store.MappedLayer`; a 10000^2 safety layer in 0.99 s against 1.71 s through
-    zarr, the passable mask 0.10 s against 0.64 s), else through zarr. The mapping is dropped
-    once copied."""
+def whole_layer(store: str, group, var: str, rows=None) -> np.ndarray:
+    """Layer ``var`` of the maps store ``store`` (its zarr ``group``) in memory, or its rows
+    ``rows`` (``(r0, r1)``): copied from its memory-mapped shards where it is local, sharded
+    and uncompressed (:class:`~.store.MappedLayer`; a 10000^2 safety layer in 0.99 s against
+    1.71 s through zarr, the passable mask 0.10 s against 0.64 s), else through zarr. One row
+    of shards is mapped at a time (the mapped pages count in the process's memory: the whole
+    layer mapped at once made its copy's peak twice the layer)."""
     from .store import MappedLayer
 
     arr = group[var]
+    r0, r1 = rows if rows is not None else (0, arr.shape[0])
     layer = MappedLayer.of(arr, store, var)
     out = None
     if layer is not None:
-        out = layer.window(0, arr.shape[0], 0, arr.shape[1])  # None: a chunk not written
+        layer.keep = -(-arr.shape[1] // arr.shards[1])
+        out = layer.window(r0, r1, 0, arr.shape[1])  # None: a chunk not written
         del layer
-    return arr[:] if out is None else out
+    return arr[r0:r1] if out is None else out
+
+
+def masked_surface(store: str, group) -> np.ndarray:
+    """The store's safety layer in memory (float32) with NaN on the cells its passable layer
+    marks impassable: the landmark searches' one whole-map input (4 bytes a cell, no mask
+    beside it; :func:`~.planners.sweep.passable_at`), the mask read a row of shards at a
+    time."""
+    surface = whole_layer(store, group, "safety")
+    if surface.dtype != np.float32:
+        surface = surface.astype(np.float32)
+    step = storage_chunks(group["passable"])[0]
+    for r0 in range(0, surface.shape[0], step):
+        r1 = min(r0 + step, surface.shape[0])
+        ok = whole_layer(store, group, "passable", (r0, r1)).astype(bool)
+        surface[r0:r1][~ok] = np.nan
+    return surface
 
 
 # the placement passes' tasks read about one storage chunk each, in whole blocks of the coarse

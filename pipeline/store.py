@@ -328,10 +328,10 @@ class MappedLayer:
     is the cache). A shard is mapped when first read (its index checked against its CRC32C
     then), and each inner chunk read is kept as a view of its mapping (a window then costs a
     dictionary lookup and a copy a chunk); the last :data:`MAPPED_SHARDS` shards of the layer
-    stay mapped. The store's files are never rewritten in place (a rebuild writes a new store
-    and renames it): a mapping holds the file it mapped. ``window`` returns None where a chunk
-    is not there, for the caller to read through zarr (the fill value) or to report the
-    damage."""
+    stay mapped (``keep``). The store's files are never rewritten in place (a rebuild writes a
+    new store and renames it): a mapping holds the file it mapped. ``window`` returns None
+    where a chunk is not there, for the caller to read through zarr (the fill value) or to
+    report the damage."""
 
     def __init__(self, root: str, arr, store: str, var: str):
         self.root, self.store, self.var = root, store, var
@@ -343,6 +343,7 @@ class MappedLayer:
         self.shards: OrderedDict = OrderedDict()  # shard index -> (bytes as uint8, its index)
         self.blocks: dict = {}  # inner chunk index -> its 2-D view of the mapped shard
         self.lock = threading.Lock()
+        self.keep = MAPPED_SHARDS  # shards kept mapped (a whole layer's copy: a row of them)
 
     @classmethod
     def of(cls, arr, store: str, var: str):
@@ -382,7 +383,7 @@ class MappedLayer:
         (ph, pw) = self.per
         with self.lock:
             self.shards[index] = got
-            while len(self.shards) > MAPPED_SHARDS:  # unmapped once no window reads it
+            while len(self.shards) > self.keep:  # unmapped once no window reads it
                 (si, sj), _ = self.shards.popitem(last=False)
                 for i in range(si * ph, si * ph + ph):
                     for j in range(sj * pw, sj * pw + pw):

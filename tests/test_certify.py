@@ -151,6 +151,83 @@ def test_the_bound_is_exact_on_a_line_through_a_landmark():
     assert opt * (1 - 1e-6) <= lb <= opt
 
 
+def test_the_layers_unit_is_the_finest_that_holds_the_map_else_float64():
+    """``fixed_point_bits``: the finest unit ``a 2^-b`` whose cap (2^31 units) holds four times
+    the way round the map, between 16 and 24 bits; coarser where a move could cost 2^30 units
+    (a relief of 2^14 cells' lengths at 16 bits); none where even whole cells would not do,
+    and the layer is then float64 distances rounded to float32. Each within its ``2^-b`` of
+    scipy's distances, and never above them."""
+    assert lm.fixed_point_bits((100, 100), 400.0, 30.0) == 21  # log2(2^31 / 800) = 21.4
+    assert lm.fixed_point_bits((1, 3), 0.0, 30.0) == 24  # capped at 24
+    assert lm.fixed_point_bits((10_000, 10_000), 3000.0, 30.0) == 16  # 2^31 / 80 000: 14.7
+    assert lm.fixed_point_bits((100, 100), 0.5 * 2**13, 0.5) == 16
+    assert lm.fixed_point_bits((100, 100), 0.5 * 2**14, 0.5) == 15
+    assert lm.fixed_point_bits((100, 100), 0.5 * 2**30, 0.5) is None
+    surface, ok = obstacle_map(3, (30, 40), 0.2)  # 17.7 km of relief (heights x 40)
+    cell = tuple(int(v) for v in np.argwhere(ok)[5])
+    # 30 m cells: 22 bits; 2 cm cells: 884 000 cells' lengths of relief, 10 bits; 1e-6 m: none
+    for a, rtol in ((A, 2.0**-22), (0.02, 2.0**-10), (1e-6, 1e-12)):
+        want = scipy_distances(surface, ok, a, [cell[0] * 40 + cell[1]])
+        got = lm.landmark_layer(surface, ok, a, cell)
+        fin = np.isfinite(want)
+        np.testing.assert_array_equal(np.isfinite(got), fin)
+        assert (got[fin] <= want[fin] * (1 + 2.0**-24)).all()
+        np.testing.assert_allclose(got[fin], want[fin], rtol=rtol + 2.0**-24)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.integers(0, 10_000),
+    st.tuples(st.integers(1, 20), st.integers(1, 20)),
+    st.floats(0.0, 0.5),
+    st.sampled_from([16, 20, 24, 26]),
+)
+def test_the_fixed_point_dijkstra_equals_the_sweeps(seed, shape, land, bits):
+    """Where the row sweeps give up, a layer's distances come from Dijkstra's algorithm in the
+    same fixed point: the same integers (the one solution of ``D(v) = min(cap, min_u D(u) +
+    c'(u, v))``), also where they pass the cap (26 bits: 32 cells' lengths). The heights are
+    scaled to a relief (about 440 m) at which a move costs under 2^30 units at 26 bits, as
+    ``fixed_point_bits`` makes sure."""
+    from pipeline.planners import sweep
+
+    surface, ok = obstacle_map(seed, shape, land)
+    cells = np.argwhere(ok)
+    if len(cells) == 0:
+        return
+    z = np.where(ok, surface / 40.0, np.nan).astype(np.float32)
+    assert math.sqrt(2.0 + (lm.relief(z) / A) ** 2) * 2.0**bits < 2.0**30
+    src = tuple(int(v) for v in cells[np.random.default_rng(seed).integers(len(cells))])
+    want = sweep.fixed_point_distances(z, z, A, src, bits)
+    assert want is not None
+    np.testing.assert_array_equal(lm.fixed_point_dijkstra(z, A, src, bits), want)
+
+
+def test_a_maze_past_the_cap_takes_coarser_units():
+    """Serpentine corridors whose paths run past the first unit's cap (2^31 units: 1024 cells'
+    lengths at the 21 bits a 100 x 41 map asks for, the maze's paths about 2000): the layer
+    is computed again in units 16 times as long, none of its values held at the cap, within
+    2^-17 of scipy's distances, and still a proven lower bound."""
+    from pipeline.planners import sweep
+
+    walls, rows = 20, 100
+    ok = np.ones((rows, 2 * walls + 1), bool)
+    for k in range(walls):
+        ok[:, 2 * k + 1] = False
+        ok[(rows - 2 if k % 2 == 0 else 0) : (rows if k % 2 == 0 else 2), 2 * k + 1] = True
+    surface = random_surface(ok.shape, seed=4).astype(np.float32)
+    assert lm.fixed_point_bits(ok.shape, lm.relief(np.where(ok, surface, np.nan)), A) == 21
+    d, unit = lm.layer_distances(surface, ok, A, (0, 0))
+    assert unit == A * 2.0**-17
+    assert not (d == sweep.FIXED_CAP).any()
+    want = scipy_distances(surface, ok, A, [0])
+    assert np.nanmax(np.where(np.isfinite(want), want, np.nan)) > 1024 * A  # past the first cap
+    got = lm.layer_values(d, unit)
+    fin = np.isfinite(want)
+    np.testing.assert_array_equal(np.isfinite(got), fin)
+    assert (got[fin] <= want[fin] * (1 + 2.0**-23)).all()
+    np.testing.assert_allclose(got[fin], want[fin], rtol=2.0**-17 + 2.0**-23)
+
+
 def test_landmarks_go_to_every_large_component_only():
     ok = np.zeros((60, 80), bool)
     ok[:, :30] = True  # a large region
@@ -305,10 +382,11 @@ def test_component_sizes_from_the_build_equal_the_layers_bincount(tmp_path, monk
 
 
 def test_a_landmark_task_holds_one_distance_array_at_a_time(tmp_path, monkeypatch):
-    """A task computing several landmarks' layers lets each one's float64 distances go
-    before the next search (a view left over from the write once kept them: two whole-map
-    arrays, 2.36 GiB a worker instead of 1.61 at 10000^2), and writes the layers the
-    in-memory searches give."""
+    """A task computing several landmarks' layers lets each one's distances go before the
+    next search (a view left over from the write once kept them: two whole-map arrays, 2.36
+    GiB a worker instead of 1.61 at 10000^2), and writes the layers the in-memory searches
+    give (there with the passable mask, in the task with NaN on the surface's impassable
+    cells)."""
     import weakref
 
     import dask
@@ -318,17 +396,18 @@ def test_a_landmark_task_holds_one_distance_array_at_a_time(tmp_path, monkeypatc
         pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=3)
     cells = pipeline.open_store(tmp_path / "m.zarr").landmarks
     alive = []
-    search = lm.distances_from
+    search = lm.layer_distances
 
     def watched(*args):
         assert not any(ref() is not None for ref in alive)  # the last one's is gone
-        d = out = search(*args)
+        out = search(*args)
+        d = out[0]
         while isinstance(d.base, np.ndarray):  # the array whose memory every view shares
             d = d.base
         alive.append(weakref.ref(d))
         return out
 
-    monkeypatch.setattr(lm, "distances_from", watched)
+    monkeypatch.setattr(lm, "layer_distances", watched)
     lm._layers_task(str(tmp_path / "m.zarr"), list(enumerate(cells)), A)
     assert len(alive) == len(cells) == 3
     ds = pipeline.open_maps(tmp_path / "m.zarr")

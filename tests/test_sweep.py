@@ -137,7 +137,7 @@ def test_a_row_relaxation_lowers_every_cell_a_move_can_lower(seed):
         d = np.concatenate([full[0, lo[0] : hi[0] + 1], full[1, lo[1] : hi[1] + 1]])
         want = brute_relax_row(surface, ok, full[p], full[i], lo, hi, i, p)
         scratch = np.empty((9, cols + 2))
-        _, fell = sweep._relax_row(surface, ok, A, i, p, lo, hi, off, d, scratch)
+        _, fell = sweep._relax_row(surface, ok, A, sweep.METRES, i, p, lo, hi, off, d, scratch)
         got = d[off[i] : off[i + 1]]
         np.testing.assert_allclose(got, want[lo[i] : hi[i] + 1], rtol=1e-15)
         assert fell == bool((want < full[i]).any())
@@ -309,3 +309,37 @@ def test_a_layer_past_the_budget_comes_from_dijkstra(monkeypatch):
     assert sweep.distances(z, passable, A, src) is None
     ref = reference_distances(z.astype(np.float64), passable, A, src).reshape(z.shape)
     np.testing.assert_allclose(lm.landmark_layer(z, passable, A, src), ref, rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "seed, bits", [(0, 16), (1, 18), (2, 24), (3, 20), (4, 26), (5, 16), (6, 29)]
+)
+def test_fixed_point_distances_lie_less_than_a_unit_a_move_below_scipys(seed, bits):
+    """The landmark layers' distances (``fixed_point_distances``: whole units of ``A 2^-bits``,
+    each move's cost rounded down, values held at ``FIXED_CAP``) on the surface with NaN on its
+    impassable cells, as the layers' task holds it: never above scipy's shortest distances,
+    less than one unit a move below them (every move is at least ``A`` long: a relative
+    ``2^-bits``), the capped ones at the cap, not reached exactly where scipy's are inf (also
+    past the cap, which the two finest units reach on these maps). Awkward shapes, obstacles,
+    a maze."""
+    if seed == 5:
+        surface, passable = maze(60, 8)
+    else:
+        shape = [(1, 70), (70, 1), (41, 37), (64, 97), (120, 80), None, (90, 60)][seed]
+        surface, _, passable = obstacle_map(shape, seed, density=0.05 * seed)
+    z = np.where(passable, surface, np.nan).astype(np.float32)
+    unit, cap = A * 2.0**-bits, sweep.FIXED_CAP
+    rng = np.random.default_rng(seed)
+    cells = np.argwhere(passable)
+    for k in rng.choice(len(cells), 3):
+        src = tuple(int(v) for v in cells[k])
+        got = sweep.fixed_point_distances(z, z, A, src, bits)
+        assert got is not None and got.dtype == np.uint32
+        ref = reference_distances(z.astype(np.float64), passable, A, src).reshape(z.shape)
+        fin = np.isfinite(ref)
+        np.testing.assert_array_equal(got != sweep.FIXED_UNREACHED, fin)
+        units = got[fin].astype(np.float64)
+        exact = ref[fin] / unit  # scipy's distances in units
+        assert (units <= np.minimum(exact * (1 + 1e-12), cap)).all()
+        assert (units >= np.minimum(exact * (1 - 2.0**-bits) - 1e-6, cap)).all()
+        assert (units == cap).any() == (exact >= cap).any()

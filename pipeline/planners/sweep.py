@@ -42,6 +42,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import types
+from numba.extending import overload
 
 from .._grid8 import DC, DR
 from .._jit import njit
@@ -105,12 +107,56 @@ def region_rows(rows, cols, a, sr, sc, gr, gc, bound):
 
 
 @njit(inline="always", cache=True)
-def _along(surface, ok, a, i, j0, j1):
-    """The move (i, j0) -> (i, j1) along a row (``edge_cost``, whose operations every
-    relaxation here repeats in the same order), inf where a cell is not passable."""
-    if not (ok[i, j0] and ok[i, j1]):
+def _along(surface, ok, a, u, d, i, j0, j1):
+    """The move (i, j0) -> (i, j1) along a row, inf where a cell is not passable: with the
+    heights scaled by ``u[0]``, in the units of ``d`` (:func:`whole_units`; in :data:`METRES` the
+    operations of ``edge_cost`` in its order, as every relaxation here repeats them)."""
+    if not (passable_at(ok, i, j0) and passable_at(ok, i, j1)):
         return INF
-    return edge_cost(surface, a, i, j0, i, j1)
+    dz = np.float64(surface[i, j1]) * u[0] - np.float64(surface[i, j0]) * u[0]
+    return whole_units(math.sqrt(a * a + dz * dz), d)
+
+
+def whole_units(x, d):
+    """A move's cost ``x`` in the units of the distances ``d``: rounded down to a whole unit
+    where ``d`` holds integers (:func:`fixed_point_distances`), else as it is. Compiled for
+    the type of ``d`` (:func:`_whole_typed`), so that the planners' searches pay nothing."""
+    return np.floor(x) if np.issubdtype(d.dtype, np.integer) else x
+
+
+@overload(whole_units, inline="always")
+def _whole_typed(x, d):
+    if isinstance(d.dtype, types.Integer):
+        return lambda x, d: np.floor(x)
+    return lambda x, d: x
+
+
+def passable_at(ok, i, j):
+    """Whether cell (i, j) is passable: ``ok`` the passable mask, or a float surface whose
+    impassable cells are NaN (the landmark layers' search, which then holds no mask). Compiled
+    for the type of ``ok`` (:func:`_passable_typed`)."""
+    v = ok[i, j]
+    return bool(v) if ok.dtype == np.bool_ else v == v
+
+
+@overload(passable_at, inline="always")
+def _passable_typed(ok, i, j):
+    if isinstance(ok.dtype, types.Boolean):
+        return lambda ok, i, j: ok[i, j]
+    return lambda ok, i, j: ok[i, j] == ok[i, j]
+
+
+def passable_flat(ok, i):
+    """:func:`passable_at` of the flat (raveled) ``ok`` at index ``i``."""
+    v = ok[i]
+    return bool(v) if ok.dtype == np.bool_ else v == v
+
+
+@overload(passable_flat, inline="always")
+def _passable_flat_typed(ok, i):
+    if isinstance(ok.dtype, types.Boolean):
+        return lambda ok, i: ok[i]
+    return lambda ok, i: ok[i] == ok[i]
 
 
 @njit(inline="always", cache=True)
@@ -170,20 +216,34 @@ def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
 
 
 @njit(inline="always", cache=True)
-def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist):
-    """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (0 where not
-    passable, so that no NaN of a no-data cell enters a sum), penalties (inf where not
-    passable) and distances (inf outside the row's span ``first .. last``)."""
+def _held(d, i, u):
+    """Distance ``d[i]`` as the scratch rows hold it: inf where not reached (``u[2]``)."""
+    v = d[i]
+    return INF if v == u[2] else np.float64(v)
+
+
+@njit(inline="always", cache=True)
+def _stored(x, u):
+    """A scratch row's distance ``x`` as ``d`` stores it in the units ``u``: held at the cap
+    (``u[1]``), not reached (inf) as ``u[2]``."""
+    return u[2] if x == INF else min(x, u[1])
+
+
+@njit(inline="always", cache=True)
+def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist, u):
+    """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (scaled by ``u[0]``;
+    0 where not passable, so that no NaN of a no-data cell enters a sum), penalties (inf where
+    not passable) and distances (inf outside the row's span ``first .. last``)."""
     cols = surface.shape[1]
     for q in range(n):
         j = j0 + q
-        if 0 <= j < cols and ok[r, j]:
-            z[q] = surface[r, j]
+        if 0 <= j < cols and passable_at(ok, r, j):
+            z[q] = np.float64(surface[r, j]) * u[0]
             pen[q] = 0.0
         else:
             z[q] = 0.0
             pen[q] = INF
-        dist[q] = d[base + j] if first <= j <= last else INF
+        dist[q] = _held(d, base + j, u) if first <= j <= last else INF
 
 
 # candidates of a pull at most this many columns apart are relaxed as one span; a row whose
@@ -192,14 +252,15 @@ GAP = 8
 
 
 @njit(cache=True, nogil=True)
-def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
+def _relax_row(surface, ok, a, u, i, p, lo, hi, off, d, s):
     """Relax row ``i`` from row ``p`` (``p < 0``: from nothing, the start's row) and along
     itself; returns the cells relaxed and whether any distance fell. ``s``: scratch rows (9 x
-    the widest row + 2). The pull is computed only over the spans of columns it can lower
-    (a neighbour in row p within a move of the cell: no move is shorter than ``a``, though
-    computed, ``sqrt(a*a + dz*dz)`` may fall an ulp below it)."""
+    the widest row + 2); ``u`` the units (:data:`METRES`, :func:`fixed_point_distances`).
+    The pull is computed only over the spans of columns it can lower (a neighbour in row p
+    within a move of the cell: no move is shorter than ``a``, though computed,
+    ``sqrt(a*a + dz*dz)`` may fall an ulp below it)."""
     if p < 0:
-        return _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, lo[i], hi[i])
+        return _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, lo[i], hi[i])
     first, last = lo[i], hi[i]
     base = off[i] - first
     lp, hp = lo[p], hi[p]
@@ -215,7 +276,7 @@ def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
         kmax -= 1
     if 2 * _count_lowered(d, base, pbase, lp, hp, low, kmin, kmax) >= kmax - kmin + 1:
         # dense (a row the sweeps reach for the first time): one span
-        return _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax)
+        return _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, kmin, kmax)
     relaxed = 0
     changed = False
     start = kmin
@@ -229,7 +290,7 @@ def _relax_row(surface, ok, a, i, p, lo, hi, off, d, s):
             if _lowered(d, base, pbase, lp, hp, low, j):
                 end = j
             j += 1
-        n, fell = _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, end)
+        n, fell = _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, kmin, end)
         relaxed += n
         changed |= fell
         start = j
@@ -253,21 +314,21 @@ def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
 
 
 @njit(inline="always", cache=True)
-def _extend(surface, ok, a, i, d, base, j, end, step):
+def _extend(surface, ok, a, u, i, d, base, j, end, step):
     """Carry row ``i``'s distances on from column ``j`` towards ``end`` (``step`` +1 or -1)
     while each move along the row lowers the next; returns the last column lowered (``j``:
     none)."""
     while j != end:
-        c = d[base + j] + _along(surface, ok, a, i, j, j + step)
+        c = d[base + j] + _along(surface, ok, a, u, d, i, j, j + step)
         if not c < d[base + j + step]:
             break
         j += step
-        d[base + j] = c
+        d[base + j] = min(c, u[1])
     return j
 
 
 @njit(cache=True, nogil=True)
-def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
+def _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, kmin, kmax):
     """:func:`_relax_row` over columns ``kmin .. kmax``: the pull (none with ``p < 0``), then
     along the row over the span and on past its ends while that lowers the distances."""
     a2 = a * a
@@ -281,18 +342,18 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
         lp, hp = lo[p], hi[p]
         pbase = off[p] - lp
     n = kmax - kmin + 1
-    _load(surface, ok, d, i, base, first, last, kmin - 1, n + 2, zi, pi, best)
+    _load(surface, ok, d, i, base, first, last, kmin - 1, n + 2, zi, pi, best, u)
     if p >= 0:
-        _load(surface, ok, d, p, pbase, lp, hp, kmin - 1, n + 2, zp, pp, dp)
+        _load(surface, ok, d, p, pbase, lp, hp, kmin - 1, n + 2, zp, pp, dp, u)
         for q in range(1, n + 1):
             dz = zi[q] - zp[q]
-            wv[q] = math.sqrt(a2 + dz * dz)
+            wv[q] = whole_units(math.sqrt(a2 + dz * dz), d)
         for q in range(1, n + 1):  # from (p, j - 1): it passes between (p, j) and (i, j - 1)
             dz = zi[q] - zp[q - 1]
-            wd[q] = dp[q - 1] + math.sqrt(d2 + dz * dz) + pi[q - 1]
+            wd[q] = dp[q - 1] + whole_units(math.sqrt(d2 + dz * dz), d) + pi[q - 1]
         for q in range(1, n + 1):
             dz = zi[q] - zp[q + 1]
-            c = dp[q + 1] + math.sqrt(d2 + dz * dz) + pi[q + 1]
+            c = dp[q + 1] + whole_units(math.sqrt(d2 + dz * dz), d) + pi[q + 1]
             c = c if c < wd[q] else wd[q]
             v = dp[q] + wv[q]
             c = (c if c < v else v) + pp[q] + pi[q]
@@ -303,7 +364,7 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
             return n, False
     for q in range(1, n + 2):
         dz = zi[q] - zi[q - 1]
-        hz[q] = math.sqrt(a2 + dz * dz) + pi[q] + pi[q - 1]
+        hz[q] = whole_units(math.sqrt(a2 + dz * dz), d) + pi[q] + pi[q - 1]
     # along the row, left to right, on past kmax while it lowers
     for q in range(1, n + 1):
         c = best[q - 1] + hz[q]
@@ -311,24 +372,24 @@ def _relax_span(surface, ok, a, i, p, lo, hi, off, d, s, kmin, kmax):
             best[q] = c
             changed = True
     for q in range(1, n + 1):
-        d[base + kmin - 1 + q] = best[q]
-    right = _extend(surface, ok, a, i, d, base, kmax, last, 1)
+        d[base + kmin - 1 + q] = _stored(best[q], u)
+    right = _extend(surface, ok, a, u, i, d, base, kmax, last, 1)
     changed |= right > kmax
     # and back, right to left, on past kmin while it lowers
     for j in range(right - 1, kmax, -1):
-        c = d[base + j + 1] + _along(surface, ok, a, i, j + 1, j)
+        c = d[base + j + 1] + _along(surface, ok, a, u, d, i, j + 1, j)
         if c < d[base + j]:
-            d[base + j] = c
+            d[base + j] = min(c, u[1])
     if kmax < last:
-        best[n + 1] = d[base + kmax + 1]
+        best[n + 1] = _held(d, base + kmax + 1, u)
     for q in range(n, 0, -1):
         c = best[q + 1] + hz[q + 1]
         if c < best[q]:
             best[q] = c
             changed = True
     for q in range(1, n + 1):
-        d[base + kmin - 1 + q] = best[q]
-    left = _extend(surface, ok, a, i, d, base, kmin, first, -1)
+        d[base + kmin - 1 + q] = _stored(best[q], u)
+    left = _extend(surface, ok, a, u, i, d, base, kmin, first, -1)
     changed |= left < kmin
     return n + (right - kmax) + (kmin - left), changed
 
@@ -342,15 +403,32 @@ def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
     ``max_sweeps`` (the distances are then upper bounds only)."""
     rows = surface.shape[0]
     off = np.zeros(rows + 1, dtype=np.int64)
+    for i in range(rows):
+        off[i + 1] = off[i] + max(hi[i] - lo[i] + 1, 0)
+    d = np.full(off[rows], INF)
+    relaxed, sweeps, done = _sweeps(
+        surface, ok, a, METRES, sr, sc, lo, hi, off, d, budget, max_sweeps
+    )
+    return d, off, relaxed, sweeps, done
+
+
+# the units of the planners' searches: heights as they are (scale 1), distances in float64
+# stored as computed (no cap), inf where not reached
+METRES = (1.0, INF, INF)
+
+
+@njit(cache=True, nogil=True)
+def _sweeps(surface, ok, a, u, sr, sc, lo, hi, off, d, budget, max_sweeps):
+    """:func:`sweep_distances` into the distances ``d`` (all not reached but the start's, set
+    here to 0) in the units ``u``: ``(heights' scale, cap, not reached)`` (:data:`METRES`;
+    :func:`fixed_point_distances`). Returns ``(relaxed, sweeps, done)``."""
+    rows = surface.shape[0]
     width = 0
     for i in range(rows):
-        w = max(hi[i] - lo[i] + 1, 0)
-        off[i + 1] = off[i] + w
-        width = max(width, w)
-    d = np.full(off[rows], INF)
+        width = max(width, hi[i] - lo[i] + 1)
     budget = budget * off[rows]
     scratch = np.empty((9, width + 2))
-    d[off[sr] + sc - lo[sr]] = 0.0
+    d[off[sr] + sc - lo[sr]] = 0
     # stamps: when a row last changed, and last pulled from the row above / below
     stamp = 1
     changed = np.zeros(rows, dtype=np.int64)
@@ -358,7 +436,7 @@ def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
     from_below = np.zeros(rows, dtype=np.int64)
     # the first row has no row to pull from: -1 as an int64, not the literal -1, whose own
     # compiled copies of _relax_row and _relax_span cost 8-9 s of compilation per surface type
-    relaxed, _ = _relax_row(surface, ok, a, sr, np.int64(-1), lo, hi, off, d, scratch)
+    relaxed, _ = _relax_row(surface, ok, a, u, sr, np.int64(-1), lo, hi, off, d, scratch)
     changed[sr] = stamp
     sweeps = 0
     while True:
@@ -371,7 +449,7 @@ def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
                 waiting = True
                 break
         if not waiting:
-            return d, off, relaxed, sweeps, True
+            return relaxed, sweeps, True
         for step in (1, -1):
             sweeps += 1
             for k in range(rows):
@@ -384,13 +462,13 @@ def sweep_distances(surface, ok, a, sr, sc, lo, hi, budget, max_sweeps):
                     continue
                 stamp += 1
                 last[i] = stamp
-                n, fell = _relax_row(surface, ok, a, i, p, lo, hi, off, d, scratch)
+                n, fell = _relax_row(surface, ok, a, u, i, p, lo, hi, off, d, scratch)
                 relaxed += n
                 if fell:
                     stamp += 1
                     changed[i] = stamp
             if relaxed > budget or sweeps >= max_sweeps:
-                return d, off, relaxed, sweeps, False
+                return relaxed, sweeps, False
 
 
 @njit(cache=True, nogil=True)
@@ -506,4 +584,35 @@ def distances(surface, passable, a: float, source):
     d, _, _, _, done = sweep_distances(
         surface, passable, a, int(source[0]), int(source[1]), lo, hi, BUDGET, WHOLE_MAP_SWEEPS,
     )  # fmt: skip
+    return d.reshape(rows, cols) if done else None
+
+
+# fixed-point distances (:func:`fixed_point_distances`): values at or above FIXED_CAP are held
+# at it; FIXED_UNREACHED marks a cell not reached. A move costs less than FIXED_CAP - 1 units
+# (the caller's choice of units), so that a cell next to a capped one is reached, and capped
+FIXED_CAP = 2.0**31
+FIXED_UNREACHED = 2**32 - 1
+
+
+@njit(cache=True, nogil=True)
+def fixed_point_distances(surface, passable, a: float, source, bits: int):
+    """Distances from the passable cell ``source`` to every cell of the map in whole units of
+    ``a * 2^-bits`` (uint32, rows x cols; :data:`FIXED_UNREACHED` where it does not reach), by
+    the whole-map sweeps of :func:`distances` with each distance rounded down to a whole unit
+    as it is stored and held at :data:`FIXED_CAP`: 4 bytes a cell where float64 takes 8, for
+    the landmark layers (:mod:`pipeline.landmarks`, whose module doc has the bound's proof).
+    Every move ``(u, v)`` then has ``D(v) < D(u) + c(u, v) / unit + 1``: ``D(v)`` is at most
+    the sum (the relaxation it came from, before rounding down) of a value that was at most
+    ``D(u) + 1`` and the move's cost. None when the relaxations passed :data:`BUDGET` times
+    the map's cells (the caller then runs Dijkstra)."""
+    rows, cols = surface.shape
+    lo = np.zeros(rows, dtype=np.int64)
+    hi = np.full(rows, cols - 1, dtype=np.int64)
+    off = np.arange(rows + 1) * np.int64(cols)
+    d = np.full(rows * cols, FIXED_UNREACHED, dtype=np.uint32)
+    units = 2.0**bits  # a cell's length in units; the heights' scale: units a metre
+    u = (units / a, FIXED_CAP, np.float64(FIXED_UNREACHED))
+    _, _, done = _sweeps(
+        surface, passable, units, u, source[0], source[1], lo, hi, off, d, BUDGET, WHOLE_MAP_SWEEPS
+    )
     return d.reshape(rows, cols) if done else None
