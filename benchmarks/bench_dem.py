@@ -91,7 +91,7 @@ with local_cluster(dashboard_address=None) as cluster, Client(cluster) as client
     t = time.perf_counter()
     pipeline.import_dem("{tif}", "{store}", chunks=1024, overwrite=True)
     seconds = time.perf_counter() - t
-    peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
+    peaks = client.run(own_peak_gib)
 result = {{"seconds": seconds, "worker_peak_gib": sorted(peaks.values())}}
 """
 

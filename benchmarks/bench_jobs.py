@@ -111,8 +111,7 @@ with local_cluster(dashboard_address=None) as cl, \\
         t0 = time.perf_counter()
         pipeline.plan_missions(store, named, client=c, vehicle={{}}, on_done=record)
         recorded_s = time.perf_counter() - t0
-    peaks = [round(v / 2**20, 3) for v in c.run(lambda: __import__("resource").getrusage(
-        __import__("resource").RUSAGE_SELF).ru_maxrss).values()]
+    peaks = [round(v, 3) for v in c.run(own_peak_gib).values()]
 result = dict(missions=len(ts), ok=sum(t.status == "ok" for t in ts), seconds=dt,
               per_s=len(ts) / dt, sequential_s=seq, busy=busy, occupied=occupied,
               client_cpu=client_cpu, tasks=tasks, cached_mib=cached / 2**20, cache_s=cache_s,

@@ -20,7 +20,7 @@ import statistics
 import time
 
 import numpy as np
-from _common import OUT, machine, maps_store
+from _common import OUT, machine, maps_store, own_peak_gib
 from _report import Report, faster, faster_range, figure_dir
 
 PAPER_T5 = {500: 0.26, 10000: 3.12}
@@ -39,12 +39,7 @@ def missions(ok: np.ndarray, k: int, seed: int, min_frac: float = 0.5):
 
 
 def worker_peaks(client):
-    import resource
-
-    def peak():
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-
-    return [round(v, 3) for v in client.run(peak).values()]
+    return [round(v, 3) for v in client.run(own_peak_gib).values()]
 
 
 def timed(fn, *a, **k):

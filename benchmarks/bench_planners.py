@@ -301,8 +301,7 @@ s = nearest_passable(ok[:300, :300], (100, 100))
 g = nearest_passable(ok[-300:, -300:], (200, 200)); g = (g[0] + n - 300, g[1] + n - 300)
 plan_window(S[:64, :64], rdg[:64, :64], ok[:64, :64], (1, 1), (60, 60), cell_size=30.0,
             planner="{planner}", omega=3.0)   # compile outside the timing
-import resource
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+base = own_peak_gib()
 t0 = time.perf_counter()
 tr = plan_window(S, rdg, ok, s, g, cell_size=30.0, planner="{planner}", omega=3.0)
 result = dict(planner="{planner}", s=time.perf_counter() - t0, search_s=tr.runtime_s,

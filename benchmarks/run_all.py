@@ -223,7 +223,9 @@ def assemble(quick: bool, run: dict) -> str:
         "",
         "**How it is measured**: every case runs in a fresh Python process (numba's compiled "
         "code cached on disk beforehand, never timed); times are wall-clock unless a table says "
-        "otherwise; peak memory is the process's peak resident set (`ru_maxrss`) and that of "
+        "otherwise; peak memory is the process's own peak resident set (`VmHWM`: not "
+        "`ru_maxrss`, which a process inherits from the one that starts it; before 2026-11-27 "
+        "the figures were `ru_maxrss`, which could show a parent's peak) and that of "
         "each dask worker where a LocalCluster of 2 single-threaded workers is used (the one "
         "the package starts, `pipeline.cluster.local_cluster`, its workers' allocator set by "
         "`pipeline.cluster.WORKER_ENV`). Peers run "
