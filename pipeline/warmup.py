@@ -39,12 +39,14 @@ log = logging.getLogger(__name__)
 
 # the parts of the warm-up, in the order one process runs them all
 PARTS = ("maps", "search", "bucketed", "planners", "dem", "flight")
-# how the parts are shared between two processes: the second compiles the safety kernels and
-# the landmarks' before the first's maps store needs them, and the searches before its planners;
-# the first, whose parts are the shorter, also the bucketed A* of large windows (measured in a
-# fresh cache, the halves in seconds: 43.6-43.8 and 52.6-56.4 with it in the second, 49.8-51.0
-# and 48.1-52.4 now)
-HALVES = (("maps", "flight", "bucketed"), ("safety", "landmarks", "search", "dem", "planners"))
+# how the parts are shared between two processes: the second compiles the landmark layers'
+# fixed-point search first, before the first's maps store needs it (the first starts with the
+# bucketed A* of large windows, which needs no store); the safety kernels, which the store
+# needs at once, the first compiles as it builds it; the second then the searches, before the
+# first's planners. Measured in a fresh cache, the halves in seconds: 24.7-25.8 and 27.1-27.9;
+# 30.4 and 29.7 with the maps first and the safety kernels before the landmarks (both halves
+# then compiled the fixed-point search at once), 22.1 and 21.3 before it existed
+HALVES = (("bucketed", "maps", "flight"), ("landmarks", "safety", "search", "dem", "planners"))
 # how long a part waits for the tiny maps store another process builds, before building its own
 STORE_WAIT_S = 300.0
 
