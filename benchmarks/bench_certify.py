@@ -593,7 +593,8 @@ def main() -> None:
           the landmark pass (placement, then one exact search of the whole map per
           landmark, by one task per worker that reads the map once and computes every other
           landmark's layer in turn) {secs.get("landmarks", float("nan")):.0f} s; peak memory
-          {peak_text(b)} (a landmark's search holds the whole map, 14 bytes a cell).
+          {peak_text(b)} (a landmark's search holds the map and its distances in fixed point,
+          8 bytes a cell: {8 * b["n"] ** 2 / 2**30:.2f} GiB here).
           {b["missions"]} missions (ra_star, omega 2, MCPC, 2 workers) at least half the map
           apart: median **{b["median_s"]:.3f} s** (p90 {b["p90_s"]:.3f} s) with the bound read
           and checked (median {b["bound_ms"]:.1f} ms for the bound); {b["ok"]} certified,
