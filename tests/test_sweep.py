@@ -272,6 +272,34 @@ def test_the_astar_planner_takes_astar_on_flat_ground_exactly():
         assert sweep.flat(z, ok) == (np.unique(z[ok]).size <= 1)
 
 
+def test_the_planner_decides_on_the_ground_between_the_two_ends():
+    """``flat_between``: one height over the passable cells of the sweeps' first region between
+    two cells (those with ``oct(s, v) + oct(v, g) <= (1 + SLACK) oct(s, g)``, here by numpy),
+    whatever lies outside it; the ``astar`` planner takes A* where that ground is flat and the
+    sweeps where it is not, scipy's optimum either way."""
+    rng = np.random.default_rng(9)
+    n = 300
+    passable = ~ndimage.binary_dilation(rng.random((n, n)) < 0.002, iterations=3)
+    ii, jj = np.mgrid[0:n, 0:n]
+    s, g = (40, 30), (260, 250)
+    passable[s], passable[g] = True, True
+    region = oct_to(ii, jj, s) + oct_to(ii, jj, g) <= octile(s, g) * (1 + sweep.SLACK)
+    surface = np.full((n, n), -2500.0, np.float32)
+    surface[~region] = -2500.0 + rng.random(int((~region).sum())) * 50  # relief outside only
+    hilly = surface + np.float32(0.0)
+    inside = np.argwhere(region & passable)
+    hilly[tuple(inside[len(inside) // 2])] = -2400.0  # one cell inside the region
+    for z, want in ((surface, True), (hilly, False)):
+        assert sweep.flat_between(z, passable, A, s, g) == want
+        assert want == (np.unique(z[region & passable]).size <= 1)
+        assert not sweep.flat(z, passable)
+        t = pipeline.plan_window(z, passable, passable, s, g, cell_size=A, planner="astar")
+        assert ("engine" in t.extra) == (not want)  # the sweeps name themselves
+        ref = reference_distances(z.astype(np.float64), passable, A, s)[g[0] * n + g[1]]
+        assert t.length_m == pytest.approx(float(ref), rel=1e-12)
+        check_path(t, passable, s, g)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_distances_to_every_cell_equal_dijkstra_bit_for_bit(seed):
     """The whole map as the region (a landmark's layer): the same float64 values as the bucket

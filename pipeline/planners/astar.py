@@ -14,9 +14,10 @@ from .core import NO_GOAL, TIE, Planner, Search, landmark_rows, search_arrays, s
 # (benchmarks/RESULTS.md, "The exact search over the whole map"). On random missions in square
 # windows of the 2000^2 map the median sweep took 0.30 / 0.22 / 0.64 ms at 181^2 / 256^2 /
 # 362^2 cells, A* 0.31 / 0.33 / 1.60 ms: from 2^16 cells on the sweeps; below, A* (an MCPC
-# section's window: 125^2 cells at 30 m). Not on flat ground (:func:`.sweep.flat`), where A*
-# follows the straight line: on the planners' benchmark obstacle map (4000^2, flat, 5
-# missions) A* took 5-150 ms a mission where the sweeps took 43-246 ms
+# section's window: 125^2 cells at 30 m). Not on flat ground between the two ends
+# (:func:`.sweep.flat_between`), where A* follows the straight line: on the planners'
+# benchmark obstacle map (4000^2, flat, 5 missions) A* took 5-150 ms a mission where the sweeps
+# took 43-246 ms
 SWEEP_CELLS = 2**16
 
 
@@ -28,7 +29,11 @@ def _weighted(weight_of):
         the sweeps' search, which needs no heuristic (the landmark layers go unused), but on
         flat ground; A* runs only there and where they give up (:data:`.sweep.BUDGET`)."""
         weight = weight_of(omega)
-        if weight == 1.0 and surface.size >= SWEEP_CELLS and not sweep.flat(surface, passable):
+        if (
+            weight == 1.0
+            and surface.size >= SWEEP_CELLS
+            and not sweep.flat_between(surface, passable, a, s, t)
+        ):
             got = sweep.search(surface, passable, a, s, t)
             if got is not None:
                 cells, relaxed, extra = got

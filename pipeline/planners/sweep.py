@@ -516,18 +516,36 @@ def _backtrack(surface, ok, a, sr, sc, gr, gc, lo, hi, off, d):
     return cells
 
 
-@njit(nogil=True, cache=True)
 def flat(surface, passable):
     """Whether every passable cell of the window has one height (a flat seabed, the planners'
     benchmark obstacle map): there the octile distance is the exact length wherever no obstacle
     stands in the way, every cell of the parallelogram a mission spans ties on ``f`` with the
     optimum, and A*, its ties broken towards the goal, walks the straight line, expanding a few
     cells a step of the path. It stops at the first cell that differs (at once on real relief)."""
+    rows, cols = surface.shape
+    lo = np.zeros(rows, dtype=np.int64)
+    return _flat_rows(surface, passable, lo, np.full(rows, cols - 1, dtype=np.int64))
+
+
+def flat_between(surface, passable, a: float, s, t):
+    """:func:`flat` over the sweeps' first region between ``s`` and ``t`` only (the cells
+    within ``(1 + SLACK)`` times the octile distance of the two, where the optimum of an open
+    seabed lies): what decides between A* and the sweeps for a mission. On the planners'
+    benchmark obstacle map (flat, 4000^2) 1-2 ms a mission where the whole window took 11."""
+    rows, cols = surface.shape
+    bound = heuristic(a, s[0], s[1], t[0], t[1], True) * (1.0 + SLACK) * (1.0 + 1e-9)
+    lo, hi = region_rows(rows, cols, a, s[0], s[1], t[0], t[1], bound)
+    return _flat_rows(surface, passable, lo, hi)
+
+
+@njit(nogil=True, cache=True)
+def _flat_rows(surface, passable, lo, hi):
+    """Whether the passable cells of columns ``lo[i] .. hi[i]`` of each row ``i`` have one
+    height, stopping at the first that differs."""
     z0 = np.float32(0.0)
     seen = False
-    rows, cols = surface.shape
-    for i in range(rows):
-        for j in range(cols):
+    for i in range(surface.shape[0]):
+        for j in range(lo[i], hi[i] + 1):
             if passable[i, j]:
                 if not seen:
                     z0 = surface[i, j]
