@@ -598,7 +598,7 @@ def test_lagrangian_takes_the_least_off_ridge_path_without_the_shortest_when_oct
     octile distance, a lower bound on L*, it is the answer whatever L* is: the planner then
     searches that path only, not the shortest one, and its answer is scipy's optimum of
     length + 1e7 x off-ridge length; the proven lower bound it reports is still scipy's L*
-    (the shortest path searched when asked for)."""
+    (the shortest path searched when asked for, its A* expansions reported apart)."""
     rng = np.random.default_rng(seed)
     surface, _, passable = obstacle_map((30, 36), seed, 0.1)
     ridge = rng.random(surface.shape) < 0.4
@@ -624,6 +624,8 @@ def test_lagrangian_takes_the_least_off_ridge_path_without_the_shortest_when_oct
     assert length <= 4.0 * octile  # these missions are such cases
     assert t.extra["searches"] == 1
     assert t.lower_bound_m == pytest.approx(ref, rel=1e-9)
+    shortest = pipeline.plan_window(surface, ridge, passable, s, g, cell_size=30.0, planner="astar")
+    assert t.extra["bound_expansions"] == shortest.expansions > 0
 
 
 @pytest.mark.parametrize("seed", range(4))

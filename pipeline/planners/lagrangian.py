@@ -242,11 +242,13 @@ def _search(surface, ridge, passable, a, s, t, omega, landmarks=None) -> Search:
     def lower_bound(length):
         # the shortest path's A* length is within 1 + TIE of L*; where the planner did not
         # need it (the least off-ridge path was short enough), it is searched now, when a
-        # caller asks for the bound (not counted in the expansions: they chose the path)
+        # caller asks for the bound (not counted in the expansions, which chose the path: in
+        # ``bound_expansions``)
         if found and "optimum_m" not in extra:
             got = ASTAR.search(surface, ridge, passable, a, s, t, 1.0, landmarks)
             cells = got.cells if got.cells is not None else trace_path(got.state, cols, t)
             extra["optimum_m"] = _measure(cells, surface, ridge, a)[0]
+            extra["bound_expansions"] = int(got.expansions)
         return extra.get("optimum_m", 0.0) / (1.0 + TIE)
 
     return Search(state, expansions, found, lower_bound, extra)
