@@ -64,6 +64,7 @@ from .planners.sweep import (
     FIXED_CAP,
     FIXED_UNREACHED,
     METRES,
+    fixed_units,
     passable_flat,
     whole_units,
 )
@@ -93,8 +94,7 @@ def fixed_point_dijkstra(surface, a, source, bits):
     besides the surface."""
     rows, cols = surface.shape
     dist = np.full(rows * cols, FIXED_UNREACHED, dtype=np.uint32)
-    units = 2.0**bits
-    u = (units / a, FIXED_CAP, np.float64(FIXED_UNREACHED))
+    units, u = fixed_units(a, bits)
     start = np.array([source[0] * cols + source[1]], dtype=np.int64)
     _dijkstra_into(surface, surface, units, u, start, dist)
     return dist.reshape(rows, cols)
@@ -465,9 +465,8 @@ def _layers_task(store: str, items: list, a: float) -> None:
     written shard by shard (:func:`~.store.block_writer`: on a local store the shards' bytes
     written directly, 1.2 s for a 10000^2 layer where zarr's own write of it took 6.4 s) and
     converted to float32 metres shard by shard as it is written (:func:`layer_values`; no
-    float32 copy of the map). The
-    safety and passable layers are read once for all of them, as :func:`whole_layer` reads
-    them (1.1 s at 10000^2)."""
+    float32 copy of the map). The safety layer, NaN where the passable layer says impassable,
+    is read once for all of them (:func:`masked_surface`)."""
     import zarr
 
     from .store import block_writer

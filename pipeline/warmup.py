@@ -250,7 +250,7 @@ def _search_each() -> None:
     )
     # the exact search of windows from SWEEP_CELLS on (whole large maps), which the tiny map
     # is not
-    sweep.flat(z, ok)
+    sweep.flat_between(z, ok, 30.0, s, g)
     got = sweep.search(z, ok, 30.0, s, g)
     if got is not None:
         measured_path(got[0], z, rdg, 30.0)

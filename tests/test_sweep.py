@@ -249,8 +249,9 @@ def test_the_astar_planner_sweeps_a_large_window_exactly():
 
 def test_the_astar_planner_takes_astar_on_flat_ground_exactly():
     """On a flat window (over SWEEP_CELLS cells, with obstacles) the planner runs A*, which
-    follows the straight line there, not the sweeps: scipy's optimum all the same. ``flat``
-    against numpy: one height over the passable cells, whatever lies under the obstacles."""
+    follows the straight line there, not the sweeps: scipy's optimum all the same.
+    ``flat_between`` against numpy: one height over the passable cells of the region, whatever
+    lies under the obstacles (a region along the first row, which the last column ends)."""
     rng = np.random.default_rng(5)
     passable = ~ndimage.binary_dilation(rng.random((300, 300)) < 0.002, iterations=4)
     surface = np.full(passable.shape, -2500.0, np.float32)
@@ -263,13 +264,18 @@ def test_the_astar_planner_takes_astar_on_flat_ground_exactly():
         assert "engine" not in t.extra  # A*
         assert t.length_m == pytest.approx(float(d[g[0] * 300 + g[1]]), rel=1e-12)
         check_path(t, passable, s, g)
+    ii, jj = np.mgrid[0:300, 0:300]
+    a, b = (0, 0), (0, 299)
+    region = oct_to(ii, jj, a) + oct_to(ii, jj, b) <= octile(a, b) * (1 + sweep.SLACK)
+    assert region[:, 299].any()
     for z, ok in [
         (surface, passable),
         (surface, np.ones_like(passable)),
         (np.where(np.arange(300) == 299, np.float32(1.0), surface), passable),  # last column
         (surface, np.zeros_like(passable)),
     ]:
-        assert sweep.flat(z, ok) == (np.unique(z[ok]).size <= 1)
+        want = np.unique(z[region & ok]).size <= 1
+        assert sweep.flat_between(z, ok, A, a, b) == want
 
 
 def test_the_planner_decides_on_the_ground_between_the_two_ends():
@@ -292,7 +298,7 @@ def test_the_planner_decides_on_the_ground_between_the_two_ends():
     for z, want in ((surface, True), (hilly, False)):
         assert sweep.flat_between(z, passable, A, s, g) == want
         assert want == (np.unique(z[region & passable]).size <= 1)
-        assert not sweep.flat(z, passable)
+        assert np.unique(z[passable]).size > 1  # relief outside the region
         t = pipeline.plan_window(z, passable, passable, s, g, cell_size=A, planner="astar")
         assert ("engine" in t.extra) == (not want)  # the sweeps name themselves
         ref = reference_distances(z.astype(np.float64), passable, A, s)[g[0] * n + g[1]]

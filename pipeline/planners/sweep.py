@@ -516,22 +516,16 @@ def _backtrack(surface, ok, a, sr, sc, gr, gc, lo, hi, off, d):
     return cells
 
 
-def flat(surface, passable):
-    """Whether every passable cell of the window has one height (a flat seabed, the planners'
-    benchmark obstacle map): there the octile distance is the exact length wherever no obstacle
-    stands in the way, every cell of the parallelogram a mission spans ties on ``f`` with the
-    optimum, and A*, its ties broken towards the goal, walks the straight line, expanding a few
-    cells a step of the path. It stops at the first cell that differs (at once on real relief)."""
-    rows, cols = surface.shape
-    lo = np.zeros(rows, dtype=np.int64)
-    return _flat_rows(surface, passable, lo, np.full(rows, cols - 1, dtype=np.int64))
-
-
 def flat_between(surface, passable, a: float, s, t):
-    """:func:`flat` over the sweeps' first region between ``s`` and ``t`` only (the cells
-    within ``(1 + SLACK)`` times the octile distance of the two, where the optimum of an open
-    seabed lies): what decides between A* and the sweeps for a mission. On the planners'
-    benchmark obstacle map (flat, 4000^2) 2.9 ms a mission where the whole window took 11."""
+    """Whether every passable cell of the sweeps' first region between ``s`` and ``t`` (the
+    cells within ``(1 + SLACK)`` times the octile distance of the two, where the optimum of an
+    open seabed lies) has one height: a flat seabed, as the planners' benchmark obstacle map.
+    There the octile distance is the exact length wherever no obstacle stands in the way, every
+    cell of the parallelogram a mission spans ties on ``f`` with the optimum, and A*, its ties
+    broken towards the goal, walks the straight line, expanding a few cells a step of the path.
+    What decides between A* and the sweeps for a mission; it stops at the first cell that
+    differs (at once on real relief). On the planners' benchmark obstacle map (flat, 4000^2)
+    2.9 ms a mission where checking the whole window took 11."""
     rows, cols = surface.shape
     bound = heuristic(a, s[0], s[1], t[0], t[1], True) * (1.0 + SLACK) * (1.0 + 1e-9)
     lo, hi = region_rows(rows, cols, a, s[0], s[1], t[0], t[1], bound)
@@ -606,30 +600,39 @@ def distances(surface, passable, a: float, source):
 
 
 # fixed-point distances (:func:`fixed_point_distances`): values at or above FIXED_CAP are held
-# at it; FIXED_UNREACHED marks a cell not reached. A move costs less than FIXED_CAP - 1 units
-# (the caller's choice of units), so that a cell next to a capped one is reached, and capped
+# at it; FIXED_UNREACHED marks a cell not reached. A move must cost less than FIXED_UNREACHED -
+# FIXED_CAP units (the caller's choice of units: pipeline.landmarks.fixed_point_bits keeps it
+# under 2^30), so that a cell next to a capped one is reached, and capped
 FIXED_CAP = 2.0**31
 FIXED_UNREACHED = 2**32 - 1
+
+
+@njit(inline="always", cache=True)
+def fixed_units(a, bits):
+    """The fixed point of whole units of ``a * 2^-bits``: a cell's length in units and the
+    units ``(heights' scale, cap, not reached)`` the searches take (:data:`METRES` their float64
+    metres)."""
+    units = 2.0**bits
+    return units, (units / a, FIXED_CAP, np.float64(FIXED_UNREACHED))
 
 
 @njit(cache=True, nogil=True)
 def fixed_point_distances(surface, passable, a: float, source, bits: int):
     """Distances from the passable cell ``source`` to every cell of the map in whole units of
     ``a * 2^-bits`` (uint32, rows x cols; :data:`FIXED_UNREACHED` where it does not reach), by
-    the whole-map sweeps of :func:`distances` with each distance rounded down to a whole unit
-    as it is stored and held at :data:`FIXED_CAP`: 4 bytes a cell where float64 takes 8, for
-    the landmark layers (:mod:`pipeline.landmarks`, whose module doc has the bound's proof).
-    Every move ``(u, v)`` then has ``D(v) < D(u) + c(u, v) / unit + 1``: ``D(v)`` is at most
-    the sum (the relaxation it came from, before rounding down) of a value that was at most
-    ``D(u) + 1`` and the move's cost. None when the relaxations passed :data:`BUDGET` times
-    the map's cells (the caller then runs Dijkstra)."""
+    the whole-map sweeps of :func:`distances` with each move's cost rounded down to a whole unit
+    (:func:`whole_units`) and each distance held at :data:`FIXED_CAP`: 4 bytes a cell where
+    float64 takes 8, for the landmark layers (:mod:`pipeline.landmarks`, whose module doc has
+    the bound's proof). The sums are whole units, exact in float64: the distances are the
+    exact ones, capped, of a graph whose every move is at most the planners' cost. None when
+    the relaxations passed :data:`BUDGET` times the map's cells (the caller then runs
+    Dijkstra)."""
     rows, cols = surface.shape
     lo = np.zeros(rows, dtype=np.int64)
     hi = np.full(rows, cols - 1, dtype=np.int64)
     off = np.arange(rows + 1) * np.int64(cols)
     d = np.full(rows * cols, FIXED_UNREACHED, dtype=np.uint32)
-    units = 2.0**bits  # a cell's length in units; the heights' scale: units a metre
-    u = (units / a, FIXED_CAP, np.float64(FIXED_UNREACHED))
+    units, u = fixed_units(a, bits)
     _, _, done = _sweeps(
         surface, passable, units, u, source[0], source[1], lo, hi, off, d, BUDGET, WHOLE_MAP_SWEEPS
     )
