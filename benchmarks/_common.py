@@ -187,8 +187,9 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
 
         group = zarr.open_group(store, mode="r")
         current = "landmarks" in group.attrs and group["safety"].shards is not None
-        if current and "landmark_distance" in group:  # the landmark layers sharded too
-            current = group["landmark_distance"].shards is not None
+        if current and "landmark_distance" in group:  # the landmark layers sharded too,
+            layers = group["landmark_distance"]  # searched on quantised heights
+            current = layers.shards is not None and "quantised_blocks" in layers.attrs
         # the layers missions read window by window stored uncompressed, as builds now do
         current = current and not group["safety"].compressors
         if current:
@@ -196,8 +197,8 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
         import shutil
 
         print(
-            f"{store.name} predates the landmark layers, their sharding or the uncompressed "
-            "window layers: building it again"
+            f"{store.name} predates the landmark layers, their sharding or quantised heights, "
+            "or the uncompressed window layers: building it again"
         )
         shutil.rmtree(store)
     build = f"""

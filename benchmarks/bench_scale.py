@@ -3,7 +3,7 @@ largest.
 
 For each side, a synthetic DEM store (30 m cells, made once, kept in benchmarks/out) and
 `build_maps` from it on a LocalCluster of 2 single-threaded workers, without landmark layers
-(a landmark's exact search holds the whole map, 8 bytes a cell: 12.8 GB at 40000^2), each in a
+(a landmark's exact search holds the whole map, 6.2 bytes a cell: 10 GB at 40000^2), each in a
 fresh process: wall time, the stages (from the build's log), the peak memory of the client and
 of each worker, the store's size. Then two missions (ra_star, omega 2, MCPC) across the
 40000^2 map on the same cluster: the first one also builds the coarse levels MCPC plans on.
@@ -155,8 +155,8 @@ def main() -> None:
 
     rep.p("""`build_maps` from a synthetic DEM store (30 m cells, chunks 1024^2) to a maps store
           on a LocalCluster of 2 workers x 1 thread, every layer but the landmark distances
-          (`landmarks = 0`: a landmark's exact search holds the whole map, 8 bytes a cell,
-          12.8 GB at 40000^2; missions on such maps are certified by the octile bound, or say
+          (`landmarks = 0`: a landmark's exact search holds the whole map, 6.2 bytes a cell,
+          10 GB at 40000^2; missions on such maps are certified by the octile bound, or say
           they are not). Each build in a fresh process; stages from the build's log (time
           since the start when each finished).""")
     table = []

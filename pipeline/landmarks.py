@@ -18,22 +18,34 @@ cell, so every large component gets its own landmarks. Components of fewer than
 ``MIN_COMPONENT_FRACTION`` of the passable cells get none (their missions fall back on the
 octile distance).
 
+A layer's search holds the safety surface quantised (:func:`quantised`, 2 bytes a cell): in
+blocks of 8 x 8 cells, each passable cell's height is one of 65 535 steps between its block's
+lowest and highest heights (``IMPASSABLE`` marks the others), so it lies within the block's
+error ``e`` (half a step, measured as the search computes the height, with a margin for
+rounding) of its true height: 0.5 mm in the median block of the 2000^2 benchmark map, 9.7 mm
+in the worst. A move's rise is taken less the errors of its two cells (never below 0), which
+is at most its true rise: every move of the search's graph costs at most what it costs the
+planners, by at most ``e_u + e_v`` (times the move's slope) less.
+
 A layer's distances are computed in whole units of ``unit = a * 2^-b`` (``a`` the cell size;
 ``b`` from 16 to 24 bits as the map's size allows, :func:`fixed_point_bits`), 4 bytes a cell:
-each move's cost is rounded down to whole units, so the layer holds the exact shortest
-distances ``D_l`` (integer arithmetic, which float64 carries exactly) of a graph whose every
-edge is at most as long as the planners'. A path of the planners' graph is no shorter in it,
-so ``|D_l(s) - D_l(g)| unit <= L*(s, g)`` by the triangle inequality in that graph: the
-rounding never makes the bound exceed the optimum, it only loosens it, by less than one unit a
-move (a relative ``2^-b``: 1.5e-5 at most, where rows and columns add up to more than 4096).
-Values are held at ``2^31`` units (``2^(31 - b)`` cells' lengths, four times the way round the
-map where ``b`` is above 16, 32 768 where it is 16): ``min(D, cap)`` keeps the triangle
-inequality. Where a distance reaches the cap (a maze whose paths wind further), the layer is
-computed again in units 16 times as long, down to ``2^-8`` of a cell (0.4 %); where a move
-could cost ``2^30`` units (a relief of more than ``2^(30 - b)`` cells' lengths), in coarser
-units from the start; only a relief of ``2^30`` cells' lengths would leave float64
-(:func:`distances_from`, exact up to the float64 summation, ``n * 2^-53`` for a path of ``n``
-moves).
+each move's cost (its rise lowered as above) is rounded down to whole units, so the layer holds
+the exact shortest distances ``D_l`` (integer arithmetic, which float64 carries exactly) of a
+graph whose every edge is at most as long as the planners'. A path of the planners' graph is
+no shorter in it, so ``|D_l(s) - D_l(g)| unit <= L*(s, g)`` by the triangle inequality in that
+graph: neither the rounding nor the quantised heights ever make the bound exceed the optimum,
+they only loosen it, by less than one unit and the two cells' errors a move (a relative
+``2^-b``, 1.5e-5 at most where rows and columns add up to more than 4096, and ``2 e / a``:
+measured against float32 heights, a median of 6e-6 and at most 4e-5 of the distances on the
+2000^2 benchmark map, 5e-7 and 8e-6 at 10000^2, 3e-5 and 6e-5 on the serpentine corridor
+map, 5e-5 and 3.3e-4 on the certify benchmark's wall with one gap). Values are held at
+``2^31`` units (``2^(31 - b)`` cells' lengths, four times the way round the map where ``b`` is
+above 16, 32 768 where it is 16): ``min(D, cap)`` keeps the triangle inequality. Where a
+distance reaches the cap (a maze whose paths wind further), the layer is computed again in
+units 16 times as long, down to ``2^-8`` of a cell (0.4 %); where a move could cost ``2^30``
+units (a relief of more than ``2^(30 - b)`` cells' lengths), in coarser units from the start;
+only a relief of ``2^30`` cells' lengths would leave float64 (:func:`distances_from` on the
+float32 heights, exact up to the float64 summation, ``n * 2^-53`` for a path of ``n`` moves).
 
 The layer stores ``D_l unit`` as float32, rounded to nearest: a relative error of at most
 2^-24 (plus 2^-53 for the product and for the float64 rounding of each move's cost), so
@@ -44,9 +56,8 @@ as its A* heuristic), a margin that covers it with room to spare.
 A layer's search runs on the whole map in one process: row sweeps (the exact search of
 :mod:`pipeline.planners.sweep` with the whole map as its region), or where they give up
 Dijkstra's algorithm with a bucket queue in the same fixed point (:func:`fixed_point_dijkstra`:
-the same integers), holding the safety surface (float32, NaN on its impassable cells: no mask
-beside it) and the distances, 8 bytes a cell (10000^2: 0.75 GiB), 9 with Dijkstra's settled
-flags (:func:`memory_per_landmark`).
+the same integers), holding the quantised surface and the distances, 6.2 bytes a cell
+(10000^2: 0.58 GiB), 7.2 with Dijkstra's settled flags (:func:`memory_per_landmark`).
 """
 
 from __future__ import annotations
@@ -63,8 +74,15 @@ from .planners.core import LANDMARK_MARGIN, edge_length
 from .planners.sweep import (
     FIXED_CAP,
     FIXED_UNREACHED,
+    IMPASSABLE,
     METRES,
+    Quantised,
+    cell_error,
     fixed_units,
+    flat_mask,
+    grid_shape,
+    height_at,
+    lowered,
     passable_flat,
     whole_units,
 )
@@ -89,10 +107,10 @@ def dijkstra(surface, passable, a, sources):
 def fixed_point_dijkstra(surface, a, source, bits):
     """The distances of :func:`~.planners.sweep.fixed_point_distances` (whole units of ``a *
     2^-bits``, uint32) by :func:`_dijkstra_into`, for a map where the sweeps give up: from the
-    cell ``source`` of ``surface``, NaN on its impassable cells. The same values (both are the
-    one solution of ``D(v) = min(cap, min_u D(u) + c'(u, v))`` in integers), in 5 bytes a cell
-    besides the surface."""
-    rows, cols = surface.shape
+    cell ``source`` of ``surface`` (quantised, :func:`quantised`; or float32 with NaN on its
+    impassable cells). The same values (both are the one solution of ``D(v) = min(cap, min_u
+    D(u) + c'(u, v))`` in integers), in 5 bytes a cell besides the surface."""
+    rows, cols = grid_shape(surface)
     dist = np.full(rows * cols, FIXED_UNREACHED, dtype=np.uint32)
     units, u = fixed_units(a, bits)
     start = np.array([source[0] * cols + source[1]], dtype=np.int64)
@@ -116,16 +134,16 @@ def _dijkstra_into(surface, passable, a, un, sources, dist):
     (entries made stale by a later improvement are skipped when taken), so that the wavefront
     is read and written in order. An edge costs its 3-D length along the surface, as the
     planners' ``edge_cost`` (``edge_length`` of the same squared horizontal length and rise)."""
-    rows, cols = surface.shape
+    rows, cols = grid_shape(surface)
     n = rows * cols
-    zf = surface.ravel()
-    okf = passable.ravel()
+    okf = flat_mask(passable)
     done = np.zeros(n, dtype=np.bool_)
     lo = np.inf
     hi = -np.inf
     for i in range(n):
         if passable_flat(okf, i):
-            z = np.float64(zf[i]) * un[0]
+            r = i // cols
+            z = height_at(surface, r, i - r * cols) * un[0]
             lo = min(lo, z)
             hi = max(hi, z)
     w = a * (1.0 - 1e-7)
@@ -163,9 +181,9 @@ def _dijkstra_into(surface, passable, a, un, sources, dist):
                 continue
             done[u] = True
             du = np.float64(dist[u])
-            zu = np.float64(zf[u]) * un[0]
             r = u // cols
             c = u - r * cols
+            zu = height_at(surface, r, c) * un[0]
             inner = 0 < r < rows - 1 and 0 < c < cols - 1
             for k in range(8):
                 if not inner and not inside(r, c, k, rows, cols):
@@ -177,8 +195,12 @@ def _dijkstra_into(surface, passable, a, un, sources, dist):
                     passable_flat(okf, u + DC[k]) and passable_flat(okf, u + DR[k] * cols)
                 ):
                     continue  # no corner cutting
-                zv = np.float64(zf[v]) * un[0]
-                nd = du + whole_units(edge_length(h2[k], zv - zu), dist)  # the planners' edge
+                vr = r + DR[k]
+                vc = c + DC[k]
+                zv = height_at(surface, vr, vc) * un[0]
+                # the planners' edge (its rise lowered on a Quantised surface)
+                loss = (cell_error(surface, r, c) + cell_error(surface, vr, vc)) * un[0]
+                nd = du + whole_units(edge_length(h2[k], lowered(zv - zu, loss, surface)), dist)
                 if nd < dist[v]:
                     dist[v] = min(nd, un[1])
                     b = max(int(nd / w), cur) % nb
@@ -315,21 +337,6 @@ def distances_from(surface, passable, a: float, cell) -> np.ndarray:
     return d
 
 
-@njit(nogil=True, cache=True)
-def relief(surface) -> float:
-    """The highest less the lowest height of a surface whose impassable cells are NaN (0: no
-    passable cell)."""
-    lo = np.inf
-    hi = -np.inf
-    for i in range(surface.shape[0]):
-        for j in range(surface.shape[1]):
-            z = np.float64(surface[i, j])
-            if z == z:
-                lo = min(lo, z)
-                hi = max(hi, z)
-    return hi - lo if hi >= lo else 0.0
-
-
 MIN_BITS = 16  # the unit the map's size asks for: at most 2^-16 of a cell (a bound 1.5e-5 looser)
 MAX_BITS = 24  # at least 2^-24 of a cell: finer is below the float32 layer's resolution
 CAPPED_BITS = 8  # where distances pass the cap, coarser units down to 2^-8 of a cell (0.4 %)
@@ -363,37 +370,134 @@ def layer_distances(surface, passable, a: float, cell):
     """One landmark's distances as its layer is computed (module doc): ``(D, unit)``, ``D`` the
     whole units of ``unit`` metres (uint32; ``FIXED_UNREACHED`` where not reached), or, where
     the fixed point does not serve, float64 metres with ``unit`` None. Convert a part of it
-    with :func:`layer_values`. ``passable`` None: ``surface`` is float32 with NaN on its
-    impassable cells (:func:`_layers_task`: no mask held besides it).
+    with :func:`layer_values`. ``surface`` float32 heights with the mask ``passable`` (None:
+    NaN on the impassable cells), quantised here (:func:`quantised`), or a
+    :class:`~.planners.sweep.Quantised` surface already (:func:`_layers_task`, which gives the
+    float32 heights where no fixed point serves).
 
     The row sweeps compute it, or Dijkstra's algorithm where they give up; where a distance
     reaches the cap (a maze whose paths run more than four times round the map), again in
     units 16 times as long, down to :data:`CAPPED_BITS`."""
     from .planners import sweep
 
-    surface = np.ascontiguousarray(surface, dtype=np.float32)
-    if passable is not None:  # the kernels are compiled for the NaN-marked surface only
-        passable = np.ascontiguousarray(passable, dtype=np.bool_)
-        marked = np.where(passable, surface, np.float32(np.nan))
-    else:
-        marked = surface
     r, c = int(cell[0]), int(cell[1])
-    bits = fixed_point_bits(surface.shape, relief(marked), float(a))
-    if bits is None:
-        del marked
+    if isinstance(surface, Quantised):
+        q = surface
+    else:
+        surface = np.ascontiguousarray(surface, dtype=np.float32)
         if passable is None:
             passable = ~np.isnan(surface)
+        passable = np.ascontiguousarray(passable, dtype=np.bool_)
+        q = quantised(surface, passable)
+    shape = q.codes.shape
+    bits = fixed_point_bits(shape, q.relief, float(a))
+    if bits is None:  # float64 metres, on the float32 heights
+        if isinstance(surface, Quantised):
+            raise ValueError("no fixed point serves this relief: give the float32 heights")
+        del q
         return distances_from(surface, passable, a, cell), None
-    if marked[r, c] != marked[r, c]:  # not passable: reaches nothing
-        return np.full(surface.shape, FIXED_UNREACHED, dtype=np.uint32), float(a) * 2.0**-bits
+    if q.codes[r, c] == IMPASSABLE:  # reaches nothing
+        return np.full(shape, FIXED_UNREACHED, dtype=np.uint32), float(a) * 2.0**-bits
     while True:
-        d = sweep.fixed_point_distances(marked, marked, float(a), (r, c), bits)
+        d = sweep.fixed_point_distances(q, q, float(a), (r, c), bits)
         if d is None:
-            d = fixed_point_dijkstra(marked, float(a), (r, c), bits)
+            d = fixed_point_dijkstra(q, float(a), (r, c), bits)
         if bits <= CAPPED_BITS or not _reaches_cap(d):
             return d, float(a) * 2.0**-bits
         del d  # before the next search allocates its own
         bits = max(CAPPED_BITS, bits - 4)
+
+
+# quantised surfaces (:func:`quantised`) are quantised in blocks of 2^QUANT_SHIFT cells a side,
+# whose values take 12 bytes a block, 3/16 byte a cell. On the 2000^2 benchmark map (30 m
+# cells) a block's largest error is 0.5 mm in the median block, 9.7 mm in the worst (4 x 4
+# blocks: 0.2 and 5.4 mm, 16 x 16: about twice 8 x 8)
+QUANT_SHIFT = 3
+QUANT_STEPS = 65534.0  # codes 0 .. 65534; IMPASSABLE (65535) marks a cell not passable
+
+
+@njit(nogil=True, cache=True)
+def _quantise_rows(z, ok, r0, codes, base, quantum, error, shift):
+    """Rows ``r0 ..`` of a quantised surface from the heights ``z`` (float32) and mask ``ok``
+    of those rows (``r0`` a multiple of the block side; the rows end at a block's or the
+    map's end): per block its lowest passable height (``base``, float32: exact), a step
+    ``quantum`` (float32) of its relief over :data:`QUANT_STEPS` and the largest difference
+    between a cell's height and its quantised one (``height_at``'s float64 arithmetic), with a
+    margin for the rounding of float64 sums of heights (``error``, float32, rounded up); per
+    cell the nearest step (:data:`IMPASSABLE` where not passable). Returns the lowest and
+    highest passable heights and the largest error."""
+    rows, cols = z.shape
+    side = 1 << shift
+    lowest = np.inf
+    highest = -np.inf
+    worst = 0.0
+    for i0 in range(0, rows, side):
+        bi = (r0 + i0) >> shift
+        i1 = min(i0 + side, rows)
+        for j0 in range(0, cols, side):
+            bj = j0 >> shift
+            j1 = min(j0 + side, cols)
+            lo = np.inf
+            hi = -np.inf
+            for i in range(i0, i1):
+                for j in range(j0, j1):
+                    if ok[i, j]:
+                        h = np.float64(z[i, j])
+                        lo = min(lo, h)
+                        hi = max(hi, h)
+            base[bi, bj] = np.float32(lo) if hi >= lo else 0.0
+            quantum[bi, bj] = np.float32((hi - lo) / QUANT_STEPS) if hi >= lo else 0.0
+            b = np.float64(base[bi, bj])
+            step = np.float64(quantum[bi, bj])
+            inv = 1.0 / step if step > 0.0 else 0.0  # the nearest step or one beside it: the
+            err = 0.0  # error is measured on the code taken
+            for i in range(i0, i1):
+                for j in range(j0, j1):
+                    if not ok[i, j]:
+                        codes[r0 + i, j] = IMPASSABLE
+                        continue
+                    h = np.float64(z[i, j])
+                    k = min(max(np.floor((h - b) * inv + 0.5), 0.0), QUANT_STEPS)
+                    codes[r0 + i, j] = np.uint16(k)
+                    err = max(err, abs(h - (b + k * step)))
+            if hi >= lo:
+                lowest = min(lowest, lo)
+                highest = max(highest, hi)
+                # float32 rounds to within 2^-24 of the value; a float64 difference of two
+                # heights of this size to within 2^-52 of them
+                err = err * (1.0 + 2.0**-20) + 2.0**-40 * (max(abs(lo), abs(hi)) + 1.0)
+            error[bi, bj] = np.float32(err)
+            worst = max(worst, np.float64(error[bi, bj]))
+    return lowest, highest, worst
+
+
+def _quantised_parts(shape, shift: int = QUANT_SHIFT):
+    """The arrays of a quantised surface of ``shape``: codes, blocks' bases, steps, errors."""
+    nb = (-(-shape[0] // (1 << shift)), -(-shape[1] // (1 << shift)))
+    codes = np.empty(shape, dtype=np.uint16)
+    return codes, *(np.empty(nb, dtype=np.float32) for _ in range(3))
+
+
+def _finished(arrays, shift, parts) -> Quantised:
+    """The :class:`~.planners.sweep.Quantised` surface of its ``arrays``, from the
+    :func:`_quantise_rows` results of its row bands: its ``relief`` the passable heights'
+    span plus twice the largest error (a bound on the quantised heights')."""
+    lo = min((p[0] for p in parts), default=np.inf)
+    hi = max((p[1] for p in parts), default=-np.inf)
+    worst = max((p[2] for p in parts), default=0.0)
+    relief = (hi - lo) + 2.0 * worst if hi >= lo else 0.0
+    return Quantised(*arrays, shift, float(relief))
+
+
+def quantised(surface, passable, shift: int = QUANT_SHIFT) -> Quantised:
+    """The float32 safety ``surface`` with its ``passable`` mask as a quantised surface, 2
+    bytes a cell (:class:`~.planners.sweep.Quantised`; module doc): what a landmark's search
+    holds."""
+    surface = np.ascontiguousarray(surface, dtype=np.float32)
+    passable = np.ascontiguousarray(passable, dtype=np.bool_)
+    arrays = _quantised_parts(surface.shape, shift)
+    part = _quantise_rows(surface, passable, 0, *arrays, shift)
+    return _finished(arrays, shift, [part])
 
 
 def layer_values(d: np.ndarray, unit: float | None) -> np.ndarray:
@@ -449,15 +553,19 @@ VARIABLE = "landmark_distance"  # (landmark, y, x), float32, shards (1, *the map
 
 
 def memory_per_landmark(shape) -> int:
-    """Bytes one landmark's task may hold: the safety surface (float32, NaN on its impassable
-    cells) and the fixed-point distances (uint32), 8 bytes a cell, and where the row sweeps
-    give up (a maze) Dijkstra's settled flags besides: 9 bytes a cell (the row sweeps keep a
-    few values a row; the float32 layer is converted shard by shard as it is written). Only a
-    relief of 2^30 cells' lengths (float64 distances and a mask: 14 bytes a cell)
-    would need more. Measured on 2 workers, 10000^2 (8 bytes a cell: 0.75 GiB): 0.99 GiB a
-    worker at the peak for the landmark pass on its own, 1.08-1.11 GiB in a whole build (the
-    worker holds 0.34 GiB when the pass starts)."""
-    return 9 * int(shape[0]) * int(shape[1])
+    """Bytes one landmark's task may hold: the quantised safety surface (2 bytes a cell and 12
+    a block of 8 x 8) and the fixed-point distances (uint32), 6.2 bytes a cell, and where the
+    row sweeps give up (a maze) Dijkstra's settled flags besides: 7.2 bytes a cell (the row
+    sweeps keep a few values a row; the surface is quantised a row of shards at a time, the
+    float32 layer converted shard by shard as it is written). Only a relief of 2^30 cells'
+    lengths (float32 heights, a mask and float64 distances: 13 bytes a cell) would need more.
+    Measured on 2 workers, 10000^2 (6.2 bytes a cell: 0.58 GiB): 0.83 GiB a worker at the
+    peak for the landmark pass
+    on its own, 0.90-0.92 GiB in a whole build (the worker holds 0.31-0.34 GiB when the pass
+    starts); with the float32 surface these were 0.98 and 1.09-1.10 GiB."""
+    side = 1 << QUANT_SHIFT
+    blocks = -(-int(shape[0]) // side) * -(-int(shape[1]) // side)
+    return 7 * int(shape[0]) * int(shape[1]) + 12 * blocks
 
 
 def _layers_task(store: str, items: list, a: float) -> None:
@@ -465,19 +573,23 @@ def _layers_task(store: str, items: list, a: float) -> None:
     written shard by shard (:func:`~.store.block_writer`: on a local store the shards' bytes
     written directly, 1.2 s for a 10000^2 layer where zarr's own write of it took 6.4 s) and
     converted to float32 metres shard by shard as it is written (:func:`layer_values`; no
-    float32 copy of the map). The safety layer, NaN where the passable layer says impassable,
-    is read once for all of them (:func:`masked_surface`)."""
+    float32 copy of the map). The safety and passable layers are read once for all of them,
+    as a quantised surface (:func:`quantised_surface`, 2 bytes a cell)."""
     import zarr
 
     from .store import block_writer
 
     g = zarr.open_group(store, mode="r", zarr_format=3)
-    surface = masked_surface(store, g)
+    surface, mask = quantised_surface(store, g), None
+    if fixed_point_bits(surface.codes.shape, surface.relief, a) is None:
+        # a relief of 2^30 cells' lengths: float64 distances on the float32 heights (module doc)
+        surface = whole_layer(store, g, "safety").astype(np.float32, copy=False)
+        mask = whole_layer(store, g, "passable").astype(bool)
     _return_freed_memory()
     _, bh, bw = storage_chunks(g[VARIABLE])
     write = block_writer(store, VARIABLE)
     for i, cell in items:
-        d, unit = layer_distances(surface, None, a, cell)
+        d, unit = layer_distances(surface, mask, a, cell)
         for si in range(-(-d.shape[0] // bh)):
             for sj in range(-(-d.shape[1] // bw)):
                 part = (slice(si * bh, (si + 1) * bh), slice(sj * bw, (sj + 1) * bw))
@@ -543,20 +655,24 @@ def whole_layer(store: str, group, var: str, rows=None) -> np.ndarray:
     return arr[r0:r1] if out is None else out
 
 
-def masked_surface(store: str, group) -> np.ndarray:
-    """The store's safety layer in memory (float32) with NaN on the cells its passable layer
-    marks impassable: the landmark searches' one whole-map input (4 bytes a cell, no mask
-    beside it; :func:`~.planners.sweep.passable_at`), the mask read a row of shards at a
-    time."""
-    surface = whole_layer(store, group, "safety")
-    if surface.dtype != np.float32:
-        surface = surface.astype(np.float32)
-    step = storage_chunks(group["passable"])[0]
-    for r0 in range(0, surface.shape[0], step):
-        r1 = min(r0 + step, surface.shape[0])
+def quantised_surface(store: str, group) -> Quantised:
+    """The store's safety layer with its passable layer as a quantised surface (:func:`quantised`,
+    2 bytes a cell): the landmark searches' one whole-map input, read a row of shards at a
+    time (the rows of a band rounded down to whole blocks)."""
+    shape = tuple(group["safety"].shape)
+    arrays = _quantised_parts(shape)
+    side = 1 << QUANT_SHIFT
+    step = storage_chunks(group["safety"])[0]
+    step = max(side, step - step % side)
+    parts = []
+    for r0 in range(0, shape[0], step):
+        r1 = min(r0 + step, shape[0])
+        z = whole_layer(store, group, "safety", (r0, r1))
         ok = whole_layer(store, group, "passable", (r0, r1)).astype(bool)
-        surface[r0:r1][~ok] = np.nan
-    return surface
+        z = z.astype(np.float32, copy=False)
+        parts.append(_quantise_rows(z, ok, r0, *arrays, QUANT_SHIFT))
+        del z, ok
+    return _finished(arrays, QUANT_SHIFT, parts)
 
 
 # the placement passes' tasks read about one storage chunk each, in whole blocks of the coarse
@@ -665,6 +781,8 @@ def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tup
             "long_name": "shortest safe path length from each landmark (inf: not reached)",
             "units": "m",
             "landmark_cells": [list(c) for c in cells],
+            # the searches' heights: 65 535 steps of each block's relief (module doc)
+            "quantised_blocks": 1 << QUANT_SHIFT,
         },
         overwrite=True,
     )

@@ -384,7 +384,7 @@ def _check_landmark_memory(shape) -> None:
     if need > 0.9 * have:
         raise InvalidParameterError(
             f"the landmark layers need about {need / 2**30:.1f} GiB per landmark search (an "
-            f"exact search of the whole {shape[0]} x {shape[1]} map, 9 bytes a cell), more "
+            f"exact search of the whole {shape[0]} x {shape[1]} map, 7.2 bytes a cell), more "
             f"than the {have / 2**30:.1f} GiB one search can have here; set landmarks = 0 "
             "(--landmarks 0): missions are then certified by the octile bound or say they "
             "are not"

@@ -294,6 +294,32 @@ def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
     return z.astype(np.float32)
 
 
+def quantisation_error_bound(surface, ok, side: int) -> float:
+    """An independent bound (numpy, from the definition) on how far a passable cell's height in
+    a landmark search's quantised surface (pipeline.landmarks.quantised: 65 534 steps of its
+    ``side`` x ``side`` block's relief) may lie from its float32 height: half a step, and a
+    little more for the step's float32 rounding and float64 sums of heights."""
+    z = np.where(ok, np.asarray(surface, dtype=np.float64), np.nan)
+    worst = 0.0
+    for r in range(0, z.shape[0], side):
+        for c in range(0, z.shape[1], side):
+            b = z[r : r + side, c : c + side]
+            if np.isfinite(b).any():
+                worst = max(worst, float(np.nanmax(b) - np.nanmin(b)))
+    top = float(np.nanmax(np.abs(z))) if np.isfinite(z).any() else 0.0
+    return 0.51 * worst / 65534 + 1e-9 * (top + 1.0)
+
+
+def assert_lower_layer(got, want, rtol: float) -> None:
+    """A landmark layer ``got`` (float32 metres) against scipy's distances ``want``: inf at the
+    same cells, never above them (but for float32 rounding), and at most ``rtol`` below."""
+    fin = np.isfinite(want)
+    np.testing.assert_array_equal(np.isfinite(got), fin)
+    g, w = got[fin].astype(np.float64), want[fin]
+    assert (g <= w * (1 + 2.0**-24)).all()
+    assert (g >= w * (1 - rtol - 2.0**-24)).all()
+
+
 def write_bag(tmp_path, z, sigma, a=30.0):
     """A BAG (GDAL's driver: an elevation and an uncertainty band) from a two-band GeoTIFF;
     NaN cells are written as the BAG's no-data."""

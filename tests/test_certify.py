@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pystac
 import pytest
-from conftest import metric_dataarray, random_surface
+from conftest import assert_lower_layer, metric_dataarray, quantisation_error_bound, random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.sparse.csgraph import dijkstra as scipy_dijkstra
@@ -155,8 +155,9 @@ def test_the_layers_unit_is_the_finest_that_holds_the_map_else_float64():
     """``fixed_point_bits``: the finest unit ``a 2^-b`` whose cap (2^31 units) holds four times
     the way round the map, between 16 and 24 bits; coarser where a move could cost 2^30 units
     (a relief of 2^14 cells' lengths at 16 bits); none where even whole cells would not do,
-    and the layer is then float64 distances rounded to float32. Each within its ``2^-b`` of
-    scipy's distances, and never above them."""
+    and the layer is then float64 distances rounded to float32. Each within its ``2^-b`` and
+    the quantised heights' errors a move (none in float64, on the heights themselves) of scipy's
+    distances, and never above them."""
     assert lm.fixed_point_bits((100, 100), 400.0, 30.0) == 21  # log2(2^31 / 800) = 21.4
     assert lm.fixed_point_bits((1, 3), 0.0, 30.0) == 24  # capped at 24
     assert lm.fixed_point_bits((10_000, 10_000), 3000.0, 30.0) == 16  # 2^31 / 80 000: 14.7
@@ -166,13 +167,10 @@ def test_the_layers_unit_is_the_finest_that_holds_the_map_else_float64():
     surface, ok = obstacle_map(3, (30, 40), 0.2)  # 17.7 km of relief (heights x 40)
     cell = tuple(int(v) for v in np.argwhere(ok)[5])
     # 30 m cells: 22 bits; 2 cm cells: 884 000 cells' lengths of relief, 10 bits; 1e-6 m: none
-    for a, rtol in ((A, 2.0**-22), (0.02, 2.0**-10), (1e-6, 1e-12)):
+    err = quantisation_error_bound(surface, ok, 1 << lm.QUANT_SHIFT)
+    for a, rtol in ((A, 2.0**-22 + 2 * err / A), (0.02, 2.0**-10 + 2 * err / 0.02), (1e-6, 1e-12)):
         want = scipy_distances(surface, ok, a, [cell[0] * 40 + cell[1]])
-        got = lm.landmark_layer(surface, ok, a, cell)
-        fin = np.isfinite(want)
-        np.testing.assert_array_equal(np.isfinite(got), fin)
-        assert (got[fin] <= want[fin] * (1 + 2.0**-24)).all()
-        np.testing.assert_allclose(got[fin], want[fin], rtol=rtol + 2.0**-24)
+        assert_lower_layer(lm.landmark_layer(surface, ok, a, cell), want, rtol)
 
 
 @settings(max_examples=25, deadline=None)
@@ -185,29 +183,30 @@ def test_the_layers_unit_is_the_finest_that_holds_the_map_else_float64():
 def test_the_fixed_point_dijkstra_equals_the_sweeps(seed, shape, land, bits):
     """Where the row sweeps give up, a layer's distances come from Dijkstra's algorithm in the
     same fixed point: the same integers (the one solution of ``D(v) = min(cap, min_u D(u) +
-    c'(u, v))``), also where they pass the cap (26 bits: 32 cells' lengths). The heights are
-    scaled down 40 times, and the unit made coarser where a move could still cost 2^30 units,
-    as ``fixed_point_bits`` makes sure."""
+    c'(u, v))``), also where they pass the cap (26 bits: 32 cells' lengths), on the quantised
+    surface a layer's search holds. The heights are scaled down 40 times, and the unit made
+    coarser where a move could still cost 2^30 units, as ``fixed_point_bits`` makes sure."""
     from pipeline.planners import sweep
 
     surface, ok = obstacle_map(seed, shape, land)
     cells = np.argwhere(ok)
     if len(cells) == 0:
         return
-    z = np.where(ok, surface / 40.0, np.nan).astype(np.float32)
-    while math.sqrt(2.0 + (lm.relief(z) / A) ** 2) * 2.0**bits >= 2.0**30:
+    q = lm.quantised(surface / 40.0, ok)
+    while math.sqrt(2.0 + (q.relief / A) ** 2) * 2.0**bits >= 2.0**30:
         bits -= 1
     src = tuple(int(v) for v in cells[np.random.default_rng(seed).integers(len(cells))])
-    want = sweep.fixed_point_distances(z, z, A, src, bits)
+    want = sweep.fixed_point_distances(q, q, A, src, bits)
     assert want is not None
-    np.testing.assert_array_equal(lm.fixed_point_dijkstra(z, A, src, bits), want)
+    np.testing.assert_array_equal(lm.fixed_point_dijkstra(q, A, src, bits), want)
 
 
 def test_a_maze_past_the_cap_takes_coarser_units():
     """Serpentine corridors whose paths run past the first unit's cap (2^31 units: 1024 cells'
     lengths at the 21 bits a 100 x 41 map asks for, the maze's paths about 2000): the layer
     is computed again in units 16 times as long, none of its values held at the cap, within
-    2^-17 of scipy's distances, and still a proven lower bound."""
+    2^-17 and the quantised heights' errors a move of scipy's distances, and still a proven
+    lower bound."""
     from pipeline.planners import sweep
 
     walls, rows = 20, 100
@@ -216,17 +215,14 @@ def test_a_maze_past_the_cap_takes_coarser_units():
         ok[:, 2 * k + 1] = False
         ok[(rows - 2 if k % 2 == 0 else 0) : (rows if k % 2 == 0 else 2), 2 * k + 1] = True
     surface = random_surface(ok.shape, seed=4).astype(np.float32)
-    assert lm.fixed_point_bits(ok.shape, lm.relief(np.where(ok, surface, np.nan)), A) == 21
+    assert lm.fixed_point_bits(ok.shape, lm.quantised(surface, ok).relief, A) == 21
     d, unit = lm.layer_distances(surface, ok, A, (0, 0))
     assert unit == A * 2.0**-17
     assert not (d == sweep.FIXED_CAP).any()
     want = scipy_distances(surface, ok, A, [0])
     assert np.nanmax(np.where(np.isfinite(want), want, np.nan)) > 1024 * A  # past the first cap
-    got = lm.layer_values(d, unit)
-    fin = np.isfinite(want)
-    np.testing.assert_array_equal(np.isfinite(got), fin)
-    assert (got[fin] <= want[fin] * (1 + 2.0**-23)).all()
-    np.testing.assert_allclose(got[fin], want[fin], rtol=2.0**-17 + 2.0**-23)
+    err = quantisation_error_bound(surface, ok, 1 << lm.QUANT_SHIFT)
+    assert_lower_layer(lm.layer_values(d, unit), want, 2.0**-17 + 2 * err / A)
 
 
 def test_landmarks_go_to_every_large_component_only():
@@ -382,12 +378,61 @@ def test_component_sizes_from_the_build_equal_the_layers_bincount(tmp_path, monk
         )
 
 
+@pytest.mark.parametrize("shape, land", [((61, 53), 0.2), ((1, 70), 0.0), ((9, 8), 0.5)])
+def test_a_quantised_surface_keeps_each_height_within_its_blocks_error(shape, land):
+    """``landmarks.quantised``: every passable cell's height ``base + code * quantum`` (as the
+    searches compute it, in float64) within its block's ``error`` of the float32 height, and
+    that error within the bound numpy gives from the blocks' relief; ``IMPASSABLE`` exactly on
+    the cells that are not passable; a flat block exact. Awkward shapes: blocks cut by the map's
+    edge, a single row."""
+    from pipeline.planners import sweep
+
+    surface, ok = obstacle_map(7, shape, land)
+    surface = surface / 40.0
+    surface[:8, :8] = -1234.5  # a flat block
+    q = lm.quantised(surface, ok)
+    np.testing.assert_array_equal(q.codes == sweep.IMPASSABLE, ~ok)
+    side = 1 << lm.QUANT_SHIFT
+    blocks = (np.arange(shape[0])[:, None] // side, np.arange(shape[1])[None, :] // side)
+    height = q.base.astype(np.float64)[blocks] + q.codes * q.quantum.astype(np.float64)[blocks]
+    error = q.error.astype(np.float64)[blocks]
+    z = surface.astype(np.float32).astype(np.float64)
+    assert (np.abs(height - z)[ok] <= error[ok]).all()
+    assert error.max() <= quantisation_error_bound(surface, ok, side)
+    flat = ok[:8, :8]
+    np.testing.assert_array_equal(height[:8, :8][flat], -1234.5)
+    hi, lo = z[ok].max(), z[ok].min()
+    assert hi - lo <= q.relief <= hi - lo + 2 * error.max()
+
+
+def test_the_stores_quantised_surface_equals_the_in_memory_one(tmp_path):
+    """``quantised_surface`` reads a store's safety and passable layers in bands of whole blocks
+    (here shards of 20 rows: bands of 16 that cross them, the last of 13): the same codes,
+    bases, steps, errors and relief as ``quantised`` of the layers in memory."""
+    import dask
+    import zarr
+
+    z = random_surface((61, 53), seed=3) * 3 - 1000
+    z[22:27, 10:30] = 80.0  # an island: cells that are not passable
+    dem = metric_dataarray(z.astype(np.float32), A)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, chunks=20, landmarks=0)
+    ds = pipeline.open_maps(tmp_path / "m.zarr")
+    want = lm.quantised(ds["safety"].values, ds["passable"].values.astype(bool))
+    group = zarr.open_group(tmp_path / "m.zarr", mode="r")
+    got = lm.quantised_surface(str(tmp_path / "m.zarr"), group)
+    assert (~ds["passable"].values.astype(bool)).any() and ds["passable"].values.any()
+    for name in ("codes", "base", "quantum", "error"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    assert (got.shift, got.relief) == (want.shift, want.relief)
+
+
 def test_a_landmark_task_holds_one_distance_array_at_a_time(tmp_path, monkeypatch):
     """A task computing several landmarks' layers lets each one's distances go before the
     next search (a view left over from the write once kept them: two whole-map arrays, 2.36
     GiB a worker instead of 1.61 at 10000^2), and writes the layers the in-memory searches
-    give (there with the passable mask, in the task with NaN on the surface's impassable
-    cells)."""
+    give (there from the safety and passable layers, in the task from its quantised surface,
+    read band by band)."""
     import weakref
 
     import dask
@@ -417,6 +462,30 @@ def test_a_landmark_task_holds_one_distance_array_at_a_time(tmp_path, monkeypatc
         np.testing.assert_array_equal(
             ds[lm.VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
         )
+
+
+def test_a_landmark_task_where_no_fixed_point_serves_takes_the_float32_heights(
+    tmp_path, monkeypatch
+):
+    """Where no fixed point serves (a relief of 2^30 cells' lengths; here ``fixed_point_bits``
+    made to say so), a landmark task computes its layers in float64 on the store's float32
+    heights, not its quantised ones: scipy's distances on those heights, to float32 rounding."""
+    import dask
+
+    dem = metric_dataarray((random_surface((40, 30), seed=8) * 3 - 1000).astype(np.float32), A)
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=2)
+    cells = pipeline.open_store(tmp_path / "m.zarr").landmarks
+    monkeypatch.setattr(lm, "fixed_point_bits", lambda shape, relief, a: None)
+    lm._layers_task(str(tmp_path / "m.zarr"), list(enumerate(cells)), A)
+    ds = pipeline.open_maps(tmp_path / "m.zarr")
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    for i, cell in enumerate(cells):
+        want = scipy_distances(surface, ok, A, [cell[0] * ok.shape[1] + cell[1]])
+        got = ds[lm.VARIABLE][i].values
+        np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+        fin = np.isfinite(want)
+        np.testing.assert_allclose(got[fin], want[fin], rtol=2.0**-24 + 1e-12)
 
 
 @pytest.mark.parametrize("codec", ["none", "blosc"])

@@ -200,7 +200,7 @@ def test_cli_build_maps(tmp_path, local_client):
 
 
 def test_landmarks_too_large_for_the_machine_are_refused_before_any_compute(tmp_path):
-    """A map whose landmark searches (9 bytes a cell, each holding the whole map) cannot fit
+    """A map whose landmark searches (7.2 bytes a cell, each holding the whole map) cannot fit
     in half of this machine's memory is refused in one line naming the fix, at once (the map
     here is a lazy array, never computed), and nothing is written."""
     import time
@@ -209,7 +209,7 @@ def test_landmarks_too_large_for_the_machine_are_refused_before_any_compute(tmp_
     import psutil
     import xarray as xr
 
-    cells = psutil.virtual_memory().total / 9  # one search would need all the memory
+    cells = psutil.virtual_memory().total / 7  # one search would need all the memory
     side = int(np.ceil(np.sqrt(cells)))
     z = da.full((side, side), -3000.0, dtype=np.float32, chunks=4096)
     a = 30.0

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import random_surface
+from conftest import assert_lower_layer, quantisation_error_bound, random_surface
 from scipy import ndimage
 from test_planners import (
     cell_metrics,
@@ -333,7 +333,8 @@ def test_distances_to_every_cell_equal_dijkstra_bit_for_bit(seed):
 
 def test_a_layer_past_the_budget_comes_from_dijkstra(monkeypatch):
     """With the sweeps' budget cut below one relaxation a cell, a landmark's layer is
-    Dijkstra's, and still scipy's distances."""
+    Dijkstra's, and still scipy's distances, less at most a unit and the quantised heights'
+    errors a move (``quantisation_error_bound``)."""
     from pipeline import landmarks as lm
 
     surface, _, passable = obstacle_map((50, 60), 7, density=0.2)
@@ -342,7 +343,9 @@ def test_a_layer_past_the_budget_comes_from_dijkstra(monkeypatch):
     monkeypatch.setattr(sweep, "BUDGET", 0.01)
     assert sweep.distances(z, passable, A, src) is None
     ref = reference_distances(z.astype(np.float64), passable, A, src).reshape(z.shape)
-    np.testing.assert_allclose(lm.landmark_layer(z, passable, A, src), ref, rtol=1e-6)
+    d, unit = lm.layer_distances(z, passable, A, src)
+    err = quantisation_error_bound(z, passable, 1 << lm.QUANT_SHIFT)
+    assert_lower_layer(lm.layer_values(d, unit), ref, (unit + 2 * err) / A)
 
 
 @pytest.mark.parametrize(
@@ -350,24 +353,28 @@ def test_a_layer_past_the_budget_comes_from_dijkstra(monkeypatch):
 )
 def test_fixed_point_distances_lie_less_than_a_unit_a_move_below_scipys(seed, bits):
     """The landmark layers' distances (``fixed_point_distances``: whole units of ``A 2^-bits``,
-    each move's cost rounded down, values held at ``FIXED_CAP``) on the surface with NaN on its
-    impassable cells, as the layers' task holds it: never above scipy's shortest distances,
-    less than one unit a move below them (every move is at least ``A`` long: a relative
-    ``2^-bits``), the capped ones at the cap, not reached exactly where scipy's are inf (also
-    past the cap, which the two finest units reach on these maps). Awkward shapes, obstacles,
-    a maze."""
+    each move's cost rounded down, values held at ``FIXED_CAP``) on the quantised surface the
+    layers' task holds (``landmarks.quantised``): never above scipy's shortest distances, less
+    than one unit and the two cells' height errors (``quantisation_error_bound``) a move below
+    them (every move is at least ``A`` long: a relative ``2^-bits + 2 err / A``), the capped
+    ones at the cap, not reached exactly where scipy's are inf (also past the cap, which the
+    two finest units reach on these maps). Awkward shapes, obstacles, a maze."""
+    from pipeline import landmarks as lm
+
     if seed == 5:
         surface, passable = maze(60, 8)
     else:
         shape = [(1, 70), (70, 1), (41, 37), (64, 97), (120, 80), None, (90, 60)][seed]
         surface, _, passable = obstacle_map(shape, seed, density=0.05 * seed)
-    z = np.where(passable, surface, np.nan).astype(np.float32)
+    z = surface.astype(np.float32)
+    q = lm.quantised(z, passable)
+    err = quantisation_error_bound(z, passable, 1 << lm.QUANT_SHIFT)
     unit, cap = A * 2.0**-bits, sweep.FIXED_CAP
     rng = np.random.default_rng(seed)
     cells = np.argwhere(passable)
     for k in rng.choice(len(cells), 3):
         src = tuple(int(v) for v in cells[k])
-        got = sweep.fixed_point_distances(z, z, A, src, bits)
+        got = sweep.fixed_point_distances(q, q, A, src, bits)
         assert got is not None and got.dtype == np.uint32
         ref = reference_distances(z.astype(np.float64), passable, A, src).reshape(z.shape)
         fin = np.isfinite(ref)
@@ -375,5 +382,6 @@ def test_fixed_point_distances_lie_less_than_a_unit_a_move_below_scipys(seed, bi
         units = got[fin].astype(np.float64)
         exact = ref[fin] / unit  # scipy's distances in units
         assert (units <= np.minimum(exact * (1 + 1e-12), cap)).all()
-        assert (units >= np.minimum(exact * (1 - 2.0**-bits) - 1e-6, cap)).all()
+        low = exact * (1 - 2.0**-bits - 2 * err / A) - 1e-6
+        assert (units >= np.minimum(low, cap)).all()
         assert (units == cap).any() == (exact >= cap).any()

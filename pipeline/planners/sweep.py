@@ -40,6 +40,7 @@ gives up, and the caller runs A* instead.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import types
@@ -113,8 +114,90 @@ def _along(surface, ok, a, u, d, i, j0, j1):
     operations of ``edge_cost`` in its order, as every relaxation here repeats them)."""
     if not (passable_at(ok, i, j0) and passable_at(ok, i, j1)):
         return INF
-    dz = np.float64(surface[i, j1]) * u[0] - np.float64(surface[i, j0]) * u[0]
+    dz = height_at(surface, i, j1) * u[0] - height_at(surface, i, j0) * u[0]
+    dz = lowered(dz, (cell_error(surface, i, j0) + cell_error(surface, i, j1)) * u[0], surface)
     return whole_units(math.sqrt(a * a + dz * dz), d)
+
+
+# A safety surface held in 2 bytes a cell (the landmark layers' searches,
+# :func:`pipeline.landmarks.quantised`): ``codes`` (uint16, rows x cols; :data:`IMPASSABLE` on
+# the cells that are not passable), steps of ``quantum`` above ``base`` in blocks of ``2^shift``
+# cells a side (float32, a value a block). A cell's height ``base + code * quantum`` in float64
+# (:func:`height_at`) lies within its block's ``error`` (float32, metres, a margin for float64
+# rounding in it) of its float32 safety height, so a move's rise less the errors of its two
+# cells (:func:`lowered`) is at most its true rise: the move costs at most what the planners'
+# ``edge_cost`` makes it. ``relief``: a bound on the span of the quantised heights
+Quantised = namedtuple("Quantised", "codes base quantum error shift relief")
+IMPASSABLE = 65535
+
+
+def height_at(surface, i, j):
+    """The height of cell (i, j) in float64: of a float surface, or of a :class:`Quantised`
+    one. Compiled for the surface's type (:func:`_height_typed`)."""
+    if isinstance(surface, Quantised):
+        b = (i >> surface.shift, j >> surface.shift)
+        return float(surface.base[b]) + float(surface.codes[i, j]) * float(surface.quantum[b])
+    return np.float64(surface[i, j])
+
+
+@overload(height_at, inline="always")
+def _height_typed(surface, i, j):
+    if isinstance(surface, types.BaseTuple):
+
+        def quantised(surface, i, j):
+            bi = i >> surface.shift
+            bj = j >> surface.shift
+            step = np.float64(surface.quantum[bi, bj])
+            return np.float64(surface.base[bi, bj]) + np.float64(surface.codes[i, j]) * step
+
+        return quantised
+    return lambda surface, i, j: np.float64(surface[i, j])
+
+
+def cell_error(surface, i, j):
+    """How far the height of cell (i, j) may lie from its true one, metres: 0 on a float
+    surface, its block's ``error`` on a :class:`Quantised` one."""
+    if isinstance(surface, Quantised):
+        return float(surface.error[i >> surface.shift, j >> surface.shift])
+    return 0.0
+
+
+@overload(cell_error, inline="always")
+def _cell_error_typed(surface, i, j):
+    if isinstance(surface, types.BaseTuple):
+        return lambda surface, i, j: np.float64(
+            surface.error[i >> surface.shift, j >> surface.shift]
+        )
+    return lambda surface, i, j: 0.0
+
+
+def grid_shape(surface):
+    """``(rows, cols)`` of a float surface or of a :class:`Quantised` one."""
+    return surface.codes.shape if isinstance(surface, Quantised) else surface.shape
+
+
+@overload(grid_shape, inline="always")
+def _grid_shape_typed(surface):
+    if isinstance(surface, types.BaseTuple):
+        return lambda surface: surface.codes.shape
+    return lambda surface: surface.shape
+
+
+def lowered(dz, loss, surface):
+    """A move's rise ``dz`` as the searches take it: as it is on a float surface; on a
+    :class:`Quantised` one its size less ``loss`` (its two cells' errors, in the units of
+    ``dz``; at least 0), so that the move never costs more than its true 3-D length. Compiled
+    for the surface's type: nothing for the planners' float surfaces."""
+    if isinstance(surface, Quantised):
+        return max(abs(dz) - loss, 0.0)
+    return dz
+
+
+@overload(lowered, inline="always")
+def _lowered_typed(dz, loss, surface):
+    if isinstance(surface, types.BaseTuple):
+        return lambda dz, loss, surface: max(abs(dz) - loss, 0.0)
+    return lambda dz, loss, surface: dz
 
 
 def whole_units(x, d):
@@ -132,23 +215,42 @@ def _whole_typed(x, d):
 
 
 def passable_at(ok, i, j):
-    """Whether cell (i, j) is passable: ``ok`` the passable mask, or a float surface whose
-    impassable cells are NaN (the landmark layers' search, which then holds no mask). Compiled
-    for the type of ``ok`` (:func:`_passable_typed`)."""
+    """Whether cell (i, j) is passable: ``ok`` the passable mask, a float surface whose
+    impassable cells are NaN, or a :class:`Quantised` surface (the landmark layers' search,
+    which then holds no mask). Compiled for the type of ``ok`` (:func:`_passable_typed`)."""
+    if isinstance(ok, Quantised):
+        return ok.codes[i, j] != IMPASSABLE
     v = ok[i, j]
     return bool(v) if ok.dtype == np.bool_ else v == v
 
 
 @overload(passable_at, inline="always")
 def _passable_typed(ok, i, j):
+    if isinstance(ok, types.BaseTuple):
+        return lambda ok, i, j: ok.codes[i, j] != IMPASSABLE
     if isinstance(ok.dtype, types.Boolean):
         return lambda ok, i, j: ok[i, j]
     return lambda ok, i, j: ok[i, j] == ok[i, j]
 
 
+def flat_mask(ok):
+    """``ok`` of :func:`passable_at` as the flat array :func:`passable_flat` reads: raveled,
+    the codes of a :class:`Quantised` surface."""
+    return ok.codes.ravel() if isinstance(ok, Quantised) else ok.ravel()
+
+
+@overload(flat_mask, inline="always")
+def _flat_mask_typed(ok):
+    if isinstance(ok, types.BaseTuple):
+        return lambda ok: ok.codes.ravel()
+    return lambda ok: ok.ravel()
+
+
 def passable_flat(ok, i):
-    """:func:`passable_at` of the flat (raveled) ``ok`` at index ``i``."""
+    """:func:`passable_at` of :func:`flat_mask` at index ``i``."""
     v = ok[i]
+    if ok.dtype == np.uint16:
+        return v != IMPASSABLE
     return bool(v) if ok.dtype == np.bool_ else v == v
 
 
@@ -156,6 +258,8 @@ def passable_flat(ok, i):
 def _passable_flat_typed(ok, i):
     if isinstance(ok.dtype, types.Boolean):
         return lambda ok, i: ok[i]
+    if ok.dtype == types.uint16:  # a Quantised surface's codes
+        return lambda ok, i: ok[i] != IMPASSABLE
     return lambda ok, i: ok[i] == ok[i]
 
 
@@ -229,20 +333,69 @@ def _stored(x, u):
     return u[2] if x == INF else min(x, u[1])
 
 
-@njit(inline="always", cache=True)
-def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist, u):
-    """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (scaled by ``u[0]``;
-    0 where not passable, so that no NaN of a no-data cell enters a sum), penalties (inf where
-    not passable) and distances (inf outside the row's span ``first .. last``)."""
-    cols = surface.shape[1]
+def _load_heights(surface, ok, r, j0, n, z, pen, e, u):
+    """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (scaled by
+    ``u[0]``; 0 where not passable, so that no NaN of a no-data cell enters a sum), penalties
+    (inf where not passable) and, on a :class:`Quantised` surface, the heights' errors
+    (:func:`cell_error`, scaled alike; untouched on a float surface, which has none).
+    Compiled for the surface's type (:func:`_load_heights_typed`)."""
+    cols = grid_shape(surface)[1]
     for q in range(n):
         j = j0 + q
-        if 0 <= j < cols and passable_at(ok, r, j):
-            z[q] = np.float64(surface[r, j]) * u[0]
-            pen[q] = 0.0
-        else:
-            z[q] = 0.0
-            pen[q] = INF
+        inside = 0 <= j < cols and passable_at(ok, r, j)
+        z[q] = height_at(surface, r, j) * u[0] if inside else 0.0
+        pen[q] = 0.0 if inside else INF
+        if isinstance(surface, Quantised):
+            e[q] = cell_error(surface, r, j) * u[0] if inside else 0.0
+
+
+@overload(_load_heights, inline="always")
+def _load_heights_typed(surface, ok, r, j0, n, z, pen, e, u):
+    if isinstance(surface, types.BaseTuple):
+
+        def quantised(surface, ok, r, j0, n, z, pen, e, u):
+            # a block's values read once a cell, for its height and its error
+            codes, base = surface.codes, surface.base
+            quantum, error = surface.quantum, surface.error
+            cols = codes.shape[1]
+            bi = r >> surface.shift
+            for q in range(n):
+                j = j0 + q
+                if 0 <= j < cols and codes[r, j] != IMPASSABLE:
+                    bj = j >> surface.shift
+                    step = np.float64(quantum[bi, bj])
+                    z[q] = (np.float64(base[bi, bj]) + np.float64(codes[r, j]) * step) * u[0]
+                    e[q] = np.float64(error[bi, bj]) * u[0]
+                    pen[q] = 0.0
+                else:
+                    z[q] = 0.0
+                    e[q] = 0.0
+                    pen[q] = INF
+
+        return quantised
+
+    def plain(surface, ok, r, j0, n, z, pen, e, u):
+        cols = surface.shape[1]
+        for q in range(n):
+            j = j0 + q
+            if 0 <= j < cols and passable_at(ok, r, j):
+                z[q] = np.float64(surface[r, j]) * u[0]
+                pen[q] = 0.0
+            else:
+                z[q] = 0.0
+                pen[q] = INF
+
+    return plain
+
+
+@njit(inline="always", cache=True)
+def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist, e, u):
+    """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights, penalties and
+    errors (:func:`_load_heights`) and distances (inf outside the row's span ``first ..
+    last``)."""
+    _load_heights(surface, ok, r, j0, n, z, pen, e, u)
+    for q in range(n):
+        j = j0 + q
         dist[q] = _held(d, base + j, u) if first <= j <= last else INF
 
 
@@ -254,7 +407,7 @@ GAP = 8
 @njit(cache=True, nogil=True)
 def _relax_row(surface, ok, a, u, i, p, lo, hi, off, d, s):
     """Relax row ``i`` from row ``p`` (``p < 0``: from nothing, the start's row) and along
-    itself; returns the cells relaxed and whether any distance fell. ``s``: scratch rows (9 x
+    itself; returns the cells relaxed and whether any distance fell. ``s``: scratch rows (11 x
     the widest row + 2); ``u`` the units (:data:`METRES`, :func:`fixed_point_distances`).
     The pull is computed only over the spans of columns it can lower (a neighbour in row p
     within a move of the cell: no move is shorter than ``a``, though computed,
@@ -334,6 +487,7 @@ def _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, kmin, kmax):
     a2 = a * a
     d2 = 2.0 * a2
     zi, zp, pi, pp, dp, best, hz, wv, wd = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8]
+    ei, ep = s[9], s[10]  # the heights' errors (Quantised surfaces only)
     first, last = lo[i], hi[i]
     base = off[i] - first
     changed = False
@@ -342,17 +496,17 @@ def _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, kmin, kmax):
         lp, hp = lo[p], hi[p]
         pbase = off[p] - lp
     n = kmax - kmin + 1
-    _load(surface, ok, d, i, base, first, last, kmin - 1, n + 2, zi, pi, best, u)
+    _load(surface, ok, d, i, base, first, last, kmin - 1, n + 2, zi, pi, best, ei, u)
     if p >= 0:
-        _load(surface, ok, d, p, pbase, lp, hp, kmin - 1, n + 2, zp, pp, dp, u)
+        _load(surface, ok, d, p, pbase, lp, hp, kmin - 1, n + 2, zp, pp, dp, ep, u)
         for q in range(1, n + 1):
-            dz = zi[q] - zp[q]
+            dz = lowered(zi[q] - zp[q], ei[q] + ep[q], surface)
             wv[q] = whole_units(math.sqrt(a2 + dz * dz), d)
         for q in range(1, n + 1):  # from (p, j - 1): it passes between (p, j) and (i, j - 1)
-            dz = zi[q] - zp[q - 1]
+            dz = lowered(zi[q] - zp[q - 1], ei[q] + ep[q - 1], surface)
             wd[q] = dp[q - 1] + whole_units(math.sqrt(d2 + dz * dz), d) + pi[q - 1]
         for q in range(1, n + 1):
-            dz = zi[q] - zp[q + 1]
+            dz = lowered(zi[q] - zp[q + 1], ei[q] + ep[q + 1], surface)
             c = dp[q + 1] + whole_units(math.sqrt(d2 + dz * dz), d) + pi[q + 1]
             c = c if c < wd[q] else wd[q]
             v = dp[q] + wv[q]
@@ -363,7 +517,7 @@ def _relax_span(surface, ok, a, u, i, p, lo, hi, off, d, s, kmin, kmax):
         if not changed:
             return n, False
     for q in range(1, n + 2):
-        dz = zi[q] - zi[q - 1]
+        dz = lowered(zi[q] - zi[q - 1], ei[q] + ei[q - 1], surface)
         hz[q] = whole_units(math.sqrt(a2 + dz * dz), d) + pi[q] + pi[q - 1]
     # along the row, left to right, on past kmax while it lowers
     for q in range(1, n + 1):
@@ -422,12 +576,12 @@ def _sweeps(surface, ok, a, u, sr, sc, lo, hi, off, d, budget, max_sweeps):
     """:func:`sweep_distances` into the distances ``d`` (all not reached but the start's, set
     here to 0) in the units ``u``: ``(heights' scale, cap, not reached)`` (:data:`METRES`;
     :func:`fixed_point_distances`). Returns ``(relaxed, sweeps, done)``."""
-    rows = surface.shape[0]
+    rows = grid_shape(surface)[0]
     width = 0
     for i in range(rows):
         width = max(width, hi[i] - lo[i] + 1)
     budget = budget * off[rows]
-    scratch = np.empty((9, width + 2))
+    scratch = np.empty((11, width + 2))
     d[off[sr] + sc - lo[sr]] = 0
     # stamps: when a row last changed, and last pulled from the row above / below
     stamp = 1
@@ -623,11 +777,13 @@ def fixed_point_distances(surface, passable, a: float, source, bits: int):
     the whole-map sweeps of :func:`distances` with each move's cost rounded down to a whole unit
     (:func:`whole_units`) and each distance held at :data:`FIXED_CAP`: 4 bytes a cell where
     float64 takes 8, for the landmark layers (:mod:`pipeline.landmarks`, whose module doc has
-    the bound's proof). The sums are whole units, exact in float64: the distances are the
-    exact ones, capped, of a graph whose every move is at most the planners' cost. None when
+    the bound's proof), on their :class:`Quantised` surface (``passable`` the same: each move's
+    rise lowered by its cells' errors) or on a float32 one with NaN on its impassable cells.
+    The sums are whole units, exact in float64: the distances are the exact ones, capped, of a
+    graph whose every move is at most the planners' cost. None when
     the relaxations passed :data:`BUDGET` times the map's cells (the caller then runs
     Dijkstra)."""
-    rows, cols = surface.shape
+    rows, cols = grid_shape(surface)
     lo = np.zeros(rows, dtype=np.int64)
     hi = np.full(rows, cols - 1, dtype=np.int64)
     off = np.arange(rows + 1) * np.int64(cols)
