@@ -682,9 +682,12 @@ def _check_endpoints(m: MapsStore, start, goal):
         if not (0 <= r < rows and 0 <= c < cols):
             raise off_map_error(name, r, c, m.shape)
         out.append((r, c))
-    if m.values("passable", out).all():  # one lookup; a window only to name the nearest cell
+    passable = m.values("passable", out)
+    if passable.all():  # one lookup; a window only to name the nearest cell
         return out
-    for name, (r, c) in zip(("start", "goal"), out, strict=True):
+    for name, (r, c), here in zip(("start", "goal"), out, passable, strict=True):
+        if here:
+            continue  # passable: no window read for it
         h = 64
         r0, r1, c0, c1 = max(r - h, 0), min(r + h + 1, rows), max(c - h, 0), min(c + h + 1, cols)
         ok = m.window("passable", r0, r1, c0, c1)

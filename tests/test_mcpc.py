@@ -328,6 +328,26 @@ def test_parameter_errors(store, kwargs, error, match):
         pipeline.plan(store, **args)
 
 
+def test_a_goal_on_land_reads_one_window_only(store, monkeypatch):
+    """A goal that is not passable, its start passable: the error names the goal and its
+    nearest passable cell, from the one window read around the goal (the start's lookup told
+    it passable: no window around it)."""
+    m = pipeline.open_store(store)
+    read = []
+    window = m.window
+
+    def counted(var, r0, r1, c0, c1):
+        read.append((var, r0, r1, c0, c1))
+        return window(var, r0, r1, c0, c1)
+
+    monkeypatch.setattr(m, "window", counted)  # the real store's reads, counted
+    args = {**MISSION, "goal": (WALL_ROW, 10), "planner": "astar", "client": "synchronous"}
+    with pytest.raises(pipeline.InvalidEndpointError, match=r"goal .*nearest passable cell"):
+        pipeline.plan(m, **args, **SMALL)
+    assert len(read) == 1 and read[0][0] == "passable"
+    assert read[0][1] <= WALL_ROW < read[0][2] and read[0][3] <= 10 < read[0][4]
+
+
 def test_missing_store_is_a_clear_error(tmp_path):
     with pytest.raises(pipeline.PipelineError, match="does not exist"):
         pipeline.plan(tmp_path / "nope.zarr", (0, 0), (1, 1))

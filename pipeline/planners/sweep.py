@@ -337,8 +337,9 @@ def _load_heights(surface, ok, r, j0, n, z, pen, e, u):
     """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (scaled by
     ``u[0]``; 0 where not passable, so that no NaN of a no-data cell enters a sum), penalties
     (inf where not passable) and, on a :class:`Quantised` surface, the heights' errors
-    (:func:`cell_error`, scaled alike; untouched on a float surface, which has none).
-    Compiled for the surface's type (:func:`_load_heights_typed`)."""
+    (:func:`cell_error`, scaled alike; untouched on a float surface, which has none). On a
+    :class:`Quantised` surface its codes say which cells are passable (the searches' ``ok`` is
+    then the surface itself). Compiled for the surface's type (:func:`_load_heights_typed`)."""
     cols = grid_shape(surface)[1]
     for q in range(n):
         j = j0 + q
