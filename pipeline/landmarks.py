@@ -449,8 +449,10 @@ def _quantise_rows(z, ok, r0, codes, base, quantum, error, shift):
             quantum[bi, bj] = np.float32((hi - lo) / QUANT_STEPS) if hi >= lo else 0.0
             b = np.float64(base[bi, bj])
             step = np.float64(quantum[bi, bj])
-            inv = 1.0 / step if step > 0.0 else 0.0  # the nearest step or one beside it: the
-            err = 0.0  # error is measured on the code taken
+            # the nearest step (or, by the reciprocal's rounding, one beside it: the error is
+            # measured on the code taken)
+            inv = 1.0 / step if step > 0.0 else 0.0
+            err = 0.0
             for i in range(i0, i1):
                 for j in range(j0, j1):
                     if not ok[i, j]:
@@ -463,8 +465,8 @@ def _quantise_rows(z, ok, r0, codes, base, quantum, error, shift):
             if hi >= lo:
                 lowest = min(lowest, lo)
                 highest = max(highest, hi)
-                # float32 rounds to within 2^-24 of the value; a float64 difference of two
-                # heights of this size to within 2^-52 of them
+                # margins: float32 rounds the error to within 2^-24 of it; the searches' float64
+                # heights and their differences are exact to within 2^-52 of the heights
                 err = err * (1.0 + 2.0**-20) + 2.0**-40 * (max(abs(lo), abs(hi)) + 1.0)
             error[bi, bj] = np.float32(err)
             worst = max(worst, np.float64(error[bi, bj]))
@@ -560,9 +562,9 @@ def memory_per_landmark(shape) -> int:
     float32 layer converted shard by shard as it is written). Only a relief of 2^30 cells'
     lengths (float32 heights, a mask and float64 distances: 13 bytes a cell) would need more.
     Measured on 2 workers, 10000^2 (6.2 bytes a cell: 0.58 GiB): 0.83 GiB a worker at the
-    peak for the landmark pass
-    on its own, 0.90-0.92 GiB in a whole build (the worker holds 0.31-0.34 GiB when the pass
-    starts); with the float32 surface these were 0.98 and 1.09-1.10 GiB."""
+    peak for the landmark pass on its own, 0.90-0.92 GiB in a whole build (the worker holds
+    0.31-0.34 GiB when the pass starts); with the float32 surface these were 0.98 and
+    1.09-1.10 GiB."""
     side = 1 << QUANT_SHIFT
     blocks = -(-int(shape[0]) // side) * -(-int(shape[1]) // side)
     return 7 * int(shape[0]) * int(shape[1]) + 12 * blocks
