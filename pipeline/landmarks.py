@@ -424,8 +424,9 @@ def _quantise_rows(z, ok, r0, codes, base, quantum, error, shift):
     ``quantum`` (float32) of its relief over :data:`QUANT_STEPS` and the largest difference
     between a cell's height and its quantised one (``height_at``'s float64 arithmetic), with a
     margin for the rounding of float64 sums of heights (``error``, float32, rounded up); per
-    cell the nearest step (:data:`IMPASSABLE` where not passable). Returns the lowest and
-    highest passable heights and the largest error."""
+    cell the nearest step (:data:`IMPASSABLE` where not passable, or where its height is not
+    finite: no move reaches it). Returns the lowest and highest passable heights and the
+    largest error."""
     rows, cols = z.shape
     side = 1 << shift
     lowest = np.inf
@@ -441,7 +442,7 @@ def _quantise_rows(z, ok, r0, codes, base, quantum, error, shift):
             hi = -np.inf
             for i in range(i0, i1):
                 for j in range(j0, j1):
-                    if ok[i, j]:
+                    if ok[i, j] and np.isfinite(z[i, j]):
                         h = np.float64(z[i, j])
                         lo = min(lo, h)
                         hi = max(hi, h)
@@ -455,7 +456,7 @@ def _quantise_rows(z, ok, r0, codes, base, quantum, error, shift):
             err = 0.0
             for i in range(i0, i1):
                 for j in range(j0, j1):
-                    if not ok[i, j]:
+                    if not (ok[i, j] and np.isfinite(z[i, j])):
                         codes[r0 + i, j] = IMPASSABLE
                         continue
                     h = np.float64(z[i, j])

@@ -383,14 +383,16 @@ def test_a_quantised_surface_keeps_each_height_within_its_blocks_error(shape, la
     """``landmarks.quantised``: every passable cell's height ``base + code * quantum`` (as the
     searches compute it, in float64) within its block's ``error`` of the float32 height, and
     that error within the bound numpy gives from the blocks' relief; ``IMPASSABLE`` exactly on
-    the cells that are not passable; a flat block exact. Awkward shapes: blocks cut by the map's
-    edge, a single row."""
+    the cells that are not passable or have no height (NaN); a flat block exact. Awkward
+    shapes: blocks cut by the map's edge, a single row."""
     from pipeline.planners import sweep
 
     surface, ok = obstacle_map(7, shape, land)
     surface = surface / 40.0
     surface[:8, :8] = -1234.5  # a flat block
+    surface[-1, -1] = np.nan  # a height not known: not passable, whatever the mask says
     q = lm.quantised(surface, ok)
+    ok[-1, -1] = False
     np.testing.assert_array_equal(q.codes == sweep.IMPASSABLE, ~ok)
     side = 1 << lm.QUANT_SHIFT
     blocks = (np.arange(shape[0])[:, None] // side, np.arange(shape[1])[None, :] // side)
