@@ -109,7 +109,8 @@ def build(name: str, dem) -> Path:
         import zarr
 
         group = zarr.open_group(path, mode="r")
-        if "landmarks" in group.attrs and "quantised_blocks" in group["landmark_distance"].attrs:
+        layers = group["landmark_distance"] if "landmark_distance" in group else None
+        if layers is not None and "quantised_blocks" in layers.attrs:
             return path  # built with the landmark layers' current search
     with dask.config.set(scheduler="threads", num_workers=2):
         pipeline.build_maps(
