@@ -333,60 +333,54 @@ def _stored(x, u):
     return u[2] if x == INF else min(x, u[1])
 
 
+def _float_heights(surface, ok, r, j0, n, z, pen, e, u):
+    """:func:`_load_heights` of a float surface (no errors to load)."""
+    cols = surface.shape[1]
+    for q in range(n):
+        j = j0 + q
+        if 0 <= j < cols and passable_at(ok, r, j):
+            z[q] = np.float64(surface[r, j]) * u[0]
+            pen[q] = 0.0
+        else:
+            z[q] = 0.0
+            pen[q] = INF
+
+
+def _quantised_heights(surface, ok, r, j0, n, z, pen, e, u):
+    """:func:`_load_heights` of a :class:`Quantised` surface: its codes say which cells are
+    passable (the searches' ``ok`` is the surface itself), and a block's values are read once
+    a cell, for its height and its error."""
+    codes, base = surface.codes, surface.base
+    quantum, error = surface.quantum, surface.error
+    cols = codes.shape[1]
+    bi = r >> surface.shift
+    for q in range(n):
+        j = j0 + q
+        if 0 <= j < cols and codes[r, j] != IMPASSABLE:
+            bj = j >> surface.shift
+            step = np.float64(quantum[bi, bj])
+            z[q] = (np.float64(base[bi, bj]) + np.float64(codes[r, j]) * step) * u[0]
+            e[q] = np.float64(error[bi, bj]) * u[0]
+            pen[q] = 0.0
+        else:
+            z[q] = 0.0
+            e[q] = 0.0
+            pen[q] = INF
+
+
 def _load_heights(surface, ok, r, j0, n, z, pen, e, u):
     """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights (scaled by
     ``u[0]``; 0 where not passable, so that no NaN of a no-data cell enters a sum), penalties
     (inf where not passable) and, on a :class:`Quantised` surface, the heights' errors
-    (:func:`cell_error`, scaled alike; untouched on a float surface, which has none). On a
-    :class:`Quantised` surface its codes say which cells are passable (the searches' ``ok`` is
-    then the surface itself). Compiled for the surface's type (:func:`_load_heights_typed`)."""
-    cols = grid_shape(surface)[1]
-    for q in range(n):
-        j = j0 + q
-        inside = 0 <= j < cols and passable_at(ok, r, j)
-        z[q] = height_at(surface, r, j) * u[0] if inside else 0.0
-        pen[q] = 0.0 if inside else INF
-        if isinstance(surface, Quantised):
-            e[q] = cell_error(surface, r, j) * u[0] if inside else 0.0
+    (:func:`cell_error`, scaled alike; untouched on a float surface, which has none).
+    Compiled for the surface's type (:func:`_load_heights_typed`)."""
+    load = _quantised_heights if isinstance(surface, Quantised) else _float_heights
+    load(surface, ok, r, j0, n, z, pen, e, u)
 
 
 @overload(_load_heights, inline="always")
 def _load_heights_typed(surface, ok, r, j0, n, z, pen, e, u):
-    if isinstance(surface, types.BaseTuple):
-
-        def quantised(surface, ok, r, j0, n, z, pen, e, u):
-            # a block's values read once a cell, for its height and its error
-            codes, base = surface.codes, surface.base
-            quantum, error = surface.quantum, surface.error
-            cols = codes.shape[1]
-            bi = r >> surface.shift
-            for q in range(n):
-                j = j0 + q
-                if 0 <= j < cols and codes[r, j] != IMPASSABLE:
-                    bj = j >> surface.shift
-                    step = np.float64(quantum[bi, bj])
-                    z[q] = (np.float64(base[bi, bj]) + np.float64(codes[r, j]) * step) * u[0]
-                    e[q] = np.float64(error[bi, bj]) * u[0]
-                    pen[q] = 0.0
-                else:
-                    z[q] = 0.0
-                    e[q] = 0.0
-                    pen[q] = INF
-
-        return quantised
-
-    def plain(surface, ok, r, j0, n, z, pen, e, u):
-        cols = surface.shape[1]
-        for q in range(n):
-            j = j0 + q
-            if 0 <= j < cols and passable_at(ok, r, j):
-                z[q] = np.float64(surface[r, j]) * u[0]
-                pen[q] = 0.0
-            else:
-                z[q] = 0.0
-                pen[q] = INF
-
-    return plain
+    return _quantised_heights if isinstance(surface, types.BaseTuple) else _float_heights
 
 
 @njit(inline="always", cache=True)
@@ -781,9 +775,8 @@ def fixed_point_distances(surface, passable, a: float, source, bits: int):
     the bound's proof), on their :class:`Quantised` surface (``passable`` the same: each move's
     rise lowered by its cells' errors) or on a float32 one with NaN on its impassable cells.
     The sums are whole units, exact in float64: the distances are the exact ones, capped, of a
-    graph whose every move is at most the planners' cost. None when
-    the relaxations passed :data:`BUDGET` times the map's cells (the caller then runs
-    Dijkstra)."""
+    graph whose every move is at most the planners' cost. None when the relaxations passed
+    :data:`BUDGET` times the map's cells (the caller then runs Dijkstra)."""
     rows, cols = grid_shape(surface)
     lo = np.zeros(rows, dtype=np.int64)
     hi = np.full(rows, cols - 1, dtype=np.int64)
