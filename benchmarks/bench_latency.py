@@ -5,7 +5,7 @@ least half the side apart, planned one at a time by
 
 - ``plan()`` with ra_star, omega 2, MCPC defaults, on a LocalCluster of 2 single-threaded
   workers (sections as tasks) and in this process (``client="synchronous"``);
-- ``plan()`` with lagrangian, omega 2, on the cluster;
+- ``plan()`` with lagrangian, omega 2, on the cluster and in this process;
 - pyastar2d (C++ A*, uniform cost, no 3-D surface, no ridges) on the whole grid, its weight
   grid (1 passable, inf otherwise) built before the clock.
 
@@ -13,7 +13,8 @@ Each tool runs its missions back to back after one warm-up mission (for pyastar2
 first call on a large grid pays for the memory it allocates; interleaving the tools would
 charge that again and again). The fixed cost of a mission: the in-process wall time less the
 time of its sections' searches (the coarse search, window reads, snapping, the landmark
-bound, stitching).
+bound, stitching). On the cluster, the CPU time of this process (the client and the
+LocalCluster's scheduler) and of the workers per mission: what the two cores must run.
 
     .venv/bin/python benchmarks/bench_latency.py [--quick] [--sides 2000 4000 ...]
 """
@@ -22,10 +23,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 import uuid
 
 import numpy as np
+import psutil
 from _common import OUT, machine, maps_store, passable_neighbour
 from _report import Report, faster
 from bench_mcpc import missions
@@ -34,10 +37,16 @@ RUNS = (
     ("ra_star, cluster", "ra_star", "cluster"),
     ("ra_star, in-process", "ra_star", "synchronous"),
     ("lagrangian, cluster", "lagrangian", "cluster"),
+    ("lagrangian, in-process", "lagrangian", "synchronous"),
 )
 
 
-def run_side(client, n: int, k: int) -> dict:
+def _cpu_seconds(procs) -> list[float]:
+    """User and system CPU seconds of each process so far."""
+    return [sum(p.cpu_times()[:2]) for p in procs]
+
+
+def run_side(client, n: int, k: int, procs=()) -> dict:
     import pyastar2d
 
     import pipeline
@@ -54,6 +63,7 @@ def run_side(client, n: int, k: int) -> dict:
         run_on = client if where == "cluster" else "synchronous"
         pipeline.plan(m, *ms[0], planner=planner, omega=2.0, client=run_on)  # warm-up
         times, fixed, search, read = [], [], [], []
+        cpu0 = _cpu_seconds(procs)
         for s, g in ms[1:]:
             t0 = time.perf_counter()
             t = pipeline.plan(m, s, g, planner=planner, omega=2.0, client=run_on)
@@ -64,7 +74,17 @@ def run_side(client, n: int, k: int) -> dict:
             read.append(sum(sec["read_s"] or 0.0 for sec in secs))
             fixed.append(dt - search[-1])
         out[name] = float(np.median(times))
-        if where == "synchronous":
+        if where == "cluster" and procs:
+            # where a mission's CPU goes on the 2 cores: this process (the client, and the
+            # LocalCluster's scheduler on its event loop) and the workers; means per mission
+            cpu = np.subtract(_cpu_seconds(procs), cpu0) / len(times)
+            out[f"{name} cpu"] = {
+                "wall": float(np.mean(times)),
+                "client": float(cpu[0]),
+                "workers": float(cpu[1:].sum()),
+                "search": float(np.mean(search)),
+            }
+        if where == "synchronous" and planner == "ra_star":
             out.update(
                 fixed=float(np.median(fixed)),
                 search=float(np.median(search)),
@@ -89,7 +109,10 @@ def run_side(client, n: int, k: int) -> dict:
         pyastar2d.astar_path(w, s, near, allow_diagonal=True)
         times.append(time.perf_counter() - t0)
     out["pyastar2d_setup"] = float(np.median(times))
-    print(n, {key: round(v * 1e3, 1) for key, v in out.items()}, "ms", flush=True)
+    print(n, {key: round(v * 1e3, 1) for key, v in out.items() if isinstance(v, float)}, "ms")
+    for key, v in out.items():
+        if isinstance(v, dict):
+            print(n, key, {part: round(x * 1e3, 1) for part, x in v.items()}, "ms", flush=True)
     out["margins"] = margin_tradeoff(m, ms[1 : 1 + K_MARGIN])
     return out
 
@@ -236,7 +259,8 @@ def main() -> None:
         local_cluster(dashboard_address=None) as cl,
         Client(cl) as client,
     ):
-        rows = {n: run_side(client, n, k) for n in sides}
+        procs = [psutil.Process()] + [psutil.Process(p) for p in client.run(os.getpid).values()]
+        rows = {n: run_side(client, n, k, procs) for n in sides}
         delay = result_delay(client)
     (OUT / "latency.json").write_text(
         json.dumps({**{str(n): r for n, r in rows.items()}, "result_delay": delay}, indent=1)
@@ -290,6 +314,38 @@ def main() -> None:
                 1e3 * r["search"],
             ]
             for n, r in rows.items()
+        ],
+    )
+    rep.p("""Where a mission's CPU goes, on the cluster (the same missions; means per mission,
+          in milliseconds): this process (the client's work: the coarse search, snapping,
+          stitching, the landmark bound; and the LocalCluster's scheduler and the client's
+          communication, on its event loop) and the two worker processes (the sections'
+          searches, their window reads, and each worker's own messaging). Two cores run it all:
+          half the CPU is the least wall time a mission can take, however its work is
+          shared.""")
+    rep.table(
+        [
+            "side",
+            "planner",
+            "wall ms",
+            "CPU, this process ms",
+            "CPU, workers ms",
+            "of which the sections' searches (wall) ms",
+            "CPU in all / 2 cores ms",
+        ],
+        [
+            [
+                f"{n}^2",
+                planner,
+                1e3 * c["wall"],
+                1e3 * c["client"],
+                1e3 * c["workers"],
+                1e3 * c["search"],
+                1e3 * (c["client"] + c["workers"]) / 2,
+            ]
+            for n, r in rows.items()
+            for planner in ("ra_star", "lagrangian")
+            if (c := r.get(f"{planner}, cluster cpu"))
         ],
     )
     rep.p(f"""The window margin of the sections (docs/method.md section 6): the default,
