@@ -145,3 +145,124 @@ def test_a_kernel_is_saved_to_numbas_cache_under_the_lock(tmp_path):
         assert child.stdout.readline() == "saved\n"
     assert child.wait(timeout=60) == 0
     assert len(list(cache.glob("kernel.f-*.nbi"))) == 1 and len(list(cache.glob("*.nbc"))) == 1
+
+
+# a process that runs pkg.caller.twice_plus (its cache: pkg/__pycache__) with the stamps of
+# pipeline._jit following the imports of pkg's modules ("follow") or numba's own ("numba")
+_STALE_CHILD = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import pipeline._jit as jit
+if sys.argv[2] == "follow":
+    jit.ROOTS.append(sys.argv[1])
+from pkg.caller import twice_plus
+value = twice_plus(1.0)
+print(json.dumps([value, sum(twice_plus.stats.cache_hits.values())]))
+"""
+
+_CALLEE = "from numba import njit\n\n\n@njit(cache=True)\ndef plus(x):\n    return x + {}\n"
+_CALLER = (
+    "from numba import njit\n\nfrom .callee import plus\n\n\n"
+    "@njit(cache=True)\ndef twice_plus(x):\n    return 2.0 * plus(x)\n"
+)
+
+
+def test_a_kernel_compiles_again_when_a_module_it_calls_changes(tmp_path):
+    """numba keys a kernel's cache by its own file: after an edit to a module whose function
+    the kernel calls, the next process ran the kernel's old machine code (the landmark
+    searches kept sweep.py's old overloads so). With pipeline._jit's stamps the kernel
+    compiles again, and loads from the cache while nothing changes. Real processes, numba's
+    real cache beside a package of two modules."""
+    import json
+    import subprocess
+    import sys
+
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "caller.py").write_text(_CALLER)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(warmup.__file__)))
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["PYTHONPATH"] = os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])
+
+    def run(stamps: str, add: int) -> tuple[float, int]:
+        (pkg / "callee.py").write_text(_CALLEE.format(add))
+        out = subprocess.run(
+            [sys.executable, "-c", _STALE_CHILD, str(tmp_path), stamps],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        value, hits = json.loads(out.stdout.strip().splitlines()[-1])
+        return value, hits
+
+    assert run("numba", 1) == (4.0, 0)
+    assert run("numba", 10) == (4.0, 1)  # the old code of plus, from the cache: the defect
+    assert run("follow", 10) == (22.0, 0)  # compiled again
+    assert run("follow", 10) == (22.0, 1)  # loaded: the cache still serves
+    assert run("follow", 100) == (202.0, 0)
+
+
+def test_the_stamps_follow_the_package_imports():
+    """What a kernel's cache stamp covers (pipeline._jit.dependencies), on the package
+    itself: the landmark searches reach the sweeps' overloads and the planners' core, not the
+    MCPC module; the sweeps do not reach the landmark layers; the core reaches the modules it
+    imports and nothing else."""
+    from pipeline._jit import ROOTS, dependencies
+
+    def deps(name):
+        return {os.path.relpath(p, ROOTS[0]) for p in dependencies(os.path.join(ROOTS[0], name))}
+
+    landmarks = deps("landmarks.py")
+    assert {"landmarks.py", "planners/sweep.py", "planners/core.py", "_heap.py"} <= landmarks
+    assert "landmarks.py" not in deps("planners/sweep.py")
+    assert deps("planners/core.py") == {
+        "planners/core.py",
+        "_grid8.py",
+        "_heap.py",
+        "_jit.py",
+        "exceptions.py",
+    }
+    assert "mcpc.py" not in landmarks
+
+
+def test_the_stamps_read_every_form_of_relative_import(tmp_path):
+    """pipeline._jit.imported on a package written for it: names over several lines with
+    comments between them, ``as``, a submodule imported by name from its package, an import
+    inside a function, two dots; an absolute import and a name that is not a module add
+    nothing of their own."""
+    from pipeline._jit import dependencies, imported
+
+    (tmp_path / "pkg" / "sub").mkdir(parents=True)
+    files = {
+        "pkg/__init__.py": "",
+        "pkg/a.py": (
+            "import numpy as np\nfrom .b import f as h\nfrom . import (\n    b,  # a module\n"
+            "    # and a package\n    sub,\n)\n\n\ndef k():\n    from .sub.c import x\n"
+            "    return x\n"
+        ),
+        "pkg/b.py": "from .sub import d\n",
+        "pkg/sub/__init__.py": "",
+        "pkg/sub/c.py": "from .. import b\n",
+        "pkg/sub/d.py": "from ..b import nothing_here  # b's own name\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+
+    def rel(paths):
+        return {os.path.relpath(p, tmp_path) for p in paths}
+
+    assert rel(imported(str(tmp_path / "pkg/a.py"))) == {
+        "pkg/b.py",
+        "pkg/sub/__init__.py",
+        "pkg/sub/c.py",
+    }
+    assert rel(imported(str(tmp_path / "pkg/sub/d.py"))) == {"pkg/b.py"}
+    assert rel(dependencies(str(tmp_path / "pkg/a.py"))) == {
+        "pkg/a.py",
+        "pkg/b.py",
+        "pkg/sub/__init__.py",
+        "pkg/sub/c.py",
+        "pkg/sub/d.py",
+    }
