@@ -323,7 +323,8 @@ def main() -> None:
           searches, their window reads, and each worker's own messaging). Two cores run it all:
           half the CPU is the least wall time a mission can take, however its work is
           shared. The kernel counts a process's CPU time in steps of 10 ms: over {k} missions,
-          each figure is within {10 / k:.2f} ms of the mean it measures.""")
+          each process's figure is within {10 / k:.2f} ms of the mean it measures (the
+          workers' two within twice that).""")
     rep.table(
         [
             "side",
