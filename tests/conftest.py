@@ -448,3 +448,45 @@ def no_leaked_default_scheduler():
         f"the test left dask's default scheduler {after!r} (was {before!r}) and clients "
         f"{list(_global_clients.values())} ({len(live)} open)"
     )
+
+
+SHM = Path("/dev/shm")
+
+
+def orphaned_semaphores(names) -> set:
+    """Those of the POSIX semaphores ``names`` (files ``/dev/shm/sem.*``) that no live process
+    has open. An open named semaphore is a mapping of its file in ``/proc/PID/maps``, under the
+    name glibc first gave the file (it links the final name after mapping it): matched by
+    inode."""
+    inodes = {}
+    for n in names:
+        try:
+            inodes[os.stat(SHM / n).st_ino] = n
+        except OSError:
+            continue
+    for maps in Path("/proc").glob("[0-9]*/maps"):
+        try:
+            lines = maps.read_text().splitlines()
+        except OSError:  # the process ended, or is not ours to read
+            continue
+        for line in lines:
+            fields = line.split(maxsplit=5)
+            if len(fields) == 6 and fields[5].startswith(str(SHM) + "/"):
+                inodes.pop(int(fields[4]), None)
+        if not inodes:
+            break
+    return set(inodes.values())
+
+
+@pytest.fixture
+def killed_processes_semaphores_removed():
+    """Removes the semaphores that processes this test kills with SIGKILL leave behind: the
+    multiprocessing locks of a job's local cluster (their resource tracker dies with the job's
+    process group) stayed in /dev/shm, 14 a run of the suite. Only those made during the test
+    that no live process has open (a concurrent test's are)."""
+    before = {p.name for p in SHM.glob("sem.*")} if SHM.is_dir() else set()
+    yield
+    if not SHM.is_dir():
+        return
+    for name in orphaned_semaphores({p.name for p in SHM.glob("sem.*")} - before):
+        (SHM / name).unlink(missing_ok=True)

@@ -17,7 +17,14 @@ import geopandas as gpd
 import numpy as np
 import pystac
 import pytest
-from conftest import random_surface, start_dask_cluster, stop_dask_cluster, write_bag
+from conftest import (
+    SHM,
+    orphaned_semaphores,
+    random_surface,
+    start_dask_cluster,
+    stop_dask_cluster,
+    write_bag,
+)
 from matplotlib import image
 
 import pipeline
@@ -458,7 +465,9 @@ def _items(root):
     return out
 
 
-def test_killed_job_resumes_with_every_mission_once(tmp_path, stores):
+def test_killed_job_resumes_with_every_mission_once(
+    tmp_path, stores, killed_processes_semaphores_removed
+):
     with_stores(stores, tmp_path)
     job = write_job(tmp_path, n=300, missions=MANY, name="kill")
     root = tmp_path / "cat"
@@ -494,7 +503,45 @@ def test_killed_job_resumes_with_every_mission_once(tmp_path, stores):
     assert _items(root) == final and (root / "index.html").exists()
 
 
-def test_job_on_a_real_scheduler_survives_a_killed_worker(tmp_path, stores):
+_HOLD_A_LOCK = """
+import multiprocessing, sys, time
+lock = multiprocessing.get_context("spawn").Lock()
+print(lock._semlock.name, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(not SHM.is_dir(), reason="no /dev/shm")
+def test_the_semaphores_of_a_killed_process_are_told_from_live_ones():
+    """What the kill tests remove afterwards (conftest.killed_processes_semaphores_removed):
+    a real process's named semaphore is orphaned once the process is killed with SIGKILL
+    with its process group (its resource tracker too, which would otherwise unlink the
+    semaphore: a job's group dies so), never while it lives; this process's own lock is
+    never."""
+    import multiprocessing
+
+    mine = multiprocessing.get_context("spawn").Lock()
+    child = subprocess.Popen(
+        [sys.executable, "-c", _HOLD_A_LOCK],
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        theirs = "sem." + child.stdout.readline().strip().lstrip("/")
+        names = {"sem." + mine._semlock.name.lstrip("/"), theirs}
+        assert (SHM / theirs).exists()
+        assert orphaned_semaphores(names) == set()
+    finally:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.wait()
+    assert orphaned_semaphores(names) == {theirs}
+    (SHM / theirs).unlink()
+
+
+def test_job_on_a_real_scheduler_survives_a_killed_worker(
+    tmp_path, stores, killed_processes_semaphores_removed
+):
     addr, sched, workers = start_dask_cluster(tmp_path)
     try:
         with_stores(stores, tmp_path)
