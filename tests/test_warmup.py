@@ -96,6 +96,15 @@ def test_the_planners_kernels_load_from_the_cache_in_the_next_process():
     assert all(hits > 0 for hits, _ in counts.values()), counts  # each loaded from the cache
 
 
+def _child_env() -> dict:
+    """The environment of a child process that imports this checkout's pipeline and keeps
+    numba's cache beside the sources it compiles (no NUMBA_CACHE_DIR)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(warmup.__file__)))
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["PYTHONPATH"] = os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])
+    return env
+
+
 # a process that compiles one cached kernel in the directory given (its cache: __pycache__ there)
 _CACHE_CHILD = """
 import sys, time
@@ -127,9 +136,7 @@ def test_a_kernel_is_saved_to_numbas_cache_under_the_lock(tmp_path):
     )
     cache = tmp_path / "__pycache__"  # numba's cache beside a writable source file
     cache.mkdir()
-    root = os.path.dirname(os.path.dirname(os.path.abspath(warmup.__file__)))
-    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
-    env["PYTHONPATH"] = os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])
+    env = _child_env()
     with open(cache / LOCK_NAME, "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         child = subprocess.Popen(
@@ -181,9 +188,7 @@ def test_a_kernel_compiles_again_when_a_module_it_calls_changes(tmp_path):
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
     (pkg / "caller.py").write_text(_CALLER)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(warmup.__file__)))
-    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
-    env["PYTHONPATH"] = os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])
+    env = _child_env()
 
     def run(stamps: str, add: int) -> tuple[float, int]:
         (pkg / "callee.py").write_text(_CALLEE.format(add))
