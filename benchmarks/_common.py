@@ -178,6 +178,12 @@ def worker_peaks():
 BENCH_MIN_ACC = 20
 
 
+def quantised_layers(group) -> bool:
+    """Whether the maps store ``group`` (zarr) holds landmark layers searched on quantised
+    heights, as builds now search them (their ``quantised_blocks`` attribute)."""
+    return "landmark_distance" in group and "quantised_blocks" in group["landmark_distance"].attrs
+
+
 def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
     """``benchmarks/out/maps{n}.zarr``: the maps of the n x n synthetic ridge DEM (seed 0, 30 m,
     spherical clearance 300 m), built once and reused afterwards."""
@@ -189,7 +195,7 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
         current = "landmarks" in group.attrs and group["safety"].shards is not None
         if current and "landmark_distance" in group:  # the landmark layers sharded too,
             layers = group["landmark_distance"]  # searched on quantised heights
-            current = layers.shards is not None and "quantised_blocks" in layers.attrs
+            current = layers.shards is not None and quantised_layers(group)
         # the layers missions read window by window stored uncompressed, as builds now do
         current = current and not group["safety"].compressors
         if current:

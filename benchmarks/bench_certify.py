@@ -23,7 +23,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import OUT, far_missions, machine, maps_store, passable_neighbour
+from _common import (
+    OUT,
+    far_missions,
+    machine,
+    maps_store,
+    passable_neighbour,
+    quantised_layers,
+)
 from _report import Report, faster, figure_dir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,9 +115,7 @@ def build(name: str, dem) -> Path:
     if path.exists():
         import zarr
 
-        group = zarr.open_group(path, mode="r")
-        layers = group["landmark_distance"] if "landmark_distance" in group else None
-        if layers is not None and "quantised_blocks" in layers.attrs:
+        if quantised_layers(zarr.open_group(path, mode="r")):
             return path  # built with the landmark layers' current search
     with dask.config.set(scheduler="threads", num_workers=2):
         pipeline.build_maps(
