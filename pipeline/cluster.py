@@ -165,10 +165,19 @@ def connect(address: str, *, timeout: float | None = None, set_as_default: bool 
     """A client of the scheduler at ``address``, or one :class:`SchedulerError` after
     ``timeout`` seconds (default ``AUV_PIPELINE_CONNECT_TIMEOUT_S``, else 30)."""
     from distributed import Client
+    from distributed.comm.addressing import parse_address, parse_host_port
 
     if timeout is None:
         timeout = float(os.environ.get("AUV_PIPELINE_CONNECT_TIMEOUT_S", "30"))
-
+    try:  # before a Client is made: one refused for its address waited 60 s at exit
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls"):
+            parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise SchedulerError(
+            f"{address!r} is not a dask scheduler address ({exc}); give one such as "
+            "tcp://10.0.0.5:8786, or no scheduler to use a local cluster"
+        ) from None
     try:
         return Client(address, timeout=timeout, set_as_default=set_as_default)
     except (OSError, ValueError, TypeError) as exc:

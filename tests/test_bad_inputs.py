@@ -312,7 +312,7 @@ def test_scheduler_flags(tmp_path, small_job, monkeypatch):
     monkeypatch.setenv("AUV_PIPELINE_CONNECT_TIMEOUT_S", "2")
     cases = [
         (["--scheduler", "tcp://127.0.0.1:1"], 3, "cannot reach the dask scheduler"),
-        (["--scheduler", "not an address"], 3, "cannot reach the dask scheduler"),
+        (["--scheduler", "not an address"], 3, "is not a dask scheduler address"),
         (["--scheduler-file", tmp_path / "none.json"], 3, "cannot read the scheduler address"),
         (["--scheduler-file", small_job], 3, "cannot read the scheduler address"),
     ]
@@ -517,6 +517,27 @@ def test_bad_api_arguments(call, match):
 
     with pytest.raises(pipeline.PipelineError, match=re.escape(match)):
         call()
+
+
+def test_a_client_that_is_no_address_is_one_line_at_once(built_store):
+    """A misspelt client (``"thread"``) is refused before any dask Client is made: a Client
+    refused for its address stayed half made, and the process waited 60 s at exit to print a
+    traceback from closing it."""
+    import time
+
+    code = (
+        "import pipeline\n"
+        "try:\n"
+        f"    pipeline.plan({str(built_store)!r}, (5, 5), (50, 50), client='thread')\n"
+        "except pipeline.PipelineError as e:\n"
+        "    print(e)\n"
+    )
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert time.perf_counter() - t0 < 30
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stdout.startswith("'thread' is not a dask scheduler address"), proc.stdout
+    assert proc.stdout.count("\n") == 1
 
 
 @pytest.mark.parametrize(
