@@ -19,12 +19,16 @@ in other containers) see no file of ours and each plans just its own run, as wit
 the results are the same either way. A task that dies after a claim (a lost worker) leaves
 its claimed sections unplanned: :mod:`pipeline.mcpc` plans any missing section again. The
 last task to finish removes the file.
+
+In one process (``client="threads"``) the runs are planned by threads, one run each, with the
+same rule under a lock (:class:`ThreadClaims`).
 """
 
 from __future__ import annotations
 
 import os
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -78,11 +82,7 @@ class Claims:
         return _Locked(self)
 
     def _empty(self) -> np.ndarray:
-        st = np.zeros(3 * self.k + 1, dtype=np.int64)
-        for j in range(self.k):
-            st[3 * j] = self.bounds[j]
-            st[3 * j + 1] = self.bounds[j + 1]
-        return st
+        return state(self.bounds)
 
     def next(self) -> int | None:
         """The next section for this task to plan, or None when none is left for it."""
@@ -93,20 +93,7 @@ class Claims:
 
     def _claim(self) -> int | None:
         with self._locked() as st:
-            j = self.me
-            if st[3 * j] < st[3 * j + 1]:
-                st[3 * j] += 1
-                return int(st[3 * j] - 1)
-            left = [
-                (int(st[3 * j + 1] - st[3 * j]), j)
-                for j in range(self.k)
-                if j != self.me and st[3 * j + 2] and st[3 * j] < st[3 * j + 1]
-            ]
-            if not left:
-                return None
-            _, j = max(left)
-            st[3 * j + 1] -= 1
-            return int(st[3 * j + 1])
+            return take(st, self.k, self.me)
 
     def __exit__(self, *exc):
         if self.fd is None:
@@ -127,6 +114,54 @@ class Claims:
             os.close(self.fd)
             self.fd = None
         return False
+
+
+def state(bounds, opened: bool = False) -> np.ndarray:
+    """The claims' state of the runs split at ``bounds``, none taken: per run its front, its
+    end and whether its task has opened the claims (``opened``: all of them), then how many
+    tasks have finished."""
+    k = len(bounds) - 1
+    st = np.zeros(3 * k + 1, dtype=np.int64)
+    for j in range(k):
+        st[3 * j] = bounds[j]
+        st[3 * j + 1] = bounds[j + 1]
+        st[3 * j + 2] = int(opened)
+    return st
+
+
+def take(st: np.ndarray, k: int, me: int) -> int | None:
+    """The next section for run ``me``'s task, claimed in ``st`` (the caller holds its lock):
+    the front of its own run, else the back of the opened run with the most left; None when
+    none is left for it."""
+    if st[3 * me] < st[3 * me + 1]:
+        st[3 * me] += 1
+        return int(st[3 * me] - 1)
+    left = [
+        (int(st[3 * j + 1] - st[3 * j]), j)
+        for j in range(k)
+        if j != me and st[3 * j + 2] and st[3 * j] < st[3 * j + 1]
+    ]
+    if not left:
+        return None
+    _, j = max(left)
+    st[3 * j + 1] -= 1
+    return int(st[3 * j + 1])
+
+
+class ThreadClaims:
+    """The claims of ``bounds``'s runs between threads of this process, one run per thread
+    (:meth:`next` with its run): the same rule as :class:`Claims`, under a lock, every run
+    open from the start: a thread that starts late, or never, has its run taken from the
+    back by the others."""
+
+    def __init__(self, bounds):
+        self.k = len(bounds) - 1
+        self.st = state([int(b) for b in bounds], opened=True)
+        self.lock = threading.Lock()
+
+    def next(self, me: int) -> int | None:
+        with self.lock:
+            return take(self.st, self.k, me)
 
 
 class _Locked:

@@ -22,3 +22,11 @@ def shared_pool(name: str, workers: int) -> ThreadPoolExecutor:
             pool = ThreadPoolExecutor(workers, thread_name_prefix=f"pipeline-{name}")
             got = _POOLS[name] = (os.getpid(), pool)
         return got[1]
+
+
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)

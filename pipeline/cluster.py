@@ -1,5 +1,6 @@
 """Where dask work runs: the one place that turns what a user gives (nothing, a scheduler
-address, a scheduler file, a ``distributed.Client``, ``"synchronous"``) into a client.
+address, a scheduler file, a ``distributed.Client``, ``"synchronous"``, ``"threads"``) into a
+client.
 
 - :func:`get_client` serves the planning functions: the current default client if there is
   one, else a LocalCluster of 2 single-threaded workers started once per process (closed at
@@ -234,12 +235,13 @@ def shutdown() -> None:
 
 
 def get_client(client=None):
-    """The cluster to plan on: ``"synchronous"`` (in this process), a ``distributed.Client``,
-    a scheduler address, or None: the current default client if there is one, else a
-    LocalCluster of 2 single-threaded workers started once per process. A client is returned
-    :func:`prompt`."""
-    if isinstance(client, str) and client == "synchronous":
-        return "synchronous"
+    """The cluster to plan on: ``"synchronous"`` (in this process, a mission's sections in
+    turn), ``"threads"`` (in this process, a mission's sections shared by a thread per core),
+    a ``distributed.Client``, a scheduler address, or None: the current default client if
+    there is one, else a LocalCluster of 2 single-threaded workers started once per process.
+    A client is returned :func:`prompt`."""
+    if isinstance(client, str) and client in ("synchronous", "threads"):
+        return client
     got = _client(client)
     prompt(got)
     return got
@@ -259,7 +261,7 @@ def _client(client):
             return c
     if client is not None:
         raise InvalidParameterError(
-            "`client` must be None, 'synchronous', a scheduler address "
+            "`client` must be None, 'synchronous', 'threads', a scheduler address "
             f"or a distributed.Client, got {type(client).__name__}"
         )
     try:

@@ -42,8 +42,8 @@ import numpy as np
 
 from ._inbox import Inbox, post
 from ._jit import njit
-from ._share import Claims
-from ._threads import shared_pool
+from ._share import Claims, ThreadClaims
+from ._threads import cores, shared_pool
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
 from .params import CELL_SIZE, PLANNING, check_planner
@@ -545,6 +545,39 @@ def _read_windows(store: MapsStore, windows: list, futures: list) -> None:
             fut.set_exception(exc)
 
 
+def _threaded(store: MapsStore, sections: list, planner: str, omega: float) -> list:
+    """In this process (``client="threads"``): ``sections`` split into one run of consecutive
+    sections per core, this thread planning the first and helper threads the others
+    (:func:`pipeline._threads.shared_pool` ``"sections"``), each taking sections left in the
+    others' runs from their backs once its own is done (:class:`pipeline._share.ThreadClaims`);
+    the searches release the GIL. A helper that has not started when this thread finds
+    nothing left (the pool busy with another mission's sections, ``plan_missions``) is
+    cancelled: its run was taken by the others. In a dask worker, one thread plans them all
+    (the worker's threads are the cluster's parallelism)."""
+    k = min(len(sections), cores())
+    if k < 2 or _in_worker():
+        return _section_batch(store, sections, planner, omega)
+    checked = _checked(store, planner, omega)
+    claims = ThreadClaims(np.linspace(0, len(sections), k + 1).round().astype(int).tolist())
+    results: list = [None] * len(sections)
+
+    def plan_run(me: int) -> None:
+        while (i := claims.next(me)) is not None:
+            results[i] = _plan_checked(store, sections[i], *checked)
+
+    pool = shared_pool("sections", max(1, cores() - 1))
+    helpers = [pool.submit(plan_run, me) for me in range(1, k)]
+    try:
+        plan_run(0)
+    finally:
+        for fut in helpers:
+            fut.cancel()  # not started: its run is planned already (or this thread failed)
+    for fut in helpers:
+        if not fut.cancelled():
+            fut.result()  # a helper's error (a bug: a section's own errors are its result)
+    return results
+
+
 def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -> list:
     """Plan ``sections``; on a cluster as one task per worker thread, each a run of
     consecutive sections (they share chunks, which the worker then decodes once) that, once
@@ -558,6 +591,8 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
         return client.run(sections, planner, omega)
     if client == "synchronous":
         return _section_batch(store, sections, planner, omega)
+    if client == "threads":
+        return _threaded(store, sections, planner, omega)
     k = min(len(sections), _slots(client))
     bounds = np.linspace(0, len(sections), k + 1).round().astype(int).tolist()
     token = uuid.uuid4().hex
@@ -794,8 +829,10 @@ def plan(
     repair_max_cells : int
         The largest map (rows x cols) on which an uncertified MCPC path is planned again on
         the whole map; 0 never does.
-    client : None, "synchronous", scheduler address or distributed.Client
-        Where the sections run (see :func:`pipeline.cluster.get_client`).
+    client : None, "synchronous", "threads", scheduler address or distributed.Client
+        Where the sections run (see :func:`pipeline.cluster.get_client`). For one mission at
+        a time in a process of its own, ``"threads"`` is the quickest on the benchmark
+        machine (README, "client").
 
     Returns
     -------

@@ -6,7 +6,7 @@ threads: missions run side by side instead of one mission's sections, which keep
 worker busy with no round trip per section (about 1.4x the missions per second of a section
 task each, `benchmarks/bench_jobs.py`). Large batches go a few missions to a task (see
 ``missions_per_task``), the last missions one to a task. A single mission, or
-``client="synchronous"``, runs in client threads with its sections as tasks
+``client="synchronous"`` or ``"threads"``, runs in client threads with its sections as tasks
 (:func:`pipeline.plan`). A mission that cannot be planned comes back as a ``Trajectory`` with
 ``status="failed"`` and its reason; the others complete.
 """
@@ -98,8 +98,8 @@ def plan_missions(
         Options for every mission that does not set them.
     max_concurrent : int
         Missions in flight at once when they run in client threads (one mission, or
-        ``client="synchronous"``); on a cluster the scheduler runs one mission per worker
-        thread at a time.
+        ``client="synchronous"`` or ``"threads"``); on a cluster the scheduler runs one
+        mission per worker thread at a time.
     on_done : callable, optional
         ``on_done(index, mission, trajectory)`` as each mission finishes (in finishing order),
         e.g. to write its result at once.
@@ -159,7 +159,7 @@ def plan_missions(
         if on_done is not None:
             on_done(i, items[i], t)
 
-    if run_on != "synchronous" and len(items) > 1:
+    if run_on not in ("synchronous", "threads") and len(items) > 1:
         _on_cluster(run_on, m, items, defaults, veh, quicklooks, done, missions_per_task)
         return out  # type: ignore[return-value]
     workers = max(1, min(int(max_concurrent), len(items)))

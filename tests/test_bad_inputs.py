@@ -508,6 +508,7 @@ API = [
     (lambda: _tiny_window(cell_size=float("nan")), "`cell_size` must be"),
     (lambda: pipeline.plan_missions("/nonexistent.zarr", []), "does not exist"),
     (lambda: pipeline.open_store(42), "`maps` must be"),
+    (lambda: pipeline.cluster.get_client(3.5), "`client` must be None, 'synchronous', 'threads',"),
 ]
 
 

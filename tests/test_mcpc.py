@@ -359,6 +359,7 @@ def test_missing_store_is_a_clear_error(tmp_path):
 def test_same_result_on_every_scheduler(store, real_cluster):
     runs = {}
     runs["synchronous"] = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
+    runs["threads"] = pipeline.plan(store, **MISSION, client="threads", **SMALL)
     runs["default LocalCluster"] = pipeline.plan(store, **MISSION, client=None, **SMALL)
     runs["scheduler address"] = pipeline.plan(store, **MISSION, client=real_cluster, **SMALL)
     ref = runs["synchronous"]
@@ -981,7 +982,7 @@ def test_a_mission_in_this_process_reads_its_windows_ahead_and_frees_the_helper(
     assert sys.getswitchinterval() == 0.005  # set back after a mission that fell back too
 
 
-@pytest.mark.parametrize("client", ["synchronous", "cluster"])
+@pytest.mark.parametrize("client", ["synchronous", "threads", "cluster"])
 def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
     store, tmp_path, client, local_client
 ):
@@ -998,12 +999,191 @@ def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
     arr = zarr.open_array(copy / "safety", mode="r+")
     r, c = (int(v) for v in ref.cells[len(ref.cells) // 2])
     arr[r, c] = np.nan
-    run_on = local_client if client == "cluster" else "synchronous"
+    run_on = local_client if client == "cluster" else client
     with pytest.raises(
         pipeline.UnreachableGoalError, match=r"NaN or infinite at passable cell"
     ) as err:
         pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client=run_on, **SMALL)
     assert "\n" not in str(err.value)
+
+
+# ------------------------------------------------------------------ in this process, on every core
+
+
+def _sections_of(t) -> list:
+    return [
+        Section(tuple(s["window"]), tuple(s["start"]), tuple(s["goal"]))
+        for s in t.extra["sections"]
+    ]
+
+
+@pytest.mark.parametrize("planner", ["ra_star", "lagrangian"])
+def test_threads_share_a_missions_sections_and_plan_each_once(store, monkeypatch, planner):
+    """client="threads": the sections are planned by this thread and a helper (2 cores), the
+    helper's run taken from the back once this thread's own is done; each section exactly
+    once, and the trajectory that of the sections in turn (client="synchronous"). Each search
+    is slowed by 20 ms here, so that the helper has surely started before the first ends."""
+    import threading
+    import time
+
+    import pipeline.mcpc as mcpc
+
+    ref = pipeline.plan(store, **MISSION, planner=planner, client="synchronous", **SMALL)
+    n = len(ref.extra["sections"])
+    assert n >= 4
+    real, who = mcpc._plan_checked, []
+
+    def plan_checked(st, sec, *args):
+        who.append((threading.current_thread().name, tuple(sec.window)))
+        time.sleep(0.02)
+        return real(st, sec, *args)
+
+    monkeypatch.setattr(mcpc, "_plan_checked", plan_checked)
+    monkeypatch.setattr(mcpc, "cores", lambda: 2)
+    got = pipeline.plan(store, **MISSION, planner=planner, client="threads", **SMALL)
+    assert np.array_equal(got.cells, ref.cells) and got.length_m == ref.length_m
+    assert [s["window"] for s in got.extra["sections"]] == [
+        s["window"] for s in ref.extra["sections"]
+    ]
+    windows = [tuple(s["window"]) for s in ref.extra["sections"]]
+    assert sorted(w for _, w in who) == sorted(windows)  # each once
+    me = threading.current_thread().name
+    assert {name for name, _ in who} - {me} and all(
+        name.startswith("pipeline-sections") for name, _ in who if name != me
+    ), who
+    index = {w: i for i, w in enumerate(windows)}
+    _check_claims(
+        {run: [index[w] for name, w in who if (name == me) == (run == 0)] for run in (0, 1)},
+        [0, round(n / 2), n],
+    )
+
+
+def _check_claims(got: dict, bounds: list) -> None:
+    """Sections taken by run (``got[run]``, in the order taken) under the claims' rule: every
+    section once; each run's task its own run from the front, in order, before any other's;
+    then the others' from their backs."""
+    k = len(bounds) - 1
+    assert sorted(i for run in got.values() for i in run) == list(range(bounds[-1]))
+    for me in range(k):
+        own = [i for i in got[me] if bounds[me] <= i < bounds[me + 1]]
+        assert own == list(range(bounds[me], bounds[me] + len(own)))
+        assert got[me][: len(own)] == own, got
+        for j in range(k):
+            if j != me:
+                taken = [i for i in got[me] if bounds[j] <= i < bounds[j + 1]]
+                assert taken == sorted(taken, reverse=True), got
+
+
+def test_threads_a_helper_that_cannot_start_is_not_waited_for(store, monkeypatch):
+    """The helper pool busy (another mission's sections, plan_missions' threads): this thread
+    plans every section, the helper's run from its back, and the mission does not wait for
+    the pool; its queued helper is cancelled."""
+    import threading
+    import time
+
+    import pipeline.mcpc as mcpc
+    from pipeline._threads import shared_pool
+
+    ref = pipeline.plan(store, **MISSION, planner="lagrangian", client="synchronous", **SMALL)
+    monkeypatch.setattr(mcpc, "cores", lambda: 2)
+    pool = shared_pool("sections", 1)
+    hold, started = threading.Event(), threading.Event()
+
+    def busy():
+        started.set()
+        hold.wait(60)
+
+    blocker = [pool.submit(busy) for _ in range(pool._max_workers)]
+    try:
+        assert started.wait(10)
+        t0 = time.perf_counter()
+        got = pipeline.plan(store, **MISSION, planner="lagrangian", client="threads", **SMALL)
+        assert time.perf_counter() - t0 < 30  # not the blocker's 60 s
+    finally:
+        hold.set()
+    for fut in blocker:
+        fut.result(10)
+    assert np.array_equal(got.cells, ref.cells) and got.length_m == ref.length_m
+    sections = _sections_of(ref)
+    assert len(mcpc._threaded(pipeline.open_store(store), sections, "lagrangian", 2.0)) == len(
+        sections
+    )
+
+
+def test_threads_an_error_in_a_helper_is_raised_not_lost(store, monkeypatch):
+    """A bug in a helper thread's section (not a section's own failure, which is its result)
+    reaches the caller, after this thread has planned the rest."""
+    import threading
+    import time
+
+    import pipeline.mcpc as mcpc
+
+    ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
+    real = mcpc._plan_checked
+
+    def plan_checked(st, sec, *args):
+        time.sleep(0.02)
+        if threading.current_thread().name.startswith("pipeline-sections"):
+            raise RuntimeError("a bug in the helper")
+        return real(st, sec, *args)
+
+    monkeypatch.setattr(mcpc, "_plan_checked", plan_checked)
+    monkeypatch.setattr(mcpc, "cores", lambda: 2)
+    with pytest.raises(RuntimeError, match="a bug in the helper"):
+        mcpc._threaded(pipeline.open_store(store), _sections_of(ref), "ra_star", 2.0)
+
+
+def test_thread_claims_take_each_section_once():
+    """ThreadClaims (the rule of the processes' Claims, between threads): 3 threads of
+    different speeds on runs of 10, 10 and 11 sections; every section once; each thread's own
+    run from its front in order, and what it took of the others from their backs."""
+    import threading
+    import time
+
+    from pipeline._share import ThreadClaims
+
+    bounds = [0, 10, 20, 31]
+    claims = ThreadClaims(bounds)
+    got: dict = {0: [], 1: [], 2: []}
+    barrier = threading.Barrier(3)
+
+    def run(me, pause):
+        barrier.wait()
+        while (i := claims.next(me)) is not None:
+            got[me].append(i)
+            time.sleep(pause)
+
+    threads = [
+        threading.Thread(target=run, args=(me, pause))
+        for me, pause in ((0, 0.0), (1, 0.004), (2, 0.012))
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    _check_claims(got, bounds)
+    assert len(got[0]) > 10  # the fast thread took from the slow ones
+    assert got[0][10] == 30  # first from the back of the run with the most left
+    # a thread that never comes: its run is taken by the others, from its back
+    claims = ThreadClaims([0, 2, 5])
+    assert [claims.next(0) for _ in range(6)] == [0, 1, 4, 3, 2, None]
+
+
+def test_plan_missions_in_threads(store):
+    """plan_missions(client="threads"): the missions in client threads, each its sections on
+    the cores; the trajectories those of the missions planned in turn."""
+    missions = [
+        MISSION,
+        dict(start=(20, 20), goal=(100, 230)),
+        dict(start=(10, 230), goal=(230, 100)),
+    ]
+    ref = [pipeline.plan(store, **m, client="synchronous", **SMALL) for m in missions]
+    got = pipeline.plan_missions(
+        store, [dict(m) for m in missions], client="threads", defaults=SMALL
+    )
+    for a, b in zip(got, ref, strict=True):
+        assert a.status == b.status == "ok"
+        assert np.array_equal(a.cells, b.cells) and a.length_m == b.length_m
 
 
 def test_without_a_shared_file_a_task_plans_its_own_run(monkeypatch, tmp_path):
