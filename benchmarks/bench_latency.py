@@ -4,8 +4,9 @@ Per side (2000^2, 4000^2, 10000^2; benchmarks/out/maps{n}.zarr, built once): 40 
 least half the side apart, planned one at a time by
 
 - ``plan()`` with ra_star, omega 2, MCPC defaults, on a LocalCluster of 2 single-threaded
-  workers (sections as tasks) and in this process (``client="synchronous"``);
-- ``plan()`` with lagrangian, omega 2, on the cluster and in this process;
+  workers (sections as tasks), in this process (``client="synchronous"``, sections in turn)
+  and in this process on its cores (``client="threads"``);
+- ``plan()`` with lagrangian, omega 2, the same three ways;
 - pyastar2d (C++ A*, uniform cost, no 3-D surface, no ridges) on the whole grid, its weight
   grid (1 passable, inf otherwise) built before the clock.
 
@@ -33,11 +34,15 @@ from _common import OUT, machine, maps_store, passable_neighbour
 from _report import Report, faster
 from bench_mcpc import missions
 
+from pipeline._threads import cores
+
 RUNS = (
     ("ra_star, cluster", "ra_star", "cluster"),
     ("ra_star, in-process", "ra_star", "synchronous"),
+    ("ra_star, threads", "ra_star", "threads"),
     ("lagrangian, cluster", "lagrangian", "cluster"),
     ("lagrangian, in-process", "lagrangian", "synchronous"),
+    ("lagrangian, threads", "lagrangian", "threads"),
 )
 
 
@@ -60,7 +65,7 @@ def run_side(client, n: int, k: int, procs=()) -> dict:
     ms = missions(ok, k + 1, seed=1000 + n)
     out = {}
     for name, planner, where in RUNS:
-        run_on = client if where == "cluster" else "synchronous"
+        run_on = client if where == "cluster" else where
         pipeline.plan(m, *ms[0], planner=planner, omega=2.0, client=run_on)  # warm-up
         times, fixed, search, read = [], [], [], []
         cpu0 = _cpu_seconds(procs)
@@ -267,7 +272,9 @@ def main() -> None:
     )
     rep.p(f"""{k} missions per side (start-goal >= side / 2, both passable), omega 2, MCPC with
           its defaults, one `plan()` at a time: on a LocalCluster of 2 workers (sections as
-          tasks) and in this process (`client="synchronous"`, sections in turn). pyastar2d
+          tasks), in this process (`client="synchronous"`, sections in turn) and in this
+          process on its {cores()} cores (`client="threads"`, the sections shared by a thread
+          per core, the same trajectories). pyastar2d
           (C++ A*, uniform cost, no 3-D surface, no ridges: an easier problem) on the whole
           grid, its weight grid built before the clock; its own fixed cost is its search
           between two neighbouring cells (it allocates and fills a cost and a parent array of
@@ -296,7 +303,9 @@ def main() -> None:
             "pyastar2d ms",
             "pyastar2d, neighbouring cells ms",
             "ra_star (cluster) against pyastar2d",
+            "ra_star (threads) against pyastar2d",
             "lagrangian (cluster) against pyastar2d",
+            "lagrangian (threads) against pyastar2d",
             "fixed cost ms (reads, in the helper thread)",
             "fixed cost, the missions again ms",
             "sections' search ms",
@@ -308,7 +317,9 @@ def main() -> None:
                 1e3 * r["pyastar2d"],
                 1e3 * r["pyastar2d_setup"],
                 faster(r["pyastar2d"], r["ra_star, cluster"]),
+                faster(r["pyastar2d"], r["ra_star, threads"]),
                 faster(r["pyastar2d"], r["lagrangian, cluster"]),
+                faster(r["pyastar2d"], r["lagrangian, threads"]),
                 f"{1e3 * r['fixed']:.1f} ({1e3 * r['read']:.1f})",
                 1e3 * r["fixed_again"],
                 1e3 * r["search"],
@@ -382,15 +393,28 @@ def main() -> None:
           section tasks post to (`pipeline._inbox`) {1e3 * que["after_end"]:.1f} ms after, a
           round trip of {1e3 * que["round_trip"]:.1f} ms.""")
     big = max(rows)
+
+    def ways(planner: str, how) -> str:
+        return "; ".join(
+            f"{label} " + ", ".join(how(r, f"{planner}, {where}") for r in rows.values())
+            for label, where in (("threads", "threads"), ("cluster", "cluster"))
+        )
+
+    def ms(r, key) -> str:
+        return f"{1e3 * r[key]:.0f} ms"
+
+    def against(r, key) -> str:
+        return faster(r["pyastar2d"], r[key])
+
     rep.headline(
         "latency",
         54,
-        f"one mission against pyastar2d, {', '.join(f'{n}^2' for n in rows)} (ra_star + MCPC)",
-        ", ".join(f"{1e3 * r['ra_star, cluster']:.0f} ms" for r in rows.values())
-        + f"; fixed cost {1e3 * rows[big]['fixed']:.0f} ms at {big}^2"
+        f"one mission against pyastar2d, {', '.join(f'{n}^2' for n in rows)} (ra_star + MCPC;"
+        ' in this process on its cores, `client="threads"`, and on the local cluster)',
+        ways("ra_star", ms) + f"; fixed cost {1e3 * rows[big]['fixed']:.0f} ms at {big}^2"
         f" ({1e3 * rows[big]['fixed_again']:.0f} ms planned again)",
         peer="pyastar2d: "
-        + ", ".join(faster(r["pyastar2d"], r["ra_star, cluster"]) for r in rows.values())
+        + ways("ra_star", against)
         + f" (pyastar2d {1e3 * rows[min(rows)]['pyastar2d']:.0f} ms at {min(rows)}^2, of which"
         f" {1e3 * rows[min(rows)]['pyastar2d_setup']:.0f} ms its arrays, which vary by the hour)",
         target="faster at 2000^2 and 4000^2, 3x at 10000^2; fixed cost < 10 ms",
@@ -398,10 +422,10 @@ def main() -> None:
     rep.headline(
         "latency-lagrangian",
         54.5,  # beside the ra_star row
-        f"one mission against pyastar2d, {', '.join(f'{n}^2' for n in rows)} (lagrangian + MCPC)",
-        ", ".join(f"{1e3 * r['lagrangian, cluster']:.0f} ms" for r in rows.values()),
-        peer="pyastar2d: "
-        + ", ".join(faster(r["pyastar2d"], r["lagrangian, cluster"]) for r in rows.values()),
+        f"one mission against pyastar2d, {', '.join(f'{n}^2' for n in rows)} (lagrangian + MCPC;"
+        " the same two ways)",
+        ways("lagrangian", ms),
+        peer="pyastar2d: " + ways("lagrangian", against),
         target="faster at 2000^2 and 4000^2, 3x at 10000^2 (issue 17)",
     )
     rep.save()
