@@ -1169,21 +1169,41 @@ def test_thread_claims_take_each_section_once():
     assert [claims.next(0) for _ in range(6)] == [0, 1, 4, 3, 2, None]
 
 
-def test_plan_missions_in_threads(store):
-    """plan_missions(client="threads"): the missions in client threads, each its sections on
-    the cores; the trajectories those of the missions planned in turn."""
+def test_plan_missions_in_threads(store, monkeypatch):
+    """plan_missions(client="threads"): the missions in client threads, the trajectories
+    those of the missions planned in turn; a mission's sections shared by threads only while
+    fewer missions than cores are in flight (2 cores here)."""
+    import pipeline.mcpc as mcpc
+    import pipeline.missions as pm
+
+    real, shared = mcpc._threaded, []
+
+    def threaded(*args):
+        shared.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(mcpc, "_threaded", threaded)
+    monkeypatch.setattr(mcpc, "cores", lambda: 2)
+    monkeypatch.setattr(pm, "cores", lambda: 2)
     missions = [
         MISSION,
         dict(start=(20, 20), goal=(100, 230)),
         dict(start=(10, 230), goal=(230, 100)),
     ]
     ref = [pipeline.plan(store, **m, client="synchronous", **SMALL) for m in missions]
-    got = pipeline.plan_missions(
-        store, [dict(m) for m in missions], client="threads", defaults=SMALL
-    )
-    for a, b in zip(got, ref, strict=True):
-        assert a.status == b.status == "ok"
-        assert np.array_equal(a.cells, b.cells) and a.length_m == b.length_m
+    for concurrent, sharing in ((4, False), (2, False), (1, True)):
+        shared.clear()
+        got = pipeline.plan_missions(
+            store,
+            [dict(m) for m in missions],
+            client="threads",
+            defaults=SMALL,
+            max_concurrent=concurrent,
+        )
+        for a, b in zip(got, ref, strict=True):
+            assert a.status == b.status == "ok"
+            assert np.array_equal(a.cells, b.cells) and a.length_m == b.length_m
+        assert (len(shared) == len(missions)) if sharing else not shared, (concurrent, shared)
 
 
 def test_without_a_shared_file_a_task_plans_its_own_run(monkeypatch, tmp_path):
