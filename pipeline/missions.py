@@ -6,9 +6,10 @@ threads: missions run side by side instead of one mission's sections, which keep
 worker busy with no round trip per section (about 1.4x the missions per second of a section
 task each, `benchmarks/bench_jobs.py`). Large batches go a few missions to a task (see
 ``missions_per_task``), the last missions one to a task. A single mission, or
-``client="synchronous"`` or ``"threads"``, runs in client threads with its sections as tasks
-(:func:`pipeline.plan`). A mission that cannot be planned comes back as a ``Trajectory`` with
-``status="failed"`` and its reason; the others complete.
+``client="synchronous"`` or ``"threads"``, runs in client threads, each mission's sections
+where :func:`pipeline.plan` runs them (tasks on a cluster, or in this process). A mission
+that cannot be planned comes back as a ``Trajectory`` with ``status="failed"`` and its
+reason; the others complete.
 """
 
 from __future__ import annotations
