@@ -133,7 +133,8 @@ def plan_missions(
     list of Trajectory
         Certified missions have ``status == "ok"``; planned but not certified ones
         ``"uncertified"`` (the proven ratio in ``message``, see :func:`pipeline.plan`); failed
-        missions ``"failed"`` and the reason in ``message``.
+        missions ``"failed"`` and the reason in ``message``, a malformed one (not a pair of
+        cells, no goal) included: the others are planned.
 
     Examples
     --------
@@ -144,7 +145,14 @@ def plan_missions(
     """
     m = open_store(maps)
     run_on = get_client(client)
-    items = [_normalise(x) for x in missions]
+    items, invalid = [], {}
+    for i, x in enumerate(missions):
+        try:
+            items.append(_normalise(x))
+        except InvalidParameterError as exc:  # this mission fails with the reason, not the batch
+            items.append(dict(x) if isinstance(x, dict) else {"mission": x})
+            invalid[i] = str(exc)
+    todo = [i for i in range(len(items)) if i not in invalid]
     defaults = dict(defaults or {})
     unknown = set(defaults) - _PLAN_KEYS
     if unknown:
@@ -155,18 +163,20 @@ def plan_missions(
     missions_per_task = MISSIONS_PER_TASK.check_optional(missions_per_task)
     veh = vehicle.to_dict() if isinstance(vehicle, Vehicle) else vehicle
     out: list[Trajectory | None] = [None] * len(items)
-    if len(items) > 1:
-        _prepare_coarse(m, items, defaults)
+    if len(todo) > 1:
+        _prepare_coarse(m, [items[i] for i in todo], defaults)
 
     def done(i: int, t: Trajectory) -> None:
         out[i] = t
         if on_done is not None:
             on_done(i, items[i], t)
 
-    if run_on not in ("synchronous", "threads") and len(items) > 1:
-        _on_cluster(run_on, m, items, defaults, veh, quicklooks, done, missions_per_task)
+    for i, message in invalid.items():
+        done(i, failed_trajectory(items[i], message))
+    if run_on not in ("synchronous", "threads") and len(todo) > 1:
+        _on_cluster(run_on, m, items, defaults, veh, quicklooks, done, missions_per_task, todo)
         return out  # type: ignore[return-value]
-    workers = max(1, min(int(max_concurrent), len(items)))
+    workers = max(1, min(int(max_concurrent), len(todo)))
     if run_on == "threads" and workers >= cores():
         # the missions' threads keep every core busy: a mission's sections in turn, as
         # sharing them between threads too cost time (100 missions on 4000^2, 2 cores: 146-148
@@ -175,7 +185,7 @@ def plan_missions(
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mission") as pool:
         futures = {
             pool.submit(_plan_one, m, items[i], defaults, veh, run_on, i, quicklooks): i
-            for i in range(len(items))
+            for i in todo
         }
         for fut in as_completed(futures):
             i = futures[fut]
@@ -304,10 +314,13 @@ def mission_groups(n: int, threads: int, per_task: int | None) -> list[list[int]
     ]
 
 
-def _on_cluster(client, m, items, defaults, vehicle, quicklooks, done, per_task=None) -> None:
-    """Every mission in a task (alone, or in a group of ``per_task``, see :func:`mission_groups`);
-    ``done(i, trajectory)`` for each as its task finishes. A task that raises (a bug) or whose
-    workers keep dying fails its missions only."""
+def _on_cluster(
+    client, m, items, defaults, vehicle, quicklooks, done, per_task=None, todo=None
+) -> None:
+    """Every mission of ``todo`` (indices into ``items``; default: all) in a task (alone, or in
+    a group of ``per_task``, see :func:`mission_groups`); ``done(i, trajectory)`` for each as
+    its task finishes. A task that raises (a bug) or whose workers keep dying fails its
+    missions only."""
     from distributed import as_completed as finished
 
     token = uuid.uuid4().hex[:8]
@@ -315,7 +328,8 @@ def _on_cluster(client, m, items, defaults, vehicle, quicklooks, done, per_task=
         threads = sum(client.nthreads().values())
     except Exception:  # noqa: BLE001 - an adaptive cluster with no worker yet: one thread
         threads = 1
-    groups = mission_groups(len(items), threads, per_task)
+    todo = list(range(len(items))) if todo is None else todo
+    groups = [[todo[j] for j in g] for g in mission_groups(len(todo), threads, per_task)]
     # one map per kind of task, one message each to the scheduler (a submit each would cost it
     # a graph update each before the workers are fed); the groups go first, then the tail
     futures = {}

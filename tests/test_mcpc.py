@@ -413,6 +413,29 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
         assert np.array_equal(a, b)
 
 
+@pytest.mark.parametrize("client", ["cluster", "synchronous"])
+def test_a_malformed_mission_fails_alone(store, local_client, client):
+    """A mission that is no (start, goal) pair, or a dict without a goal, is recorded failed
+    with the reason (on_done too); the other missions of the batch are planned, on a cluster
+    as tasks, each the trajectory plan() finds for it alone."""
+    good = [dict(MISSION, **SMALL), {"start": MISSION["goal"], "goal": MISSION["start"], **SMALL}]
+    missions = [good[0], 5, {"start": (1, 1), "name": "no goal"}, good[1]]
+    seen = {}
+    got = pipeline.plan_missions(
+        store,
+        missions,
+        client=local_client if client == "cluster" else client,
+        on_done=lambda i, m, t: seen.setdefault(i, (m, t.status)),
+    )
+    assert [t.status for t in got] == ["ok", "failed", "failed", "ok"]
+    assert "a mission must be a dict with start and goal" in got[1].message
+    assert "a mission needs start and goal cells" in got[2].message
+    assert sorted(seen) == [0, 1, 2, 3] and seen[2][0]["name"] == "no goal"
+    for m, t in zip(good, (got[0], got[3]), strict=True):
+        ref = pipeline.plan(store, m["start"], m["goal"], client="synchronous", **SMALL)
+        assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
+
+
 def test_plan_missions_in_groups_per_task(store, local_client):
     """``missions_per_task``: the missions go to tasks in groups, the last 2 per cluster
     thread alone; every mission comes back as plan() makes it on its own, once to
