@@ -209,7 +209,7 @@ def join(base: str, *parts: str) -> str:
 
 def filesystem(url: str):
     """The fsspec filesystem of ``url`` and the path in it; one line if its package is not
-    installed."""
+    installed, or if the filesystem connects as it is made and cannot (ftp://, sftp://)."""
     import fsspec
 
     try:
@@ -219,11 +219,18 @@ def filesystem(url: str):
             f"{url}: this kind of storage needs a package that is not installed ({exc}); for "
             "s3:// install s3fs (pip install 'auv-pipeline[s3]')"
         ) from None
+    except Exception as exc:  # noqa: BLE001 - socket, paramiko, ... each raise their own
+        raise unreachable(url, exc) from None
 
 
 def unreachable(url: str, exc: BaseException) -> PipelineError:
     """The one line for object storage that cannot be reached or read."""
     what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if not str(url).startswith(("s3://", "s3a://")):
+        return PipelineError(
+            f"{url} cannot be reached ({type(exc).__name__}: {what}); check the URL, and that "
+            "its server answers from this machine and every worker"
+        )
     return PipelineError(
         f"{url} cannot be reached ({type(exc).__name__}: {what}); check the URL, that the bucket "
         "exists, and the endpoint and credentials (AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, "

@@ -136,6 +136,32 @@ def test_object_storage_problems_are_one_line_each(s3, tmp_path):
         pipeline.build_maps(dem(), "s3://survey/partial.zarr", **BUILD)
 
 
+def test_a_server_that_refuses_is_one_line(tmp_path):
+    """A store URL whose filesystem connects as it is made (ftp://) and cannot: one line
+    naming the URL and the cause, from the API and the command line; it was a raw socket
+    error."""
+    import socket
+
+    with socket.socket() as sk:  # a port nothing listens on
+        sk.bind(("127.0.0.1", 0))
+        port = sk.getsockname()[1]
+    url = f"ftp://127.0.0.1:{port}/maps.zarr"
+    with pytest.raises(PipelineError, match=r"cannot be reached \(ConnectionRefusedError") as err:
+        pipeline.plan(url, **MISSION)
+    assert "server answers" in str(err.value) and "AWS" not in str(err.value)
+    path = tmp_path / "dem.zarr"
+    dem().to_dataset(name="elevation").to_zarr(path, zarr_format=3, consolidated=False)
+    res = subprocess.run(
+        [Path(sys.executable).parent / "pipeline", "build-maps", path, url, "--landmarks", "0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    lines = [x for x in res.stderr.splitlines() if x.strip()]
+    assert res.returncode != 0 and len(lines) == 1, res.stderr
+    assert lines[0].startswith(f"error: {url}") and "cannot be reached" in lines[0]
+
+
 def test_the_cli_says_in_one_line_when_the_bucket_is_wrong(s3, tmp_path):
     path = tmp_path / "dem.zarr"
     dem().to_dataset(name="elevation").to_zarr(path, zarr_format=3, consolidated=False)
