@@ -58,6 +58,8 @@ class Param:
             what += f" of {self.unit}"
         if self.minimum is not None and self.maximum is not None:
             return f"{what} from {_fmt(self.minimum)} to {_fmt(self.maximum)}"
+        if self.above is not None and self.maximum is not None:
+            return f"{what} above {_fmt(self.above)} and at most {_fmt(self.maximum)}"
         if self.minimum is not None:
             what += f" >= {_fmt(self.minimum)}"
         if self.above is not None:

@@ -248,7 +248,10 @@ JOB_CASES = [
         "extra:[output]\nperformance_report = 1",
         "output.performance_report must be true or false",
     ),
-    ("extra:[vehicle]\nmax_pitch_deg = 95", "vehicle.max_pitch_deg must be"),
+    (
+        "extra:[vehicle]\nmax_pitch_deg = 95",
+        "vehicle.max_pitch_deg must be a finite number of degrees above 0 and at most 89, got 95",
+    ),
     ("extra:[vehicle]\nbattery_wh = 100", "without a power"),
     ("extra:[vehicle]\nspeed = 2", "unknown key vehicle.'speed'"),
     ("extra:[vehicle]\nspeed_m_s = 0", "vehicle.speed_m_s must be"),
