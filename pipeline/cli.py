@@ -137,7 +137,7 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
 @_option(DEM.uncertainty)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def dem_import(source, out, overwrite, **options):
-    """Import a GeoTIFF, BAG, NetCDF / GMT grid or Zarr DEM as the canonical Zarr store OUT
+    """Import a GeoTIFF, BAG, ESRI ASCII, NetCDF / GMT grid or Zarr DEM as the Zarr store OUT
     (options: those of open_dem, by the parameter schema), in one pass over the file."""
     from .dem import import_dem, open_dem
 

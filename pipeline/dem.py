@@ -48,9 +48,10 @@ _ELEVATION_NAMES = (
 # case-insensitively: a BAG's second band is "uncertainty"
 _UNCERTAINTY_NAMES = ("uncertainty", "sigma", "stdev", "std", "tvu", "elevation_uncertainty")
 _NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".grd", ".netcdf")
-# GDAL reads these through rasterio: GeoTIFF, and BAG (the Bathymetric Attributed Grid, HDF5:
-# an elevation band and an uncertainty band)
-_TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff", ".bag")
+# GDAL reads these through rasterio: GeoTIFF, BAG (the Bathymetric Attributed Grid, HDF5: an
+# elevation band and an uncertainty band) and the ESRI ASCII grid (EMODnet's and many survey
+# offices' exchange format; its CRS from the .prj beside it)
+_TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff", ".bag", ".asc")
 
 
 # --------------------------------------------------------------------------- public API
@@ -95,8 +96,9 @@ def open_dem(
     Parameters
     ----------
     path : str or path
-        A GeoTIFF (``.tif``), a NetCDF or GMT grid (``.nc``, ``.grd``), or a Zarr store
-        (a directory, usually ``.zarr``).
+        A GeoTIFF (``.tif``), a BAG (``.bag``), an ESRI ASCII grid (``.asc``, its CRS from the
+        ``.prj`` beside it), a NetCDF or GMT grid (``.nc``, ``.grd``), or a Zarr store (a
+        directory, usually ``.zarr``).
     chunks : int, (int, int) or None
         Dask chunk sides; ``None`` loads the grid into memory as numpy.
     variable : str, optional
@@ -393,8 +395,8 @@ def _kind_of(path: Path) -> str:
     if magic[:3] == b"CDF" or magic == b"\x89HDF":
         return "netcdf"
     raise InvalidDEMError(
-        f"DEM file {path}: unknown format (suffix {suffix!r}); use a GeoTIFF "
-        "(.tif), a NetCDF or GMT grid (.nc, .grd) or a Zarr store"
+        f"DEM file {path}: unknown format (suffix {suffix!r}); use a GeoTIFF (.tif), a BAG "
+        "(.bag), an ESRI ASCII grid (.asc), a NetCDF or GMT grid (.nc, .grd) or a Zarr store"
     )
 
 
@@ -593,6 +595,16 @@ def _canonicalise(
     if "x" not in arr.coords or "y" not in arr.coords:
         arr = _synthesise_coords(arr, path, cell_size)
     geographic = _is_geographic(arr, crs, xdim, ydim)
+    if not geographic and crs is None and _looks_like_degrees(arr):
+        log.warning(
+            "DEM %s has no coordinate reference system, and its cells of %g units with "
+            "coordinates within longitude and latitude ranges are no metres: read as lon/lat "
+            "(WGS84); give the file its CRS (a .prj beside an .asc, or gdal_edit.py -a_srs) "
+            "if it is another",
+            path,
+            abs(float(arr["x"].values[1] - arr["x"].values[0])),
+        )
+        geographic = True
     arr = _crop(arr, path, crs, geographic, region)  # before anything reads a value
     if geographic:
         lat, lon = np.asarray(arr["y"].values, float), np.asarray(arr["x"].values, float)
@@ -808,6 +820,26 @@ def _is_geographic(arr: xr.DataArray, crs, xdim: str, ydim: str) -> bool:
         return True
     units = str(arr["x"].attrs.get("units", "")).lower()
     return units.startswith("degree")
+
+
+# a grid without a CRS whose cells are smaller than this (in its own units) and whose
+# coordinates are longitudes and latitudes is a lon/lat grid: no seabed grid has cells of a
+# centimetre, and an ESRI ASCII grid in degrees often comes without its .prj
+DEGREE_CELL_BELOW = 0.01
+
+
+def _looks_like_degrees(arr: xr.DataArray) -> bool:
+    x = np.asarray(arr["x"].values, dtype=np.float64)
+    y = np.asarray(arr["y"].values, dtype=np.float64)
+    if len(x) < 2 or len(y) < 2:
+        return False
+    cell = max(abs(x[1] - x[0]), abs(y[1] - y[0]))
+    return bool(
+        cell < DEGREE_CELL_BELOW
+        and np.abs(y).max() <= 90.0
+        and x.min() >= -180.0
+        and x.max() <= 360.0
+    )
 
 
 def _depth_sign(arr: xr.DataArray, path: Path) -> int:

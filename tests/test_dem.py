@@ -839,3 +839,78 @@ def test_a_mission_on_a_bag_keeps_clearance_plus_k_sigma_from_the_survey(tmp_pat
                 d = a * np.hypot(dr, dc)
                 if d <= R and 0 <= r + dr < 60 and 0 <= c + dc < 60:
                     assert hp >= shoal[r + dr, c + dc] + np.sqrt(R * R - d * d) - 1e-3
+
+
+# ------------------------------------------------------------------ ESRI ASCII grids
+
+UTM31 = (
+    'PROJCS["WGS_1984_UTM_Zone_31N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID['
+    '"WGS_1984",6378137.0,298.257223563]],PRIMEM["Greenwich",0.0],UNIT["Degree",'
+    '0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",500000.0],'
+    'PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",3.0],PARAMETER["Scale_Factor",'
+    '0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]'
+)
+WGS84 = (
+    'GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID["WGS_1984",6378137.0,298.257223563]],'
+    'PRIMEM["Greenwich",0.0],UNIT["Degree",0.0174532925199433]]'
+)
+
+
+def _write_asc(path, z, x0, y0, cell, prj=None):
+    """An ESRI ASCII grid written by hand (first row the northernmost), NODATA -9999."""
+    rows, cols = z.shape
+    lines = [
+        f"ncols {cols}",
+        f"nrows {rows}",
+        f"xllcorner {x0!r}",
+        f"yllcorner {y0!r}",
+        f"cellsize {cell!r}",
+        "NODATA_value -9999",
+    ]
+    lines += [" ".join(f"{v:.2f}" for v in row) for row in np.where(np.isnan(z), -9999.0, z)]
+    path.write_text("\n".join(lines) + "\n")
+    if prj is not None:
+        path.with_suffix(".prj").write_text(prj)
+    return path
+
+
+def test_an_esri_ascii_grid_is_read_with_the_crs_of_its_prj(tmp_path):
+    """Values, no-data, cell centres (the header's lower-left corner, the first row the
+    northernmost) and CRS against the text written, in memory and in awkward chunks (7 x 9
+    cells in chunks of 4: last chunks of 3 and 1)."""
+    rng = np.random.default_rng(5)
+    z = np.round(-2000.0 + 50.0 * rng.normal(size=(7, 9)), 2)
+    z[2, 3] = np.nan
+    path = _write_asc(tmp_path / "survey.asc", z, 500000.0, 4000000.0, 30.0, prj=UTM31)
+    want = z.astype(np.float32)
+    for chunks in (None, 4):
+        dem = pipeline.open_dem(path, chunks=chunks)
+        np.testing.assert_array_equal(dem.values, want)
+        np.testing.assert_allclose(dem.x.values, 500000.0 + (np.arange(9) + 0.5) * 30.0)
+        np.testing.assert_allclose(dem.y.values, 4000000.0 + (7 - np.arange(7) - 0.5) * 30.0)
+        assert dem.attrs["cell_size"] == 30.0
+        assert CRS.from_wkt(dem.attrs["crs_wkt"]).to_epsg() == 32631
+    store = pipeline.import_dem(path, tmp_path / "dem.zarr", chunks=4)
+    np.testing.assert_array_equal(pipeline.open_dem(store, chunks=None).values, want)
+
+
+def test_a_lon_lat_grid_without_a_crs_is_read_as_lon_lat(tmp_path, caplog):
+    """An ESRI ASCII grid in degrees without its .prj (as EMODnet's come): its cells of
+    0.001 "units" were taken for metres. It is read as lon/lat, with a warning, exactly as the
+    same grid with a WGS84 .prj is."""
+    import logging
+
+    rng = np.random.default_rng(6)
+    z = np.round(-1500.0 + 20.0 * rng.normal(size=(12, 10)), 2)
+    cell = 1.0 / 960.0  # EMODnet's 1/16 arc minute
+    bare = _write_asc(tmp_path / "bare.asc", z, -10.5, 45.2, cell)
+    told = _write_asc(tmp_path / "told.asc", z, -10.5, 45.2, cell, prj=WGS84)
+    with caplog.at_level(logging.WARNING, logger="pipeline.dem"):
+        got = pipeline.open_dem(bare, chunks=None)
+    assert "no coordinate reference system" in caplog.text and "read as lon/lat" in caplog.text
+    ref = pipeline.open_dem(told, chunks=None)
+    assert 60.0 < got.attrs["cell_size"] < 120.0  # metres, not 0.001
+    assert got.attrs["cell_size"] == ref.attrs["cell_size"]
+    np.testing.assert_array_equal(got.values, ref.values)
+    np.testing.assert_array_equal(got.x.values, ref.x.values)
+    assert CRS.from_wkt(got.attrs["crs_wkt"]) == CRS.from_wkt(ref.attrs["crs_wkt"])
