@@ -1337,8 +1337,13 @@ def _map_xy(m, pr, pc):
 def with_flight(maps, traj, vehicle=None):
     """``traj`` with its flown track (``traj.flight``) and the status it implies: a flight
     that breaks a vehicle limit, or needs more energy than the battery holds, fails the
-    mission with the reason (its track is kept for inspection)."""
-    if not traj.planned or len(traj.cells) < 2:
+    mission with the reason (its track is kept for inspection). A mission whose start is its
+    goal has nothing to fly: its message says so, and it has no track or waypoints."""
+    if not traj.planned:
+        return traj
+    if len(traj.cells) < 2:
+        note = "start and goal are the same cell: nothing to fly, no waypoints"
+        traj.message = f"{traj.message}; {note}" if traj.message else note
         return traj
     f = fly(maps, traj, vehicle)
     traj.flight = f

@@ -573,6 +573,18 @@ def test_a_flight_over_the_bound_alone_is_uncertified_with_the_reason(ridge_stor
     assert tight.flight.problems == [tight.flight.over_bound]
 
 
+def test_a_mission_whose_start_is_its_goal_says_it_has_nothing_to_fly(ridge_store, tmp_path):
+    """start == goal: planned (one cell, length 0), no flight and no waypoint files, and its
+    message says why (it said nothing, where every other mission of a job with a vehicle has
+    waypoints)."""
+    path, ok, *_ = ridge_store
+    cell = tuple(int(v) for v in np.argwhere(ok)[len(np.argwhere(ok)) // 2])
+    (t,) = pipeline.plan_missions(path, [(cell, cell)], client="synchronous", vehicle={})
+    assert t.status == "ok" and len(t.cells) == 1 and t.length_m == 0.0
+    assert t.flight is None
+    assert t.message == "start and goal are the same cell: nothing to fly, no waypoints"
+
+
 @pytest.mark.parametrize("method, tile", [(2, 16), (1, 16), (2, 12), (2, 6), (2, 5)])
 def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
     """The required heights read the elevation in blocks and pass over those that cannot raise
