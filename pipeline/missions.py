@@ -14,6 +14,7 @@ reason; the others complete.
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import threading
@@ -36,6 +37,9 @@ from .store import open_store
 log = logging.getLogger(__name__)
 
 _PLAN_KEYS = PLANNING.names()
+# the keys a mission's dict is read for; any other is kept for the caller (a name, a tag),
+# unless it is a near miss of one of these (``omgea``), which would be planned as if absent
+_MISSION_KEYS = sorted(_PLAN_KEYS | {"start", "goal", "vehicle", "name"})
 
 
 def failed_trajectory(mission: dict, message: str) -> Trajectory:
@@ -70,6 +74,15 @@ def _normalise(m) -> dict:
         mission = {"start": start, "goal": goal}
     if "start" not in mission or "goal" not in mission:
         raise InvalidParameterError(f"a mission needs start and goal cells, got {mission!r}")
+    for key in mission:
+        if key in _MISSION_KEYS:
+            continue
+        near = difflib.get_close_matches(str(key).lower(), _MISSION_KEYS, n=1, cutoff=0.75)
+        if near:
+            raise InvalidParameterError(
+                f"mission key {key!r} is no option of a mission: did you mean {near[0]!r}? "
+                f"(options: {', '.join(_MISSION_KEYS)}; other keys are kept as they are)"
+            )
     return mission
 
 
@@ -94,7 +107,9 @@ def plan_missions(
     missions : sequence
         Each a ``(start, goal)`` pair of cells or a dict with ``start``, ``goal`` and any of
         :func:`pipeline.plan`'s options (``planner``, ``omega``, ``mcpc``, ``rho``,
-        ``section_size``, ``margin``); other keys (a ``name``) are kept for ``on_done``.
+        ``section_size``, ``margin``) and ``vehicle``; other keys (a ``name``, a tag of the
+        caller's) are kept for ``on_done``, but a near miss of an option (``omgea``) fails
+        its mission with the reason, as it would be planned as if it were absent.
     client : as :func:`pipeline.plan`
     defaults : dict, optional
         Options for every mission that does not set them.

@@ -415,11 +415,13 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
 
 @pytest.mark.parametrize("client", ["cluster", "synchronous"])
 def test_a_malformed_mission_fails_alone(store, local_client, client):
-    """A mission that is no (start, goal) pair, or a dict without a goal, is recorded failed
-    with the reason (on_done too); the other missions of the batch are planned, on a cluster
-    as tasks, each the trajectory plan() finds for it alone."""
+    """A mission that is no (start, goal) pair, a dict without a goal, or a dict with a near
+    miss of an option (``omgea``) is recorded failed with the reason (on_done too); the other
+    missions of the batch are planned (a key of the caller's own kept), on a cluster as tasks,
+    each the trajectory plan() finds for it alone."""
     good = [dict(MISSION, **SMALL), {"start": MISSION["goal"], "goal": MISSION["start"], **SMALL}]
-    missions = [good[0], 5, {"start": (1, 1), "name": "no goal"}, good[1]]
+    typo = {**good[1], "omgea": 1.2}  # planned as omega 2, the default, before
+    missions = [good[0], 5, {"start": (1, 1), "name": "no goal"}, {**good[1], "priority": 2}, typo]
     seen = {}
     got = pipeline.plan_missions(
         store,
@@ -427,10 +429,12 @@ def test_a_malformed_mission_fails_alone(store, local_client, client):
         client=local_client if client == "cluster" else client,
         on_done=lambda i, m, t: seen.setdefault(i, (m, t.status)),
     )
-    assert [t.status for t in got] == ["ok", "failed", "failed", "ok"]
+    assert [t.status for t in got] == ["ok", "failed", "failed", "ok", "failed"]
     assert "a mission must be a dict with start and goal" in got[1].message
     assert "a mission needs start and goal cells" in got[2].message
-    assert sorted(seen) == [0, 1, 2, 3] and seen[2][0]["name"] == "no goal"
+    assert "mission key 'omgea' is no option of a mission: did you mean 'omega'?" in got[4].message
+    assert sorted(seen) == [0, 1, 2, 3, 4] and seen[2][0]["name"] == "no goal"
+    assert seen[3][0]["priority"] == 2  # a key of the caller's own, kept
     for m, t in zip(good, (got[0], got[3]), strict=True):
         ref = pipeline.plan(store, m["start"], m["goal"], client="synchronous", **SMALL)
         assert np.array_equal(t.cells, ref.cells) and t.length_m == ref.length_m
