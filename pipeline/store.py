@@ -1097,6 +1097,11 @@ def _require_version(path, attrs) -> None:
             f"maps store {path} is incomplete (its build did not finish: the attributes a "
             "build writes last are missing); rebuild it with overwrite=True (--overwrite)"
         )
+    if "maps_version" not in attrs and "pipeline_dem_version" in attrs:
+        raise InvalidParameterError(
+            f"{path} is a DEM store, not a maps store: build its maps with pipeline.build_maps "
+            "or `pipeline build-maps`, and plan on those"
+        )
     if attrs.get("maps_version") != MAPS_VERSION:
         raise InvalidParameterError(
             f"{path} is not a maps store of this version "

@@ -477,6 +477,19 @@ def test_tampered_stores_are_refused(tmp_path, built_store, tamper, match):
         pipeline.plan(store, (5, 5), (50, 50), planner="astar", mcpc=False, client="synchronous")
 
 
+def test_a_dem_store_given_as_maps_says_so(tmp_path):
+    """A DEM store (write_dem, `pipeline dem import`) given where a maps store goes: it says
+    which it is and what to do (it said "not a maps store of this version ... rebuild it")."""
+    dem = pipeline.synthetic_dem((40, 40), cell_size=30.0, seed=1, chunks=None)
+    path = pipeline.write_dem(dem, tmp_path / "dem.zarr")
+    for call in (
+        lambda: pipeline.plan(path, (1, 1), (30, 30), client="synchronous"),
+        lambda: pipeline.open_maps(path),
+    ):
+        with pytest.raises(pipeline.PipelineError, match="is a DEM store, not a maps store"):
+            call()
+
+
 def test_an_untampered_copy_plans(tmp_path, built_store):
     store = tmp_path / "maps.zarr"
     shutil.copytree(built_store, store)
