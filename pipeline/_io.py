@@ -226,15 +226,15 @@ def filesystem(url: str):
 def unreachable(url: str, exc: BaseException) -> PipelineError:
     """The one line for object storage that cannot be reached or read."""
     what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    if not str(url).startswith(("s3://", "s3a://")):
-        return PipelineError(
-            f"{url} cannot be reached ({type(exc).__name__}: {what}); check the URL, and that "
-            "its server answers from this machine and every worker"
-        )
+    hint = (
+        "that the bucket exists, and the endpoint and credentials (AWS_ENDPOINT_URL, "
+        "AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, or ~/.aws) on"
+        if str(url).startswith(("s3://", "s3a://"))
+        else "and that its server answers from"
+    )
     return PipelineError(
-        f"{url} cannot be reached ({type(exc).__name__}: {what}); check the URL, that the bucket "
-        "exists, and the endpoint and credentials (AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, "
-        "AWS_SECRET_ACCESS_KEY, or ~/.aws) on this machine and every worker"
+        f"{url} cannot be reached ({type(exc).__name__}: {what}); check the URL, {hint} "
+        "this machine and every worker"
     )
 
 

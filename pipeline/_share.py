@@ -116,6 +116,12 @@ class Claims:
         return False
 
 
+def split(n: int, k: int) -> list[int]:
+    """The bounds of ``n`` sections split into ``k`` runs of consecutive sections, as even as
+    counts allow: run ``j`` is ``bounds[j]`` to ``bounds[j + 1] - 1``."""
+    return np.linspace(0, n, k + 1).round().astype(int).tolist()
+
+
 def state(bounds, opened: bool = False) -> np.ndarray:
     """The claims' state of the runs split at ``bounds``, none taken: per run its front, its
     end and whether its task has opened the claims (``opened``: all of them), then how many

@@ -234,13 +234,17 @@ def shutdown() -> None:
             pass
 
 
+# the clients that plan in this process: a mission's sections in turn, or shared by threads
+IN_PROCESS = ("synchronous", "threads")
+
+
 def get_client(client=None):
     """The cluster to plan on: ``"synchronous"`` (in this process, a mission's sections in
     turn), ``"threads"`` (in this process, a mission's sections shared by a thread per core),
     a ``distributed.Client``, a scheduler address, or None: the current default client if
     there is one, else a LocalCluster of 2 single-threaded workers started once per process.
     A client is returned :func:`prompt`."""
-    if isinstance(client, str) and client in ("synchronous", "threads"):
+    if isinstance(client, str) and client in IN_PROCESS:
         return client
     got = _client(client)
     prompt(got)

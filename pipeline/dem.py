@@ -595,14 +595,14 @@ def _canonicalise(
     if "x" not in arr.coords or "y" not in arr.coords:
         arr = _synthesise_coords(arr, path, cell_size)
     geographic = _is_geographic(arr, crs, xdim, ydim)
-    if not geographic and crs is None and _looks_like_degrees(arr):
+    if not geographic and crs is None and (cell := _degree_cell(arr)) is not None:
         log.warning(
             "DEM %s has no coordinate reference system, and its cells of %g units with "
             "coordinates within longitude and latitude ranges are no metres: read as lon/lat "
             "(WGS84); give the file its CRS (a .prj beside an .asc, or gdal_edit.py -a_srs) "
             "if it is another",
             path,
-            abs(float(arr["x"].values[1] - arr["x"].values[0])),
+            cell,
         )
         geographic = True
     arr = _crop(arr, path, crs, geographic, region)  # before anything reads a value
@@ -828,18 +828,16 @@ def _is_geographic(arr: xr.DataArray, crs, xdim: str, ydim: str) -> bool:
 DEGREE_CELL_BELOW = 0.01
 
 
-def _looks_like_degrees(arr: xr.DataArray) -> bool:
+def _degree_cell(arr: xr.DataArray) -> float | None:
+    """The cell side of a grid without a CRS that is a lon/lat grid (:data:`DEGREE_CELL_BELOW`),
+    else None."""
     x = np.asarray(arr["x"].values, dtype=np.float64)
     y = np.asarray(arr["y"].values, dtype=np.float64)
     if len(x) < 2 or len(y) < 2:
-        return False
-    cell = max(abs(x[1] - x[0]), abs(y[1] - y[0]))
-    return bool(
-        cell < DEGREE_CELL_BELOW
-        and np.abs(y).max() <= 90.0
-        and x.min() >= -180.0
-        and x.max() <= 360.0
-    )
+        return None
+    cell = float(max(abs(x[1] - x[0]), abs(y[1] - y[0])))
+    lonlat = np.abs(y).max() <= 90.0 and x.min() >= -180.0 and x.max() <= 360.0
+    return cell if cell < DEGREE_CELL_BELOW and lonlat else None
 
 
 def _depth_sign(arr: xr.DataArray, path: Path) -> int:

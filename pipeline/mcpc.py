@@ -42,7 +42,7 @@ import numpy as np
 
 from ._inbox import Inbox, post
 from ._jit import njit
-from ._share import Claims, ThreadClaims
+from ._share import Claims, ThreadClaims, split
 from ._threads import cores, shared_pool
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
@@ -558,7 +558,7 @@ def _threaded(store: MapsStore, sections: list, planner: str, omega: float) -> l
     if k < 2 or _in_worker():
         return _section_batch(store, sections, planner, omega)
     checked = _checked(store, planner, omega)
-    claims = ThreadClaims(np.linspace(0, len(sections), k + 1).round().astype(int).tolist())
+    claims = ThreadClaims(split(len(sections), k))
     results: list = [None] * len(sections)
 
     def plan_run(me: int) -> None:
@@ -594,7 +594,7 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
     if client == "threads":
         return _threaded(store, sections, planner, omega)
     k = min(len(sections), _slots(client))
-    bounds = np.linspace(0, len(sections), k + 1).round().astype(int).tolist()
+    bounds = split(len(sections), k)
     token = uuid.uuid4().hex
     inbox = Inbox.take(client)
     futures = client.map(

@@ -26,7 +26,7 @@ import numpy as np
 
 from ._jit import njit
 from ._threads import cores
-from .cluster import get_client
+from .cluster import IN_PROCESS, get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
 from .mcpc import coarse_rho, plan
@@ -188,7 +188,7 @@ def plan_missions(
 
     for i, message in invalid.items():
         done(i, failed_trajectory(items[i], message))
-    if run_on not in ("synchronous", "threads") and len(todo) > 1:
+    if run_on not in IN_PROCESS and len(todo) > 1:
         _on_cluster(run_on, m, items, defaults, veh, quicklooks, done, missions_per_task, todo)
         return out  # type: ignore[return-value]
     workers = max(1, min(int(max_concurrent), len(todo)))

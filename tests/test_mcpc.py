@@ -934,6 +934,14 @@ def test_sections_of_a_lost_task_are_planned_again(store, local_client, monkeypa
     assert np.array_equal(got.cells, ref.cells) and got.length_m == ref.length_m
 
 
+def _sections_of(t) -> list:
+    """The sections of a planned mission, as plan() cut and snapped them."""
+    return [
+        Section(tuple(s["window"]), tuple(s["start"]), tuple(s["goal"]))
+        for s in t.extra["sections"]
+    ]
+
+
 def test_a_batch_in_this_process_reads_each_next_window_in_a_helper_thread(store, monkeypatch):
     """Out of a dask worker the windows of a run of sections are read by the helper thread,
     each while the one before is searched; the results are those of planning each section
@@ -943,10 +951,7 @@ def test_a_batch_in_this_process_reads_each_next_window_in_a_helper_thread(store
     import pipeline.mcpc as mcpc
 
     ref = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
-    sections = [
-        Section(tuple(s["window"]), tuple(s["start"]), tuple(s["goal"]))
-        for s in ref.extra["sections"]
-    ]
+    sections = _sections_of(ref)
     assert len(sections) >= 3
     m = pipeline.open_store(store)
     real, readers = mcpc.read_section, []
@@ -1035,13 +1040,6 @@ def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
 
 
 # ------------------------------------------------------------------ in this process, on every core
-
-
-def _sections_of(t) -> list:
-    return [
-        Section(tuple(s["window"]), tuple(s["start"]), tuple(s["goal"]))
-        for s in t.extra["sections"]
-    ]
 
 
 @pytest.mark.parametrize("planner", ["ra_star", "lagrangian"])
