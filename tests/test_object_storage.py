@@ -158,7 +158,7 @@ def test_a_server_that_refuses_is_one_line(tmp_path):
         timeout=120,
     )
     lines = [x for x in res.stderr.splitlines() if x.strip()]
-    assert res.returncode != 0 and len(lines) == 1, res.stderr
+    assert res.returncode == 2 and len(lines) == 1, res.stderr  # bad input: the store
     assert lines[0].startswith(f"error: {url}") and "cannot be reached" in lines[0]
 
 
