@@ -65,7 +65,7 @@ result = {{"seconds": time.perf_counter() - t}}
 """
 
 IMPORT_LONLAT = """
-import time, dask, pipeline, odc.geo.xr, rioxarray, rasterio  # imported before the count
+import time, dask, pipeline, pyproj, rioxarray, rasterio  # imported before the count
 dask.config.set(scheduler="threads", num_workers=2)
 def rchar():
     with open("/proc/self/io") as fh:

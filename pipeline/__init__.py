@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 import os
-import warnings
 
 # GDAL's block cache (5 % of the RAM by default) keeps every tile a DEM import streams through
 # (1.2 GiB of a 24 GiB machine: a 20000^2 lon/lat import peaked at 2.35 GiB with it, 1.29 GiB
@@ -81,12 +80,6 @@ def __getattr__(name: str):
 def __dir__():
     return sorted(set(globals()) | set(__all__))
 
-
-# odc-geo warps lon/lat grids into numpy arrays and gives GDAL their transform itself, and
-# rasterio still warns, at every chunk, that those arrays have none
-warnings.filterwarnings(
-    "ignore", message="Dataset has no geotransform, gcps, or rpcs", module="rasterio.warp"
-)
 
 __version__ = "0.1.0"
 

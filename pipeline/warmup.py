@@ -169,6 +169,7 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
             t0 = time.perf_counter()
             if part == "dem":
                 pipeline.synthetic_dem((64, 64), chunks=32).compute()
+                _warp()
             elif part == "safety":
                 from .dem import open_dem, write_dem
 
@@ -353,3 +354,17 @@ def _compile(client) -> None:
         else:
             took = [compile_parts(tmp, PARTS)]
     log.debug("warm-up parts (seconds, per process): %s", took)
+
+
+def _warp() -> None:
+    """The exact reprojection's kernel (lon/lat grids), on a tiny grid."""
+    import xarray as xr
+    from pyproj import CRS
+    from rasterio.transform import from_origin
+
+    from .dem import exact_warp
+
+    lon, lat = -20.0 + 0.01 * np.arange(40), 40.0 - 0.01 * np.arange(40)
+    src = xr.DataArray(np.zeros((40, 40), np.float32), dims=("y", "x"), coords={"y": lat, "x": lon})
+    aeqd = CRS.from_proj4("+proj=aeqd +lat_0=39.8 +lon_0=-19.8 +datum=WGS84 +units=m")
+    exact_warp(src, CRS.from_epsg(4326), aeqd, from_origin(-15e3, 15e3, 500.0, 500.0), (40, 40))
