@@ -194,6 +194,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
     else:
         sea = float(maps.parameters.get("sea_level_m", 0.0))
         files = write_mission_files(folder, name, mid, traj, crs_wkt, sea)
+        skipped = files.pop("skipped", None)
         xy = f.waypoints[:, :2]
         props = {
             f"auv:{k}": _num(v)
@@ -212,6 +213,8 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
         props["auv:vehicle"] = {**f.vehicle.to_dict(), "min_turn_radius_m": f.turn_radius_m}
         if f.problems:
             props["auv:flight_problems"] = list(f.problems)
+        if skipped:
+            props["auv:skipped_files"] = skipped
         if crs_wkt is None:
             props["auv:skipped_files"] = (
                 f"{', '.join(LONLAT_FILES)}: the DEM has no coordinate reference system, so "

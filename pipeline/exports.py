@@ -347,26 +347,63 @@ def _text(s: str) -> bytes:
     return struct.pack("<H", len(b)) + b
 
 
-@functools.lru_cache(maxsize=1)
-def _to_ecef():
-    """WGS84 longitude, latitude and ellipsoidal height to ECEF (made once: 0.3 ms)."""
-    from pyproj import Transformer
+# WGS84 as DUNE's ``WGS84`` class defines it (src/DUNE/Coordinates/WGS84.hpp)
+_WGS84_A = 6378137.0
+_WGS84_E2 = 0.00669437999013
 
-    return Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+
+def _ecef(lat, lon, hae=0.0):
+    """ECEF coordinates (metres) of geodetic latitudes and longitudes (radians)."""
+    rn = _WGS84_A / np.sqrt(1.0 - _WGS84_E2 * np.sin(lat) ** 2)
+    return np.stack(
+        [
+            (rn + hae) * np.cos(lat) * np.cos(lon),
+            (rn + hae) * np.cos(lat) * np.sin(lon),
+            ((1.0 - _WGS84_E2) * rn + hae) * np.sin(lat),
+        ],
+        axis=-1,
+    )
 
 
 def ned_offsets(lat0, lon0, lat, lon):
-    """North and east offsets (metres) of points from a reference, on the WGS84 ellipsoid:
-    the ECEF difference rotated into the reference's local north-east-down frame (as DUNE
-    displaces positions)."""
-    tr = _to_ecef()
-    x0, y0, z0 = tr.transform(lon0, lat0, 0.0)
-    x, y, z = tr.transform(np.asarray(lon), np.asarray(lat), np.zeros(len(lat)))
-    dx, dy, dz = np.asarray(x) - x0, np.asarray(y) - y0, np.asarray(z) - z0
-    p, la = math.radians(lat0), math.radians(lon0)
-    north = -math.sin(p) * math.cos(la) * dx - math.sin(p) * math.sin(la) * dy + math.cos(p) * dz
-    east = -math.sin(la) * dx + math.cos(la) * dy
-    return north, east
+    """North and east offsets (metres) from a reference (degrees) that LSTS DUNE's
+    ``WGS84::displace(n, e, &lat, &lon)`` turns into the points ``lat``, ``lon`` (degrees),
+    as DUNE's FollowPath places its path points. DUNE displaces in ECEF: the reference on the
+    ellipsoid plus ``n`` along the north and ``e`` along the east direction of its geocentric
+    latitude, with no down term, so a point lies on the plane through the reference normal to
+    the geocentric vertical, above the ellipsoid, and reads as the latitude and longitude of
+    that ECEF point. The offsets are where the ellipsoid normal of each point meets that
+    plane (its geodetic latitude and longitude are the point's), in the plane's north and east
+    directions: DUNE reads them back within millimetres (tests/test_flight.py re-implements
+    its formulas). Rotating the ECEF difference into the reference's geodetic north-east frame
+    instead put points 1-2 km off on 500 km missions."""
+    p0 = _ecef(math.radians(lat0), math.radians(lon0))
+    phi = math.atan2(p0[2], math.hypot(p0[0], p0[1]))  # geocentric latitude
+    lam = math.radians(lon0)
+    north = np.array(
+        [-math.cos(lam) * math.sin(phi), -math.sin(lam) * math.sin(phi), math.cos(phi)]
+    )
+    east = np.array([-math.sin(lam), math.cos(lam), 0.0])
+    up = np.array([math.cos(lam) * math.cos(phi), math.sin(lam) * math.cos(phi), math.sin(phi)])
+    la, lo = (
+        np.radians(np.asarray(lat, dtype=np.float64)),
+        np.radians(np.asarray(lon, dtype=np.float64)),
+    )
+    base = _ecef(la, lo)
+    normal = np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], axis=-1)
+    h = ((p0 - base) @ up) / (normal @ up)  # along each point's normal to DUNE's plane
+    d = base + h[:, None] * normal - p0
+    return d @ north, d @ east
+
+
+# the largest IMC message, header (20 bytes) and checksum (2) included: its payload size is a
+# 16-bit field, and DUNE's and imcpy's readers take packets of at most this size
+IMC_MAX_PACKET = 0xFFFF
+IMC_MAX_PAYLOAD = IMC_MAX_PACKET - 22
+
+
+class PlanTooLargeError(ValueError):
+    """An IMC plan whose message cannot hold all its waypoints."""
 
 
 def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> bytes:
@@ -408,6 +445,13 @@ def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> 
         + maneuver
         + struct.pack("<HHH", 0, 0, 0)  # transitions, start actions, end actions
     )
+    if len(payload) > IMC_MAX_PAYLOAD:
+        most = (IMC_MAX_PAYLOAD - (len(payload) - len(points))) // _IMC_PATH_POINT.itemsize
+        raise PlanTooLargeError(
+            f"{len(north)} waypoints make an IMC plan of {len(payload)} bytes, more than one IMC "
+            f"message holds ({IMC_MAX_PAYLOAD} besides its header): at most {most} waypoints fit; the waypoints "
+            "are in waypoints.csv and waypoints.geojson"
+        )
     stamp = time.time() if timestamp is None else timestamp
     header = struct.pack(
         "<HHHdHBHB", _IMC_SYNC, _PLAN_SPECIFICATION, len(payload), stamp, 0, 0xFF, 0xFFFF, 0xFF
@@ -418,7 +462,8 @@ def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> 
 
 def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, sea_level) -> dict:
     """Every file of a mission with a flight into ``folder``; returns ``{asset key: (file,
-    title, media type, roles)}``. Without a CRS the ``LONLAT_FILES`` are not written."""
+    title, media type, roles)}``, and under ``"skipped"`` why a file was not written (an IMC
+    plan too large for one message). Without a CRS the ``LONLAT_FILES`` are not written."""
     f = traj.flight
     folder = Path(folder)
     lonlat = to_lonlat(crs_wkt, f.x, f.y)
@@ -434,6 +479,10 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
     if wll is None:
         return out
     geojson_file, qgc_file, kml_file, imc_file = LONLAT_FILES
+    try:
+        imc = imc_plan(plan_id, name[:200], table)
+    except PlanTooLargeError as e:
+        imc, out["skipped"] = None, f"{imc_file}: {e}"
     lonlat_files = {  # asset key: (file, content, title, media type, roles)
         "waypoints": (
             geojson_file,
@@ -458,13 +507,15 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
         ),
         "imc": (
             imc_file,
-            imc_plan(plan_id, name[:200], table),
+            imc,
             "LSTS IMC PlanSpecification with a FollowPath (Neptus, DUNE)",
             "application/octet-stream",
             ["data"],
         ),
     }
     for key, (file, content, *meta) in lonlat_files.items():
+        if content is None:
+            continue
         (folder / file).write_bytes(content)
         out[key] = (file, *meta)
     return out

@@ -5,7 +5,9 @@ geopandas, imcpy, pyproj)."""
 
 from __future__ import annotations
 
+import copy
 import csv
+import dataclasses
 import json
 import math
 import subprocess
@@ -389,7 +391,96 @@ def test_imc_plan_reads_in_imcpy(flown):
         lon, lat, z = feat["geometry"]["coordinates"]
         _, _, dist = geod.inv(lon0, lat0, lon, lat)
         assert math.hypot(p.x, p.y) == pytest.approx(dist, abs=0.5)  # the geodesic, metres
+        # where DUNE puts the point: within a centimetre of the waypoint
+        la, lo = dune_displace(p.x, p.y, fp.lat, fp.lon)
+        _, _, off = geod.inv(lon, lat, math.degrees(lo), math.degrees(la))
+        assert off < 0.01, off
         assert fp.z + p.z == pytest.approx(-z, abs=0.02)
+
+
+# LSTS DUNE's WGS84 (src/DUNE/Coordinates/WGS84.hpp), its formulas written anew from its source:
+# how DUNE's FollowPath turns a path point's north and east offsets into a position
+_DUNE_A, _DUNE_B = 6378137.0, 6356752.3142
+_DUNE_E2, _DUNE_EP2 = 0.00669437999013, 0.00673949674228
+
+
+def _dune_rn(lat):
+    return _DUNE_A / math.sqrt(1 - _DUNE_E2 * math.sin(lat) ** 2)
+
+
+def dune_displace(n, e, lat, lon):
+    """DUNE's ``WGS84::displace(n, e, &lat, &lon)`` (radians): the reference (height 0) in
+    ECEF, displaced along the north and east of its geocentric latitude, back to geodetic
+    by DUNE's ``fromECEF`` (Bowring's formula)."""
+    rn = _dune_rn(lat)
+    x = rn * math.cos(lat) * math.cos(lon)
+    y = rn * math.cos(lat) * math.sin(lon)
+    z = (1 - _DUNE_E2) * rn * math.sin(lat)
+    phi = math.atan2(z, math.sqrt(x * x + y * y))
+    slon, clon, sphi, cphi = math.sin(lon), math.cos(lon), math.sin(phi), math.cos(phi)
+    x += -slon * e - clon * sphi * n
+    y += clon * e - slon * sphi * n
+    z += cphi * n
+    p = math.sqrt(x * x + y * y)
+    theta = math.atan2(_DUNE_A * z, p * _DUNE_B)
+    num = z + _DUNE_EP2 * _DUNE_B * math.sin(theta) ** 3
+    den = p - _DUNE_E2 * _DUNE_A * math.cos(theta) ** 3
+    return math.atan2(num, den), math.atan2(y, x)
+
+
+@pytest.mark.parametrize("lat0", [-62.0, 0.5, 38.0, 71.0])
+def test_imc_path_points_land_where_dune_puts_them_on_long_missions(lat0):
+    """Waypoints up to 520 km from the reference, in every direction, at four latitudes: the
+    offsets read back through imcpy and placed by DUNE's formulas land within 1 m of each
+    waypoint (the float32 offsets' resolution; rotating the ECEF difference into the
+    geodetic north-east frame put them 1-2 km off)."""
+    import imcpy
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    az = np.arange(0, 360, 15.0)
+    dist = np.linspace(20e3, 520e3, len(az))
+    lon, lat, _ = geod.fwd(np.full(len(az), -30.0), np.full(len(az), lat0), az, dist)
+    lat, lon = np.concatenate([[lat0], lat]), np.concatenate([[-30.0], lon])
+    n = len(lat)
+    table = {"lat": lat, "lon": lon, "depth_m": np.full(n, 900.0), "speed_m_s": np.full(n, 1.5)}
+    fp = imcpy.Packet.deserialize(exports.imc_plan("long", "", table)).maneuvers[0].data
+    for p, la, lo in zip(fp.points, lat, lon, strict=True):
+        dla, dlo = dune_displace(p.x, p.y, fp.lat, fp.lon)
+        _, _, off = geod.inv(lo, la, math.degrees(dlo), math.degrees(dla))
+        assert off < 1.0, (la, lo, off)
+
+
+def test_an_imc_plan_too_large_for_one_message_is_refused_with_the_reason(flown, tmp_path):
+    """5000 waypoints need 70 kB, over IMC's 16-bit payload size: the plan is refused with
+    the reason (the most that fit), not a struct error; a mission's other files are written and
+    its Item says why mission.imc is not."""
+    n = 5000
+    lat, lon = 40 + np.arange(n) * 1e-4, np.full(n, -20.0)
+    table = {"lat": lat, "lon": lon, "depth_m": np.full(n, 900.0), "speed_m_s": np.full(n, 1.5)}
+    with pytest.raises(exports.PlanTooLargeError, match=r"5000 waypoints .* at most") as e:
+        exports.imc_plan("big", "", table)
+    import re
+
+    import imcpy
+
+    most = int(re.search(r"at most (\d+) waypoints", str(e.value)).group(1))
+    plan = exports.imc_plan("ok", "", {k: v[:most] for k, v in table.items()})
+    assert len(imcpy.Packet.deserialize(plan).maneuvers[0].data.points) == most
+    with pytest.raises(exports.PlanTooLargeError):
+        exports.imc_plan("ok", "", {k: v[: most + 1] for k, v in table.items()})
+    # a mission's files: the flight of `flown` with its waypoints split into 5000 along the route
+    m, t, _, _ = flown
+    f = t.flight
+    k = np.linspace(0, len(f.waypoints) - 1, n)
+    w = np.column_stack([np.interp(k, np.arange(len(f.waypoints)), c) for c in f.waypoints.T])
+    idx = np.interp(k, np.arange(len(f.waypoints)), f.waypoint_index).astype(int)
+    big = copy.copy(t)
+    big.flight = dataclasses.replace(f, waypoints=w, waypoint_index=idx)
+    files = exports.write_mission_files(tmp_path, "big", "big-1", big, m.crs_wkt, 0.0)
+    assert "imc" not in files and not (tmp_path / "mission.imc").exists()
+    assert files["skipped"].startswith("mission.imc: 5000 waypoints")
+    assert {"waypoints", "qgc", "kml", "track"} <= set(files)
 
 
 # ------------------------------------------------------------------ the vehicle, jobs
