@@ -448,9 +448,9 @@ def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> 
     if len(payload) > IMC_MAX_PAYLOAD:
         most = (IMC_MAX_PAYLOAD - (len(payload) - len(points))) // _IMC_PATH_POINT.itemsize
         raise PlanTooLargeError(
-            f"{len(north)} waypoints make an IMC plan of {len(payload)} bytes, more than one IMC "
-            f"message holds ({IMC_MAX_PAYLOAD} besides its header): at most {most} waypoints fit; the waypoints "
-            "are in waypoints.csv and waypoints.geojson"
+            f"{len(north)} waypoints make an IMC plan of {len(payload)} bytes, more than one "
+            f"IMC message holds ({IMC_MAX_PAYLOAD} besides its header): at most {most} "
+            "waypoints fit; the waypoints are in waypoints.csv and waypoints.geojson"
         )
     stamp = time.time() if timestamp is None else timestamp
     header = struct.pack(
