@@ -207,6 +207,10 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
                 ("min_turn_radius_m", f.min_turn_radius_m),
                 ("waypoints", len(f.waypoints)),
                 ("energy_wh", f.energy_wh),
+                ("altitude_median_m", f.altitude_median_m),
+                ("altitude_p90_m", f.altitude_p90_m),
+                ("min_altitude_m", f.altitude_min_m),
+                ("vertical_reversals_per_km", f.reversals_per_km),
             )
         }
         props["auv:smoothing"] = f.smoothing

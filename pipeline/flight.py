@@ -149,6 +149,10 @@ class Flight:
     seconds: float = 0.0
     route: np.ndarray | None = None  # the waypoint route sampled: x, y, z (waypoints' legs)
     route_seabed_m: np.ndarray | None = None
+    altitude_median_m: float = math.nan  # above the seabed along the flown track
+    altitude_p90_m: float = math.nan
+    altitude_min_m: float = math.nan
+    reversals_per_km: float = math.nan  # climb to descent or back, per km flown
 
     @property
     def altitude_m(self) -> np.ndarray:
@@ -568,16 +572,28 @@ def _least_term(p, lo, hi, a):
 HEIGHT_BLOCK = 4
 
 
-@njit(cache=True, nogil=True)
-def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, clearance):
-    """The lowest height at each point (grid units) that keeps the clearance from every DEM
-    grid point, by the maps' method: spherical ``max z(q) + sqrt(R^2 - d^2)`` over grid points
-    within ``R``; horizontal ``max z(q) + R`` within ``R_h`` (``radius``); vertical
-    ``max z + R`` over the (up to four) grid points less than a cell away in row and column.
-    NaN where a grid point it needs is unknown (no-data or not loaded); ``-inf`` where no grid
-    point is near enough to constrain it.
+@njit(inline="always", cache=True)
+def _dome(d2, rr, reach):
+    """How far above a grid point ``sqrt(d2)`` away a sphere of squared radius ``rr`` must be
+    to clear the grid square (at most ``reach`` from the point) the point is the highest
+    corner of: ``sqrt(rr - max(0, d - reach)^2)``, 0 beyond the sphere (monotone in ``d2``)."""
+    d = max(math.sqrt(d2) - reach, 0.0)
+    return math.sqrt(max(rr - d * d, 0.0))
 
-    Exactly the maximum over every grid point within the radius: the grid points are taken in
+
+@njit(cache=True, nogil=True)
+def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, clearance, reach):
+    """The lowest height at each point (grid units) that keeps the clearance from the
+    continuous seabed (bilinear between the DEM's grid points), conservatively: the seabed over
+    a grid square is at most its highest corner, and a point of the square is at least ``d -
+    reach`` (metres) from ``p`` for a corner ``d`` away (``reach``: the square's diagonal, more
+    for the methods that cover the step between samples). Spherical (``radius`` the
+    clearance): ``max z(q) + sqrt(radius^2 - max(0, d - reach)^2)`` over the grid points ``q``
+    within ``radius + reach``; horizontal and vertical: ``max z(q) + clearance`` within
+    ``radius + reach`` (docs/method.md section 2). NaN where a grid point it needs is unknown
+    (no-data or not loaded); ``-inf`` where no grid point is near enough.
+
+    Exactly the maximum over every grid point within reach: the grid points are taken in
     blocks (``HEIGHT_BLOCK``), and a block is read only when its highest elevation, at the
     block's least distance, could exceed the best value so far (computed with the same floating
     point operations as each point's own value, which are monotone: so a block passed over
@@ -585,27 +601,11 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
     previous point's highest grid point, usually near the answer."""
     n = pr.size
     out = np.empty(n)
-    if method == 0:
-        for k in range(n):
-            p = pr[k]
-            q = pc[k]
-            best = -np.inf
-            bad = False
-            i0 = int(math.floor(p))
-            j0 = int(math.floor(q))
-            for i in range(i0, i0 + 2):
-                for j in range(j0, j0 + 2):
-                    if abs(i - p) < 1.0 and abs(j - q) < 1.0 and 0 <= i < rows and 0 <= j < cols:
-                        z = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
-                        if z != z:
-                            bad = True
-                        elif z > best:
-                            best = z
-            out[k] = np.nan if bad else best + clearance
-        return out
     spherical = method == 2
-    r2 = radius * radius
-    rc = radius / a
+    rr = radius * radius  # the clearance's square (spherical)
+    far = radius + reach  # the farthest grid point that can constrain a point
+    r2 = far * far
+    rc = far / a
     b = HEIGHT_BLOCK
     while b > 1 and (tr % b or tc % b):
         b //= 2
@@ -619,7 +619,7 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
     colterm = np.empty(int(2 * rc) // b + 3)  # per block column: its least column term,
     coltile = np.empty(colterm.size, dtype=np.int64)  # its tile column, its block in the tile
     colblock = np.empty(colterm.size, dtype=np.int64)
-    cap = math.sqrt(r2) if spherical else 0.0
+    cap = radius if spherical else 0.0
     mi = -1  # the previous point's highest grid point
     mj = -1
     for k in range(n):
@@ -636,7 +636,7 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
             if d2 <= r2:
                 z = np.float64(_cell(slot, el, tr, tc, mi, mj, np.nan))
                 if z == z:
-                    best = z + math.sqrt(r2 - d2) if spherical else z
+                    best = z + _dome(d2, rr, reach) if spherical else z
         bj0 = jlo >> bs
         nbj = (jhi >> bs) + 1 - bj0
         for bj in range(bj0, bj0 + nbj):  # each block column's least column term
@@ -679,7 +679,7 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
                     if hi == hi:  # no unknown elevation in the block
                         if hi + cap <= best:  # cap: no block's square root is larger
                             continue
-                        if spherical and hi + math.sqrt(r2 - (di2 + dj2)) <= best:
+                        if spherical and hi + _dome(di2 + dj2, rr, reach) <= best:
                             continue
                 if s < 0:  # its tile is not loaded: the grid point within reach is unknown
                     bad = True
@@ -697,7 +697,7 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
                         if z != z:
                             bad = True
                             break
-                        v = z + math.sqrt(r2 - d2) if spherical else z
+                        v = z + _dome(d2, rr, reach) if spherical else z
                         if v > best:
                             best = v
                             mi = i
@@ -770,11 +770,29 @@ def pitch_envelope(h, s, slope):
 
 
 @njit(cache=True, nogil=True)
-def band_profile(s, env, band, top, slope):
-    """Few straight pieces inside the band ``[env, min(env + band, top)]``, each with
-    ``|slope| <= slope``: greedy, each piece as long as a line from its start stays in the
-    band (the feasible slopes narrowed sample by sample). Returns the heights at every sample
-    and the indices where pieces meet."""
+def pitch_envelope_var(h, s, slopes):
+    """:func:`pitch_envelope` with a slope limit per interval (``slopes[k]`` between samples
+    ``k`` and ``k + 1``): the lowest profile ``z >= h`` keeping each."""
+    n = h.size
+    z = h.copy()
+    for k in range(1, n):
+        v = z[k - 1] - slopes[k - 1] * (s[k] - s[k - 1])
+        if v > z[k]:
+            z[k] = v
+    for k in range(n - 2, -1, -1):
+        v = z[k + 1] - slopes[k] * (s[k + 1] - s[k])
+        if v > z[k]:
+            z[k] = v
+    return z
+
+
+@njit(cache=True, nogil=True)
+def band_profile(s, env, band, top, slopes):
+    """Few straight pieces inside the band ``[env, min(env + band, top)]``, each no steeper
+    than the ``slopes`` of the intervals it spans (one per interval): greedy, each piece as
+    long as a line from its start stays in the band (the feasible slopes narrowed sample by
+    sample), at the slope nearest the previous piece's (level first). Returns the heights at
+    every sample and the indices where pieces meet."""
     n = s.size
     zr = np.empty(n)
     brk = np.empty(n, dtype=np.int64)
@@ -784,8 +802,9 @@ def band_profile(s, env, band, top, slope):
     i = 0
     zi = env[0]
     zr[0] = zi
-    lo = -slope
-    hi = slope
+    lo = -np.inf
+    hi = np.inf
+    prev = 0.0
     k = 1
     while k < n:
         ds = s[k] - s[i]
@@ -800,8 +819,9 @@ def band_profile(s, env, band, top, slope):
         up = min(env[k] + band, top)
         if up < env[k]:
             up = env[k]
-        nlo = max(lo, (env[k] - zi) / ds)
-        nhi = min(hi, (up - zi) / ds)
+        sl = slopes[k - 1]
+        nlo = max(lo, -sl, (env[k] - zi) / ds)
+        nhi = min(hi, sl, (up - zi) / ds)
         if nlo <= nhi + 1e-12:  # (a profile at the pitch limit meets it up to rounding)
             lo = min(nlo, nhi)
             hi = nhi
@@ -809,26 +829,28 @@ def band_profile(s, env, band, top, slope):
             continue
         if k == i + 1:
             # not even the next sample: only rounding at the pitch limit does this; step to it
-            zr[k] = max(env[k], zi + max(-slope, min(slope, (env[k] - zi) / ds)) * ds)
+            zr[k] = max(env[k], zi + max(-sl, min(sl, (env[k] - zi) / ds)) * ds)
             i = k
             zi = zr[k]
             brk[nb] = i
             nb += 1
-            lo = -slope
-            hi = slope
+            lo = -np.inf
+            hi = np.inf
             k += 1
             continue
-        # the piece from i ends at k - 1
-        m = 0.5 * (lo + hi)
+        # the piece from i ends at k - 1: the slope the last piece had, or the nearest the band
+        # allows (a climb or a descent goes on, a level stays level: few reversals)
+        m = min(max(prev, lo), hi)
+        prev = m
         for q in range(i + 1, k):
             zr[q] = zi + m * (s[q] - s[i])
         i = k - 1
         zi = zr[i]
         brk[nb] = i
         nb += 1
-        lo = -slope
-        hi = slope
-    m = 0.5 * (lo + hi)
+        lo = -np.inf
+        hi = np.inf
+    m = min(max(prev, lo), hi) if lo <= hi else 0.0
     for q in range(i + 1, n):
         zr[q] = zi + m * (s[q] - s[i])
     if brk[nb - 1] != n - 1:
@@ -1037,25 +1059,12 @@ def fly(maps, traj, vehicle=None) -> Flight:
     top = float(p.get("sea_level_m", 0.0)) - float(clearance if surface is None else surface)
     turn_m = veh.turn_radius(a)
     slope = math.tan(math.radians(veh.max_pitch_deg))
-    step = SAMPLE_STEP
-    if method == "spherical":
-        # samples clear of every grid point by R' = sqrt(R^2 + (L/2)^2), L the longest 3-D
-        # step between samples: then every point of the straight step between two samples
-        # is at least R from every grid point, not only the samples. Samples close enough
-        # that R' exceeds R by at most CLEARANCE_SLACK * R
-        eps = CLEARANCE_SLACK * clearance
-        longest = 2.0 * math.sqrt(2.0 * clearance * eps + eps * eps)
-        step = min(SAMPLE_STEP, longest / (a * math.sqrt(1.0 + slope * slope)))
-        step_3d = step * a * math.sqrt(1.0 + slope * slope)
-        radius = math.sqrt(clearance * clearance + 0.25 * step_3d * step_3d)
-    # the vehicle may be shallower than the surface limit by what R' adds to R
-    top_ok = top + (radius - clearance if method == "spherical" else 0.0) + 1e-6
+    step, terrain, top_ok = _sampling(method, a, clearance, radius, slope, turn_m, top)
     rows, cols = m.shape
-    elem = int(math.ceil(radius / a)) + 1
+    elem = int(math.ceil((terrain[1] + terrain[4]) / a)) + 1
     pad = elem + int(math.ceil(turn_m / a)) + 2
     cells = np.asarray(traj.cells, dtype=np.int64)
     cor = Corridor(m, cells, pad)
-    terrain = (a, radius, _METHOD[method], clearance)
     usable = (cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem)
     verts = _corner_vertices(cells)
     vr = cells[verts, 0].astype(np.float64)
@@ -1111,26 +1120,39 @@ def fly(maps, traj, vehicle=None) -> Flight:
                 wr, wc = sr, sc
         pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)
         grid = cor.grid()  # the elevation decoded meanwhile
-        track = _profile(grid, terrain, pr, pc, slope)
         qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, step)
+        h_track = _required_threaded(grid, terrain, pr, pc)
         hq = np.empty(len(qr))
         new = shared < 0
-        hq[~new] = track["h"][shared[~new]]
+        hq[~new] = h_track[shared[~new]]
         hq[new] = _required_threaded(grid, terrain, qr[new], qc[new])
-        route = _profile(grid, terrain, qr, qc, slope, hq)
-        for band in bands:  # the narrowest band that needs few waypoints (linear time each)
-            zq, brk = band_profile(route["s"], route["z"], band, top_ok, slope)
-            wi = np.union1d(vi, brk)
-            if len(wi) <= want:
-                break
+        prof = vertical_profile(
+            wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands,
+            top_ok, want,
+        )  # fmt: skip
+        zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
+        route = {"s": prof["sigma"], "z": zq, "h": hq}
+        z_t = np.interp(sig_t, prof["sigma"], zq)
+        s_t = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
+        track = {
+            "h": h_track,
+            "s": s_t,
+            "z": z_t,
+            "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
+        }
+        track["known"] = route["known"] = bool(not (np.isnan(h_track).any() or np.isnan(hq).any()))
         problems = []
-        if not (track["known"] and route["known"]):
+        if not track["known"]:
             problems.append("the terrain near the track is unknown (no-data) at some samples")
-        elif max(track["z"].max(), route["z"].max()) > top_ok:
+        elif max(z_t.max(), zq.max()) > top_ok:
             problems.append(
-                f"the pitch limit forces the vehicle to {-track['z'].max():.0f} m depth, above "
-                f"the surface limit ({-top:.0f} m)"
+                f"the pitch limit forces the vehicle to {-max(z_t.max(), zq.max()):.0f} m depth, "
+                f"above the surface limit ({-top:.0f} m)"
             )
+        else:
+            low = min(float(np.min(z_t - h_track)), float(np.min(zq - hq)))
+            if low < -1e-6:  # never by construction: a check of what is written
+                problems.append(f"the route passes {-low:.2f} m below its required height")
         route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
         longest = max(track["length"], route_length)
         over = ""
@@ -1195,13 +1217,15 @@ def fly(maps, traj, vehicle=None) -> Flight:
     wx, wy = _map_xy(m, qr[wi], qc[wi])
     rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
     duration = float(t[-1])
+    seabed = _bilinear(*grid, pr, pc)
+    near = profile_figures(s, z, seabed)
     return Flight(
         x=x,
         y=y,
         z=z,
         s=s,
         time_s=t,
-        seabed_m=_bilinear(*grid, pr, pc),
+        seabed_m=seabed,
         required_m=h,
         waypoints=np.column_stack([wx, wy, zq[wi], rt[wi] / veh.speed_m_s]),
         waypoint_index=wi,
@@ -1223,7 +1247,130 @@ def fly(maps, traj, vehicle=None) -> Flight:
         seconds=time.perf_counter() - t0,
         route=np.column_stack([*_map_xy(m, qr, qc), zq]),
         route_seabed_m=_bilinear(*grid, qr, qc),
+        **near,
     )
+
+
+def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
+    """The sample step (grid units), the ``required_heights`` terrain arguments and the
+    highest height allowed, such that a route whose samples keep their required heights keeps
+    the clearance from the continuous seabed everywhere between them too (docs/method.md
+    section 2): the seabed over a grid square is at most its highest corner, which lies within
+    the square's diagonal of any of its points; on an arc the vehicle is within the sagitta
+    ``c^2 / (8 r)`` of the chord between samples ``c`` apart; spherical: the samples clear of
+    the seabed by ``R' = sqrt((R + sagitta)^2 + (L/2)^2)``, ``L`` the longest 3-D step between
+    samples, keep every point of the step ``R`` away (samples close enough that ``R'``
+    exceeds ``R`` by at most ``CLEARANCE_SLACK * R``); horizontal and vertical: a sample's
+    heights cover every point within a step of it (a point of a step is as high as one of
+    its two ends)."""
+    diag = a * math.sqrt(2.0)
+    grade = math.sqrt(1.0 + slope * slope)
+    step = SAMPLE_STEP
+    if method == "spherical":
+        eps = CLEARANCE_SLACK * clearance
+        longest = 2.0 * math.sqrt(2.0 * clearance * eps + eps * eps)
+        step = min(SAMPLE_STEP, longest / (a * grade))
+    chord = step * a
+    sag = chord * chord / (8.0 * turn_m) if turn_m > 0 else 0.0
+    if method == "spherical":
+        r = math.sqrt((clearance + sag) ** 2 + 0.25 * (chord * grade) ** 2)
+        terrain = (a, r, _METHOD[method], clearance, diag)
+        top_ok = top + (r - clearance) + 1e-6  # the surface limit is R's, not R''s
+    else:
+        reach = diag + chord + sag
+        r = radius if method == "horizontal" else 0.0
+        terrain = (a, r, _METHOD[method], clearance, reach)
+        top_ok = top + 1e-6
+    return step, terrain, top_ok
+
+
+def _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a) -> np.ndarray:
+    """Where each sample of the flown track (the corners' arcs) lies along the waypoint route
+    (metres from the start, along the straight legs): a straight sample at its own place; the
+    samples of the arc at corner ``k`` spread evenly over ``[sigma_k - t, sigma_k + t]``
+    (``t`` the arc's tangent length), in turn."""
+    out = np.empty(len(pr))
+    straight = leg >= 0
+    k = leg[straight]
+    out[straight] = sig_corner[k] + a * np.hypot(pr[straight] - wr[k], pc[straight] - wc[k])
+    on_arc = np.flatnonzero(~straight)
+    if on_arc.size:
+        start = on_arc[np.concatenate(([True], np.diff(on_arc) > 1))]
+        end = on_arc[np.concatenate((np.diff(on_arc) > 1, [True]))] + 1
+        for b, e in zip(start.tolist(), end.tolist(), strict=True):
+            corner = int(leg[b - 1]) + 1  # the arc follows its first leg's straight samples
+            t = tan_d[corner] * a
+            u = np.arange(e - b) / (e - b)
+            out[b:e] = sig_corner[corner] - t + 2.0 * t * u
+    return out
+
+
+def vertical_profile(
+    wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands, top, want
+) -> dict:
+    """The heights of the waypoint route and its waypoints (docs/flyable-missions.md): one
+    profile along the route's straight legs (``sigma``, metres), linear between waypoints
+    (what an autopilot flies), and the flown track's heights read from it at each sample's
+    place along the route (:func:`_track_sigma`). Every sample of either keeps its required
+    height (``hq``; ``h_track``: an arc sample's binds the two route samples around it);
+    the pitch holds on the legs and on the arcs (the route's slope limited over a turn by the
+    ratio of the arc's chords to the route they stand for); the profile is a few straight
+    pieces inside a band above the lowest such profile (:func:`band_profile`), the narrowest of
+    ``bands`` that needs at most ``want`` waypoints."""
+    sig = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(qr), np.diff(qc)))))
+    sig_corner = sig[vi]
+    sig_t = _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a)
+    h = np.where(np.isnan(hq), -np.inf, hq)
+    ht = np.where(np.isnan(h_track), -np.inf, h_track)
+    j = np.clip(np.searchsorted(sig, sig_t, side="right") - 1, 0, len(sig) - 2)
+    np.maximum.at(h, j, ht)
+    np.maximum.at(h, j + 1, ht)
+    slopes = np.full(len(sig) - 1, slope)
+    arc_n = np.bincount(_arc_corner(leg), minlength=len(wr))
+    for k in np.flatnonzero(np.isfinite(radii) & (tan_d > 0)):
+        theta = 2.0 * math.atan(tan_d[k] / radii[k])
+        na = max(int(arc_n[k]), 1)
+        factor = na * math.sin(theta / (2 * na)) / math.tan(theta / 2)
+        t = tan_d[k] * a
+        j0 = max(int(np.searchsorted(sig, sig_corner[k] - t, side="right")) - 1, 0)
+        j1 = min(int(np.searchsorted(sig, sig_corner[k] + t, side="left")), len(slopes))
+        slopes[j0:j1] = np.minimum(slopes[j0:j1], slope * factor * (1 - 1e-9))
+    if not np.isfinite(h).any():
+        h[:] = 0.0
+    env = pitch_envelope_var(h, sig, slopes)
+    corners = np.asarray(vi, dtype=np.int64)
+    for band in bands:  # the narrowest band that needs few waypoints (linear time each)
+        z, brk = band_profile(sig, env, band, top, slopes)
+        wi = np.union1d(corners, brk)
+        if len(wi) <= want:
+            break
+    z = np.interp(sig, sig[wi], z[wi])  # exactly linear between waypoints
+    return {"sigma": sig, "z": z, "waypoints": wi, "band": band, "sigma_track": sig_t}
+
+
+def _arc_corner(leg: np.ndarray) -> np.ndarray:
+    """The corner of each arc sample of the flown track (``leg`` -1), for counting."""
+    on_arc = leg < 0
+    prev = np.maximum.accumulate(np.where(~on_arc, np.arange(len(leg)), 0))
+    return (leg[prev[on_arc]] + 1).astype(np.int64)
+
+
+def profile_figures(s, z, seabed) -> dict:
+    """Near-bottom figures of a flown profile: the altitude above the seabed (median, 90th
+    percentile, least) and the vertical reversals (climb to descent or back, level pieces
+    passed over) per km of horizontal distance."""
+    alt = z - seabed
+    d = np.sign(np.round(np.diff(z) / np.maximum(np.diff(s), 1e-300), 9))
+    d = d[d != 0]
+    rev = int(np.count_nonzero(d[1:] != d[:-1])) if d.size > 1 else 0
+    km = max(float(s[-1] - s[0]) / 1000.0, 1e-9)
+    ok = np.isfinite(alt)
+    return {
+        "altitude_median_m": float(np.median(alt[ok])) if ok.any() else math.nan,
+        "altitude_p90_m": float(np.percentile(alt[ok], 90)) if ok.any() else math.nan,
+        "altitude_min_m": float(alt[ok].min()) if ok.any() else math.nan,
+        "reversals_per_km": rev / km,
+    }
 
 
 def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> np.ndarray:
@@ -1240,21 +1387,6 @@ def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> np.ndarray:
         range(parts),
     )
     return np.concatenate(list(out))
-
-
-def _profile(grid, terrain, pr, pc, slope, h=None) -> dict:
-    """Required heights along samples (grid units; ``h`` when known), their lowest
-    pitch-limited profile and its 3-D length (inf where the terrain is unknown)."""
-    if h is None:
-        h = _required_threaded(grid, terrain, pr, pc)
-    a = terrain[0]
-    s = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
-    known = bool(not np.isnan(h).any())
-    z = pitch_envelope(np.where(np.isnan(h), np.inf, h), s, slope)
-    length = float(np.hypot(np.diff(s), np.diff(z)).sum()) if known else math.inf
-    if not known:
-        z = np.where(np.isfinite(z), z, np.nan)
-    return {"h": h, "s": s, "z": z, "known": known, "length": length}
 
 
 @njit(cache=True)

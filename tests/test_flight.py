@@ -50,7 +50,7 @@ def test_band_profile_stays_in_its_band_within_the_pitch_limit(seed, n, slope, b
     rng = np.random.default_rng(seed)
     s = np.cumsum(0.1 + rng.random(n) * 30)
     env = pitch_envelope(rng.normal(size=n) * 200, s, slope)
-    z, brk = band_profile(s, env, band, np.inf, slope)
+    z, brk = band_profile(s, env, band, np.inf, np.full(n - 1, slope))
     assert np.all(z >= env - 1e-6) and np.all(z <= env + band + 1e-6)
     assert np.all(np.abs(np.diff(z)) <= slope * np.diff(s) * (1 + 1e-9) + 1e-9)
     assert brk[0] == 0 and brk[-1] == n - 1
@@ -169,30 +169,47 @@ def test_turns_are_widened_where_the_corners_are_too_close(ridge_store):
     assert np.all(rad[np.isfinite(rad)] >= 1.0 - 1e-9)
 
 
-def test_required_heights_equal_the_safety_layer_at_cell_centres(ridge_store):
-    """At a cell centre the required height is the safety surface (scipy's grey dilation in
-    test_safety); between centres it is the tight clearance against the grid points."""
-    from pipeline.flight import Corridor, required_heights
+def bilinear_seabed_points(z, a, step):
+    """The continuous seabed, bilinear between the grid points of ``z`` (row 0 at y = 0, rows
+    going up in y, cells of ``a``), sampled every ``step`` metres by scipy: (x, y, z) rows."""
+    from scipy.interpolate import RegularGridInterpolator
 
-    path, ok, _, pts = ridge_store
-    m = pipeline.open_store(path)
-    ds = pipeline.open_maps(path)
-    cells = np.argwhere(ok)[::97]
-    cor = Corridor(m, cells, 5)
+    rows, cols = z.shape
+    f = RegularGridInterpolator((np.arange(rows) * a, np.arange(cols) * a), z.astype(np.float64))
+    ys = np.arange(0.0, (rows - 1) * a + 1e-9, step)
+    xs = np.arange(0.0, (cols - 1) * a + 1e-9, step)
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    zz = f(np.stack([yy, xx], axis=-1))
+    return np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+
+
+@pytest.mark.parametrize("ratio", [0.3, 0.7, 3.0])
+def test_required_heights_clear_the_bilinear_seabed_between_grid_points(ratio):
+    """Random points over a rough seabed whose clearance R is 0.3, 0.7 and 3 cells: at its
+    required height a point is at least R from the bilinear seabed (scipy's interpolation,
+    sampled every cell / 40, KD-tree), and no more than the seabed's rise over two cells
+    above the tight height (the envelope is conservative, not loose)."""
+    from pipeline.flight import required_heights
+
+    rng = np.random.default_rng(3)
+    a, n = 100.0, 24
+    radius = ratio * a
+    z = (-2000 + 60 * rng.normal(size=(n, n))).astype(np.float32)
+    el, slot = z[None].copy(), np.zeros((1, 1), dtype=np.int64)
+    pr, pc = rng.uniform(6, n - 7, 300), rng.uniform(6, n - 7, 300)
     h = required_heights(
-        cor.el, cor.slot, cor.tr, cor.tc, *m.shape,
-        cells[:, 0].astype(float), cells[:, 1].astype(float), 50.0, 150.0, 2, 150.0,
+        el, slot, n, n, n, n, pr, pc, a, radius, 2, radius, a * math.sqrt(2.0)
     )  # fmt: skip
-    np.testing.assert_allclose(h, ds["safety"].values[cells[:, 0], cells[:, 1]], rtol=1e-6)
-    rng = np.random.default_rng(0)
-    pr = cells[:, 0] + rng.random(len(cells)) - 0.5
-    pc = cells[:, 1] + rng.random(len(cells)) - 0.5
-    h = required_heights(cor.el, cor.slot, cor.tr, cor.tc, *m.shape, pr, pc, 50.0, 150.0, 2, 150.0)
-    x, y = m.x[0] + pc * 50.0, m.y[0] - pr * 50.0
-    tree = cKDTree(pts)
-    d_at, _ = tree.query(np.column_stack([x, y, h]))
-    d_below, _ = tree.query(np.column_stack([x, y, h - 0.5]))
-    assert d_at.min() >= 150.0 * (1 - 1e-9) and d_below.max() < 150.0
+    tree = cKDTree(bilinear_seabed_points(z, a, a / 40))
+    xyz = np.column_stack([pc * a, pr * a, h])
+    d, _ = tree.query(xyz)
+    assert d.min() >= radius * (1 - 1e-3) - a / 40 * 0.71, d.min()
+    from scipy.interpolate import RegularGridInterpolator
+
+    under = RegularGridInterpolator((np.arange(n) * a, np.arange(n) * a), z.astype(float))
+    altitude = h - under(np.column_stack([pr * a, pc * a]))
+    rise = 2 * max(np.abs(np.diff(z, axis=0)).max(), np.abs(np.diff(z, axis=1)).max())
+    assert altitude.max() <= radius + rise
 
 
 # ------------------------------------------------------------------ files, independent readers
@@ -681,8 +698,8 @@ def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
     """The required heights read the elevation in blocks and pass over those that cannot raise
     the best value so far: along a winding track (each point next to the last, as the flight
     samples it), over rough terrain with no-data holes, unloaded tiles and the map's edges,
-    they equal the maximum over every grid point within the radius (numpy), NaN wherever a
-    grid point within it is unknown."""
+    they equal the maximum over every grid point within the radius and a grid square's
+    diagonal (numpy), NaN wherever a grid point within it is unknown."""
     from pipeline.flight import required_heights
 
     rng = np.random.default_rng(7)
@@ -704,17 +721,21 @@ def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
     s = np.linspace(0.0, 1.0, 1500)
     pr = -0.4 + (rows - 0.2) * s + 8.0 * np.sin(19.0 * s)
     pc = (cols - 1) * (0.5 + 0.49 * np.sin(7.0 * s))
-    h = required_heights(el, slot, tile, tile, rows, cols, pr, pc, a, radius, method, clearance)
+    reach = a * math.sqrt(2.0)  # the grid squares' diagonal
+    h = required_heights(
+        el, slot, tile, tile, rows, cols, pr, pc, a, radius, method, clearance, reach
+    )  # fmt: skip
     ii, jj = np.mgrid[0:rows, 0:cols]
     for k in range(len(pr)):
         d2 = a * a * ((ii - pr[k]) ** 2 + (jj - pc[k]) ** 2)
-        near = d2 <= radius**2
+        near = d2 <= (radius + reach) ** 2
         if not near.any():
             ref = -np.inf
         elif np.isnan(known[near]).any():
             ref = np.nan
         elif method == 2:
-            ref = np.max(known[near] + np.sqrt(radius**2 - d2[near]))
+            lift = np.maximum(np.sqrt(d2[near]) - reach, 0.0)
+            ref = np.max(known[near] + np.sqrt(np.maximum(radius**2 - lift**2, 0.0)))
         else:
             ref = np.max(known[near]) + clearance
         if np.isnan(ref):
@@ -1003,3 +1024,104 @@ def test_seabed_under_the_track_is_scipys_bilinear_interpolation(tile):
         else:
             assert got[k] == pytest.approx(ref[k], rel=1e-12, abs=1e-9), k
     assert np.isnan(got).any() and np.isfinite(got).sum() > len(got) // 2
+
+
+# ---------------------------------------------------------- safe against the continuous seabed
+
+
+def _seabed_dem(kind: str, n: int, a: float) -> np.ndarray:
+    i, j = np.mgrid[0:n, 0:n].astype(np.float64)
+    if kind == "flat":
+        return np.full((n, n), -3000.0, np.float32)
+    if kind == "plane":  # a slope of 0.8 %
+        return (-3000.0 + 0.008 * a * (i + 0.5 * j)).astype(np.float32)
+    # a sine seabed: relief of 0.6 cells' side, rough at the grid's scale
+    return (-3000.0 + 0.3 * a * np.sin(i / 2.3) * np.cos(j / 3.1)).astype(np.float32)
+
+
+def _flown_over(tmp_path, kind, ratio, method, n=40, a=100.0):
+    import dask
+    from conftest import metric_dataarray
+
+    dem = metric_dataarray(_seabed_dem(kind, n, a), a=a).rename("elevation")
+    dem.attrs.update(cell_size=a, units="m", positive="up")
+    clearance = ratio * a
+    path = tmp_path / f"{kind}-{ratio}-{method}.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, path, method=method, clearance=clearance, chunks=16)
+    ok = pipeline.open_maps(path)["passable"].values.astype(bool)
+    cells = np.argwhere(ok)
+    s, g = tuple(cells[np.argmin(cells.sum(1))]), tuple(cells[np.argmax(cells.sum(1))])
+    t = pipeline.plan(path, s, g, planner="ra_star", omega=2.0, client="synchronous")
+    veh = {"max_pitch_deg": 15.0, "min_turn_radius_m": 1.5 * a}
+    with_flight(path, t, veh)
+    return path, t, clearance
+
+
+def _bilinear_fn(path):
+    """The maps store's own elevation as scipy's bilinear interpolant of (x, y)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    ds = pipeline.open_maps(path)
+    x, y = ds["x"].values, ds["y"].values
+    z = ds["elevation"].values.astype(np.float64)
+    f = RegularGridInterpolator((y[::-1], x), z[::-1])
+    return f, (x.min(), x.max(), y.min(), y.max())
+
+
+def independent_clearance(path, xyz, method, clearance, fine):
+    """The least clearance of the points ``xyz`` from the continuous (bilinear) seabed of the
+    store, by the method: spherical the 3-D distance to the seabed sampled every ``fine``
+    metres (KD-tree); vertical the height above the seabed under each point; horizontal the
+    height above the highest seabed within the clearance around it."""
+    f, (x0, x1, y0, y1) = _bilinear_fn(path)
+    if method == "vertical":
+        return float(np.min(xyz[:, 2] - f(np.column_stack([xyz[:, 1], xyz[:, 0]]))))
+    lo_x, hi_x = max(x0, xyz[:, 0].min() - clearance), min(x1, xyz[:, 0].max() + clearance)
+    lo_y, hi_y = max(y0, xyz[:, 1].min() - clearance), min(y1, xyz[:, 1].max() + clearance)
+    xs, ys = np.arange(lo_x, hi_x + 1e-9, fine), np.arange(lo_y, hi_y + 1e-9, fine)
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    zz = f(np.stack([yy, xx], axis=-1))
+    if method == "spherical":
+        d, _ = cKDTree(np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])).query(xyz)
+        return float(d.min())
+    tree = cKDTree(np.column_stack([xx.ravel(), yy.ravel()]))
+    top = np.array([zz.ravel()[i].max() for i in tree.query_ball_point(xyz[:, :2], clearance)])
+    return float(np.min(xyz[:, 2] - top))
+
+
+@pytest.mark.parametrize(
+    "kind, ratio, method",
+    [("sine", r, "spherical") for r in (0.5, 0.7, 1.0, 3.0, 10.0)]
+    + [("flat", 0.5, "spherical"), ("plane", 0.5, "spherical"), ("plane", 3.0, "spherical")]
+    + [("sine", r, m) for r in (0.5, 3.0) for m in ("vertical", "horizontal")],
+)
+def test_the_route_flown_keeps_r_from_the_continuous_seabed(tmp_path, kind, ratio, method):
+    """What the vehicle flies, checked as an operator would: the waypoint route (straight legs
+    at the waypoints' heights) and the flown track (the same route with its turns), each
+    densified every 2 m, keep the clearance from the bilinear seabed between grid points
+    (independently: scipy's interpolation, sampled finely) at R of 0.5 to 10 cells (half a
+    cell is the least a maps store takes), for each method; the grid path planned with
+    grid-point clearance alone would not. On flat ground the route is level at altitude R;
+    on a plane a straight ramp (no reversal)."""
+    path, t, clearance = _flown_over(tmp_path, kind, ratio, method)
+    assert t.status == "ok", t.message
+    f = t.flight
+    fine = min(clearance / 20, 10.0)
+    for xyz in (densify(f.waypoints[:, :3], 2.0), densify(np.column_stack([f.x, f.y, f.z]), 2.0)):
+        least = independent_clearance(path, xyz, method, clearance, fine)
+        slack = fine * 0.71 if method != "vertical" else 0.0  # the sampling's own error
+        assert least >= clearance * (1 - 1e-6) - 1e-6 - (0 if method == "spherical" else slack)
+    # the waypoints' legs: pitch within the limit
+    w = f.waypoints
+    tan = math.tan(math.radians(15.0))
+    assert np.all(np.abs(np.diff(w[:, 2])) <= tan * np.hypot(*np.diff(w[:, :2], axis=0).T) + 1e-6)
+    assert np.all(np.abs(np.diff(f.z)) <= tan * np.hypot(np.diff(f.x), np.diff(f.y)) + 1e-6)
+    # the track is the route: every track sample within a metre of the waypoints' legs in 3-D
+    # where the two share their straight parts (the turns cut the corners)
+    if kind == "flat":
+        assert np.ptp(w[:, 2]) < 1e-6 and f.reversals_per_km == 0.0
+        if method == "spherical":
+            assert f.altitude_median_m == pytest.approx(clearance, rel=1e-3)
+    if kind == "plane":
+        assert f.reversals_per_km == 0.0
