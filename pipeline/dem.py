@@ -898,11 +898,12 @@ def _reproject_geographic(
 def exact_warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None):
     """``values`` (dims ``(y, x)`` on a regular grid of ``src_crs``) sampled at the cell
     centres of the grid ``transform``, ``shape`` of ``dst_crs``: each centre transformed
-    exactly by pyproj (no approximate transformer: GDAL's default one, an error of up to an
-    eighth of a source cell, put terrain hundreds of metres off on 0.1-degree grids), then
-    bilinear in the source grid; NaN where one of the four source points it weighs is NaN or
-    off the grid. With ``chunks`` (a (rows, cols) side) the result is a dask array whose each
-    block reads only the source window it needs (memory bounded by the block), equal to the
+    exactly by pyproj (not GDAL's approximate transformer, whose error of up to an eighth of
+    a source cell moves terrain by tens of metres on coarse grids), then bilinear in the
+    source grid, the source's outer half cells holding their edge points' values (its cells
+    are areas, as GDAL reads them); NaN beyond them, or where a source point with a weight is
+    NaN. With ``chunks`` (a (rows, cols) side) the result is a dask array whose each block
+    reads only the source window it needs (memory bounded by the block), equal to the
     in-memory result (each centre is computed alone)."""
     from pyproj import Transformer
 
@@ -990,8 +991,9 @@ def _warp_kernel(src, r0, c0, x0, dx, y0, dy, ny, nx, llon, llat, fy, fx):
     """The bilinear sample of the source window ``src`` (its first point source row ``r0``,
     column ``c0``; the source grid's first coordinates, steps and size ``x0, dx, y0, dy, ny,
     nx``) at the source coordinates interpolated bilinearly in the lattice ``llon``, ``llat``
-    at fractional rows ``fy`` by columns ``fx`` (integers: the lattice's own values). NaN off
-    the grid or where a point with a weight is NaN; a neighbour of weight 0 (on a grid line)
+    at fractional rows ``fy`` by columns ``fx`` (integers: the lattice's own values); the
+    outer half cells take their edge's values. NaN beyond them or where a point with a weight
+    is NaN; a neighbour of weight 0 (on a grid line)
     is the point itself, so its NaN does not count."""
     out = np.empty((fy.size, fx.size), dtype=np.float32)
     h, w = src.shape
@@ -1010,7 +1012,8 @@ def _warp_kernel(src, r0, c0, x0, dx, y0, dy, ny, nx, llon, llat, fy, fx):
             lat += (llat[a1, b0] * (1 - tb) + llat[a1, b1] * tb) * ta
             fi = (lat - y0) / dy
             fj = (lon - x0) / dx
-            if not (-1e-9 <= fi <= ny - 1 + 1e-9 and -1e-9 <= fj <= nx - 1 + 1e-9):
+            # the source's cells are areas: its outer half cells hold their points' values
+            if not (-0.5 <= fi <= ny - 0.5 and -0.5 <= fj <= nx - 0.5):
                 out[r, c] = np.nan  # (NaN coordinates too)
                 continue
             fi = min(max(fi, 0.0), ny - 1.0)

@@ -67,7 +67,18 @@ def _reference_reprojection(dem, z, lon, lat):
     interp = RegularGridInterpolator(
         (lat[order], lon), z[order].astype(np.float64), bounds_error=False, fill_value=np.nan
     )
-    return interp(np.stack([la, lo], axis=-1))
+    # the source's cells are areas: its outer half cells hold the edge points' values
+    hy, hx = abs(lat[1] - lat[0]) / 2, abs(lon[1] - lon[0]) / 2
+    out = (
+        (la < lat.min() - hy)
+        | (la > lat.max() + hy)
+        | (lo < lon.min() - hx)
+        | (lo > lon.max() + hx)
+    )
+    la, lo = np.clip(la, lat.min(), lat.max()), np.clip(lo, lon.min(), lon.max())
+    ref = interp(np.stack([la, lo], axis=-1))
+    ref[out] = np.nan
+    return ref
 
 
 @pytest.mark.parametrize("chunks", [None, 64, (37, 295)])
