@@ -1,11 +1,11 @@
 """From a planned grid path to a track a vehicle can fly (``fly``): any-angle shortcuts, turns
-rounded to the vehicle's radius, the lowest pitch-limited depth profile above the terrain,
-waypoints, timing and energy (docs/flyable-missions.md).
+rounded to the vehicle's radius, a pitch-limited near-bottom depth profile clear of the
+continuous seabed, waypoints, timing and energy (docs/flyable-missions.md).
 
 The planned path is a chain of grid cells on the safety surface. A vehicle flies neither cell
 centres nor 45-degree staircases, and it cannot climb at 70 degrees. ``fly`` turns the path
-into a track in steps, every one checked against the terrain itself (the DEM's grid points,
-not the safety layer):
+into a track in steps, every one checked against the terrain itself (the DEM, not the safety
+layer):
 
 1. **Shortcuts** (string pulling): from each kept corner of the path, the farthest later one
    that a straight leg reaches over usable cells (passable, no corner cutting, terrain known
@@ -15,16 +15,18 @@ not the safety layer):
 3. **Turns**: corners too close for the turn radius are cut where a straight leg between
    their neighbours is usable; every other corner is rounded by a circular arc of the
    vehicle's minimum turn radius (never tighter), tangent to both legs: the flown track.
-4. **Depth profile**: along the flown track, sampled every half cell, the required height
-   ``h(p)`` is the clearance surface of the maps' method evaluated at that exact point (for
-   the spherical method ``max{ z(q) + sqrt(R'^2 - |q - p|^2) : |q - p| <= R' }`` over every DEM
-   grid point ``q``, ``R'`` slightly above ``R`` so that the clearance holds between samples
-   too). The flown height is the lowest profile above ``h`` whose slope never exceeds
-   ``tan(max_pitch)``: ``z_i = max_j (h_j - tan(max_pitch) |s_i - s_j|)``, computed exactly by
-   one forward and one backward pass (linear time).
-5. **Waypoints**: along the route's straight legs, heights in few straight pieces inside a
-   band above the route's own lowest profile (``band_profile``); the waypoints are the
-   route's corners and the pieces' ends.
+4. **Required heights**: along the waypoint route and the flown track, sampled every half
+   cell at most, the lowest height ``h(p)`` that keeps the clearance of the maps' method from
+   the continuous seabed (bilinear between the DEM's grid points), conservatively: a grid
+   square's seabed is at most its highest corner, within the square's diagonal of any of its
+   points (:func:`required_heights`); the samples' spacing and ``R'`` slightly above ``R``
+   make it hold between samples and on the arcs too (:func:`_sampling`).
+5. **Depth profile and waypoints**: one profile along the route's straight legs, linear
+   between waypoints (what an autopilot flies): few straight pieces inside a band above the
+   lowest pitch-limited profile over ``h`` (``band_profile``; the arcs' samples bind the route
+   around them, and over a turn the slope is limited so that the arc keeps the pitch); the
+   waypoints are the route's corners and the pieces' ends, and the flown track (the route
+   with its turns) takes its heights from the route (:func:`vertical_profile`).
 
 If the smoothed track breaks a limit (terrain unknown near a shortcut, the profile forced
 above the surface clearance, or a flown length above ``omega`` times the proven lower bound),
@@ -752,21 +754,10 @@ def _bilinear(el, slot, tr, tc, rows, cols, pr, pc):
     return out
 
 
-@njit(cache=True, nogil=True)
 def pitch_envelope(h, s, slope):
     """The lowest profile ``z >= h`` with ``|dz/ds| <= slope``: ``z_i = max_j (h_j - slope
     |s_i - s_j|)`` by a forward and a backward pass (``-inf`` in ``h``: no constraint)."""
-    n = h.size
-    z = h.copy()
-    for k in range(1, n):
-        v = z[k - 1] - slope * (s[k] - s[k - 1])
-        if v > z[k]:
-            z[k] = v
-    for k in range(n - 2, -1, -1):
-        v = z[k + 1] - slope * (s[k + 1] - s[k])
-        if v > z[k]:
-            z[k] = v
-    return z
+    return pitch_envelope_var(h, s, np.full(max(len(h) - 1, 0), float(slope)))
 
 
 @njit(cache=True, nogil=True)
@@ -1131,7 +1122,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
             top_ok, want,
         )  # fmt: skip
         zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
-        route = {"s": prof["sigma"], "z": zq, "h": hq}
+        route = {"s": prof["sigma"], "z": zq}
         z_t = np.interp(sig_t, prof["sigma"], zq)
         s_t = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
         track = {
@@ -1140,7 +1131,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
             "z": z_t,
             "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
         }
-        track["known"] = route["known"] = bool(not (np.isnan(h_track).any() or np.isnan(hq).any()))
+        track["known"] = not (np.isnan(h_track).any() or np.isnan(hq).any())
         problems = []
         if not track["known"]:
             problems.append("the terrain near the track is unknown (no-data) at some samples")
@@ -1284,6 +1275,18 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     return step, terrain, top_ok
 
 
+def _arcs_of(leg: np.ndarray) -> list:
+    """``(first, end, corner)`` of each arc of the flown track: its samples (``leg`` -1)
+    ``first:end``, and the corner it turns, the one after the leg whose samples precede it."""
+    on_arc = np.flatnonzero(leg < 0)
+    if not on_arc.size:
+        return []
+    gap = np.diff(on_arc) > 1
+    first = on_arc[np.concatenate(([True], gap))]
+    end = on_arc[np.concatenate((gap, [True]))] + 1
+    return [(b, e, int(leg[b - 1]) + 1) for b, e in zip(first.tolist(), end.tolist(), strict=True)]
+
+
 def _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a) -> np.ndarray:
     """Where each sample of the flown track (the corners' arcs) lies along the waypoint route
     (metres from the start, along the straight legs): a straight sample at its own place; the
@@ -1293,15 +1296,9 @@ def _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a) -> np.ndarray:
     straight = leg >= 0
     k = leg[straight]
     out[straight] = sig_corner[k] + a * np.hypot(pr[straight] - wr[k], pc[straight] - wc[k])
-    on_arc = np.flatnonzero(~straight)
-    if on_arc.size:
-        start = on_arc[np.concatenate(([True], np.diff(on_arc) > 1))]
-        end = on_arc[np.concatenate((np.diff(on_arc) > 1, [True]))] + 1
-        for b, e in zip(start.tolist(), end.tolist(), strict=True):
-            corner = int(leg[b - 1]) + 1  # the arc follows its first leg's straight samples
-            t = tan_d[corner] * a
-            u = np.arange(e - b) / (e - b)
-            out[b:e] = sig_corner[corner] - t + 2.0 * t * u
+    for b, e, corner in _arcs_of(leg):
+        t = tan_d[corner] * a
+        out[b:e] = sig_corner[corner] - t + 2.0 * t * np.arange(e - b) / (e - b)
     return out
 
 
@@ -1326,7 +1323,9 @@ def vertical_profile(
     np.maximum.at(h, j, ht)
     np.maximum.at(h, j + 1, ht)
     slopes = np.full(len(sig) - 1, slope)
-    arc_n = np.bincount(_arc_corner(leg), minlength=len(wr))
+    arc_n = np.zeros(len(wr), dtype=np.int64)
+    for b, e, corner in _arcs_of(leg):
+        arc_n[corner] = e - b
     for k in np.flatnonzero(np.isfinite(radii) & (tan_d > 0)):
         theta = 2.0 * math.atan(tan_d[k] / radii[k])
         na = max(int(arc_n[k]), 1)
@@ -1346,13 +1345,6 @@ def vertical_profile(
             break
     z = np.interp(sig, sig[wi], z[wi])  # exactly linear between waypoints
     return {"sigma": sig, "z": z, "waypoints": wi, "band": band, "sigma_track": sig_t}
-
-
-def _arc_corner(leg: np.ndarray) -> np.ndarray:
-    """The corner of each arc sample of the flown track (``leg`` -1), for counting."""
-    on_arc = leg < 0
-    prev = np.maximum.accumulate(np.where(~on_arc, np.arange(len(leg)), 0))
-    return (leg[prev[on_arc]] + 1).astype(np.int64)
 
 
 def profile_figures(s, z, seabed) -> dict:
