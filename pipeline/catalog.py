@@ -211,6 +211,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
                 ("altitude_p90_m", f.altitude_p90_m),
                 ("min_altitude_m", f.altitude_min_m),
                 ("vertical_reversals_per_km", f.reversals_per_km),
+                ("unknown_seabed_samples", f.unknown_seabed_samples),
             )
         }
         props["auv:smoothing"] = f.smoothing

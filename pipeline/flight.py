@@ -155,6 +155,8 @@ class Flight:
     altitude_p90_m: float = math.nan
     altitude_min_m: float = math.nan
     reversals_per_km: float = math.nan  # climb to descent or back, per km flown
+    # samples (of the track and the route) within R of a grid square with a no-data corner
+    unknown_seabed_samples: int = 0
 
     @property
     def altitude_m(self) -> np.ndarray:
@@ -584,7 +586,9 @@ def _dome(d2, rr, reach):
 
 
 @njit(cache=True, nogil=True)
-def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, clearance, reach):
+def required_heights(
+    el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, clearance, reach, partial
+):
     """The lowest height at each point (grid units) that keeps the clearance from the
     continuous seabed (bilinear between the DEM's grid points), conservatively: the seabed over
     a grid square is at most its highest corner, and a point of the square is at least ``d -
@@ -592,8 +596,14 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
     for the methods that cover the step between samples). Spherical (``radius`` the
     clearance): ``max z(q) + sqrt(radius^2 - max(0, d - reach)^2)`` over the grid points ``q``
     within ``radius + reach``; horizontal and vertical: ``max z(q) + clearance`` within
-    ``radius + reach`` (docs/method.md section 2). NaN where a grid point it needs is unknown
-    (no-data or not loaded); ``-inf`` where no grid point is near enough.
+    ``radius + reach`` (docs/method.md section 2). NaN where the terrain it needs is unknown: a
+    no-data grid point within ``radius + reach - a sqrt(2)`` (the reach without the squares'
+    diagonal; within ``radius + reach`` for the vertical method, whose squares are under the
+    point), or a grid point within reach not loaded; ``-inf`` where no grid point is near
+    enough. Where only the squares around a no-data grid point farther away come that close,
+    the seabed there is unknown but no grid point the planner kept the clearance from: the
+    height keeps the clearance from the known squares, and ``partial`` (a uint8 array of one
+    flag a point, or empty) marks the point.
 
     Exactly the maximum over every grid point within reach: the grid points are taken in
     blocks (``HEIGHT_BLOCK``), and a block is read only when its highest elevation, at the
@@ -608,6 +618,13 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
     far = radius + reach  # the farthest grid point that can constrain a point
     r2 = far * far
     rc = far / a
+    # an unknown grid point within this makes the height unknown; farther, one whose grid
+    # squares come within the reach less the squares' diagonal (which the highest-corner bound
+    # adds) marks the point partly unknown
+    unknown = max(far - a * math.sqrt(2.0), 0.0)
+    unknown2 = unknown * unknown
+    missing2 = r2 if method == 0 else unknown2
+    flags = partial.size > 0
     b = HEIGHT_BLOCK
     while b > 1 and (tr % b or tc % b):
         b //= 2
@@ -697,8 +714,15 @@ def required_heights(el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, cl
                             continue
                         z = np.float64(el[s, i + oi, j + oj])
                         if z != z:
-                            bad = True
-                            break
+                            if d2 < missing2:
+                                bad = True
+                                break
+                            # the seabed of the four squares around it is unknown
+                            bi2 = max(abs(i - p) - 1.0, 0.0) * a
+                            bj2 = max(abs(j - q) - 1.0, 0.0) * a
+                            if flags and bi2 * bi2 + bj2 * bj2 < unknown2:
+                                partial[k] = 1
+                            continue
                         v = z + _dome(d2, rr, reach) if spherical else z
                         if v > best:
                             best = v
@@ -1112,11 +1136,12 @@ def fly(maps, traj, vehicle=None) -> Flight:
         pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)
         grid = cor.grid()  # the elevation decoded meanwhile
         qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, step)
-        h_track = _required_threaded(grid, terrain, pr, pc)
+        h_track, unsure = _required_threaded(grid, terrain, pr, pc)
         hq = np.empty(len(qr))
         new = shared < 0
         hq[~new] = h_track[shared[~new]]
-        hq[new] = _required_threaded(grid, terrain, qr[new], qc[new])
+        hq[new], unsure_q = _required_threaded(grid, terrain, qr[new], qc[new])
+        unsure = int(unsure.sum() + unsure_q.sum())
         prof = vertical_profile(
             wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands,
             top_ok, want,
@@ -1178,6 +1203,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
                 route_length=route_length,
                 problems=problems,
                 over=over,
+                unsure=unsure,
             )
         )
         if not problems:
@@ -1238,6 +1264,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         seconds=time.perf_counter() - t0,
         route=np.column_stack([*_map_xy(m, qr, qc), zq]),
         route_seabed_m=_bilinear(*grid, qr, qc),
+        unknown_seabed_samples=pick["unsure"],
         **near,
     )
 
@@ -1365,20 +1392,22 @@ def profile_figures(s, z, seabed) -> dict:
     }
 
 
-def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> np.ndarray:
-    """``required_heights`` over the samples, in ``parts`` threads (the kernel releases the
-    GIL): the mission's other work waits for it, the cores do not."""
+def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> tuple:
+    """``required_heights`` over the samples and their flags of a partly unknown seabed, in
+    ``parts`` threads (the kernel releases the GIL): the mission's other work waits for it,
+    the cores do not."""
     n = len(pr)
-    if n < 4096 or parts < 2:
-        return required_heights(*grid, pr, pc, *terrain)
-    cut = np.linspace(0, n, parts + 1).astype(int)
-    out = shared_pool(f"heights-{parts}", parts).map(
-        lambda k: required_heights(
-            *grid, pr[cut[k] : cut[k + 1]], pc[cut[k] : cut[k + 1]], *terrain
-        ),
-        range(parts),
-    )
-    return np.concatenate(list(out))
+    partial = np.zeros(n, dtype=np.uint8)
+    cut = np.linspace(0, n, parts + 1).astype(int) if n >= 4096 and parts >= 2 else [0, n]
+
+    def part(k):
+        lo, hi = cut[k], cut[k + 1]
+        return required_heights(*grid, pr[lo:hi], pc[lo:hi], *terrain, partial[lo:hi])
+
+    if len(cut) == 2:
+        return part(0), partial
+    out = shared_pool(f"heights-{parts}", parts).map(part, range(parts))
+    return np.concatenate(list(out)), partial
 
 
 @njit(cache=True)
@@ -1479,6 +1508,13 @@ def with_flight(maps, traj, vehicle=None):
             f"{veh.speed_m_s:g} m/s and {veh.power_w:g} W), more than the battery's "
             f"{veh.battery_wh:g} Wh: raise battery_wh or lower the powers, or split the mission"
         )
+    if f.unknown_seabed_samples:
+        note = (
+            f"the seabed is unknown (a no-data grid point's squares) within the clearance of "
+            f"{f.unknown_seabed_samples} route samples: there the clearance is kept from the "
+            "known seabed only"
+        )
+        traj.message = f"{traj.message}; {note}" if traj.message else note
     if reasons == [f.over_bound]:  # only the bound: not proven, as for a planned path
         if traj.status == "ok":
             traj.status = "uncertified"

@@ -197,9 +197,8 @@ def test_required_heights_clear_the_bilinear_seabed_between_grid_points(ratio):
     z = (-2000 + 60 * rng.normal(size=(n, n))).astype(np.float32)
     el, slot = z[None].copy(), np.zeros((1, 1), dtype=np.int64)
     pr, pc = rng.uniform(6, n - 7, 300), rng.uniform(6, n - 7, 300)
-    h = required_heights(
-        el, slot, n, n, n, n, pr, pc, a, radius, 2, radius, a * math.sqrt(2.0)
-    )  # fmt: skip
+    diag, flags = a * math.sqrt(2.0), np.zeros(0, np.uint8)
+    h = required_heights(el, slot, n, n, n, n, pr, pc, a, radius, 2, radius, diag, flags)
     tree = cKDTree(bilinear_seabed_points(z, a, a / 40))
     xyz = np.column_stack([pc * a, pr * a, h])
     d, _ = tree.query(xyz)
@@ -605,8 +604,9 @@ def test_a_bad_vehicle_table_is_one_clear_line(tmp_path):
 
 def test_no_data_holes_and_no_crs(tmp_path):
     """Terrain with no-data holes and no CRS: the flight never passes where the terrain is
-    unknown (clearance checked against the known grid points), and only the files in map
-    coordinates are written, the Item saying which were skipped."""
+    unknown (clearance checked against the known grid points), says where a no-data point's
+    grid squares come within the clearance, and only the files in map coordinates are
+    written, the Item saying which were skipped."""
     import dask
     from conftest import metric_dataarray, random_surface
 
@@ -621,13 +621,22 @@ def test_no_data_holes_and_no_crs(tmp_path):
     tree = cKDTree(grid_points(path))
     m = pipeline.open_store(path)
     assert m.crs_wkt is None
+    unsure = []
     for s, g in missions(ok, 3, seed=2, min_cells=80):
         t = pipeline.plan(path, s, g, planner="ra_star", omega=1.5, client="synchronous")
         f = pipeline.fly(path, t)
         assert f.ok, f.problems
         assert np.isfinite(f.required_m).all()
         assert tree.query(np.column_stack([f.x, f.y, f.z]))[0].min() >= 120.0 * (1 - 1e-9)
+        unsure.append(f.unknown_seabed_samples)
+    # the scattered no-data cells lie beyond R of the path's cells, but their grid squares come
+    # within R of the route between them: said, with how many samples
+    assert all(unsure)
     with_flight(m, t, {})
+    assert (
+        f"seabed is unknown (a no-data grid point's squares) within the clearance of {unsure[-1]} "
+        in t.message
+    )
     files = exports.write_mission_files(tmp_path, "m", "m", t, None, 0.0)
     assert set(files) == {"track", "grid-path", "waypoints-csv"}
     import geopandas as gpd
@@ -699,7 +708,9 @@ def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
     the best value so far: along a winding track (each point next to the last, as the flight
     samples it), over rough terrain with no-data holes, unloaded tiles and the map's edges,
     they equal the maximum over every grid point within the radius and a grid square's
-    diagonal (numpy), NaN wherever a grid point within it is unknown."""
+    diagonal (numpy), NaN wherever a grid point within that is not loaded or a no-data point
+    within the radius; a point flagged where a no-data point's grid squares, not the point
+    itself, come within the radius."""
     from pipeline.flight import required_heights
 
     rng = np.random.default_rng(7)
@@ -717,31 +728,45 @@ def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
             blk = z[ti * tile : (ti + 1) * tile, tj * tile : (tj + 1) * tile]
             el[slot[ti, tj], : blk.shape[0], : blk.shape[1]] = blk
     known = z.astype(np.float64)
-    known[(nti - 1) * tile :, :tile] = np.nan
+    unloaded = np.zeros((rows, cols), dtype=bool)
+    unloaded[(nti - 1) * tile :, :tile] = True
     s = np.linspace(0.0, 1.0, 1500)
     pr = -0.4 + (rows - 0.2) * s + 8.0 * np.sin(19.0 * s)
     pc = (cols - 1) * (0.5 + 0.49 * np.sin(7.0 * s))
     reach = a * math.sqrt(2.0)  # the grid squares' diagonal
+    partial = np.zeros(len(pr), dtype=np.uint8)
     h = required_heights(
-        el, slot, tile, tile, rows, cols, pr, pc, a, radius, method, clearance, reach
+        el, slot, tile, tile, rows, cols, pr, pc, a, radius, method, clearance, reach, partial
     )  # fmt: skip
     ii, jj = np.mgrid[0:rows, 0:cols]
     for k in range(len(pr)):
         d2 = a * a * ((ii - pr[k]) ** 2 + (jj - pc[k]) ** 2)
         near = d2 <= (radius + reach) ** 2
-        if not near.any():
-            ref = -np.inf
-        elif np.isnan(known[near]).any():
+        # a no-data point's four squares: their least distance from the point
+        box2 = (
+            a
+            * a
+            * (
+                np.maximum(np.abs(ii - pr[k]) - 1, 0) ** 2
+                + np.maximum(np.abs(jj - pc[k]) - 1, 0) ** 2
+            )
+        )
+        good = near & ~unloaded & np.isfinite(known)
+        # unknown within the radius: no height; beyond, squares within it: a partial flag
+        if (near & unloaded).any() or (np.isnan(known) & (d2 < radius**2)).any():
             ref = np.nan
+        elif not good.any():
+            ref = -np.inf
         elif method == 2:
-            lift = np.maximum(np.sqrt(d2[near]) - reach, 0.0)
-            ref = np.max(known[near] + np.sqrt(np.maximum(radius**2 - lift**2, 0.0)))
+            lift = np.maximum(np.sqrt(d2[good]) - reach, 0.0)
+            ref = np.max(known[good] + np.sqrt(np.maximum(radius**2 - lift**2, 0.0)))
         else:
-            ref = np.max(known[near]) + clearance
+            ref = np.max(known[good]) + clearance
         if np.isnan(ref):
             assert np.isnan(h[k]), k
         else:
             assert h[k] == pytest.approx(ref, rel=0, abs=1e-9), k
+            assert partial[k] == (np.isnan(known) & (box2 < radius**2)).any(), k
     assert np.isnan(h).any() and np.isfinite(h).sum() > len(h) // 2
 
 
@@ -775,7 +800,10 @@ def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, 
     pr = rng.uniform(-0.5, rows - 0.5, 300)
     pc = rng.uniform(-0.5, cols - 0.5, 300)
     pr[:4], pc[:4] = [rows - 1, rows - 1, 0, rows - 1.3], [cols - 1, 0, cols - 1, cols - 1.2]
-    h = required_heights(cor.el, cor.slot, cor.tr, cor.tc, rows, cols, pr, pc, 50.0, 120.0, 2, 0.0)
+    flags = np.zeros(0, np.uint8)
+    h = required_heights(
+        cor.el, cor.slot, cor.tr, cor.tc, rows, cols, pr, pc, 50.0, 120.0, 2, 0.0, 0.0, flags
+    )  # fmt: skip
     z = ds["elevation"].values.astype(np.float64)
     ii, jj = np.mgrid[0:rows, 0:cols]
     for k in range(len(pr)):
