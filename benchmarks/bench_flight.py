@@ -1,10 +1,13 @@
-"""Issue 16 figures: missions a vehicle can fly.
+"""Issues 16 and 61 figures: missions a vehicle can fly.
 
 1. Every mission of the demo job (tasks/demo.toml, synthetic 2000^2 at 30 m, 8 missions) and of
    the real-bathymetry job (tasks/topobathy.toml, 5 missions), run as jobs with the default
    vehicle, checked from the catalog's own files against independent references: the flown
    track (track.parquet) and the waypoints' straight legs (waypoints.csv, sampled every 5 m)
-   against every DEM grid point (scipy's KD-tree, 3-D distances: clearance >= R); pitch between
+   against every DEM grid point and against the continuous seabed (scipy's bilinear
+   interpolation sampled finely around the route; KD-trees, 3-D distances: clearance >= R),
+   the altitude and vertical reversals per km, legs shorter than the turn radius, and a figure
+   of the depth profiles (docs/flight-profiles.png); pitch between
    consecutive samples; the turn radius as the circumradius of every three consecutive track
    samples; the flown length against omega x L* (scipy.sparse.csgraph.dijkstra on the whole
    fine graph built here); waypoints against the grid path's cells (target < 10 %).
@@ -49,6 +52,40 @@ def legs(xyz: np.ndarray, step: float) -> np.ndarray:
         n = max(1, int(math.ceil(math.hypot(*(q - p)[:2]) / step)))
         out.append(p + (np.arange(1, n + 1) / n)[:, None] * (q - p))
     return np.concatenate(out)
+
+
+def seabed_near(
+    z: np.ndarray, x: np.ndarray, y: np.ndarray, pts: np.ndarray, reach: float, fine: float
+):
+    """The continuous seabed (bilinear between the grid points ``z`` at coordinates ``x``,
+    ``y``: scipy's interpolation) sampled about every ``fine`` metres over every grid square
+    within ``reach`` of a point of ``pts`` (x, y), as a KD-tree of (x, y, z), and the sampling's
+    covering radius in plan (a distance to the samples exceeds the true one by at most that)."""
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.spatial import cKDTree
+
+    a = abs(float(x[1] - x[0]))
+    iy = np.argsort(y)
+    f = RegularGridInterpolator((y[iy], x), z[iy])
+    ci = np.clip(np.rint((pts[:, 0] - x[0]) / (x[1] - x[0])), 0, len(x) - 2).astype(int)
+    ri = np.clip(np.rint((pts[:, 1] - y[0]) / (y[1] - y[0])), 0, len(y) - 2).astype(int)
+    k = int(math.ceil(reach / a)) + 1
+    squares = set()
+    for dr in range(-k, k + 1):
+        for dc in range(-k, k + 1):
+            rr = np.clip(ri + dr, 0, len(y) - 2)
+            cc = np.clip(ci + dc, 0, len(x) - 2)
+            squares.update(zip(rr.tolist(), cc.tolist(), strict=True))
+    sq = np.array(sorted(squares))
+    n = int(math.ceil(a / fine))
+    u = np.linspace(0.0, 1.0, n + 1)
+    uu, vv = (g.ravel() for g in np.meshgrid(u, u))
+    sx = (x[sq[:, 1]][:, None] + uu[None, :] * (x[1] - x[0])).ravel()
+    sy = (y[sq[:, 0]][:, None] + vv[None, :] * (y[1] - y[0])).ravel()
+    sz = f(np.column_stack([sy, sx]))
+    keep = np.isfinite(sz)
+    cover = a / n / math.sqrt(2.0)
+    return cKDTree(np.column_stack([sx[keep], sy[keep], sz[keep]])), cover
 
 
 def run(job: Path, catalog: Path) -> Path:
@@ -113,6 +150,22 @@ def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
         wz = sea - np.array([float(r["depth_m"]) for r in w])
         route = legs(np.column_stack([wx, wy, wz]), 5.0)
         d_legs = tree.query(route)[0].min()
+        # against the continuous (bilinear) seabed, sampled finely around the route
+        dense_track = legs(np.column_stack([x, y, zz]), 5.0)
+        fine = min(a / 4, R / 20)
+        bil, cover = seabed_near(
+            z, ds["x"].values, ds["y"].values, np.vstack([route, dense_track])[:, :2], R, fine
+        )
+        b_track = float(bil.query(dense_track)[0].min())
+        b_legs = float(bil.query(route)[0].min())
+        wleg = np.hypot(np.diff(wx), np.diff(wy))
+        turn_m = p["auv:vehicle"]["min_turn_radius_m"]
+        thin = slice(None, None, max(1, len(x) // 1500))
+        profile = dict(
+            s_km=(tr["s_m"].values[thin] / 1e3).tolist(),
+            z=zz[thin].tolist(),
+            seabed=tr["seabed_m"].values[thin].tolist(),
+        )
         tan = math.tan(math.radians(p["auv:vehicle"]["max_pitch_deg"]))
         pitch = np.degrees(np.arctan2(np.abs(np.diff(zz)), np.hypot(np.diff(x), np.diff(y))))
         wl = np.hypot(np.diff(wx), np.diff(wy))
@@ -135,6 +188,16 @@ def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
                 waypoints=len(w),
                 clearance_track=float(d_track),
                 clearance_legs=float(d_legs),
+                bilinear_track=b_track,
+                bilinear_legs=b_legs,
+                bilinear_cover=cover,
+                short_legs=int(np.sum(wleg < turn_m * (1 - 1e-9))),
+                shortest_leg=float(wleg.min()),
+                altitude_median=p.get("auv:altitude_median_m"),
+                altitude_p90=p.get("auv:altitude_p90_m"),
+                reversals_km=p.get("auv:vertical_reversals_per_km"),
+                unknown_seabed=p.get("auv:unknown_seabed_samples", 0),
+                profile=profile,
                 R=R,
                 max_pitch=float(pitch.max()),
                 leg_pitch_excess_m=wexcess,
@@ -156,7 +219,10 @@ def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
         r = rows[-1]
         print(
             f"  {name} {r['mission']}: clearance {r['clearance_track']:.2f} / legs "
-            f"{r['clearance_legs']:.2f} m (R {R:g}), pitch {r['max_pitch']:.2f}, radius "
+            f"{r['clearance_legs']:.2f} m (R {R:g}), bilinear {b_track:.2f} / {b_legs:.2f} m, "
+            f"altitude {r['altitude_median']:.0f} / {r['altitude_p90']:.0f} m, "
+            f"{r['reversals_km']:.2f} reversals/km, {r['short_legs']} legs < {turn_m:g} m, "
+            f"pitch {r['max_pitch']:.2f}, radius "
             f"{r['min_radius']:.1f}, flown {r['flown_over_opt']:.4f} L* (omega "
             f"{r['omega']}), {r['waypoints']} waypoints / {r['cells']} cells",
             flush=True,
@@ -317,7 +383,9 @@ def main() -> None:
     )
     bad = {
         "clearance": sum(
-            min(r["clearance_track"], r["clearance_legs"]) < r["R"] * (1 - 1e-6) for r in flown
+            min(r["clearance_track"], r["clearance_legs"], r["bilinear_track"], r["bilinear_legs"])
+            < r["R"] * (1 - 1e-6)
+            for r in flown
         ),
         "pitch": sum(
             r["max_pitch"] > r["pitch_limit"] + 1e-6 or r["leg_pitch_excess_m"] > 0 for r in flown
@@ -348,6 +416,41 @@ def main() -> None:
           of the grid path's cells: {bad["waypoints"]}{": " + ", ".join(many) if many else ""}
           (largest share {100 * share:.1f} %). Samples at most
           {max(r["spacing_cells"] for r in flown):.2f} cells apart. Statuses: {counts}.""")
+    rep.h("Against the continuous seabed; near the bottom")
+    rep.p("""The same files against the seabed between grid points: scipy's bilinear
+          interpolation of the store's elevation, sampled every min(cell / 4, R / 20) metres
+          over every grid square within R of the route (a KD-tree; a distance to the samples
+          exceeds the true one by at most the sampling's covering radius, given), the track
+          and the legs densified every 5 m. Altitude and reversals are the Item's
+          (`auv:altitude_median_m`, `auv:altitude_p90_m`, `auv:vertical_reversals_per_km`);
+          short legs: waypoint legs shorter than the vehicle's minimum turn radius.""")
+    rep.table(
+        [
+            "mission",
+            "bilinear clearance track / legs m (R; sampling)",
+            "altitude median / p90 m",
+            "reversals / km",
+            "legs < turn radius (shortest m)",
+            "samples by unknown squares",
+        ],
+        [
+            [
+                r["mission"],
+                f"{r['bilinear_track']:.1f} / {r['bilinear_legs']:.1f} ({r['R']:g}; "
+                f"{r['bilinear_cover']:.1f})",
+                f"{r['altitude_median']:.0f} / {r['altitude_p90']:.0f}",
+                f"{r['reversals_km']:.2f}",
+                f"{r['short_legs']} ({r['shortest_leg']:.0f})",
+                r["unknown_seabed"],
+            ]
+            for r in flown
+        ],
+    )
+    below = sum(min(r["bilinear_track"], r["bilinear_legs"]) < r["R"] * (1 - 1e-6) for r in flown)
+    rep.p(f"""Below R from the bilinear seabed: {below} of {len(flown)} missions.""")
+    png = figure_dir(args.quick) / "flight-profiles.png"
+    profiles_figure(flown, png)
+    rep.figure(png, "flown heights, the bilinear seabed under them and the seabed + R")
     med = big["median"]
     rep.h(f"Cost at {big['n']}^2")
     rep.p(f"""{len(big["rows"])} missions at least half the map apart (ra_star, omega 2, MCPC,
@@ -370,8 +473,8 @@ def main() -> None:
     rep.headline(
         "flight",
         58,
-        "flyable missions (demo + real bathymetry): flown track against the DEM, bound, "
-        "waypoints, cost",
+        "flyable missions (demo + real bathymetry): flown track against the DEM and the "
+        "bilinear seabed, bound, waypoints, cost",
         f"{limits} violations of clearance, pitch, turn radius in {len(flown)} missions; "
         f"flown <= omega L* on {len(flown) - bad['bound']} (the others uncertified); "
         f"waypoints < 10 % of cells on {few} (max {100 * share:.1f} %); +"
@@ -379,6 +482,35 @@ def main() -> None:
         target="0 violations; < 10 % of cells; < 20 %",
     )
     rep.save()
+
+
+def profiles_figure(flown: list[dict], png: Path) -> None:
+    """The depth profile of up to six missions: the vehicle's height, the seabed under it and
+    the seabed raised by R, against the distance flown."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pick = flown[:: max(1, len(flown) // 6)][:6]
+    fig, axes = plt.subplots(len(pick), 1, figsize=(10, 2.2 * len(pick)), squeeze=False)
+    for ax, r in zip(axes[:, 0], pick, strict=True):
+        pr = r["profile"]
+        sea = np.array(pr["seabed"])
+        ax.fill_between(pr["s_km"], sea, sea.min() - 100, color="0.75", label="seabed (bilinear)")
+        ax.plot(pr["s_km"], sea + r["R"], color="tab:orange", lw=0.8, label="seabed + R")
+        ax.plot(pr["s_km"], pr["z"], color="tab:blue", lw=1.2, label="vehicle")
+        ax.set_title(
+            f"{r['map'].split(' (')[0]}: {r['mission']} (R {r['R']:g} m; "
+            f"{r['reversals_km']:.2f} reversals/km)",
+            fontsize=9,
+        )
+        ax.set_ylabel("height (m)")
+    axes[-1, 0].set_xlabel("distance flown (km)")
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -212,6 +212,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
                 ("min_altitude_m", f.altitude_min_m),
                 ("vertical_reversals_per_km", f.reversals_per_km),
                 ("unknown_seabed_samples", f.unknown_seabed_samples),
+                ("legs_shorter_than_turn_radius", f.short_legs),
             )
         }
         props["auv:smoothing"] = f.smoothing

@@ -237,20 +237,33 @@ def waypoints_geojson(table: dict) -> str:
 _NAV_WAYPOINT, _FRAME_GLOBAL, _FRAME_RELATIVE_ALT = 16, 0, 3
 
 
-def qgc_wpl(table: dict, acceptance_m: float) -> str:
+def acceptance_radii(table: dict, turn_radius_m: float) -> np.ndarray:
+    """Each waypoint's acceptance radius (metres): the vehicle's turn radius, or less where a
+    leg next to the waypoint is shorter than twice that, half the shorter leg (an autopilot
+    that takes a waypoint as reached within its radius would otherwise pass over one closer
+    to the last than the radius, and the heights between them with it)."""
+    x, y = np.asarray(table["x"], dtype=np.float64), np.asarray(table["y"], dtype=np.float64)
+    legs = np.hypot(np.diff(x), np.diff(y))
+    near = np.minimum(np.append(legs, np.inf), np.insert(legs, 0, np.inf))
+    return np.minimum(turn_radius_m, 0.5 * near)
+
+
+def qgc_wpl(table: dict, acceptance_m) -> str:
     """A QGC WPL 110 mission (QGroundControl, ArduSub, Mission Planner): row 0 the home
     position at the surface above the first waypoint, then one NAV_WAYPOINT per waypoint in
     the frame relative to home, altitude ``-depth_m`` (ArduSub: negative is below the
-    surface), acceptance radius ``acceptance_m``. 12 tab-separated fields per row: index,
-    current, frame, command, param1-4, latitude, longitude, altitude, autocontinue."""
+    surface), acceptance radius ``acceptance_m`` (one for every waypoint, or one each:
+    :func:`acceptance_radii`). 12 tab-separated fields per row: index, current, frame,
+    command, param1-4, latitude, longitude, altitude, autocontinue."""
     lat, lon, depth = _lists(table, "lat", "lon", "depth_m")
+    accept = np.broadcast_to(np.asarray(acceptance_m, dtype=np.float64), (len(lat),)).tolist()
     # index, current, frame, command, param1, param2 (acceptance), param3, param4, lat, lon, alt
     fixed = f"{_NAV_WAYPOINT}\t0\t"  # command, param1
     place = "\t0\t0\t{:.8f}\t{:.8f}\t"  # param3, param4, latitude, longitude
     home = f"0\t1\t{_FRAME_GLOBAL}\t{fixed}0" + place + "0.00\t1"
-    row = "{}" + f"\t0\t{_FRAME_RELATIVE_ALT}\t{fixed}{acceptance_m:g}" + place + "{:.2f}\t1"
+    row = "{}" + f"\t0\t{_FRAME_RELATIVE_ALT}\t{fixed}" + "{:.2f}" + place + "{:.2f}\t1"
     rows = ["QGC WPL 110", home.format(lat[0], lon[0])]
-    rows += [row.format(k + 1, lat[k], lon[k], -depth[k]) for k in range(len(lat))]
+    rows += [row.format(k + 1, accept[k], lat[k], lon[k], -depth[k]) for k in range(len(lat))]
     return "\n".join(rows) + "\n"
 
 
@@ -493,7 +506,7 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
         ),
         "qgc": (
             qgc_file,
-            qgc_wpl(table, f.turn_radius_m).encode(),
+            qgc_wpl(table, acceptance_radii(table, f.turn_radius_m)).encode(),
             "QGroundControl / ArduSub mission (QGC WPL 110)",
             "text/plain",
             ["data"],

@@ -157,6 +157,7 @@ class Flight:
     reversals_per_km: float = math.nan  # climb to descent or back, per km flown
     # samples (of the track and the route) within R of a grid square with a no-data corner
     unknown_seabed_samples: int = 0
+    short_legs: int = 0  # waypoint legs shorter than the minimum turn radius
 
     @property
     def altitude_m(self) -> np.ndarray:
@@ -1144,7 +1145,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         unsure = int(unsure.sum() + unsure_q.sum())
         prof = vertical_profile(
             wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands,
-            top_ok, want,
+            top_ok, want, turn_m,
         )  # fmt: skip
         zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
         route = {"s": prof["sigma"], "z": zq}
@@ -1265,6 +1266,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         route=np.column_stack([*_map_xy(m, qr, qc), zq]),
         route_seabed_m=_bilinear(*grid, qr, qc),
         unknown_seabed_samples=pick["unsure"],
+        short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < turn_m * (1 - 1e-9))),
         **near,
     )
 
@@ -1330,8 +1332,9 @@ def _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a) -> np.ndarray:
 
 
 def vertical_profile(
-    wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands, top, want
-) -> dict:
+    wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands, top, want,
+    min_leg=0.0,
+) -> dict:  # fmt: skip
     """The heights of the waypoint route and its waypoints (docs/flyable-missions.md): one
     profile along the route's straight legs (``sigma``, metres), linear between waypoints
     (what an autopilot flies), and the flown track's heights read from it at each sample's
@@ -1340,7 +1343,9 @@ def vertical_profile(
     the pitch holds on the legs and on the arcs (the route's slope limited over a turn by the
     ratio of the arc's chords to the route they stand for); the profile is a few straight
     pieces inside a band above the lowest such profile (:func:`band_profile`), the narrowest of
-    ``bands`` that needs at most ``want`` waypoints."""
+    ``bands`` that needs at most ``want`` waypoints, with no break of the profile ending a
+    leg shorter than ``min_leg`` where the line past it keeps the limits
+    (:func:`_merge_short_legs`)."""
     sig = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(qr), np.diff(qc)))))
     sig_corner = sig[vi]
     sig_t = _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a)
@@ -1367,11 +1372,42 @@ def vertical_profile(
     corners = np.asarray(vi, dtype=np.int64)
     for band in bands:  # the narrowest band that needs few waypoints (linear time each)
         z, brk = band_profile(sig, env, band, top, slopes)
-        wi = np.union1d(corners, brk)
+        wi = _merge_short_legs(sig, z, np.union1d(corners, brk), corners, h, slopes, top, min_leg)
         if len(wi) <= want:
             break
     z = np.interp(sig, sig[wi], z[wi])  # exactly linear between waypoints
     return {"sigma": sig, "z": z, "waypoints": wi, "band": band, "sigma_track": sig_t}
+
+
+def _merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg) -> np.ndarray:
+    """The waypoints ``wi`` less the breaks of the height profile (not the route's corners)
+    that end a leg shorter than ``min_leg`` where the straight line between their neighbours
+    keeps every required height ``h``, the pitch limit of every interval it spans and the
+    surface limit (``z`` is changed there to that line): an autopilot takes a waypoint as
+    reached within about its turn radius, and would pass over one closer."""
+    keep = list(np.asarray(wi).tolist())
+    fixed = set(np.asarray(corners).tolist())
+    k = 1
+    while k < len(keep) - 1:
+        b, i0, i1 = keep[k], keep[k - 1], keep[k + 1]
+        short = min(sig[b] - sig[i0], sig[i1] - sig[b]) < min_leg
+        if b in fixed or not short:
+            k += 1
+            continue
+        span = sig[i1] - sig[i0]
+        rise = (z[i1] - z[i0]) / span
+        line = z[i0] + rise * (sig[i0 : i1 + 1] - sig[i0])
+        if (
+            np.all(line >= h[i0 : i1 + 1])
+            and abs(rise) <= slopes[i0:i1].min()
+            and line.max() <= top
+        ):
+            z[i0 : i1 + 1] = line
+            del keep[k]
+            k = max(k - 1, 1)  # the leg before may now be long enough, or still short
+            continue
+        k += 1
+    return np.asarray(keep, dtype=np.int64)
 
 
 def profile_figures(s, z, seabed) -> dict:

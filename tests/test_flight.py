@@ -360,6 +360,17 @@ def test_qgc_wpl_loads_in_pymavlink(flown):
         lon, lat, z = feat["geometry"]["coordinates"]
         assert w.x == pytest.approx(lat, abs=1e-7) and w.y == pytest.approx(lon, abs=1e-7)
         assert w.z == pytest.approx(z, abs=0.02)  # ArduSub: negative below the surface
+    # acceptance radii: the turn radius, or half the shorter leg next to a waypoint (so that
+    # the vehicle reaches each waypoint before the next one's radius), legs from pyproj
+    from pyproj import Geod
+
+    ll = np.array([feat["geometry"]["coordinates"][:2] for feat in gj])
+    legs = Geod(ellps="WGS84").inv(ll[:-1, 0], ll[:-1, 1], ll[1:, 0], ll[1:, 1])[2]
+    accept = np.array([loader.wp(k + 1).param2 for k in range(len(gj))])
+    assert np.all(accept <= f.turn_radius_m + 0.005)
+    assert np.all(accept[:-1] + accept[1:] <= legs + 0.05)  # the radii never overlap
+    assert (legs < 2 * f.turn_radius_m).any()  # (which one radius for all would not keep)
+    assert np.isclose(accept, f.turn_radius_m, atol=0.005).any()
 
 
 def test_kml_reads_in_fastkml(flown):
