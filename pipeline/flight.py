@@ -744,6 +744,133 @@ def required_heights(
     return out
 
 
+# where the clearance is under FINE_BELOW cells the required heights bound the seabed over
+# parts of each grid square (:func:`required_heights_fine`): the highest corner of a whole
+# square raises a height by up to the square's rise, which on a coarse grid is a good part of
+# the clearance (on real bathymetry at 150 m cells, R = 100 m: shallow straits no longer
+# passable under the surface limit)
+FINE_BELOW = 4.0
+FINE_MOST = 8
+
+
+def subdivisions(a: float, clearance: float) -> int:
+    """Parts a grid square's side is cut in for the required heights: 1 (the whole square,
+    :func:`required_heights`) where the clearance is at least ``FINE_BELOW`` cells, else
+    enough for parts of at most an eighth of the clearance, at most ``FINE_MOST``."""
+    if clearance >= FINE_BELOW * a:
+        return 1
+    return int(min(FINE_MOST, max(2, math.ceil(8.0 * a / clearance))))
+
+
+@njit(cache=True, nogil=True)
+def required_heights_fine(
+    el, slot, tr, tc, rows, cols, pr, pc, a, radius, method, clearance, extra, k, partial
+):
+    """:func:`required_heights` with each grid square cut into ``k`` x ``k`` parts: the
+    bilinear seabed over a part is at most the highest of its four corners (bilinear values),
+    and a part lies exactly its box distance from the point. Spherical: ``max Z + sqrt(radius^2
+    - d^2)`` over the parts less than ``radius`` away; horizontal and vertical: ``max Z +
+    clearance`` over the parts less than ``radius + extra`` away (``extra``: the step between
+    samples). A square whose highest corner cannot beat the best so far is passed over. NaN
+    where a no-data corner lies within the reach (the vertical method: of the point's own
+    square too) or a tile within reach is not loaded; a square with a no-data corner farther
+    only flags the point in ``partial`` (a uint8 array, or empty)."""
+    n = pr.size
+    out = np.empty(n)
+    spherical = method == 2
+    lim = radius + (0.0 if spherical else extra)
+    lim2 = lim * lim
+    rr = radius * radius
+    missing = lim + (a * math.sqrt(2.0) if method == 0 else 0.0)
+    missing2 = missing * missing
+    flags = partial.size > 0
+    span = missing / a
+    inv = 1.0 / k
+    for s in range(n):
+        p = pr[s]
+        q = pc[s]
+        best = -np.inf
+        bad = False
+        i0 = max(0, int(math.floor(p - span)) - 1)
+        i1 = min(rows - 2, int(math.floor(p + span)) + 1)
+        j0 = max(0, int(math.floor(q - span)) - 1)
+        j1 = min(cols - 2, int(math.floor(q + span)) + 1)
+        for i in range(i0, i1 + 1):
+            di = max(0.0, i - p, p - (i + 1)) * a
+            if di * di >= max(lim2, missing2):
+                continue
+            for j in range(j0, j1 + 1):
+                dj = max(0.0, j - q, q - (j + 1)) * a
+                d2 = di * di + dj * dj
+                if d2 >= max(lim2, missing2):
+                    continue
+                z00 = np.float64(_cell(slot, el, tr, tc, i, j, np.inf))
+                z01 = np.float64(_cell(slot, el, tr, tc, i, j + 1, np.inf))
+                z10 = np.float64(_cell(slot, el, tr, tc, i + 1, j, np.inf))
+                z11 = np.float64(_cell(slot, el, tr, tc, i + 1, j + 1, np.inf))
+                if np.inf in (z00, z01, z10, z11):
+                    bad = True  # a tile not loaded
+                    break
+                if z00 != z00 or z01 != z01 or z10 != z10 or z11 != z11:
+                    # a no-data corner: unknown within the clearance, else noted
+                    for ci in range(i, i + 2):
+                        for cj in range(j, j + 2):
+                            z = _cell(slot, el, tr, tc, ci, cj, np.inf)
+                            if z == z:
+                                continue
+                            dc2 = ((ci - p) * (ci - p) + (cj - q) * (cj - q)) * a * a
+                            if dc2 < missing2:
+                                bad = True
+                            elif flags and d2 < lim2:
+                                partial[s] = 1
+                    if bad:
+                        break
+                    continue
+                if d2 >= lim2:
+                    continue
+                top = max(z00, z01, z10, z11)
+                if top + (math.sqrt(rr - d2) if spherical else 0.0) <= best:
+                    continue  # no part of the square can raise the height
+                for u in range(k):
+                    a0 = u * inv
+                    a1 = a0 + inv
+                    du = max(0.0, i + a0 - p, p - (i + a1)) * a
+                    if du * du >= lim2:
+                        continue
+                    for v in range(k):
+                        b0 = v * inv
+                        b1 = b0 + inv
+                        dv = max(0.0, j + b0 - q, q - (j + b1)) * a
+                        e2 = du * du + dv * dv
+                        if e2 >= lim2:
+                            continue
+                        zm = max(
+                            _bilin(z00, z01, z10, z11, a0, b0),
+                            _bilin(z00, z01, z10, z11, a0, b1),
+                            _bilin(z00, z01, z10, z11, a1, b0),
+                            _bilin(z00, z01, z10, z11, a1, b1),
+                        )
+                        val = zm + math.sqrt(rr - e2) if spherical else zm
+                        if val > best:
+                            best = val
+            if bad:
+                break
+        if bad:
+            out[s] = np.nan
+        elif spherical or best == -np.inf:
+            out[s] = best
+        else:
+            out[s] = best + clearance
+    return out
+
+
+@njit(inline="always", cache=True)
+def _bilin(z00, z01, z10, z11, u, v):
+    """The bilinear surface of a square's corners at ``u`` (rows) and ``v`` (columns) in
+    [0, 1]."""
+    return (z00 * (1 - v) + z01 * v) * (1 - u) + (z10 * (1 - v) + z11 * v) * u
+
+
 @njit(cache=True, nogil=True)
 def _bilinear(el, slot, tr, tc, rows, cols, pr, pc):
     n = pr.size
@@ -1077,7 +1204,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
     slope = math.tan(math.radians(veh.max_pitch_deg))
     step, terrain, top_ok = _sampling(method, a, clearance, radius, slope, turn_m, top)
     rows, cols = m.shape
-    elem = int(math.ceil((terrain[1] + terrain[4]) / a)) + 1
+    elem = int(math.ceil((terrain[1] + terrain[4]) / a + math.sqrt(2.0))) + 1
     pad = elem + int(math.ceil(turn_m / a)) + 2
     cells = np.asarray(traj.cells, dtype=np.int64)
     cor = Corridor(m, cells, pad)
@@ -1220,6 +1347,9 @@ def fly(maps, traj, vehicle=None) -> Flight:
     zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
     problems = list(pick["problems"])
     z, s, h = track["z"], track["s"], track["h"]
+    # a leg used up by its two arcs leaves a sample where the next arc starts: one sample each
+    once = np.concatenate(([True], np.diff(s) > 0))
+    pr, pc, z, s, h = pr[once], pc[once], z[once], s[once], h[once]
     turns = radii[np.isfinite(radii)] * a
     min_turn = 0.0 if name == "grid path" else float(turns.min()) if turns.size else math.inf
     dz, ds = np.diff(z), np.diff(s)
@@ -1275,15 +1405,15 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     """The sample step (grid units), the ``required_heights`` terrain arguments and the
     highest height allowed, such that a route whose samples keep their required heights keeps
     the clearance from the continuous seabed everywhere between them too (docs/method.md
-    section 2): the seabed over a grid square is at most its highest corner, which lies within
-    the square's diagonal of any of its points; on an arc the vehicle is within the sagitta
+    section 2): the seabed over a grid square, or over each of its ``k`` x ``k`` parts
+    (:func:`subdivisions`), is at most its highest corner; on an arc the vehicle is within the
+    sagitta
     ``c^2 / (8 r)`` of the chord between samples ``c`` apart; spherical: the samples clear of
     the seabed by ``R' = sqrt((R + sagitta)^2 + (L/2)^2)``, ``L`` the longest 3-D step between
     samples, keep every point of the step ``R`` away (samples close enough that ``R'``
     exceeds ``R`` by at most ``CLEARANCE_SLACK * R``); horizontal and vertical: a sample's
     heights cover every point within a step of it (a point of a step is as high as one of
     its two ends)."""
-    diag = a * math.sqrt(2.0)
     grade = math.sqrt(1.0 + slope * slope)
     step = SAMPLE_STEP
     if method == "spherical":
@@ -1292,14 +1422,14 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
         step = min(SAMPLE_STEP, longest / (a * grade))
     chord = step * a
     sag = chord * chord / (8.0 * turn_m) if turn_m > 0 else 0.0
+    k = subdivisions(a, clearance)
     if method == "spherical":
         r = math.sqrt((clearance + sag) ** 2 + 0.25 * (chord * grade) ** 2)
-        terrain = (a, r, _METHOD[method], clearance, diag)
+        terrain = (a, r, _METHOD[method], clearance, 0.0, k)
         top_ok = top + (r - clearance) + 1e-6  # the surface limit is R's, not R''s
     else:
-        reach = diag + chord + sag
         r = radius if method == "horizontal" else 0.0
-        terrain = (a, r, _METHOD[method], clearance, reach)
+        terrain = (a, r, _METHOD[method], clearance, chord + sag, k)
         top_ok = top + 1e-6
     return step, terrain, top_ok
 
@@ -1436,9 +1566,14 @@ def _required_threaded(grid, terrain, pr, pc, parts: int = 2) -> tuple:
     partial = np.zeros(n, dtype=np.uint8)
     cut = np.linspace(0, n, parts + 1).astype(int) if n >= 4096 and parts >= 2 else [0, n]
 
-    def part(k):
-        lo, hi = cut[k], cut[k + 1]
-        return required_heights(*grid, pr[lo:hi], pc[lo:hi], *terrain, partial[lo:hi])
+    a, radius, method, clearance, extra, k = terrain
+
+    def part(q):
+        lo, hi = cut[q], cut[q + 1]
+        args = (*grid, pr[lo:hi], pc[lo:hi], a, radius, method, clearance)
+        if k == 1:  # the squares' diagonal added to every distance, blocks passed over
+            return required_heights(*args, extra + a * math.sqrt(2.0), partial[lo:hi])
+        return required_heights_fine(*args, extra, k, partial[lo:hi])
 
     if len(cut) == 2:
         return part(0), partial

@@ -184,12 +184,15 @@ def bilinear_seabed_points(z, a, step):
 
 
 @pytest.mark.parametrize("ratio", [0.3, 0.7, 3.0])
-def test_required_heights_clear_the_bilinear_seabed_between_grid_points(ratio):
+@pytest.mark.parametrize("parts", [1, 2, 8])
+def test_required_heights_clear_the_bilinear_seabed_between_grid_points(ratio, parts):
     """Random points over a rough seabed whose clearance R is 0.3, 0.7 and 3 cells: at its
     required height a point is at least R from the bilinear seabed (scipy's interpolation,
-    sampled every cell / 40, KD-tree), and no more than the seabed's rise over two cells
-    above the tight height (the envelope is conservative, not loose)."""
-    from pipeline.flight import required_heights
+    sampled every cell / 40, KD-tree), for the whole squares' bound (``required_heights``)
+    and for squares cut in 2 x 2 and 8 x 8 parts (``required_heights_fine``); and above the
+    tight height (the lowest that clears the sampled seabed) by no more than the seabed's rise
+    over two cells for whole squares, over two parts' sides for parts."""
+    from pipeline.flight import required_heights, required_heights_fine
 
     rng = np.random.default_rng(3)
     a, n = 100.0, 24
@@ -197,18 +200,26 @@ def test_required_heights_clear_the_bilinear_seabed_between_grid_points(ratio):
     z = (-2000 + 60 * rng.normal(size=(n, n))).astype(np.float32)
     el, slot = z[None].copy(), np.zeros((1, 1), dtype=np.int64)
     pr, pc = rng.uniform(6, n - 7, 300), rng.uniform(6, n - 7, 300)
-    diag, flags = a * math.sqrt(2.0), np.zeros(0, np.uint8)
-    h = required_heights(el, slot, n, n, n, n, pr, pc, a, radius, 2, radius, diag, flags)
-    tree = cKDTree(bilinear_seabed_points(z, a, a / 40))
+    args = (el, slot, n, n, n, n, pr, pc, a, radius, 2, radius)
+    flags = np.zeros(0, np.uint8)
+    if parts == 1:
+        h = required_heights(*args, a * math.sqrt(2.0), flags)
+    else:
+        h = required_heights_fine(*args, 0.0, parts, flags)
+    seabed = bilinear_seabed_points(z, a, a / 40)
     xyz = np.column_stack([pc * a, pr * a, h])
-    d, _ = tree.query(xyz)
-    assert d.min() >= radius * (1 - 1e-3) - a / 40 * 0.71, d.min()
-    from scipy.interpolate import RegularGridInterpolator
-
-    under = RegularGridInterpolator((np.arange(n) * a, np.arange(n) * a), z.astype(float))
-    altitude = h - under(np.column_stack([pr * a, pc * a]))
-    rise = 2 * max(np.abs(np.diff(z, axis=0)).max(), np.abs(np.diff(z, axis=1)).max())
-    assert altitude.max() <= radius + rise
+    d, _ = cKDTree(seabed).query(xyz)
+    assert d.min() >= radius * (1 - 1e-9), d.min()  # (the samples are no nearer than the seabed)
+    flat = cKDTree(seabed[:, :2])
+    tight = np.array(
+        [
+            np.max(seabed[i, 2] + np.sqrt(radius**2 - np.sum((seabed[i, :2] - p) ** 2, axis=1)))
+            for p, i in zip(xyz[:, :2], flat.query_ball_point(xyz[:, :2], radius), strict=True)
+        ]
+    )
+    rise = max(np.abs(np.diff(z, axis=0)).max(), np.abs(np.diff(z, axis=1)).max())
+    assert np.all(h >= tight - 1e-6)
+    assert np.max(h - tight) <= 2 * rise / parts, (np.max(h - tight), rise)
 
 
 # ------------------------------------------------------------------ files, independent readers
