@@ -785,12 +785,20 @@ def required_heights_fine(
     missing2 = missing * missing
     flags = partial.size > 0
     span = missing / a
-    inv = 1.0 / k
+    mi = -1  # the previous point's highest square
+    mj = -1
     for s in range(n):
         p = pr[s]
         q = pc[s]
         best = -np.inf
         bad = False
+        if mi >= 0:  # the previous point's highest square first: most others then pass
+            z00 = np.float64(_cell(slot, el, tr, tc, mi, mj, np.inf))
+            z01 = np.float64(_cell(slot, el, tr, tc, mi, mj + 1, np.inf))
+            z10 = np.float64(_cell(slot, el, tr, tc, mi + 1, mj, np.inf))
+            z11 = np.float64(_cell(slot, el, tr, tc, mi + 1, mj + 1, np.inf))
+            if np.isfinite(z00 + z01 + z10 + z11):
+                best = _parts_max(z00, z01, z10, z11, mi, mj, p, q, a, k, lim2, rr, spherical, best)
         i0 = max(0, int(math.floor(p - span)) - 1)
         i1 = min(rows - 2, int(math.floor(p + span)) + 1)
         j0 = max(0, int(math.floor(q - span)) - 1)
@@ -831,28 +839,11 @@ def required_heights_fine(
                 top = max(z00, z01, z10, z11)
                 if top + (math.sqrt(rr - d2) if spherical else 0.0) <= best:
                     continue  # no part of the square can raise the height
-                for u in range(k):
-                    a0 = u * inv
-                    a1 = a0 + inv
-                    du = max(0.0, i + a0 - p, p - (i + a1)) * a
-                    if du * du >= lim2:
-                        continue
-                    for v in range(k):
-                        b0 = v * inv
-                        b1 = b0 + inv
-                        dv = max(0.0, j + b0 - q, q - (j + b1)) * a
-                        e2 = du * du + dv * dv
-                        if e2 >= lim2:
-                            continue
-                        zm = max(
-                            _bilin(z00, z01, z10, z11, a0, b0),
-                            _bilin(z00, z01, z10, z11, a0, b1),
-                            _bilin(z00, z01, z10, z11, a1, b0),
-                            _bilin(z00, z01, z10, z11, a1, b1),
-                        )
-                        val = zm + math.sqrt(rr - e2) if spherical else zm
-                        if val > best:
-                            best = val
+                v = _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best)
+                if v > best:
+                    best = v
+                    mi = i
+                    mj = j
             if bad:
                 break
         if bad:
@@ -862,6 +853,43 @@ def required_heights_fine(
         else:
             out[s] = best + clearance
     return out
+
+
+@njit(inline="always", cache=True)
+def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best):
+    """The highest of ``best`` and the values over the ``k`` x ``k`` parts of square ``(i,
+    j)`` (corners ``z``) less than ``sqrt(lim2)`` from ``(p, q)``: a part's highest bilinear
+    corner, plus the sphere's rise at its box distance (spherical). A row of parts, or a part,
+    whose square's highest corner at its distance cannot beat the best is passed over."""
+    inv = 1.0 / k
+    top = max(z00, z01, z10, z11)
+    for u in range(k):
+        a0 = u * inv
+        a1 = a0 + inv
+        du = max(0.0, i + a0 - p, p - (i + a1)) * a
+        if du * du >= lim2:
+            continue
+        if top + (math.sqrt(rr - du * du) if spherical else 0.0) <= best:
+            continue
+        for v in range(k):
+            b0 = v * inv
+            b1 = b0 + inv
+            dv = max(0.0, j + b0 - q, q - (j + b1)) * a
+            e2 = du * du + dv * dv
+            if e2 >= lim2:
+                continue
+            rise = math.sqrt(rr - e2) if spherical else 0.0
+            if top + rise <= best:
+                continue
+            zm = max(
+                _bilin(z00, z01, z10, z11, a0, b0),
+                _bilin(z00, z01, z10, z11, a0, b1),
+                _bilin(z00, z01, z10, z11, a1, b0),
+                _bilin(z00, z01, z10, z11, a1, b1),
+            )
+            if zm + rise > best:
+                best = zm + rise
+    return best
 
 
 @njit(inline="always", cache=True)
