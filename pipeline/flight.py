@@ -1530,42 +1530,60 @@ def vertical_profile(
     corners = np.asarray(vi, dtype=np.int64)
     for band in bands:  # the narrowest band that needs few waypoints (linear time each)
         z, brk = band_profile(sig, env, band, top, slopes)
-        wi = _merge_short_legs(sig, z, np.union1d(corners, brk), corners, h, slopes, top, min_leg)
+        wi = _merge_short_legs(
+            sig, z, np.union1d(corners, brk), corners, h, slopes, top, float(min_leg)
+        )
         if len(wi) <= want:
             break
     z = np.interp(sig, sig[wi], z[wi])  # exactly linear between waypoints
     return {"sigma": sig, "z": z, "waypoints": wi, "band": band, "sigma_track": sig_t}
 
 
-def _merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg) -> np.ndarray:
+@njit(cache=True, nogil=True)
+def _merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
     """The waypoints ``wi`` less the breaks of the height profile (not the route's corners)
     that end a leg shorter than ``min_leg`` where the straight line between their neighbours
     keeps every required height ``h``, the pitch limit of every interval it spans and the
     surface limit (``z`` is changed there to that line): an autopilot takes a waypoint as
     reached within about its turn radius, and would pass over one closer."""
-    keep = list(np.asarray(wi).tolist())
-    fixed = set(np.asarray(corners).tolist())
+    m = wi.size
+    keep = wi.copy()
+    fixed = np.zeros(m, dtype=np.bool_)
+    c = 0
+    for w in range(m):  # both sorted
+        while c < corners.size and corners[c] < wi[w]:
+            c += 1
+        fixed[w] = c < corners.size and corners[c] == wi[w]
+    n = m
     k = 1
-    while k < len(keep) - 1:
+    while k < n - 1:
         b, i0, i1 = keep[k], keep[k - 1], keep[k + 1]
-        short = min(sig[b] - sig[i0], sig[i1] - sig[b]) < min_leg
-        if b in fixed or not short:
+        if fixed[k] or min(sig[b] - sig[i0], sig[i1] - sig[b]) >= min_leg:
             k += 1
             continue
-        span = sig[i1] - sig[i0]
-        rise = (z[i1] - z[i0]) / span
-        line = z[i0] + rise * (sig[i0 : i1 + 1] - sig[i0])
-        if (
-            np.all(line >= h[i0 : i1 + 1])
-            and abs(rise) <= slopes[i0:i1].min()
-            and line.max() <= top
-        ):
-            z[i0 : i1 + 1] = line
-            del keep[k]
-            k = max(k - 1, 1)  # the leg before may now be long enough, or still short
+        rise = (z[i1] - z[i0]) / (sig[i1] - sig[i0])
+        ok = True
+        for t in range(i0, i1):
+            if abs(rise) > slopes[t]:
+                ok = False
+                break
+        if ok:
+            for t in range(i0, i1 + 1):
+                v = z[i0] + rise * (sig[t] - sig[i0])
+                if v < h[t] or v > top:
+                    ok = False
+                    break
+        if not ok:
+            k += 1
             continue
-        k += 1
-    return np.asarray(keep, dtype=np.int64)
+        for t in range(i0, i1 + 1):
+            z[t] = z[i0] + rise * (sig[t] - sig[i0])
+        for t in range(k, n - 1):  # drop waypoint k
+            keep[t] = keep[t + 1]
+            fixed[t] = fixed[t + 1]
+        n -= 1
+        k = max(k - 1, 1)  # the leg before may now be long enough, or still short
+    return keep[:n]
 
 
 def profile_figures(s, z, seabed) -> dict:
