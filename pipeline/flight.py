@@ -158,6 +158,9 @@ class Flight:
     # samples (of the track and the route) within R of a grid square with a no-data corner
     unknown_seabed_samples: int = 0
     short_legs: int = 0  # waypoint legs shorter than the minimum turn radius
+    # the least clearance of the route and the track from the continuous seabed, measured on
+    # a lattice of each grid square (:func:`seabed_clearance`)
+    min_clearance_m: float = math.nan
 
     @property
     def altitude_m(self) -> np.ndarray:
@@ -899,6 +902,107 @@ def _bilin(z00, z01, z10, z11, u, v):
     return (z00 * (1 - v) + z01 * v) * (1 - u) + (z10 * (1 - v) + z11 * v) * u
 
 
+# the flown route's own check samples each grid square's bilinear seabed on a lattice of this
+# many parts a side at least (more where the clearance is under sixteen cells)
+CHECK_LATTICE = 2
+
+
+@njit(cache=True, nogil=True)
+def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method, m):
+    """The least clearance of the points ``(pr, pc)`` (grid units) at heights ``z`` from the
+    continuous seabed, measured anew (not from the required heights): the bilinear seabed of
+    every grid square near a point sampled on an ``(m + 1)`` x ``(m + 1)`` lattice. Spherical:
+    the least 3-D distance to the samples within ``1.25 radius`` (that, where none is that
+    near); horizontal: the height above the highest sample within ``radius`` horizontally;
+    vertical: the height above the seabed under the point; a point under the seabed: the
+    (negative) height above it. A square is passed over where even its highest corner, at its
+    box distance, is farther than the least found; one with a no-data corner is not
+    measured."""
+    n = pr.size
+    least = np.inf
+    # spherical: searched a quarter beyond the clearance, for the least distance itself
+    far = 1.25 * radius if method == 2 else radius
+    lim = far * far
+    span = far / a + 1.0
+    for s in range(n):
+        p = pr[s]
+        q = pc[s]
+        h = z[s]
+        if method == 0:
+            i = min(max(int(math.floor(p)), 0), rows - 2)
+            j = min(max(int(math.floor(q)), 0), cols - 2)
+            c = (
+                _cell(slot, el, tr, tc, i, j, np.nan),
+                _cell(slot, el, tr, tc, i, j + 1, np.nan),
+                _cell(slot, el, tr, tc, i + 1, j, np.nan),
+                _cell(slot, el, tr, tc, i + 1, j + 1, np.nan),
+            )
+            v = h - _bilin(c[0], c[1], c[2], c[3], p - i, q - j)
+            if v == v:
+                least = min(least, v)
+            continue
+        # the seabed under the point: a point under it has a negative clearance
+        ui = min(max(int(math.floor(p)), 0), rows - 2)
+        uj = min(max(int(math.floor(q)), 0), cols - 2)
+        under = _bilin(
+            np.float64(_cell(slot, el, tr, tc, ui, uj, np.nan)),
+            np.float64(_cell(slot, el, tr, tc, ui, uj + 1, np.nan)),
+            np.float64(_cell(slot, el, tr, tc, ui + 1, uj, np.nan)),
+            np.float64(_cell(slot, el, tr, tc, ui + 1, uj + 1, np.nan)),
+            p - ui,
+            q - uj,
+        )
+        if h < under:  # (a no-data corner under it: measured from the squares around only)
+            least = min(least, h - under)
+            continue
+        best = lim if method == 2 else -np.inf  # squared distance, or the highest seabed
+        i0 = max(0, int(math.floor(p - span)))
+        i1 = min(rows - 2, int(math.floor(p + span)))
+        j0 = max(0, int(math.floor(q - span)))
+        j1 = min(cols - 2, int(math.floor(q + span)))
+        for i in range(i0, i1 + 1):
+            di = max(0.0, i - p, p - (i + 1)) * a
+            if di * di >= lim:
+                continue
+            for j in range(j0, j1 + 1):
+                dj = max(0.0, j - q, q - (j + 1)) * a
+                d2 = di * di + dj * dj
+                if d2 >= lim:
+                    continue
+                z00 = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
+                z01 = np.float64(_cell(slot, el, tr, tc, i, j + 1, np.nan))
+                z10 = np.float64(_cell(slot, el, tr, tc, i + 1, j, np.nan))
+                z11 = np.float64(_cell(slot, el, tr, tc, i + 1, j + 1, np.nan))
+                if z00 != z00 or z01 != z01 or z10 != z10 or z11 != z11:
+                    continue  # no seabed to measure (the flight says where it is unknown)
+                top = max(z00, z01, z10, z11)
+                if method == 2:
+                    gap = max(h - top, 0.0)
+                    if d2 + gap * gap >= best:
+                        continue
+                elif top <= best:
+                    continue
+                for u in range(m + 1):
+                    fu = u / m
+                    for v in range(m + 1):
+                        fv = v / m
+                        dy = (i + fu - p) * a
+                        dx = (j + fv - q) * a
+                        e2 = dx * dx + dy * dy
+                        if e2 >= lim:
+                            continue
+                        b = _bilin(z00, z01, z10, z11, fu, fv)
+                        if method == 2:
+                            best = min(best, e2 + (h - b) * (h - b))
+                        else:
+                            best = max(best, b)
+        if method == 2:
+            least = min(least, math.sqrt(best))
+        else:
+            least = min(least, h - best)
+    return least
+
+
 @njit(cache=True, nogil=True)
 def _bilinear(el, slot, tr, tc, rows, cols, pr, pc):
     n = pr.size
@@ -1303,7 +1407,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
             top_ok, want, turn_m,
         )  # fmt: skip
         zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
-        route = {"s": prof["sigma"], "z": zq}
+        route = {"s": prof["sigma"], "z": zq, "h": prof["h"]}
         z_t = np.interp(sig_t, prof["sigma"], zq)
         s_t = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
         track = {
@@ -1395,6 +1499,22 @@ def fly(maps, traj, vehicle=None) -> Flight:
     duration = float(t[-1])
     seabed = _bilinear(*grid, pr, pc)
     near = profile_figures(s, z, seabed)
+    # what is flown, measured anew against the continuous seabed where it comes closest to its
+    # required heights: never under the clearance by construction, and a mission whose route
+    # came under it would fail here
+    reach = clearance if method == "spherical" else radius if method == "horizontal" else 0.0
+    lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * a / clearance))))
+    least = np.inf
+    for r_, c_, z_, h_ in ((pr, pc, z, h), (qr, qc, zq, route["h"])):
+        k = _closest(z_ - h_)
+        least = min(
+            least, seabed_clearance(*grid, r_[k], c_[k], z_[k], a, reach, _METHOD[method], lattice)
+        )
+    if least < clearance * (1 - 1e-6):
+        problems.append(
+            f"the flown route comes {least:.1f} m from the seabed between grid points, under "
+            f"the clearance {clearance:g} m"
+        )
     return Flight(
         x=x,
         y=y,
@@ -1424,6 +1544,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         route=np.column_stack([*_map_xy(m, qr, qc), zq]),
         route_seabed_m=_bilinear(*grid, qr, qc),
         unknown_seabed_samples=pick["unsure"],
+        min_clearance_m=float(least),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < turn_m * (1 - 1e-9))),
         **near,
     )
@@ -1536,7 +1657,7 @@ def vertical_profile(
         if len(wi) <= want:
             break
     z = np.interp(sig, sig[wi], z[wi])  # exactly linear between waypoints
-    return {"sigma": sig, "z": z, "waypoints": wi, "band": band, "sigma_track": sig_t}
+    return {"sigma": sig, "z": z, "h": h, "waypoints": wi, "band": band, "sigma_track": sig_t}
 
 
 @njit(cache=True, nogil=True)
@@ -1584,6 +1705,20 @@ def _merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
         n -= 1
         k = max(k - 1, 1)  # the leg before may now be long enough, or still short
     return keep[:n]
+
+
+# the flown route's own check measures the samples nearest their required heights: this share
+# of them, and at least CHECK_LEAST
+CHECK_SHARE = 0.05
+CHECK_LEAST = 64
+
+
+def _closest(margin: np.ndarray) -> np.ndarray:
+    """The indices of the samples with the least ``margin`` (``CHECK_SHARE`` of them, at least
+    ``CHECK_LEAST``; NaN margins, of unknown terrain, last)."""
+    k = min(len(margin), max(CHECK_LEAST, int(CHECK_SHARE * len(margin))))
+    m = np.where(np.isnan(margin), np.inf, margin)
+    return np.sort(np.argpartition(m, k - 1)[:k]) if k < len(m) else np.arange(len(m))
 
 
 def profile_figures(s, z, seabed) -> dict:

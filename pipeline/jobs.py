@@ -759,7 +759,11 @@ class _Recorder:
         name = mission["name"]
         png = traj.extra.pop("quicklook_png", None)  # written now, not kept with the results
         try:
-            clr = min_clearance(self.maps, traj, self.clearance) if traj.planned else math.nan
+            clr = math.nan
+            if traj.flight is not None:  # what is flown, from the continuous seabed
+                clr = traj.flight.min_clearance_m
+            elif traj.planned:  # the grid path, from the grid points
+                clr = min_clearance(self.maps, traj, self.clearance)
             self._write(mission, traj, clr, png)
         except (OSError, PipelineError, ValueError) as exc:
             reason = f"its result could not be written: {type(exc).__name__}: {exc}"

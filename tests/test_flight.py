@@ -1199,3 +1199,36 @@ def test_a_break_ending_a_short_leg_goes_where_the_line_past_it_keeps_the_limits
     assert 50 in _merge_short_legs(sig, z.copy(), wi, corners, low, slopes, np.inf, 30.0).tolist()
     flat = np.full(100, 0.05)  # the line 0 -> 60 climbs at 0.092
     assert 50 in _merge_short_legs(sig, z.copy(), wi, ends, low, flat, np.inf, 30.0).tolist()
+
+
+@pytest.mark.parametrize("ratio", [0.5, 3.0])
+def test_the_flights_own_clearance_check_measures_the_bilinear_seabed(ratio):
+    """``seabed_clearance``, the check a flight makes of what it flies, against scipy: the
+    least 3-D distance of random points to the bilinear seabed (sampled every cell / 40,
+    KD-tree) within the two samplings' precision (each a set of seabed points: never nearer
+    than the seabed); a point under the seabed: its negative height above it; the vertical method:
+    the height above the seabed under each point."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from pipeline.flight import seabed_clearance
+
+    rng = np.random.default_rng(5)
+    a, n = 100.0, 24
+    radius = ratio * a
+    z = (-2000 + 60 * rng.normal(size=(n, n))).astype(np.float32)
+    el, slot = z[None].copy(), np.zeros((1, 1), dtype=np.int64)
+    under = RegularGridInterpolator((np.arange(n) * a, np.arange(n) * a), z.astype(float))
+    tree = cKDTree(bilinear_seabed_points(z, a, a / 40))
+    m = 16
+    for _ in range(20):
+        pr, pc = rng.uniform(6, n - 7, 1), rng.uniform(6, n - 7, 1)
+        h = under([[pr[0] * a, pc[0] * a]]) + rng.uniform(0.2, 1.1) * radius
+        got = seabed_clearance(el, slot, n, n, n, n, pr, pc, h, a, radius, 2, m)
+        ref = tree.query([[pc[0] * a, pr[0] * a, h[0]]])[0][0]
+        ref = min(ref, 1.25 * radius)
+        assert ref - a / 40 <= got <= ref + a / m, (got, ref)  # both samplings of the seabed
+    below = under([[pr[0] * a, pc[0] * a]]) - 7.0
+    got = seabed_clearance(el, slot, n, n, n, n, pr, pc, below, a, radius, 2, m)
+    assert got == pytest.approx(-7.0, abs=1e-3)
+    got = seabed_clearance(el, slot, n, n, n, n, pr, pc, below + 50.0, a, 0.0, 0, m)
+    assert got == pytest.approx(43.0, abs=1e-3)
