@@ -1232,3 +1232,19 @@ def test_the_flights_own_clearance_check_measures_the_bilinear_seabed(ratio):
     assert got == pytest.approx(-7.0, abs=1e-3)
     got = seabed_clearance(el, slot, n, n, n, n, pr, pc, below + 50.0, a, 0.0, 0, m)
     assert got == pytest.approx(43.0, abs=1e-3)
+
+
+def test_profile_figures_count_reversals_and_altitudes():
+    """Up 500 m, level 500 m, down 500 m, up 500 m over a seabed 100 m below the start: two
+    reversals (the level piece passed over) in 2 km; the altitude's median and 90th
+    percentile by numpy over the samples."""
+    from pipeline.flight import profile_figures
+
+    s = np.linspace(0.0, 2000.0, 2001)
+    z = np.interp(s, [0, 500, 1000, 1500, 2000], [0.0, 50.0, 50.0, 0.0, 40.0])
+    seabed = np.full_like(s, -100.0)
+    f = profile_figures(s, z, seabed)
+    assert f["reversals_per_km"] == pytest.approx(1.0)
+    assert f["altitude_median_m"] == pytest.approx(np.median(z + 100.0))
+    assert f["altitude_p90_m"] == pytest.approx(np.percentile(z + 100.0, 90))
+    assert f["altitude_min_m"] == pytest.approx(100.0)
