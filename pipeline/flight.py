@@ -1624,7 +1624,7 @@ def vertical_profile(
     pieces inside a band above the lowest such profile (:func:`band_profile`), the narrowest of
     ``bands`` that needs at most ``want`` waypoints, with no break of the profile ending a
     leg shorter than ``min_leg`` where the line past it keeps the limits
-    (:func:`_merge_short_legs`)."""
+    (:func:`merge_short_legs`)."""
     sig = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(qr), np.diff(qc)))))
     sig_corner = sig[vi]
     sig_t = _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a)
@@ -1651,7 +1651,7 @@ def vertical_profile(
     corners = np.asarray(vi, dtype=np.int64)
     for band in bands:  # the narrowest band that needs few waypoints (linear time each)
         z, brk = band_profile(sig, env, band, top, slopes)
-        wi = _merge_short_legs(
+        wi = merge_short_legs(
             sig, z, np.union1d(corners, brk), corners, h, slopes, top, float(min_leg)
         )
         if len(wi) <= want:
@@ -1661,7 +1661,7 @@ def vertical_profile(
 
 
 @njit(cache=True, nogil=True)
-def _merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
+def merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
     """The waypoints ``wi`` less the breaks of the height profile (not the route's corners)
     that end a leg shorter than ``min_leg`` where the straight line between their neighbours
     keeps every required height ``h``, the pitch limit of every interval it spans and the

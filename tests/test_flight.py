@@ -1183,22 +1183,22 @@ def test_a_break_ending_a_short_leg_goes_where_the_line_past_it_keeps_the_limits
     stays above every required height and within the pitch limit (the one at 60 ends legs of
     60 and 40 m and stays); kept where the line would pass under a required height or be too
     steep; corners are never removed."""
-    from pipeline.flight import _merge_short_legs
+    from pipeline.flight import merge_short_legs
 
     sig = np.arange(0.0, 101.0, 1.0)
     z = np.interp(sig, [0, 50, 60, 100], [0.0, 5.0, 5.5, 8.0])
     wi = np.array([0, 50, 60, 100])
     ends, slopes, low = np.array([0, 100]), np.full(100, 0.5), np.full(101, -np.inf)
     zz = z.copy()
-    assert _merge_short_legs(sig, zz, wi, ends, low, slopes, np.inf, 30.0).tolist() == [0, 60, 100]
+    assert merge_short_legs(sig, zz, wi, ends, low, slopes, np.inf, 30.0).tolist() == [0, 60, 100]
     np.testing.assert_allclose(zz[:61], 5.5 * sig[:61] / 60)  # the line that replaced it
     high = low.copy()
     high[55] = 5.2  # the line 0 -> 60 passes at 5.04 there
-    assert 50 in _merge_short_legs(sig, z.copy(), wi, ends, high, slopes, np.inf, 30.0).tolist()
+    assert 50 in merge_short_legs(sig, z.copy(), wi, ends, high, slopes, np.inf, 30.0).tolist()
     corners = np.array([0, 50, 100])
-    assert 50 in _merge_short_legs(sig, z.copy(), wi, corners, low, slopes, np.inf, 30.0).tolist()
+    assert 50 in merge_short_legs(sig, z.copy(), wi, corners, low, slopes, np.inf, 30.0).tolist()
     flat = np.full(100, 0.05)  # the line 0 -> 60 climbs at 0.092
-    assert 50 in _merge_short_legs(sig, z.copy(), wi, ends, low, flat, np.inf, 30.0).tolist()
+    assert 50 in merge_short_legs(sig, z.copy(), wi, ends, low, flat, np.inf, 30.0).tolist()
 
 
 @pytest.mark.parametrize("ratio", [0.5, 3.0])

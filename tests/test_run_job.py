@@ -26,6 +26,8 @@ from conftest import (
     write_bag,
 )
 from matplotlib import image
+from scipy.interpolate import RegularGridInterpolator
+from scipy.spatial import cKDTree
 
 import pipeline
 from pipeline.exceptions import JobFileError
@@ -285,7 +287,8 @@ def test_the_report_opens_offline_in_chromium(done, tmp_path):
 
 
 def test_min_clearance_against_brute_force(done):
-    """The reported clearance, against every grid point of the DEM (3-D distances)."""
+    """The reported clearance of what is flown, against the DEM's bilinear seabed (scipy), and
+    the grid path's clearance function against every grid point of the DEM (3-D distances)."""
     job, res = done
     root = res.catalog.parent
     dem = pipeline.open_dem(next(root.glob("dem-*.zarr")), chunks=None)
@@ -303,9 +306,22 @@ def test_min_clearance_against_brute_force(done):
                 for k in range(0, len(pts), 50)
             ]
         )
+        # the reported clearance is of what is flown: the track file against the bilinear
+        # seabed of the DEM (scipy, sampled every cell / 10), never under the clearance
         reported = item["properties"]["auv:min_clearance_m"]
-        assert reported == pytest.approx(each.min(), abs=1e-6)
-        assert reported >= 150.0 - 1e-2  # the spherical map's promise, float32 rounding
+        flown = gpd.read_parquet(root / "missions" / mid / "track.parquet")
+        fxyz = np.column_stack([flown["x"], flown["y"], flown["z"]])
+        a = float(dem["x"].values[1] - dem["x"].values[0])
+        x, y = dem["x"].values, dem["y"].values[::-1]
+        f = RegularGridInterpolator((y, x), dem.values[::-1].astype(np.float64))
+        fx = np.arange(x[0], x[-1] + 1e-9, a / 10)
+        fy = np.arange(y[0], y[-1] + 1e-9, a / 10)
+        yy, xx = np.meshgrid(fy, fx, indexing="ij")
+        seabed = np.column_stack([xx.ravel(), yy.ravel(), f(np.stack([yy, xx], -1)).ravel()])
+        ref = cKDTree(seabed).query(fxyz)[0].min()
+        assert reported >= 150.0 * (1 - 1e-6)
+        assert ref - a / 10 <= reported <= ref + a / 10, (reported, ref)
+        # the grid path's clearance from the grid points, the check of a mission not flown:
         # per point, within a radius that holds every point's nearest grid point
         traj = SimpleNamespace(cells=track[["row", "col"]].to_numpy(), points=pts)
         per_point = clearances(next(root.glob("maps-*.zarr")), traj, 2 * float(each.max()))
