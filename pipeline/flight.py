@@ -1709,8 +1709,8 @@ def merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
 
 # the flown route's own check measures the samples nearest their required heights: this share
 # of them, and at least CHECK_LEAST
-CHECK_SHARE = 0.05
-CHECK_LEAST = 64
+CHECK_SHARE = 0.01
+CHECK_LEAST = 32
 
 
 def _closest(margin: np.ndarray) -> np.ndarray:
