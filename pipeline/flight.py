@@ -738,12 +738,7 @@ def required_heights(
                     break
             if bad:
                 break
-        if bad:
-            out[k] = np.nan
-        elif spherical or best == -np.inf:
-            out[k] = best
-        else:
-            out[k] = best + clearance
+        out[k] = _height(bad, best, spherical, clearance)
     return out
 
 
@@ -796,10 +791,7 @@ def required_heights_fine(
         best = -np.inf
         bad = False
         if mi >= 0:  # the previous point's highest square first: most others then pass
-            z00 = np.float64(_cell(slot, el, tr, tc, mi, mj, np.inf))
-            z01 = np.float64(_cell(slot, el, tr, tc, mi, mj + 1, np.inf))
-            z10 = np.float64(_cell(slot, el, tr, tc, mi + 1, mj, np.inf))
-            z11 = np.float64(_cell(slot, el, tr, tc, mi + 1, mj + 1, np.inf))
+            z00, z01, z10, z11 = _corners(slot, el, tr, tc, mi, mj, np.inf)
             if np.isfinite(z00 + z01 + z10 + z11):
                 best = _parts_max(z00, z01, z10, z11, mi, mj, p, q, a, k, lim2, rr, spherical, best)
         i0 = max(0, int(math.floor(p - span)) - 1)
@@ -815,10 +807,7 @@ def required_heights_fine(
                 d2 = di * di + dj * dj
                 if d2 >= max(lim2, missing2):
                     continue
-                z00 = np.float64(_cell(slot, el, tr, tc, i, j, np.inf))
-                z01 = np.float64(_cell(slot, el, tr, tc, i, j + 1, np.inf))
-                z10 = np.float64(_cell(slot, el, tr, tc, i + 1, j, np.inf))
-                z11 = np.float64(_cell(slot, el, tr, tc, i + 1, j + 1, np.inf))
+                z00, z01, z10, z11 = _corners(slot, el, tr, tc, i, j, np.inf)
                 if np.inf in (z00, z01, z10, z11):
                     bad = True  # a tile not loaded
                     break
@@ -849,13 +838,32 @@ def required_heights_fine(
                     mj = j
             if bad:
                 break
-        if bad:
-            out[s] = np.nan
-        elif spherical or best == -np.inf:
-            out[s] = best
-        else:
-            out[s] = best + clearance
+        out[s] = _height(bad, best, spherical, clearance)
     return out
+
+
+@njit(inline="always", cache=True)
+def _corners(slot, el, tr, tc, i, j, missing):
+    """The four corners of grid square ``(i, j)``: ``(i, j)``, ``(i, j + 1)``, ``(i + 1,
+    j)``, ``(i + 1, j + 1)`` (``missing`` where a tile is not loaded)."""
+    return (
+        np.float64(_cell(slot, el, tr, tc, i, j, missing)),
+        np.float64(_cell(slot, el, tr, tc, i, j + 1, missing)),
+        np.float64(_cell(slot, el, tr, tc, i + 1, j, missing)),
+        np.float64(_cell(slot, el, tr, tc, i + 1, j + 1, missing)),
+    )
+
+
+@njit(inline="always", cache=True)
+def _height(bad, best, spherical, clearance):
+    """A point's required height from the best value found: NaN where the terrain it needs is
+    unknown, the value itself (spherical, or no constraint), else the value plus the
+    clearance."""
+    if bad:
+        return np.nan
+    if spherical or best == -np.inf:
+        return best
+    return best + clearance
 
 
 @njit(inline="always", cache=True)
@@ -931,27 +939,16 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
         if method == 0:
             i = min(max(int(math.floor(p)), 0), rows - 2)
             j = min(max(int(math.floor(q)), 0), cols - 2)
-            c = (
-                _cell(slot, el, tr, tc, i, j, np.nan),
-                _cell(slot, el, tr, tc, i, j + 1, np.nan),
-                _cell(slot, el, tr, tc, i + 1, j, np.nan),
-                _cell(slot, el, tr, tc, i + 1, j + 1, np.nan),
-            )
-            v = h - _bilin(c[0], c[1], c[2], c[3], p - i, q - j)
+            z00, z01, z10, z11 = _corners(slot, el, tr, tc, i, j, np.nan)
+            v = h - _bilin(z00, z01, z10, z11, p - i, q - j)
             if v == v:
                 least = min(least, v)
             continue
         # the seabed under the point: a point under it has a negative clearance
         ui = min(max(int(math.floor(p)), 0), rows - 2)
         uj = min(max(int(math.floor(q)), 0), cols - 2)
-        under = _bilin(
-            np.float64(_cell(slot, el, tr, tc, ui, uj, np.nan)),
-            np.float64(_cell(slot, el, tr, tc, ui, uj + 1, np.nan)),
-            np.float64(_cell(slot, el, tr, tc, ui + 1, uj, np.nan)),
-            np.float64(_cell(slot, el, tr, tc, ui + 1, uj + 1, np.nan)),
-            p - ui,
-            q - uj,
-        )
+        z00, z01, z10, z11 = _corners(slot, el, tr, tc, ui, uj, np.nan)
+        under = _bilin(z00, z01, z10, z11, p - ui, q - uj)
         if h < under:  # (a no-data corner under it: measured from the squares around only)
             least = min(least, h - under)
             continue
@@ -969,10 +966,7 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
                 d2 = di * di + dj * dj
                 if d2 >= lim:
                     continue
-                z00 = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
-                z01 = np.float64(_cell(slot, el, tr, tc, i, j + 1, np.nan))
-                z10 = np.float64(_cell(slot, el, tr, tc, i + 1, j, np.nan))
-                z11 = np.float64(_cell(slot, el, tr, tc, i + 1, j + 1, np.nan))
+                z00, z01, z10, z11 = _corners(slot, el, tr, tc, i, j, np.nan)
                 if z00 != z00 or z01 != z01 or z10 != z10 or z11 != z11:
                     continue  # no seabed to measure (the flight says where it is unknown)
                 top = max(z00, z01, z10, z11)
