@@ -253,6 +253,8 @@ def test_the_report_opens_offline_in_chromium(done, tmp_path):
         p = items["xy"].properties
         assert "lagrangian, 1.50" in popup and f"{p['auv:certified_ratio']:.4f}" in popup
         assert f"{p['auv:length_m'] / 1e3:.2f} km" in popup
+        alt = f"{p['auv:altitude_median_m']:.0f} m median, {p['auv:altitude_p90_m']:.0f} m 90th"
+        assert alt in popup and f"{p['auv:vertical_reversals_per_km']:.2f} per km" in popup
         assert page.locator("#details-title").inner_text() == "xy"
         for series in ("seabed", "required", "flown"):
             assert page.locator(f"#profile svg .series-{series}").count() == 1

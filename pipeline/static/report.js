@@ -115,6 +115,9 @@
       ["duration", m.duration_s === null ? "" : hours(m.duration_s) + " h"],
       ["waypoints", m.waypoint_count === null ? "" : String(m.waypoint_count)],
       ["min clearance", m.min_clearance_m === null ? "" : fmt(m.min_clearance_m, 1) + " m"],
+      ["altitude", m.altitude_median_m == null ? "" :
+        fmt(m.altitude_median_m, 0) + " m median, " + fmt(m.altitude_p90_m, 0) + " m 90th percentile"],
+      ["vertical reversals", m.reversals_per_km == null ? "" : fmt(m.reversals_per_km, 2) + " per km"],
       ["max pitch", m.max_pitch_deg === null ? "" : fmt(m.max_pitch_deg, 1) + " deg"],
       ["energy", m.energy_wh === null ? "" : fmt(m.energy_wh, 0) + " Wh"],
       ["planning time", m.runtime_s === null ? "" : fmt(m.runtime_s, 2) + " s"],
