@@ -785,6 +785,7 @@ def required_heights_fine(
     span = missing / a
     mi = -1  # the previous point's highest square
     mj = -1
+    stack = np.empty((64, 4), dtype=np.int64)
     for s in range(n):
         p = pr[s]
         q = pc[s]
@@ -793,7 +794,9 @@ def required_heights_fine(
         if mi >= 0:  # the previous point's highest square first: most others then pass
             z00, z01, z10, z11 = _corners(slot, el, tr, tc, mi, mj, np.inf)
             if np.isfinite(z00 + z01 + z10 + z11):
-                best = _parts_max(z00, z01, z10, z11, mi, mj, p, q, a, k, lim2, rr, spherical, best)
+                best = _parts_max(
+                    z00, z01, z10, z11, mi, mj, p, q, a, k, lim2, rr, spherical, best, stack
+                )
         i0 = max(0, int(math.floor(p - span)) - 1)
         i1 = min(rows - 2, int(math.floor(p + span)) + 1)
         j0 = max(0, int(math.floor(q - span)) - 1)
@@ -831,7 +834,9 @@ def required_heights_fine(
                 top = max(z00, z01, z10, z11)
                 if top + (math.sqrt(rr - d2) if spherical else 0.0) <= best:
                     continue  # no part of the square can raise the height
-                v = _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best)
+                v = _parts_max(
+                    z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack
+                )
                 if v > best:
                     best = v
                     mi = i
@@ -867,39 +872,68 @@ def _height(bad, best, spherical, clearance):
 
 
 @njit(inline="always", cache=True)
-def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best):
+def _part_bound(z00, z01, z10, z11, i, j, p, q, a, inv, u0, u1, v0, v1, lim2, rr, spherical):
+    """The highest value the parts ``u0..u1-1`` x ``v0..v1-1`` of square ``(i, j)`` can give
+    the point ``(p, q)``: the highest bilinear corner of the rectangle they make (a bilinear
+    surface is highest at a corner of any rectangle), plus the sphere's rise at the
+    rectangle's box distance (spherical); ``-inf`` where it lies ``sqrt(lim2)`` or farther."""
+    a0 = u0 * inv
+    a1 = u1 * inv
+    b0 = v0 * inv
+    b1 = v1 * inv
+    du = max(0.0, i + a0 - p, p - (i + a1)) * a
+    dv = max(0.0, j + b0 - q, q - (j + b1)) * a
+    e2 = du * du + dv * dv
+    if e2 >= lim2:
+        return -np.inf
+    zm = max(
+        _bilin(z00, z01, z10, z11, a0, b0),
+        _bilin(z00, z01, z10, z11, a0, b1),
+        _bilin(z00, z01, z10, z11, a1, b0),
+        _bilin(z00, z01, z10, z11, a1, b1),
+    )
+    return zm + (math.sqrt(rr - e2) if spherical else 0.0)
+
+
+@njit(inline="always", cache=True)
+def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack):
     """The highest of ``best`` and the values over the ``k`` x ``k`` parts of square ``(i,
     j)`` (corners ``z``) less than ``sqrt(lim2)`` from ``(p, q)``: a part's highest bilinear
-    corner, plus the sphere's rise at its box distance (spherical). A row of parts, or a part,
-    whose square's highest corner at its distance cannot beat the best is passed over."""
+    corner, plus the sphere's rise at its box distance (spherical). Branch and bound: the
+    square is halved until single parts, a block of parts passed over where its bound
+    (:func:`_part_bound`, at least the value of each of its parts) cannot beat the best; the
+    result is that of every part measured. ``stack``: scratch rows ``(u0, u1, v0, v1)``, at
+    least ``4 log2(k) + 4``."""
     inv = 1.0 / k
-    top = max(z00, z01, z10, z11)
-    for u in range(k):
-        a0 = u * inv
-        a1 = a0 + inv
-        du = max(0.0, i + a0 - p, p - (i + a1)) * a
-        if du * du >= lim2:
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = 0, k, 0, k
+    top = 1
+    while top > 0:
+        top -= 1
+        u0, u1, v0, v1 = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+        bound = _part_bound(
+            z00, z01, z10, z11, i, j, p, q, a, inv, u0, u1, v0, v1, lim2, rr, spherical
+        )
+        if bound <= best:
             continue
-        if top + (math.sqrt(rr - du * du) if spherical else 0.0) <= best:
+        if u1 - u0 == 1 and v1 - v0 == 1:
+            best = bound
             continue
-        for v in range(k):
-            b0 = v * inv
-            b1 = b0 + inv
-            dv = max(0.0, j + b0 - q, q - (j + b1)) * a
-            e2 = du * du + dv * dv
-            if e2 >= lim2:
-                continue
-            rise = math.sqrt(rr - e2) if spherical else 0.0
-            if top + rise <= best:
-                continue
-            zm = max(
-                _bilin(z00, z01, z10, z11, a0, b0),
-                _bilin(z00, z01, z10, z11, a0, b1),
-                _bilin(z00, z01, z10, z11, a1, b0),
-                _bilin(z00, z01, z10, z11, a1, b1),
-            )
-            if zm + rise > best:
-                best = zm + rise
+        um = (u0 + u1 + 1) // 2 if u1 - u0 > 1 else u1
+        vm = (v0 + v1 + 1) // 2 if v1 - v0 > 1 else v1
+        # the halves, the one nearest the point pushed last (measured first: the best rises
+        # early and the others pass over)
+        nu = 1 if um == u1 else 2
+        nv = 1 if vm == v1 else 2
+        fu = 1 if (nu == 2 and p >= i + um * inv) else 0
+        fv = 1 if (nv == 2 and q >= j + vm * inv) else 0
+        for c in range(nu * nv - 1, -1, -1):  # the farthest from the point first onto the stack
+            cu = (c // nv) ^ fu if nu == 2 else 0
+            cv = (c % nv) ^ fv if nv == 2 else 0
+            stack[top, 0] = u0 if cu == 0 else um
+            stack[top, 1] = um if cu == 0 else u1
+            stack[top, 2] = v0 if cv == 0 else vm
+            stack[top, 3] = vm if cv == 0 else v1
+            top += 1
     return best
 
 
@@ -920,12 +954,12 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
     """The least clearance of the points ``(pr, pc)`` (grid units) at heights ``z`` from the
     continuous seabed, measured anew (not from the required heights): the bilinear seabed of
     every grid square near a point sampled on an ``(m + 1)`` x ``(m + 1)`` lattice. Spherical:
-    the least 3-D distance to the samples within ``1.25 radius`` (that, where none is that
-    near); horizontal: the height above the highest sample within ``radius`` horizontally;
-    vertical: the height above the seabed under the point; a point under the seabed: the
-    (negative) height above it. A square is passed over where even its highest corner, at its
-    box distance, is farther than the least found; one with a no-data corner is not
-    measured."""
+    the least 3-D distance to the samples within ``1.25 radius`` and to the seabed under the
+    point (``1.25 radius``, where none is that near); horizontal: the height above the highest
+    sample within ``radius`` horizontally; vertical: the height above the seabed under the
+    point; a point under the seabed: the (negative) height above it. A square is passed over
+    where even its highest corner, at its box distance, is farther than the least found; one
+    with a no-data corner is not measured."""
     n = pr.size
     least = np.inf
     # spherical: searched a quarter beyond the clearance, for the least distance itself
@@ -952,7 +986,10 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
         if h < under:  # (a no-data corner under it: measured from the squares around only)
             least = min(least, h - under)
             continue
-        best = lim if method == 2 else -np.inf  # squared distance, or the highest seabed
+        # squared distance (at most to the seabed under the point), or the highest seabed
+        best = min(lim, (h - under) * (h - under)) if method == 2 else -np.inf
+        if best != best:
+            best = lim
         i0 = max(0, int(math.floor(p - span)))
         i1 = min(rows - 2, int(math.floor(p + span)))
         j0 = max(0, int(math.floor(q - span)))
@@ -1604,6 +1641,41 @@ def _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a) -> np.ndarray:
     return out
 
 
+@njit(cache=True, nogil=True)
+def turn_slopes(sig, zones, slope, min_leg):
+    """The pitch limit of each interval of the route's profile (``slope`` as a rise per metre)
+    lowered over each turn: ``zones`` rows ``(first interval, end interval, slope)`` in route
+    order. Zones less than ``min_leg`` apart (or from either end) are joined, each at its least
+    slope (and one shorter than ``min_leg`` made that long), so that a profile held at the limit
+    breaks no closer than ``min_leg`` to a turn, to another break or to an end (a waypoint an
+    autopilot can tell from the next)."""
+    n = sig.size
+    out = np.full(n - 1, slope)
+    runs = np.empty((zones.shape[0], 3))
+    m = 0
+    for z in range(zones.shape[0]):
+        j0, j1, sl = int(zones[z, 0]), int(zones[z, 1]), zones[z, 2]
+        while j1 < n - 1 and sig[j1] - sig[j0] < min_leg:  # (never so over a turn)
+            j1 += 1
+        while j0 > 0 and sig[j1] - sig[j0] < min_leg:
+            j0 -= 1
+        while m > 0 and sig[j0] - sig[int(runs[m - 1, 1])] < min_leg:  # (a long arc may reach back)
+            m -= 1
+            j0 = min(int(runs[m, 0]), j0)
+            j1 = max(int(runs[m, 1]), j1)
+            sl = min(runs[m, 2], sl)
+        runs[m, 0], runs[m, 1], runs[m, 2] = j0, j1, sl
+        m += 1
+    if m > 0 and sig[int(runs[0, 0])] - sig[0] < min_leg:
+        runs[0, 0] = 0
+    if m > 0 and sig[n - 1] - sig[int(runs[m - 1, 1])] < min_leg:
+        runs[m - 1, 1] = n - 1
+    for r in range(m):
+        for t in range(int(runs[r, 0]), int(runs[r, 1])):
+            out[t] = min(out[t], runs[r, 2])
+    return out
+
+
 def vertical_profile(
     wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands, top, want,
     min_leg=0.0,
@@ -1618,7 +1690,7 @@ def vertical_profile(
     pieces inside a band above the lowest such profile (:func:`band_profile`), the narrowest of
     ``bands`` that needs at most ``want`` waypoints, with no break of the profile ending a
     leg shorter than ``min_leg`` where the line past it keeps the limits
-    (:func:`merge_short_legs`)."""
+    (:func:`resolve_short_legs`)."""
     sig = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(qr), np.diff(qc)))))
     sig_corner = sig[vi]
     sig_t = _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a)
@@ -1627,25 +1699,29 @@ def vertical_profile(
     j = np.clip(np.searchsorted(sig, sig_t, side="right") - 1, 0, len(sig) - 2)
     np.maximum.at(h, j, ht)
     np.maximum.at(h, j + 1, ht)
-    slopes = np.full(len(sig) - 1, slope)
     arc_n = np.zeros(len(wr), dtype=np.int64)
     for b, e, corner in _arcs_of(leg):
         arc_n[corner] = e - b
-    for k in np.flatnonzero(np.isfinite(radii) & (tan_d > 0)):
-        theta = 2.0 * math.atan(tan_d[k] / radii[k])
-        na = max(int(arc_n[k]), 1)
-        factor = na * math.sin(theta / (2 * na)) / math.tan(theta / 2)
-        t = tan_d[k] * a
-        j0 = max(int(np.searchsorted(sig, sig_corner[k] - t, side="right")) - 1, 0)
-        j1 = min(int(np.searchsorted(sig, sig_corner[k] + t, side="left")), len(slopes))
-        slopes[j0:j1] = np.minimum(slopes[j0:j1], slope * factor * (1 - 1e-9))
+    k = np.flatnonzero(np.isfinite(radii) & (tan_d > 0))  # the turns
+    theta = 2.0 * np.arctan(tan_d[k] / radii[k])
+    na = np.maximum(arc_n[k], 1)
+    factor = na * np.sin(theta / (2 * na)) / np.tan(theta / 2)
+    t = np.maximum(tan_d[k] * a, min_leg)  # a break where the slope changes: min_leg from it
+    zones = np.column_stack(
+        [
+            np.maximum(np.searchsorted(sig, sig_corner[k] - t, side="right") - 1, 0),
+            np.minimum(np.searchsorted(sig, sig_corner[k] + t, side="left"), len(sig) - 1),
+            slope * factor * (1 - 1e-9),
+        ]
+    )  # (first interval, end, slope) over each turn
+    slopes = turn_slopes(sig, zones, float(slope), float(min_leg))
     if not np.isfinite(h).any():
         h[:] = 0.0
     env = pitch_envelope_var(h, sig, slopes)
     corners = np.asarray(vi, dtype=np.int64)
     for band in bands:  # the narrowest band that needs few waypoints (linear time each)
         z, brk = band_profile(sig, env, band, top, slopes)
-        wi = merge_short_legs(
+        wi = resolve_short_legs(
             sig, z, np.union1d(corners, brk), corners, h, slopes, top, float(min_leg)
         )
         if len(wi) <= want:
@@ -1655,12 +1731,88 @@ def vertical_profile(
 
 
 @njit(cache=True, nogil=True)
-def merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
-    """The waypoints ``wi`` less the breaks of the height profile (not the route's corners)
-    that end a leg shorter than ``min_leg`` where the straight line between their neighbours
-    keeps every required height ``h``, the pitch limit of every interval it spans and the
-    surface limit (``z`` is changed there to that line): an autopilot takes a waypoint as
-    reached within about its turn radius, and would pass over one closer."""
+def _knot_range(sig, z, h, slopes, top, a, j, b):
+    """The heights a knot at sample ``j`` may take between the fixed knots ``a < j < b``: the
+    two straight lines ``a -> j -> b`` keep every required height ``h`` of the samples they
+    span, the pitch limit of every interval and the surface limit ``top``. Returns
+    ``(lo, hi)``, empty when ``lo > hi``."""
+    lo = -np.inf
+    hi = top
+    da = sig[j] - sig[a]
+    db = sig[b] - sig[j]
+    if da <= 0.0 or db <= 0.0:
+        return np.inf, -np.inf
+    sl = np.inf
+    for t in range(a, j):
+        sl = min(sl, slopes[t])
+    lo = max(lo, z[a] - sl * da)
+    hi = min(hi, z[a] + sl * da)
+    for t in range(a + 1, j + 1):  # z_a + (z_j - z_a) u >= h_t, u in (0, 1]
+        if h[t] > -np.inf:
+            u = (sig[t] - sig[a]) / da
+            if u > 0.0:
+                lo = max(lo, z[a] + (h[t] - z[a]) / u)
+    sl = np.inf
+    for t in range(j, b):
+        sl = min(sl, slopes[t])
+    lo = max(lo, z[b] - sl * db)
+    hi = min(hi, z[b] + sl * db)
+    for t in range(j, b):
+        if h[t] > -np.inf:
+            u = (sig[b] - sig[t]) / db
+            if u > 0.0:
+                lo = max(lo, z[b] + (h[t] - z[b]) / u)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _line_fits(sig, z, h, slopes, top, a, b):
+    """Whether the straight line between the knots at samples ``a < b`` keeps every required
+    height, the pitch limit of every interval it spans (up to rounding: two pieces at the limit
+    may meet a part in 1e12 steeper) and the surface limit."""
+    rise = (z[b] - z[a]) / (sig[b] - sig[a])
+    for t in range(a, b):
+        if abs(rise) > slopes[t] * (1 + 1e-9):
+            return False
+    for t in range(a, b + 1):
+        v = z[a] + rise * (sig[t] - sig[a])
+        if v < h[t] or v > top:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _draw(sig, z, a, b):
+    """The profile between the knots at samples ``a < b`` made the straight line between them."""
+    rise = (z[b] - z[a]) / (sig[b] - sig[a])
+    for t in range(a + 1, b):
+        z[t] = z[a] + rise * (sig[t] - sig[a])
+
+
+@njit(cache=True, nogil=True)
+def _set_knot(sig, z, h, slopes, top, a, j, b):
+    """Sets the knot at ``j`` between the fixed knots ``a < j < b`` to the height nearest its
+    present one that keeps the limits (:func:`_knot_range`) and draws the two lines; False
+    (nothing changed) where no height does."""
+    lo, hi = _knot_range(sig, z, h, slopes, top, a, j, b)
+    if lo > hi:
+        return False
+    z[j] = min(max(z[j], lo), hi)
+    _draw(sig, z, a, j)
+    _draw(sig, z, j, b)
+    return True
+
+
+@njit(cache=True, nogil=True)
+def resolve_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
+    """The waypoints ``wi`` with no leg shorter than ``min_leg`` that a break of the height
+    profile (a waypoint that is not one of the route's ``corners``) ends, where the limits allow
+    (every required height ``h``, the pitch limit of every interval, the surface limit ``top``):
+    an autopilot takes a waypoint as reached within about its turn radius and would pass over
+    one closer. Each such break, in turn: removed, the line between its neighbours straight;
+    else removed and a neighbour's height set anew (not the route's first or last waypoint);
+    else moved along the route (never past its neighbours) to a place ``min_leg`` from both,
+    its height set anew. ``z`` is changed to the new profile (straight between waypoints)."""
     m = wi.size
     keep = wi.copy()
     fixed = np.zeros(m, dtype=np.bool_)
@@ -1669,6 +1821,8 @@ def merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
         while c < corners.size and corners[c] < wi[w]:
             c += 1
         fixed[w] = c < corners.size and corners[c] == wi[w]
+    fixed[0] = True
+    fixed[m - 1] = True
     n = m
     k = 1
     while k < n - 1:
@@ -1676,28 +1830,40 @@ def merge_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
         if fixed[k] or min(sig[b] - sig[i0], sig[i1] - sig[b]) >= min_leg:
             k += 1
             continue
-        rise = (z[i1] - z[i0]) / (sig[i1] - sig[i0])
-        ok = True
-        for t in range(i0, i1):
-            if abs(rise) > slopes[t]:
-                ok = False
-                break
-        if ok:
-            for t in range(i0, i1 + 1):
-                v = z[i0] + rise * (sig[t] - sig[i0])
-                if v < h[t] or v > top:
-                    ok = False
-                    break
-        if not ok:
-            k += 1
+        done = False
+        if _line_fits(sig, z, h, slopes, top, i0, i1):  # the break removed
+            _draw(sig, z, i0, i1)
+            done = True
+        if not done and k >= 2:  # removed, the knot before it set anew
+            done = _set_knot(sig, z, h, slopes, top, keep[k - 2], i0, i1)
+        if not done and k + 2 < n:  # or the knot after it
+            done = _set_knot(sig, z, h, slopes, top, i0, i1, keep[k + 2])
+        if done:
+            for t in range(k, n - 1):  # drop waypoint k
+                keep[t] = keep[t + 1]
+                fixed[t] = fixed[t + 1]
+            n -= 1
+            k = max(k - 1, 1)  # the leg before may now be long enough, or still short
             continue
-        for t in range(i0, i1 + 1):
-            z[t] = z[i0] + rise * (sig[t] - sig[i0])
-        for t in range(k, n - 1):  # drop waypoint k
-            keep[t] = keep[t + 1]
-            fixed[t] = fixed[t + 1]
-        n -= 1
-        k = max(k - 1, 1)  # the leg before may now be long enough, or still short
+        # moved: the places min_leg from both neighbours, nearest its own first
+        best = -1
+        if sig[i1] - sig[i0] >= 2.0 * min_leg:
+            p = b
+            while p > i0 and sig[i1] - sig[p] < min_leg:
+                p -= 1
+            while p < i1 and sig[p] - sig[i0] < min_leg:
+                p += 1
+            q = p
+            for _ in range(16):  # a few places past it (the first is usually taken)
+                if q <= i0 or q >= i1 or sig[q] - sig[i0] < min_leg or sig[i1] - sig[q] < min_leg:
+                    break
+                if _set_knot(sig, z, h, slopes, top, i0, q, i1):  # from its present height
+                    best = q
+                    break
+                q += 1 if p >= b else -1
+        if best >= 0:
+            keep[k] = best
+        k += 1
     return keep[:n]
 
 

@@ -1177,28 +1177,125 @@ def test_the_route_flown_keeps_r_from_the_continuous_seabed(tmp_path, kind, rati
         assert f.reversals_per_km == 0.0
 
 
-def test_a_break_ending_a_short_leg_goes_where_the_line_past_it_keeps_the_limits():
-    """A height profile breaking at 50 m and 60 m of a 100 m route (turn radius 30 m): the
-    break at 50 ends a 10 m leg and is removed where the straight line between its neighbours
-    stays above every required height and within the pitch limit (the one at 60 ends legs of
-    60 and 40 m and stays); kept where the line would pass under a required height or be too
-    steep; corners are never removed."""
-    from pipeline.flight import merge_short_legs
+def test_a_break_ending_a_short_leg_is_removed_or_moved_where_the_limits_allow():
+    """A height profile over a 100 m route, turn radius 30 m, a break at 50 m ending a 10 m
+    leg to the knot at 60 m: removed where the straight line between its neighbours stays
+    above every required height and within the pitch limit; else removed and a neighbour's
+    height raised as little as the required heights ask (worked out by hand below); else moved
+    to 30 m from its neighbours; kept where none of these keeps the limits. Corners stay."""
+    from pipeline.flight import resolve_short_legs
 
     sig = np.arange(0.0, 101.0, 1.0)
     z = np.interp(sig, [0, 50, 60, 100], [0.0, 5.0, 5.5, 8.0])
     wi = np.array([0, 50, 60, 100])
     ends, slopes, low = np.array([0, 100]), np.full(100, 0.5), np.full(101, -np.inf)
     zz = z.copy()
-    assert merge_short_legs(sig, zz, wi, ends, low, slopes, np.inf, 30.0).tolist() == [0, 60, 100]
+    assert resolve_short_legs(sig, zz, wi, ends, low, slopes, np.inf, 30.0).tolist() == [0, 60, 100]
     np.testing.assert_allclose(zz[:61], 5.5 * sig[:61] / 60)  # the line that replaced it
+    # the line 0 -> 60 passes at 5.04 under a required 5.2 at 55: the knot at 60 raised to
+    # 5.2 * 60 / 55, the least height whose line from 0 clears it
     high = low.copy()
-    high[55] = 5.2  # the line 0 -> 60 passes at 5.04 there
-    assert 50 in merge_short_legs(sig, z.copy(), wi, ends, high, slopes, np.inf, 30.0).tolist()
-    corners = np.array([0, 50, 100])
-    assert 50 in merge_short_legs(sig, z.copy(), wi, corners, low, slopes, np.inf, 30.0).tolist()
-    flat = np.full(100, 0.05)  # the line 0 -> 60 climbs at 0.092
-    assert 50 in merge_short_legs(sig, z.copy(), wi, ends, low, flat, np.inf, 30.0).tolist()
+    high[55] = 5.2
+    zz = z.copy()
+    assert resolve_short_legs(sig, zz, wi, ends, high, slopes, np.inf, 30.0).tolist() == [
+        0,
+        60,
+        100,
+    ]
+    assert zz[60] == pytest.approx(5.2 * 60 / 55) and zz[55] == pytest.approx(5.2)
+    np.testing.assert_allclose(zz[60:], np.interp(sig[60:], [60, 100], [5.2 * 60 / 55, 8.0]))
+    # the same with the route going down after its corner at 60 under a surface limit of 5.6
+    # (the knot at 60 cannot rise to 5.67): the break moved to 30 m, its height the least
+    # whose line to 60 clears 5.2 at 55 (z30 + (5.5 - z30) 25 / 30 >= 5.2: 3.7)
+    down = np.interp(sig, [0, 50, 60, 100], [0.0, 5.0, 5.5, 3.0])
+    corners = np.array([0, 60, 100])
+    zz = down.copy()
+    out = resolve_short_legs(sig, zz, wi, corners, high, slopes, 5.6, 30.0).tolist()
+    assert out == [0, 30, 60, 100]
+    assert zz[30] == pytest.approx(3.7) and zz[55] >= 5.2 - 1e-12
+    # kept: a corner 15 m before the break leaves no room to move it, the line 35 -> 60 passes
+    # under 5.2, the corner at 35 cannot rise (a pitch limit of 0.1 before it) nor the one at
+    # 60 (the surface limit)
+    wi = np.array([0, 35, 50, 60, 100])
+    corners = np.array([0, 35, 60, 100])
+    z = np.interp(sig, [0, 35, 50, 60, 100], [0.0, 3.5, 5.0, 5.5, 3.0])
+    gentle = slopes.copy()
+    gentle[:35] = 0.1
+    out = resolve_short_legs(sig, z.copy(), wi, corners, high, gentle, 5.6, 30.0).tolist()
+    assert out == [0, 35, 50, 60, 100]
+    # a corner is never removed
+    out = resolve_short_legs(sig, z.copy(), np.array([0, 50, 60, 100]), np.array([0, 50, 100]),
+                             low, slopes, np.inf, 30.0)  # fmt: skip
+    assert 50 in out.tolist()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(5.0, 60.0), st.floats(0.0, 40.0))
+def test_resolved_short_legs_keep_every_limit(seed, min_leg, band):
+    """Random terrain, pitch limits lowered over random turns, the band profile's breaks:
+    after ``resolve_short_legs`` the profile, checked here sample by sample, is straight between
+    its waypoints, keeps every required height, every interval's pitch limit and the surface
+    limit, keeps the corners and both ends' heights, and has no more breaks ending short legs
+    than before."""
+    from pipeline.flight import pitch_envelope_var, resolve_short_legs
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 300))
+    sig = np.concatenate(([0.0], np.cumsum(rng.uniform(0.5, 15.0, n - 1))))
+    h = np.cumsum(rng.normal(0, 3.0, n))
+    h[rng.random(n) < 0.1] = -np.inf
+    slopes = np.full(n - 1, 0.36)
+    for _ in range(int(rng.integers(0, 6))):
+        j = int(rng.integers(0, n - 1))
+        slopes[j : j + int(rng.integers(1, 8))] *= rng.uniform(0.6, 1.0)
+    corners = np.unique(np.concatenate(([0, n - 1], rng.integers(0, n, int(rng.integers(0, 8))))))
+    env = pitch_envelope_var(h, sig, slopes)
+    top = float(env.max() + rng.uniform(0, 30))
+    z, brk = band_profile(sig, env, band, top, slopes)
+    wi = np.union1d(corners, brk)
+    z = np.interp(sig, sig[wi], z[wi])
+    fixed_ends = z[[0, -1]].copy()
+
+    def short_breaks(knots):
+        legs = np.diff(sig[knots]) < min_leg
+        brk_end = ~np.isin(knots, corners)
+        return int(np.sum(legs & (brk_end[:-1] | brk_end[1:])))
+
+    before = short_breaks(wi)
+    out = resolve_short_legs(sig, z, wi.copy(), corners, h, slopes, top, min_leg)
+    np.testing.assert_allclose(z, np.interp(sig, sig[out], z[out]), atol=1e-9)
+    assert np.all(z >= h - 1e-9) and np.all(z <= top + 1e-9)
+    assert np.all(np.abs(np.diff(z)) <= slopes * np.diff(sig) * (1 + 1e-9) + 1e-12)
+    assert set(corners.tolist()) <= set(out.tolist())
+    np.testing.assert_array_equal(z[[0, -1]], fixed_ends)
+    assert short_breaks(out) <= before
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(1.0, 80.0))
+def test_turn_slopes_change_no_closer_than_a_leg(seed, min_leg):
+    """The pitch limit of the route's profile lowered over turns: never above any turn's own
+    limit where it applies, never lowered off every turn's reach once joined runs are counted,
+    and it changes only at places at least ``min_leg`` apart and from both ends (checked
+    here interval by interval), so a profile held at the limit breaks no closer."""
+    from pipeline.flight import turn_slopes
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 200))
+    sig = np.concatenate(([0.0], np.cumsum(rng.uniform(0.5, 20.0, n - 1))))
+    starts = np.sort(rng.integers(0, n - 1, int(rng.integers(0, 10))))
+    zones = np.array(
+        [(j, min(j + int(rng.integers(1, 10)), n - 1), rng.uniform(0.2, 0.36)) for j in starts]
+    ).reshape(-1, 3)
+    out = turn_slopes(sig, zones, 0.36, min_leg)
+    for j0, j1, sl in zones:
+        assert np.all(out[int(j0) : int(j1)] <= sl)
+    assert np.all(out <= 0.36)
+    change = np.flatnonzero(np.diff(out) != 0) + 1  # the samples where the limit changes
+    places = np.concatenate(([sig[0]], sig[change], [sig[-1]]))
+    if change.size:
+        assert np.diff(places).min() >= min_leg
+    assert not zones.size or out.min() == pytest.approx(zones[:, 2].min())
 
 
 @pytest.mark.parametrize("ratio", [0.5, 3.0])
