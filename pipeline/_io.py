@@ -9,6 +9,7 @@ then), and a failed build removes what it wrote."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import time
 import uuid
@@ -407,19 +408,63 @@ def require_writable(url: str) -> None:
         raise unreachable(url, exc) from None
 
 
+# the names of the tool's temporaries: a dot, the name, .tmp- and a random hex tag (and the
+# suffix a writer needs, or a maps build's scratch stores beside its store)
+TEMPORARY = re.compile(r"^\..+\.tmp-[0-9a-f]{8,12}(\.png|\.html|-scratch|-components)?$")
+
+# the attribute by which a store of each kind says, in its root zarr.json, that this tool
+# wrote it: only such a store is ever replaced
+STORE_MARKS = {"DEM": "pipeline_dem_version", "maps": "maps_version"}
+
+
+def own_store(p, kind: str) -> bool:
+    """Whether ``p`` (a path or a URL) holds a ``kind`` store (``"DEM"`` or ``"maps"``) that
+    this tool wrote: its root ``zarr.json`` names the kind's mark (:data:`STORE_MARKS`)."""
+    import json
+
+    meta = join(p, "zarr.json")
+    try:
+        if is_url(p):
+            fs, path = filesystem(meta)
+            text = fs.cat_file(path)
+        elif os.path.isdir(p) and not os.path.islink(p):
+            text = Path(meta).read_bytes()
+        else:
+            return False
+        attrs = json.loads(text).get("attributes") or {}
+    except Exception:  # noqa: BLE001 - absent, unreadable, not JSON: not one of ours
+        return False
+    return isinstance(attrs, dict) and STORE_MARKS[kind] in attrs
+
+
+def check_replaceable(path, kind: str, overwrite: bool) -> None:
+    """Raise :class:`StoreExistsError` where something is at ``path`` and it may not be
+    replaced: without ``overwrite``, or (with it) where it is not a ``kind`` store this tool
+    wrote. A folder, a file or another program's store is never deleted."""
+    if not (store_exists(path) or (not is_url(path) and os.path.islink(path))):
+        return
+    if not overwrite:
+        raise StoreExistsError(
+            f"{path} exists already; pass overwrite=True (--overwrite) to replace it"
+        )
+    if not own_store(path, kind):
+        raise StoreExistsError(
+            f"{path} exists and is not a {kind} store this tool wrote, so --overwrite does not "
+            "replace it; give another output path, or move it away yourself"
+        )
+
+
 @contextmanager
-def target(path, *, overwrite: bool = False) -> Iterator[str]:
+def target(path, *, kind: str, overwrite: bool = False) -> Iterator[str]:
     """:func:`atomic_path` for a local path; for a URL, the URL itself (removed first when
-    ``overwrite``, and removed again if the block fails)."""
+    ``overwrite`` and it holds a ``kind`` store of this tool's, and removed again if the block
+    fails)."""
     if not is_url(path):
-        with atomic_path(path, overwrite=overwrite) as tmp:
+        with atomic_path(path, kind=kind, overwrite=overwrite) as tmp:
             yield str(tmp)
         return
     url = location(path)
-    if store_exists(url) and not overwrite:
-        raise StoreExistsError(
-            f"{url} exists already; pass overwrite=True (--overwrite) to replace it"
-        )
+    check_replaceable(url, kind, overwrite)
     require_writable(url)
     if overwrite:
         remove_tree(url)
@@ -431,17 +476,16 @@ def target(path, *, overwrite: bool = False) -> Iterator[str]:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path``; on success move it to ``path``.
+def atomic_path(path: str | os.PathLike, *, kind: str, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path``; on success move it to ``path``, replacing what
+    was there only with ``overwrite`` and only if it is a ``kind`` store this tool wrote
+    (:func:`check_replaceable`).
 
     A reader never sees a half-written store: until the final ``rename`` the destination is
     either absent or the previous complete version. On any error the temporary is removed.
     """
     path = Path(path)
-    if path.exists() and not overwrite:
-        raise StoreExistsError(
-            f"{path} exists already; pass overwrite=True (--overwrite) to replace it"
-        )
+    check_replaceable(path, kind, overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     tag = uuid.uuid4().hex[:8]
     tmp = path.with_name(f".{path.name}.tmp-{tag}")

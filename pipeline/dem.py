@@ -284,7 +284,7 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     ds = out.to_dataset(name="elevation")
     ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
     encoding = {"elevation": {"chunks": ch, "compressors": layer_codec()}}
-    with atomic_path(store, overwrite=overwrite) as tmp:
+    with atomic_path(store, kind="DEM", overwrite=overwrite) as tmp:
         with reading(dem.attrs.get("source", "")):
             # the metadata and coordinates, then the grid a band of chunk rows at a time (its
             # memory follows the band: store_in_bands); chunks that are all no-data (the fill

@@ -48,6 +48,7 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ._io import TEMPORARY
 from .exceptions import (
     CatalogBusyError,
     InvalidDEMError,
@@ -351,10 +352,12 @@ def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:
 
 
 def _load_missions(path, doc, job):
+    from .catalog import mission_id
+
     ms = doc.get("missions", [])
     if not isinstance(ms, list) or not all(isinstance(m, dict) for m in ms):
         _fail(path, "missions must be an array of tables ([[missions]])")
-    seen = set()
+    seen, folders = set(), {}
     for i, m in enumerate(ms):
         where = f"missions[{i}]."
         _check_keys(path, m, _MISSION_KEYS, where)
@@ -364,6 +367,15 @@ def _load_missions(path, doc, job):
         if name in seen:
             _fail(path, f"{where}name {name!r} is used twice; mission names must be unique")
         seen.add(name)
+        # the folder and Item id (a file system may not tell case apart)
+        key = mission_id(name).casefold()
+        if key in folders:
+            _fail(
+                path,
+                f"{where}name {name!r} and mission {folders[key]!r} would share the folder and "
+                f"Item id {mission_id(name)!r}; rename one",
+            )
+        folders[key] = name
         mission = {"name": name}
         for end in ("start", "goal"):
             forms = [k for k in (end, f"{end}_xy", f"{end}_lonlat") if k in m]
@@ -473,6 +485,7 @@ def run_job(
     dem_store = job.catalog / f"dem-{job.dem_fingerprint()}.zarr"
     maps_store = job.catalog / f"maps-{job.maps_fingerprint()}.zarr"
     t0 = time.perf_counter()
+    check_catalog(job.catalog, job.name)
     if dry_run:
         log.info(
             "dry run: job %s is valid: %d missions; DEM store %s, maps store %s, catalog %s",
@@ -486,6 +499,7 @@ def run_job(
     from .catalog import write_catalog
 
     with catalog_lock(job.catalog):
+        check_catalog(job.catalog, job.name)  # (as another run may have left it)
         remove_temporaries(job.catalog)
         res = _run_locked(
             job, dem_store, maps_store, overwrite, scheduler, scheduler_file, dashboard_address
@@ -603,12 +617,69 @@ def catalog_lock(catalog: Path):
         fh.close()
 
 
+# what a run writes into its catalog folder (besides its temporaries, :data:`TEMPORARY`)
+CATALOG_ENTRIES = (
+    ".lock",
+    "catalog.json",
+    "dem-*.zarr",
+    "maps-*.zarr",
+    "missions",
+    "report",
+    "reports",
+    "index.html",
+    "performance-report.html",
+)
+
+
+def check_catalog(catalog: Path, job_name: str) -> None:
+    """Refuse, with one line, a catalog folder this job may not write into: a folder holding another job's catalog (its ``catalog.json`` names that job: the two would drop
+    each other's missions); a folder without a catalog that holds anything a run does not write
+    (the job's own folder, a user's files). Absent, empty, or this job's catalog: fine."""
+    import fnmatch
+
+    if not catalog.exists() and not catalog.is_symlink():
+        return
+    if not catalog.is_dir():
+        return  # a file: creating the lock says so
+    index = catalog / "catalog.json"
+    if index.exists():
+        try:
+            owner = json.loads(index.read_text()).get("id")
+        except (OSError, ValueError, AttributeError):
+            owner = None  # a damaged index of a run's: rewritten at the end of this one
+        if owner is not None and owner != job_name:
+            raise PipelineError(
+                f"catalog {catalog} holds the missions of job {owner!r} (its catalog.json); "
+                f"give job {job_name!r} its own [output] catalog, so that neither drops the "
+                "other's missions"
+            )
+        if owner is not None:
+            return
+    foreign = sorted(
+        p.name
+        for p in catalog.iterdir()
+        if not TEMPORARY.match(p.name)
+        and not any(fnmatch.fnmatchcase(p.name, pat) for pat in CATALOG_ENTRIES)
+    )
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (
+            f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        )
+        raise PipelineError(
+            f"catalog {catalog} is a folder with other files ({shown}) and no catalog of this "
+            "job; a run writes only into a new or empty folder, or its own catalog: give "
+            "[output] catalog such a folder"
+        )
+
+
 def remove_temporaries(catalog: Path) -> list[Path]:
     """Remove what killed runs left in ``catalog`` (half-written stores, scratch stores,
     mission folders, reports, coarse maps); call it holding :func:`catalog_lock`, when no
     other run can be writing them. Returns what was removed."""
     patterns = (".*.tmp-*", "missions/.*.tmp-*", "report/.*.tmp-*", "*.zarr/.coarse-rho*.tmp-*")
-    gone = [p for pattern in patterns for p in catalog.glob(pattern)]
+    # only the names the tool gives its temporaries (a dot, the name, .tmp- and a random hex
+    # tag): a user's file that looks alike is left alone
+    gone = [p for pattern in patterns for p in catalog.glob(pattern) if TEMPORARY.match(p.name)]
     for p in gone:
         if p.is_dir() and not p.is_symlink():
             shutil.rmtree(p, ignore_errors=True)

@@ -40,20 +40,20 @@ import zarr
 
 from ._io import (
     WINDOW_LAYERS,
+    check_replaceable,
     is_url,
     layer_encoding,
     load_window,
     location,
     remove_settled,
     remove_tree,
-    store_exists,
     target,
 )
 from ._jit import njit
 from .cluster import computing_client
 from .components import join_tiles, label_tile, relabel_tile
 from .dem import cell_size, open_dem, require_valid_cells
-from .exceptions import InvalidParameterError, StoreExistsError
+from .exceptions import InvalidParameterError
 from .landmarks import component_sizes, landmarks_staged, memory_per_landmark
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
 from .ridges import default_min_accumulation, flood_and_solve, tile_accumulation
@@ -189,7 +189,7 @@ def build_maps(
     elev = dem.copy()
     elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
     t0 = time.perf_counter()
-    with target(store, overwrite=overwrite) as tmp:
+    with target(store, kind="maps", overwrite=overwrite) as tmp:
         # beside the store, on the same storage: every worker reads and writes them
         scratch, labels = tmp + "-scratch", tmp + "-components"
         try:
@@ -345,10 +345,7 @@ def _checked(
     if not isinstance(dem, xr.DataArray):
         dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = location(store) if is_url(store) else Path(store)
-    if store_exists(store) and not overwrite:
-        raise StoreExistsError(
-            f"maps store {store} exists already; pass overwrite=True (--overwrite) to rebuild it"
-        )
+    check_replaceable(store, "maps", overwrite)
     if chunks is None:
         chunks = dem.data.chunksize if isinstance(dem.data, da.Array) else DEFAULT_CHUNK
     ch = chunks2d(chunks, dem.shape)

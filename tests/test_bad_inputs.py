@@ -571,3 +571,95 @@ def test_mission_coordinates_through_the_api(built_store, form, value, match):
     store = pipeline.open_store(built_store)
     with pytest.raises(pipeline.PipelineError, match=match):
         store.cell_of("start", form, value)
+
+
+# ------------------------------------------------------------------ only what the tool made
+
+
+def test_overwrite_replaces_only_a_store_the_tool_wrote(tmp_path, monkeypatch):
+    """``--overwrite`` replaces a DEM or maps store this tool wrote (its zarr.json says so) and
+    refuses, in one line, a user's folder, a plain file, another program's Zarr store or a store
+    of the other kind; what was there is untouched."""
+    dem = tmp_path / "dem.zarr"
+    assert invoke("dem", "synth", dem, "--shape", "40", "40").exit_code == 0
+    tif = _good_tif(tmp_path / "in.tif")
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "a.jpg").write_bytes(b"jpeg")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    other = tmp_path / "other.zarr"
+    zarr.open_group(other, mode="w", zarr_format=3).attrs["made_by"] = "another program"
+    cases = [
+        (("build-maps", dem, photos, "--clearance", "100", "--overwrite"), "not a maps store"),
+        (("dem", "import", tif, notes, "--overwrite"), "not a DEM store"),
+        (("dem", "synth", photos, "--shape", "20", "20", "--overwrite"), "not a DEM store"),
+        (("dem", "synth", other, "--shape", "20", "20", "--overwrite"), "not a DEM store"),
+        (("build-maps", dem, dem, "--clearance", "100", "--overwrite"), "not a maps store"),
+    ]
+    for args, match in cases:
+        one_line_error(invoke(*args), 2, match)
+    monkeypatch.chdir(photos)
+    one_line_error(
+        invoke("dem", "synth", ".", "--shape", "20", "20", "--overwrite"), 2, "not a DEM"
+    )
+    assert (photos / "a.jpg").read_bytes() == b"jpeg" and notes.read_text() == "mine"
+    assert sorted(p.name for p in photos.iterdir()) == ["a.jpg"]
+    assert dict(zarr.open_group(other, mode="r").attrs) == {"made_by": "another program"}
+    assert pipeline.open_dem(dem).shape == (40, 40)
+    # its own stores are replaced
+    maps = tmp_path / "maps.zarr"
+    for _ in range(2):
+        res = invoke("build-maps", dem, maps, "--clearance", "100", "--overwrite")
+        assert res.exit_code == 0, res.output
+    res = invoke("dem", "synth", dem, "--shape", "30", "30", "--overwrite")
+    assert res.exit_code == 0 and pipeline.open_dem(dem).shape == (30, 30)
+
+
+def test_a_catalog_is_never_a_folder_of_other_files(tmp_path):
+    """``[output] catalog = ""`` (the job's own folder) or any folder holding files a run does
+    not write is refused at the dry run, before anything is written or removed."""
+    for catalog in ["", ".", "photos"]:
+        folder = tmp_path / catalog
+        folder.mkdir(exist_ok=True)
+        (folder / "index.html").write_text("my page")
+        (folder / ".notes.tmp-1").write_text("mine")
+        if catalog == "photos":
+            (folder / "a.jpg").write_bytes(b"jpeg")
+        job = tmp_path / "job.toml"
+        job.write_text(f"{SYN}\n[output]\ncatalog = '{catalog}'\n")
+        for args in (("run", job, "--dry-run"), ("run", job)):
+            one_line_error(invoke(*args), 2, "is a folder with other files")
+        assert (folder / "index.html").read_text() == "my page"
+        assert (folder / ".notes.tmp-1").read_text() == "mine"
+        assert not (folder / ".lock").exists() and not (folder / "catalog.json").exists()
+
+
+def test_two_jobs_never_share_a_catalog(tmp_path, local_client):
+    """A second job naming a catalog that holds another job's missions is refused: each run
+    would otherwise rewrite catalog.json and the missions table with its own missions only."""
+    one = tmp_path / "one.toml"
+    one.write_text(
+        f"name = 'one'\n{SYN}[maps]\nclearance = 100.0\n[output]\ncatalog = 'cat'\n"
+        "performance_report = false\n"
+    )
+    assert pipeline.run_job(one, scheduler=local_client).ok
+    before = (tmp_path / "cat" / "catalog.json").read_text()
+    two = tmp_path / "two.toml"
+    two.write_text(one.read_text().replace("name = 'one'", "name = 'two'"))
+    for args in (("run", two, "--dry-run"), ("run", two)):
+        one_line_error(invoke(*args), 2, "holds the missions of job 'one'")
+    assert (tmp_path / "cat" / "catalog.json").read_text() == before
+    assert pipeline.run_job(one, scheduler=local_client).ok  # its own job still runs
+
+
+def test_two_mission_names_of_one_folder_are_refused(tmp_path):
+    from pipeline.catalog import mission_id
+
+    for a, b in [("a b", mission_id("a b")), ("Deep", "deep")]:
+        job = tmp_path / "job.toml"
+        job.write_text(
+            f'{SYN}\n[[missions]]\nname = "{a}"\nstart = [1, 1]\ngoal = [30, 30]\n'
+            f'[[missions]]\nname = "{b}"\nstart = [1, 1]\ngoal = [30, 30]\n'
+        )
+        one_line_error(invoke("run", job, "--dry-run"), 2, "would share the folder and Item id")

@@ -739,16 +739,28 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
     ]
     for p in left:
         (p / "c").mkdir(parents=True)
-    (root / ".performance-report.tmp-1234.html").write_text("half")
-    half = [root / "report" / ".hillshade.png.tmp-1234abcd.png", root / "report" / ".x.tmp-1"]
+    (root / ".performance-report.tmp-0123456789ab.html").write_text("half")
+    half = [
+        root / "report" / ".hillshade.png.tmp-1234abcd.png",
+        root / "report" / ".x.tmp-1a2b3c4d",
+    ]
     for p in half:
         p.write_text("half")
+    # a user's files that look alike (no random hex tag the tool gives its own) stay
+    users = [
+        root / ".notes.tmp-1",
+        root / "report" / ".draft.tmp-v2",
+        root / "missions" / ".x.tmp-",
+    ]
+    for p in users:
+        p.write_text("mine")
     before = report.stat().st_mtime_ns
     shade = (root / "report" / "hillshade.png").stat().st_mtime_ns
     res = run_job(job, scheduler=local_client)  # nothing to do
     assert res.skipped == 2 and res.ran == 0
     assert not any(p.exists() for p in left + half)
-    assert not list(root.glob(".*.tmp-*"))
+    assert all(p.read_text() == "mine" for p in users)
+    assert sorted(root.glob(".*.tmp-*")) == [root / ".notes.tmp-1"]
     assert report.stat().st_mtime_ns == before  # the no-op run kept the last report
     # and the hillshade of the same maps store (pipeline.report.hillshade)
     assert (root / "report" / "hillshade.png").stat().st_mtime_ns == shade
