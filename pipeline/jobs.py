@@ -632,9 +632,10 @@ CATALOG_ENTRIES = (
 
 
 def check_catalog(catalog: Path, job_name: str) -> None:
-    """Refuse, with one line, a catalog folder this job may not write into: a folder holding another job's catalog (its ``catalog.json`` names that job: the two would drop
-    each other's missions); a folder without a catalog that holds anything a run does not write
-    (the job's own folder, a user's files). Absent, empty, or this job's catalog: fine."""
+    """Refuse, with one line, a catalog folder this job may not write into: a folder holding
+    another job's catalog (its ``catalog.json`` names that job: the two would drop each other's
+    missions); a folder without a catalog that holds anything a run does not write (the job's
+    own folder, a user's files). Absent, empty, or this job's catalog: fine."""
     import fnmatch
 
     if not catalog.exists() and not catalog.is_symlink():
