@@ -73,6 +73,40 @@ def finished(root: Path, name: str) -> dict | None:
         return None
 
 
+def damaged_assets(root: Path, item: dict) -> list[str]:
+    """The files of a finished mission's Item that are missing, whose size is not the one
+    written (``auv:asset_bytes``; Items written before it are checked for presence only), or
+    whose content is plainly damaged (:func:`_intact`)."""
+    folder = Path(root) / COLLECTION / item.get("id", "")
+    sizes = item.get("properties", {}).get("auv:asset_bytes") or {}
+    bad = []
+    for key, asset in sorted((item.get("assets") or {}).items()):
+        href = str(asset.get("href", ""))
+        path = folder / (href[2:] if href.startswith("./") else href)
+        try:
+            size = path.stat().st_size
+        except OSError:
+            bad.append(path.name)
+            continue
+        if (key in sizes and sizes[key] != size) or not _intact(path, size):
+            bad.append(path.name)
+    return bad
+
+
+def _intact(path: Path, size: int) -> bool:
+    """What can be told of a file's content without reading it: a Parquet file begins and
+    ends with its magic bytes (a damaged one that kept its size is then seen too)."""
+    if path.suffix != ".parquet":
+        return True
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+            fh.seek(max(size - 4, 0))
+            return head == b"PAR1" and fh.read(4) == b"PAR1"
+    except OSError:
+        return False
+
+
 def write_mission(
     root: Path,
     name: str,
@@ -120,6 +154,11 @@ def write_mission(
                     media_type=pystac.MediaType.PNG,
                     roles=["overview"],
                 )
+        # each file's size as written: a re-run plans a mission again whose files went
+        # missing or changed (:func:`damaged_assets`)
+        props["auv:asset_bytes"] = {
+            key: (tmp / a.href[2:]).stat().st_size for key, a in sorted(assets.items())
+        }
         props.update(
             {
                 f"auv:{k}": _num(v)
@@ -277,7 +316,7 @@ def write_catalog(
             {
                 k.split(":", 1)[1]: (json.dumps(v) if isinstance(v, list) else v)
                 for k, v in it["properties"].items()
-                if k.startswith("auv:")
+                if k.startswith("auv:") and k != "auv:asset_bytes"  # (the files' bookkeeping)
             }
         )
         rows.append(row)

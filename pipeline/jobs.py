@@ -696,13 +696,28 @@ def _sorted_missions(job: Job, overwrite: bool) -> list[tuple[dict, dict | None,
     Item when it finished as it is defined now (None: to be planned; always with
     ``overwrite``), and whether it finished under another definition (its fields, the maps, the
     DEM, the library's defaults or results revision). Read once a run, before its cluster."""
-    from .catalog import finished
+    from .catalog import damaged_assets, finished
 
     out = []
     for m in job.missions:
         m = {**m, "fingerprint": job.mission_fingerprint(m)}
         done = None if overwrite else finished(job.catalog, m["name"])
         changed = done is not None and done["properties"].get("auv:fingerprint") != m["fingerprint"]
+        if done is not None and not changed:
+            # a failure is tried again (its cause, a full disk, a damaged store, may be gone;
+            # one the mission itself causes fails again, as fast); so is a result whose files
+            # went missing or changed
+            if done["properties"].get("auv:status") == "failed":
+                log.info("%s: failed before: planning it again", m["name"])
+                done = None
+            elif bad := damaged_assets(job.catalog, done):
+                log.warning(
+                    "%s: its files %s are missing or changed since it was written: planning it "
+                    "again",
+                    m["name"],
+                    ", ".join(bad),
+                )
+                done = None
         out.append((m, None if changed else done, changed))
     return out
 
@@ -783,8 +798,8 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
             todo.append(m)
         else:
             res.skipped += 1
-            if done["properties"].get("auv:status") != "ok":
-                res.failed.append(m["name"])
+            if done["properties"].get("auv:status") == "uncertified":
+                res.uncertified.append(m["name"])  # (the exit code of its first run)
     if res.skipped:
         log.info("%d missions finished before: skipped (--overwrite plans them again)", res.skipped)
     ready, bad = [], []
@@ -841,6 +856,14 @@ class _Recorder:
             reason = f"its result could not be written: {type(exc).__name__}: {exc}"
             log.error("[%d/%d] %s: FAILED: %s", self.count, self.total, name, reason)
             self.res.failed.append(name)
+            from .catalog import finished
+
+            before = finished(self.job.catalog, name)
+            if before is not None and before["properties"].get("auv:status") != "failed":
+                # an earlier result is never replaced by a failure to write this one (the
+                # next run plans the mission again, its fingerprint or files being other)
+                log.error("%s: its earlier result is kept", name)
+                return
             try:  # the failure itself, if the disk takes it
                 self._write(mission, failed_trajectory({**self.job.planning, **mission}, reason))
             except (OSError, PipelineError, ValueError):

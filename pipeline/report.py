@@ -22,6 +22,7 @@ import csv
 import datetime as _dt
 import html
 import json
+import logging
 import math
 import os
 import uuid
@@ -30,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from .catalog import COLLECTION, finished
+
+log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).parent / "static"  # the page, its style and script
 LEAFLET = STATIC / "leaflet"
@@ -199,21 +202,39 @@ def _mission(root: Path, item: dict, k: int, crs_wkt: str | None) -> dict:
         m["files"].append(
             {"href": f"{COLLECTION}/{mid}/{href}", "title": asset.get("title") or key}
         )
+    try:
+        _drawn(m, folder, item, crs_wkt)
+    except Exception as exc:  # noqa: BLE001 - pyarrow, csv, pyproj: a damaged file each
+        # the report is drawn without what cannot be read, and says so (a re-run plans a
+        # mission whose files changed again)
+        what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        log.warning("report: mission %s: a file cannot be read (%s)", m["name"], what)
+        m["track"], m["profile"], m["waypoints"] = None, None, []
+        m["message"] = (m["message"] + "; " if m["message"] else "") + (
+            f"its files cannot be read ({type(exc).__name__}: {what}); plan it again (remove "
+            "its folder, or run the job with --overwrite)"
+        )
+    return m
+
+
+def _drawn(m: dict, folder: Path, item: dict, crs_wkt: str | None) -> None:
+    """``m``'s track, profile and waypoints from the mission's files: the flown track, else
+    the grid path on the safety surface (planned, not flown); only files its Item lists."""
+    listed = {str(a.get("href", "")).removeprefix("./") for a in item.get("assets", {}).values()}
     track = folder / "track.parquet"
     grid = folder / "grid-path.parquet"
-    if track.exists():
+    if track.name in listed:
         t = _columns(track, ("x", "y", "z", "seabed_m", "required_m", "s_m"))
         m["track"] = _thin_xy(t["x"], t["y"])
         m["profile"] = _profile(t["s_m"], t["seabed_m"], t["required_m"], t["z"])
-    elif grid.exists():  # planned, not flown: the grid path on the safety surface
+    elif grid.name in listed:
         t = _columns(grid, ("x", "y", "z"))
         s = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(t["x"]), np.diff(t["y"])))))
         m["track"] = _thin_xy(t["x"], t["y"])
         m["profile"] = _profile(s, None, t["z"], None)
     wpt = folder / "waypoints.csv"
-    if wpt.exists():
+    if wpt.name in listed:
         m["waypoints"] = _waypoints(wpt, crs_wkt)
-    return m
 
 
 def _columns(path: Path, names) -> dict:

@@ -913,3 +913,117 @@ catalog = "{tmp_path / "cat"}"
     first = load_job(job).dem_fingerprint()
     job.write_text(text.replace("uncertainty_k = 3.0", "uncertainty_k = 2.0"))
     assert load_job(job).dem_fingerprint() != first
+
+
+# ------------------------------------------------------------------ failures tried again
+
+
+def _props(root):
+    """The properties of every mission's Item, by id."""
+    return {
+        p.parent.name: json.loads(p.read_text())["properties"]
+        for p in (root / "missions").glob("*/*.json")
+        if p.stem == p.parent.name
+    }
+
+
+def test_a_failure_is_tried_again_once_its_cause_is_gone(tmp_path, stores, local_client):
+    """A maps store damaged under a run (a chunk of the passable layer overwritten) fails the
+    missions that read it; the store repaired, the next run plans them again rather than
+    skipping them as finished, and exits 0."""
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="retry")
+    chunk = next((tmp_path / "cat").glob("maps-*.zarr")) / "passable" / "c" / "1" / "1"
+    good = chunk.read_bytes()
+    chunk.write_bytes(b"\x00damaged" * 16)
+    res = run_job(job, scheduler=local_client)
+    assert sorted(res.failed) == ["east", "south"] and not res.ok
+    items = _props(tmp_path / "cat")
+    assert {p["auv:status"] for p in items.values()} == {"failed"}
+    assert all("damaged" in p["auv:message"] for p in items.values())
+    chunk.write_bytes(good)
+    res = run_job(job, scheduler=local_client)
+    assert res.ok and res.planned == 2 and res.skipped == 0
+    assert {p["auv:status"] for p in _props(tmp_path / "cat").values()} == {"ok"}
+    assert run_job(job, scheduler=local_client).skipped == 2  # and then finished
+
+
+def test_a_finished_mission_keeps_its_exit_code_and_its_files(tmp_path, stores, local_client):
+    """A re-run counts an uncertified mission as uncertified (exit 5 again, not 1); a mission
+    whose file was deleted, truncated or overwritten is planned again; a file damaged under the
+    report does not stop the run: the report says so for that mission."""
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="kept")
+    root = tmp_path / "cat"
+    assert run_job(job, scheduler=local_client).ok
+    east = root / "missions" / "east" / "east.json"
+    item = json.loads(east.read_text())
+    item["properties"]["auv:status"] = "uncertified"  # as a run that could not certify it
+    east.write_text(json.dumps(item))
+    proc = subprocess.run(
+        [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 5, proc.stderr
+    res = run_job(job, scheduler=local_client)
+    assert res.uncertified == ["east"] and not res.failed and res.skipped == 2
+    # files gone or changed: planned again
+    (root / "missions" / "east" / "track.parquet").unlink()
+    csv_file = root / "missions" / "south" / "waypoints.csv"
+    csv_file.write_text(csv_file.read_text()[:-20])
+    res = run_job(job, scheduler=local_client)
+    assert res.planned == 2 and res.skipped == 0 and res.ok
+    assert (root / "missions" / "east" / "track.parquet").exists()
+    # a Parquet file overwritten in place, its size kept: planned again too
+    track = root / "missions" / "south" / "track.parquet"
+    size = track.stat().st_size
+    track.write_bytes(bytes(size))
+    res = run_job(job, scheduler=local_client)
+    assert res.planned == 1 and res.skipped == 1 and res.ok
+    assert track.read_bytes()[:4] == b"PAR1"
+    # a damaged file the checks cannot see (the CSV's content, its size kept) under the
+    # report: the run ends, the report names the mission's problem
+    wpt = root / "missions" / "east" / "waypoints.csv"
+    track = root / "missions" / "east" / "track.parquet"
+    raw = bytearray(track.read_bytes())
+    raw[-8:-4] = (len(raw) * 2).to_bytes(4, "little")  # a footer longer than the file
+    track.write_bytes(bytes(raw))
+    assert wpt.exists()
+    res = run_job(job, scheduler=local_client)
+    assert res.ok and res.skipped == 2
+    page = (root / "index.html").read_text()
+    assert "its files cannot be read" in page
+
+
+def test_a_result_that_cannot_be_written_keeps_the_earlier_one(tmp_path, stores, local_client):
+    """A mission planned again (its goal edited) on a full disk (a file-size limit stands in
+    for it: the writes fail as they do when the disk fills) keeps its earlier Item and files,
+    never a failed Item in their place; with the disk back, the next run writes the new one."""
+    import resource
+
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="full")
+    root = tmp_path / "cat"
+    assert run_job(job, scheduler=local_client).ok
+    before = (root / "missions" / "east" / "east.json").read_text()
+    job.write_text(job.read_text().replace("goal = [150, 290]", "goal = [140, 280]"))
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4_000, 4_000))
+
+    proc = subprocess.run(
+        [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert "east: its earlier result is kept" in proc.stderr
+    assert (root / "missions" / "east" / "east.json").read_text() == before
+    res = run_job(job, scheduler=local_client)
+    assert res.ok and res.replanned == 1
+    item = json.loads((root / "missions" / "east" / "east.json").read_text())
+    assert item["properties"]["auv:goal"] == [140, 280]
