@@ -175,6 +175,9 @@ class Flight:
 # most, closer where the clearance is small against the cell (CLEARANCE_SLACK)
 SAMPLE_STEP = 0.5
 CLEARANCE_SLACK = 5e-4
+# the profile's breaks are kept this share beyond a turn radius apart, so that the legs stay
+# at least a turn radius long as their files write them (coordinates rounded)
+LEG_MARGIN = 0.01
 # waypoint legs may fly above the lowest profile of their route by up to a band: by default the
 # narrowest of these shares of the clearance that needs at most WAYPOINT_SHARE waypoints per
 # grid path cell (fewer waypoints for a little more altitude); [vehicle] waypoint_band_m fixes it
@@ -1435,7 +1438,7 @@ def fly(maps, traj, vehicle=None) -> Flight:
         unsure = int(unsure.sum() + unsure_q.sum())
         prof = vertical_profile(
             wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands,
-            top_ok, want, turn_m,
+            top_ok, want, turn_m * (1 + LEG_MARGIN),
         )  # fmt: skip
         zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
         route = {"s": prof["sigma"], "z": zq, "h": prof["h"]}
