@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 import struct
 import time
 from pathlib import Path
@@ -267,6 +268,17 @@ def qgc_wpl(table: dict, acceptance_m) -> str:
     return "\n".join(rows) + "\n"
 
 
+# characters XML 1.0 does not allow in a document (control characters other than tab and the
+# line ends, the surrogates and two non-characters)
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]")
+
+
+def _xml_text(text: str) -> str:
+    """``text`` as XML character data: escaped, and each character XML cannot hold (a
+    mission name may have any) replaced by U+FFFD."""
+    return escape(_NOT_XML.sub("\ufffd", text))
+
+
 def kml(name: str, flight, table: dict, lonlat_track) -> bytes:
     """KML 2.2 for Google Earth: the flown track and the waypoint route as 3-D lines (absolute
     heights, negative below sea level) and one placemark per waypoint."""
@@ -288,7 +300,7 @@ def kml(name: str, flight, table: dict, lonlat_track) -> bytes:
     out = [
         '<?xml version="1.0" encoding="UTF-8"?>',
         '<kml xmlns="http://www.opengis.net/kml/2.2"><Document>',
-        f"<name>{escape(name)}</name>",
+        f"<name>{_xml_text(name)}</name>",
     ]
     for sid, colour, width in (("track", "ff0000ff", "3"), ("route", "ff00ffff", "1.5")):
         out.append(

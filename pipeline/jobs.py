@@ -211,11 +211,18 @@ def load_job(path: str | os.PathLike) -> Job:
     """Read and validate a job file without computing anything."""
     path = Path(path)
     if not path.is_file():
-        what = "is a directory, not a file" if path.is_dir() else "does not exist"
+        what = (
+            "is a directory, not a file"
+            if path.is_dir()
+            else "is not a regular file (a device, a pipe or a socket); give a TOML file"
+            if path.exists()
+            else "does not exist"
+        )
         raise JobFileError(f"job file {path} {what}")
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
+        raw = path.read_bytes()
+        # a byte-order mark, as some editors on Windows write, is not TOML but means UTF-8
+        doc = tomllib.loads(raw.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise JobFileError(f"job file {path} is not valid TOML: {exc}") from exc
     except UnicodeDecodeError as exc:
@@ -226,8 +233,18 @@ def load_job(path: str | os.PathLike) -> Job:
         raise JobFileError(f"job file {path} cannot be read: {exc.strerror}") from exc
     _check_keys(path, doc, _TOP_KEYS, "")
     name = doc.get("name", path.stem)
-    if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
-        _fail(path, f"name must be a non-empty file-name-safe string, got {name!r}")
+    if (
+        not isinstance(name, str)
+        or not name
+        or "/" in name
+        or name.startswith(".")
+        or any(ord(c) < 32 or ord(c) == 127 for c in name)
+    ):
+        _fail(
+            path,
+            f"name must be a non-empty file-name-safe string (no '/', no leading '.', no "
+            f"control characters), got {name!r}",
+        )
     dem = doc.get("dem")
     if not isinstance(dem, dict):
         _fail(path, "a [dem] table is required, with path = '...' or a [dem.synthetic] table")

@@ -173,6 +173,8 @@ M = "start = [1, 2]\ngoal = [3, 4]\n"
 JOB_CASES = [
     ("top:planners = 1", "unknown key 'planners'"),
     ("top:name = 3", "name must be"),
+    ('top:name = "job\\u0000nul"', "no control characters"),
+    ('top:name = "bell\\u0007"', "no control characters"),
     ("tables:name = 'x'", r"a [dem] table is required"),
     ("tables:[dem]\npath = 'a.tif'\n[dem.synthetic]\nshape = [4, 4]", "exactly one of"),
     ("tables:[dem]\ncolour = 1\n[dem.synthetic]\nshape = [4, 4]", "unknown key dem.'colour'"),
@@ -292,13 +294,25 @@ def test_bad_job_files_dry_run(tmp_path, case, match):
         (lambda p: p.write_bytes(b"name = '\xff\xfe'\n"), "is not UTF-8"),
         (lambda p: p.mkdir(), "is a directory, not a file"),
         (lambda p: None, "does not exist"),
+        (lambda p: os.mkfifo(p), "is not a regular file (a device, a pipe or a socket)"),
     ],
-    ids=["not UTF-8", "a directory", "missing"],
+    ids=["not UTF-8", "a directory", "missing", "a FIFO (never opened: it would block)"],
 )
 def test_unreadable_job_files(tmp_path, make, match):
     job = tmp_path / "job.toml"
     make(job)
     one_line_error(invoke("run", job), 2, match)
+
+
+def test_a_device_is_not_a_job_file_and_a_byte_order_mark_is_read(tmp_path):
+    one_line_error(invoke("run", "/dev/null"), 2, "is not a regular file")
+    job = tmp_path / "bom.toml"
+    job.write_bytes(b"\xef\xbb\xbf" + f"name = 'bom'\n{SYN}".encode())
+    res = invoke("run", job, "--dry-run")
+    assert res.exit_code == 0, res.output
+    from pipeline.jobs import load_job
+
+    assert load_job(job).name == "bom"
 
 
 # ------------------------------------------------------------------ command-line flags

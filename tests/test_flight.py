@@ -406,6 +406,34 @@ def test_kml_reads_in_fastkml(flown):
     np.testing.assert_allclose(z, t.flight.waypoints[:, 2], atol=0.06)
 
 
+@pytest.mark.parametrize("name", ["bell\x07 tab\t nul\x00", "</name><x>&amp;", "\ufffe\x1f"])
+def test_the_files_of_any_mission_name_read_in_their_own_software(flown, tmp_path, name):
+    """A mission name with control characters, markup or XML non-characters: the KML parses
+    (the standard library's XML parser and fastkml) with the name as text, each character XML
+    cannot hold replaced; the GeoJSON and the IMC plan read back."""
+    import xml.etree.ElementTree as ET
+
+    import imcpy
+    from fastkml import kml
+
+    m, t, _, _ = flown
+    files = exports.write_mission_files(tmp_path, name, "odd-1", t, m.crs_wkt, 0.0)
+    assert {"kml", "waypoints", "imc"} <= set(files)
+    text = (tmp_path / "mission.kml").read_bytes()
+    root = ET.fromstring(text)
+    shown = root.find(
+        "{http://www.opengis.net/kml/2.2}Document/{http://www.opengis.net/kml/2.2}name"
+    )
+    allowed = {"\t", "\n", "\r"}
+    want = "".join(
+        c if c in allowed or (" " <= c and c not in "\ufffe\uffff") else "\ufffd" for c in name
+    )
+    assert shown.text == want
+    kml.KML.parse(str(tmp_path / "mission.kml"))
+    json.loads((tmp_path / "waypoints.geojson").read_text())
+    assert imcpy.Packet.deserialize((tmp_path / "mission.imc").read_bytes()).plan_id == "odd-1"
+
+
 def test_imc_plan_reads_in_imcpy(flown):
     import imcpy
     from pyproj import Geod
