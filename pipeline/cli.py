@@ -82,7 +82,37 @@ def _progress(what: str):
     return ProgressBar(dt=1.0, out=sys.stderr)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+# click's error for a group given no command (it then prints the group's help)
+_NO_ARGS = getattr(click.exceptions, "NoArgsIsHelpError", ())
+
+
+class _OneLineGroup(click.Group):
+    """click's group whose usage errors (a missing argument, an unknown option, a bad value) are
+    one ``error:`` line naming the command's help, as every other error is, not click's
+    several lines of usage."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.Abort:
+            click.echo("error: aborted", err=True)
+            sys.exit(EXIT_BAD_INPUT)
+        except _NO_ARGS as exc:  # `pipeline` or `pipeline dem` alone: the help, as asked
+            click.echo(exc.ctx.get_help())
+            sys.exit(EXIT_OK)
+        except click.ClickException as exc:
+            msg = exc.format_message()
+            ctx = getattr(exc, "ctx", None)
+            if isinstance(exc, click.UsageError) and ctx is not None:
+                msg = f"{msg} (see `{ctx.command_path} --help`)"
+            click.echo(f"error: {' '.join(msg.split())}", err=True)
+            sys.exit(exc.exit_code)
+        sys.exit(rv if isinstance(rv, int) else EXIT_OK)
+
+
+@click.group(cls=_OneLineGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", is_flag=True, help="Debug logging.")
 @click.version_option(package_name="auv-pipeline")
 def main(verbose: bool) -> None:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import atexit
 import json
-import os
 import socket
 import threading
 from contextlib import contextmanager
@@ -169,7 +168,9 @@ def connect(address: str, *, timeout: float | None = None, set_as_default: bool 
     from distributed.comm.addressing import parse_address, parse_host_port
 
     if timeout is None:
-        timeout = float(os.environ.get("AUV_PIPELINE_CONNECT_TIMEOUT_S", "30"))
+        from .params import env_number
+
+        timeout = env_number("AUV_PIPELINE_CONNECT_TIMEOUT_S", 30.0, minimum=0.001)
     try:  # before a Client is made: one refused for its address waited 60 s at exit
         scheme, location = parse_address(address)
         if scheme in ("tcp", "tls"):
@@ -179,6 +180,8 @@ def connect(address: str, *, timeout: float | None = None, set_as_default: bool 
             f"{address!r} is not a dask scheduler address ({exc}); give one such as "
             "tcp://10.0.0.5:8786, or no scheduler to use a local cluster"
         ) from None
+    if scheme == "tcp":
+        _probe(address, location, timeout)
     try:
         return Client(address, timeout=timeout, set_as_default=set_as_default)
     except (OSError, ValueError, TypeError) as exc:
@@ -189,10 +192,49 @@ def connect(address: str, *, timeout: float | None = None, set_as_default: bool 
         ) from None
 
 
+# a dask scheduler greets a new connection at once (its handshake); this long a silence
+# means something else answers at the address
+GREETING_S = 5.0
+
+
+def _probe(address: str, location: str, timeout: float) -> None:
+    """One :class:`SchedulerError` where nothing answers at ``address`` within ``timeout``, or
+    where something answers that is no dask scheduler: it does not greet the connection
+    within ``GREETING_S`` (an HTTP server, the dashboard's port; the client would wait on it
+    for ever)."""
+    from distributed.comm.addressing import parse_host_port
+
+    host, port = parse_host_port(location)
+    try:
+        with socket.create_connection((host, port), timeout=timeout) as sk:
+            sk.settimeout(min(timeout, GREETING_S))
+            try:
+                greeted = bool(sk.recv(8))
+            except TimeoutError:
+                greeted = False
+    except OSError as exc:
+        raise SchedulerError(
+            f"cannot reach the dask scheduler at {address}: {exc.strerror or exc}; start it "
+            "(`dask scheduler`) or give no scheduler to use a local cluster"
+        ) from None
+    if not greeted:
+        raise SchedulerError(
+            f"{address} answers but is not a dask scheduler (it did not greet the connection "
+            f"within {min(timeout, GREETING_S):g} s; a web server or the dashboard's port?); "
+            "give the scheduler's own address (tcp://host:8786 by default)"
+        )
+
+
 def address_of(scheduler_file) -> str:
     """The scheduler address written in a dask scheduler file (JSON)."""
+    path = Path(scheduler_file)
+    if path.exists() and not path.is_file():  # a FIFO would block the read for ever
+        raise SchedulerError(
+            f"cannot read the scheduler address from {scheduler_file}: it is not a regular "
+            "file; give the file `dask scheduler --scheduler-file` wrote"
+        )
     try:
-        address = json.loads(Path(scheduler_file).read_text())["address"]
+        address = json.loads(path.read_text())["address"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SchedulerError(
             f"cannot read the scheduler address from {scheduler_file}: "
@@ -286,6 +328,27 @@ def _client(client):
 # --------------------------------------------------------------------------- per job
 
 
+def check_dashboard_address(address) -> None:
+    """One :class:`InvalidParameterError` unless ``address`` is where a dashboard can listen:
+    ``PORT``, ``:PORT`` or ``HOST:PORT`` (a port 0-65535; 0 any free one) with a host this
+    machine resolves."""
+    text = str(address)
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = "", text
+    ok = port.isdigit() and int(port) <= 65535
+    if ok and host.strip("[]"):
+        try:
+            socket.getaddrinfo(host.strip("[]"), None)
+        except (OSError, UnicodeError):
+            ok = False
+    if not ok:
+        raise InvalidParameterError(
+            f"dashboard address {text!r} must be PORT, :PORT or HOST:PORT with a host this "
+            "machine knows (e.g. 8787, :8787 or 127.0.0.1:8787)"
+        )
+
+
 @contextmanager
 def session(scheduler=None, scheduler_file=None, dashboard_address=None):
     """A client for a job or a command: ``scheduler`` (an address or a ``Client``, used as it
@@ -297,6 +360,8 @@ def session(scheduler=None, scheduler_file=None, dashboard_address=None):
 
     if scheduler is not None and scheduler_file is not None:
         raise InvalidParameterError("give a scheduler address or a scheduler file, not both")
+    if dashboard_address is not None:
+        check_dashboard_address(dashboard_address)
     if scheduler_file is not None:
         scheduler = address_of(scheduler_file)
     import dask

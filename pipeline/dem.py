@@ -13,6 +13,7 @@ import functools
 import logging
 import math
 import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -137,9 +138,25 @@ def open_dem(
     >>> dem.dims, dem.dtype, dem.attrs["cell_size"]  # doctest: +SKIP
     (('y', 'x'), dtype('float32'), 30.0)
     """
+    if not isinstance(path, str | os.PathLike):
+        raise InvalidDEMError(
+            f"a DEM is a file path or an xarray DataArray with y and x coordinates in metres, "
+            f"not a {type(path).__module__}.{type(path).__qualname__}; wrap an array as "
+            "xr.DataArray(z, dims=('y', 'x'), coords={'y': ..., 'x': ...})"
+        )
+    if isinstance(path, str) and re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", path):
+        raise InvalidDEMError(
+            f"DEM {path} is a URL: DEMs are read from local files (GeoTIFF, NetCDF, Zarr, BAG, "
+            "ASCII grid); download it first (maps stores may live on object storage)"
+        )
     path = Path(path)
     if not path.exists():
         raise InvalidDEMError(f"DEM file {path} does not exist")
+    if not path.is_file() and not path.is_dir():  # a FIFO would block the read for ever
+        raise InvalidDEMError(
+            f"DEM file {path} is not a regular file (a device, a pipe or a socket); give the "
+            "DEM file itself"
+        )
     if cell_size is not None:
         cell_size = DEM.cell_size.check(cell_size)
     if resolution is not None:

@@ -39,6 +39,7 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
 import socket
 import time
@@ -255,10 +256,22 @@ def load_job(path: str | os.PathLike) -> Job:
     given = _checked(path, DEM, {k: v for k, v in dem.items() if k in DEM}, "dem.")
     job.chunks = given.get("chunks", DEFAULT_CHUNK)
     if "path" in dem:
-        p = Path(_typed(path, dem, "path", str, "dem.", "a file path"))
+        given_path = _typed(path, dem, "path", str, "dem.", "a file path")
+        if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", given_path):
+            _fail(
+                path,
+                f"dem.path {given_path!r} is a URL: DEMs are read from local files (GeoTIFF, "
+                "NetCDF, Zarr, BAG, ASCII grid); download it first",
+            )
+        p = Path(given_path)
         p = p if p.is_absolute() else (path.parent / p)
         if not p.exists():
             _fail(path, f"dem.path {dem['path']!r} does not exist (resolved to {p})")
+        if not p.is_file() and not p.is_dir():  # a FIFO would block the read for ever
+            _fail(
+                path,
+                f"dem.path {dem['path']!r} is not a regular file (a device, a pipe or a socket)",
+            )
         job.dem_path = p
         job.variable = given.get("variable")
         job.cell_size = given.get("cell_size")
@@ -499,6 +512,10 @@ def run_job(
     (True, PosixPath('catalogs/demo/catalog.json'))
     """
     job = load_job(path)
+    if dashboard_address is not None:  # at the dry run too, not when a cluster starts
+        from .cluster import check_dashboard_address
+
+        check_dashboard_address(dashboard_address)
     dem_store = job.catalog / f"dem-{job.dem_fingerprint()}.zarr"
     maps_store = job.catalog / f"maps-{job.maps_fingerprint()}.zarr"
     t0 = time.perf_counter()

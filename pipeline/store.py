@@ -580,8 +580,8 @@ class ChunkCache:
     store's uncompressed layers are copied from their mapped shards instead
     (:class:`MappedLayer`) and hold nothing here."""
 
-    def __init__(self, budget: int):
-        self.budget = budget
+    def __init__(self, budget: int | None = None):
+        self._budget = budget
         self.used = 0
         self.items: OrderedDict = OrderedDict()
         self.arrays: dict = {}
@@ -589,6 +589,16 @@ class ChunkCache:
         self.layouts: dict = {}  # (store, var) -> (chunk shape, dtype) of a 2-D layer
         self.mapped: dict = {}  # (store, var) -> its MappedLayer, or None
         self.lock = threading.Lock()
+
+    @property
+    def budget(self) -> int:
+        """Bytes kept at most: ``AUV_PIPELINE_CHUNK_CACHE_MB`` (default 1024) MiB, read at
+        first use (a bad value is then one line, not an error at import)."""
+        if self._budget is None:
+            from .params import env_number
+
+            self._budget = env_number("AUV_PIPELINE_CHUNK_CACHE_MB", 1024, integer=True) * 2**20
+        return self._budget
 
     def array(self, store: str, var: str):
         key = (store, var)
@@ -750,7 +760,7 @@ class ChunkCache:
             self.used = 0
 
 
-CACHE = ChunkCache(int(os.environ.get("AUV_PIPELINE_CHUNK_CACHE_MB", "1024")) * 2**20)
+CACHE = ChunkCache()  # its budget: AUV_PIPELINE_CHUNK_CACHE_MB, read when first needed
 
 
 class MapsStore:

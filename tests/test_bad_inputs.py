@@ -677,3 +677,87 @@ def test_two_mission_names_of_one_folder_are_refused(tmp_path):
             f'[[missions]]\nname = "{b}"\nstart = [1, 1]\ngoal = [30, 30]\n'
         )
         one_line_error(invoke("run", job, "--dry-run"), 2, "would share the folder and Item id")
+
+
+# ------------------------------------------------------------------ never a hang, never raw
+
+
+def test_a_port_that_answers_but_is_no_scheduler_is_one_line_not_a_hang(tmp_path, small_job):
+    """An HTTP server (as the dashboard's port is) at the scheduler address: one line, exit 3,
+    in seconds (the client waited on it for ever); a FIFO as the scheduler file or as the DEM
+    is named, never opened (its read would block)."""
+    import threading
+    import time
+    from http.server import HTTPServer, SimpleHTTPRequestHandler
+
+    server = HTTPServer(("127.0.0.1", 0), SimpleHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        t0 = time.monotonic()
+        res = invoke("run", small_job, "--scheduler", f"tcp://127.0.0.1:{server.server_port}")
+        one_line_error(res, 3, "answers but is not a dask scheduler")
+        assert time.monotonic() - t0 < 30
+    finally:
+        server.shutdown()
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    one_line_error(invoke("run", small_job, "--scheduler-file", fifo), 3, "not a regular file")
+    one_line_error(invoke("dem", "info", fifo), 2, "not a regular file")
+    job = tmp_path / "fifo-dem.toml"
+    job.write_text("[dem]\npath = 'fifo'\n")
+    one_line_error(invoke("run", job, "--dry-run"), 2, "not a regular file")
+
+
+@pytest.mark.parametrize(
+    "args, match",
+    [
+        (["run"], "Missing argument 'JOB'. (see `"),
+        (["run"], " run --help`)"),
+        (["run", "{job}", "--bogus"], "No such option '--bogus'"),
+        (["build-maps", "a", "b", "--clearance", "abc"], "'abc' is not a valid float"),
+        (["nonsense"], "No such command 'nonsense'"),
+        (["dem", "synth"], "Missing argument 'OUT'"),
+        (["run", "{job}", "--dashboard-address", "nonsense"], "dashboard address 'nonsense'"),
+        (["run", "{job}", "--dashboard-address", ":99999"], "must be PORT, :PORT or HOST:PORT"),
+        (["dem", "info", "http://example.org/dem.tif"], "is a URL: DEMs are read from local"),
+        (["dem", "import", "s3://bucket/dem.tif", "{t}/o.zarr"], "is a URL"),
+    ],
+)
+def test_usage_errors_are_one_line(tmp_path, small_job, args, match):
+    """click's own errors (a missing argument, an unknown option or command, a bad value) are
+    one line naming the command's help, as every other error, with exit code 2."""
+    res = invoke(*[a.format(job=small_job, t=tmp_path) for a in args])
+    one_line_error(res, 2, match)
+
+
+@pytest.mark.parametrize(
+    "var, value",
+    [
+        ("AUV_PIPELINE_CONNECT_TIMEOUT_S", "soon"),
+        ("AUV_PIPELINE_CONNECT_TIMEOUT_S", "-1"),
+        ("AUV_PIPELINE_CHUNK_CACHE_MB", "lots"),
+        ("AUV_PIPELINE_CHUNK_CACHE_MB", "1.5"),
+    ],
+)
+def test_a_bad_environment_variable_is_one_line_naming_it(tmp_path, small_job, var, value):
+    """Through the installed console script (a variable read at import time would fail before
+    the command's error handling)."""
+    env = {**os.environ, var: value}
+    args = ["run", str(small_job)]
+    if var == "AUV_PIPELINE_CONNECT_TIMEOUT_S":
+        args += ["--scheduler", "tcp://127.0.0.1:1"]
+    else:  # read by the first store read: the maps of a job with a mission
+        small_job.write_text(
+            small_job.read_text() + "[[missions]]\nstart = [2, 2]\ngoal = [30, 30]\n"
+        )
+    proc = subprocess.run([str(EXE), *args], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"error: the environment variable {var}")
+
+
+def test_a_bare_array_is_not_a_dem():
+    with pytest.raises(pipeline.PipelineError, match="not a numpy.ndarray; wrap an array"):
+        pipeline.build_maps(np.zeros((10, 10)), "unused.zarr")
+    with pytest.raises(pipeline.PipelineError, match="not a builtins.list"):
+        pipeline.open_dem([[1.0, 2.0]])
