@@ -46,6 +46,10 @@ def shaded_relief(z: np.ndarray, a: float, *, vert_exag: float = 3.0):
     ls = LightSource(azdeg=315, altdeg=40)
     zf = np.where(np.isfinite(z), z, np.nanmin(z))
     vmin, vmax = float(np.nanpercentile(z, 0.5)), float(max(np.nanpercentile(z, 99.5), 0.0))
+    rows, cols = zf.shape
+    # the shading's slopes need two cells a side: a grid one cell thin (a map, or its
+    # thinned picture, of one row) is shaded flat along that side
+    zf = np.pad(zf, ((0, max(0, 2 - rows)), (0, max(0, 2 - cols))), mode="edge")
     rgb = ls.shade(
         zf,
         cmap=plt.get_cmap(RELIEF_CMAP),
@@ -55,7 +59,7 @@ def shaded_relief(z: np.ndarray, a: float, *, vert_exag: float = 3.0):
         dy=a,
         vmin=vmin,
         vmax=vmax,
-    )
+    )[:rows, :cols]
     rgb[~np.isfinite(z)] = (0.85, 0.85, 0.85, 1.0)
     return rgb, vmin, vmax
 

@@ -761,3 +761,24 @@ def test_a_bare_array_is_not_a_dem():
         pipeline.build_maps(np.zeros((10, 10)), "unused.zarr")
     with pytest.raises(pipeline.PipelineError, match="not a builtins.list"):
         pipeline.open_dem([[1.0, 2.0]])
+
+
+def test_a_map_two_cells_thin_plans_and_draws_its_quicklook(tmp_path):
+    """A 2 x 1000 grid (a survey line): planned, flown and drawn (the shading's slopes needed
+    two cells a side of the thinned picture, and the mission was recorded failed)."""
+    from pipeline.flight import with_flight
+    from pipeline.plots import mission_quicklook, shaded_relief
+
+    z = np.full((2, 1000), -3000.0, np.float32)
+    z[:, 500:510] = -2900.0
+    da = metric_dataarray(z, a=100.0)
+    store = tmp_path / "m.zarr"
+    pipeline.build_maps(da, store, clearance=100.0, landmarks=2)
+    t = pipeline.plan(store, (0, 5), (1, 990), client="synchronous")
+    assert t.status == "ok", t.message
+    with_flight(store, t)
+    png = tmp_path / "ql.png"
+    mission_quicklook(pipeline.open_store(store), t, png, title="line", crs_wkt=None)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rgb, _, _ = shaded_relief(np.linspace(-10, 0, 7)[None, :], 100.0)
+    assert rgb.shape == (1, 7, 4) and np.isfinite(rgb).all()
