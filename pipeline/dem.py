@@ -437,6 +437,7 @@ def _read(
                     f"DEM file {path} holds several subdatasets; "
                     "export the elevation band to its own GeoTIFF"
                 )
+            _north_up(arr, path)
             return _split_bands(arr, path, variable, uncertainty)
         if kind == "netcdf":
             ds = xr.open_dataset(path, chunks=None if chunks is None else "auto")
@@ -454,6 +455,28 @@ def _read(
     name = _uncertainty_name(gridded, uncertainty, path, "variable")
     elev = _pick_variable(ds, path, variable, exclude=name)
     return elev, (None if name is None else ds[name])
+
+
+def _north_up(arr: xr.DataArray, path: Path) -> None:
+    """Refuse a raster whose grid is not north-up: a geotransform with rotation or skew terms,
+    or georeferencing by ground control points only. Its cells have no x and y coordinates
+    of their own, and a cell size given in their place would put it kilometres off."""
+    t = arr.rio.transform(recalc=False)
+    warp = "warp it to a north-up grid first (gdalwarp -t_srs <its CRS> in.tif out.tif)"
+    if t.b != 0.0 or t.d != 0.0:
+        raise InvalidDEMError(
+            f"DEM file {path} is rotated or skewed (its geotransform's rotation terms are "
+            f"{t.b:g} and {t.d:g}); {warp}"
+        )
+    gcps = None
+    try:
+        gcps = arr.rio.get_gcps()
+    except Exception:  # noqa: BLE001 - no GCPs: rioxarray raises or returns None by version
+        gcps = None
+    if gcps is not None and len(getattr(gcps, "features", gcps) or []) and t.is_identity:
+        raise InvalidDEMError(
+            f"DEM file {path} is georeferenced by ground control points only; {warp}"
+        )
 
 
 def _uncertainty_name(names, wanted: str | None, path: Path, what: str) -> str | None:

@@ -110,6 +110,24 @@ def _dem_file(kind, tmp: Path) -> Path:
     if kind == "folder, not a store":
         (tmp / "folder.zarr").mkdir()
         return tmp / "folder.zarr"
+    if kind in ("rotated tif", "control points tif"):
+        import rasterio
+        from rasterio.control import GroundControlPoint
+        from rasterio.transform import Affine
+
+        p = tmp / f"{kind.split()[0]}.tif"
+        opts = dict(driver="GTiff", height=20, width=30, count=1, dtype="float32", crs="EPSG:32610")
+        if kind == "rotated tif":
+            opts["transform"] = Affine(30.0, 5.0, 500_000.0, 3.0, -30.0, 5_000_000.0)
+        else:
+            opts["gcps"] = [
+                GroundControlPoint(0, 0, 500_000, 5_000_000),
+                GroundControlPoint(0, 29, 500_900, 5_000_100),
+                GroundControlPoint(19, 0, 500_100, 4_999_400),
+            ]
+        with rasterio.open(p, "w", **opts) as dst:
+            dst.write(z.astype("float32"), 1)
+        return p
     if kind == "unknown format":
         (tmp / "dem.txt").write_text("1 2 3\n")
         return tmp / "dem.txt"
@@ -132,6 +150,8 @@ DEM_CASES = [
     ("one cell", "2 x 2"),
     ("folder, not a store", "cannot read DEM file"),
     ("unknown format", "DEM"),
+    ("rotated tif", "is rotated or skewed (its geotransform's rotation terms are 5 and 3)"),
+    ("control points tif", "georeferenced by ground control points only"),
 ]
 
 
@@ -145,6 +165,10 @@ def test_bad_dem_files(tmp_path, kind, match, command):
         res = invoke("dem", "info", src)
     one_line_error(res, 2, match)
     assert not (tmp_path / "out.zarr").exists()
+    if kind.endswith("tif") and kind in ("rotated tif", "control points tif"):
+        # a cell size given in place of the grid's own coordinates is no way round it
+        res = invoke("dem", "import", src, tmp_path / "out.zarr", "--cell-size", "30")
+        one_line_error(res, 2, match)
 
 
 # ------------------------------------------------------------------ job files
