@@ -108,6 +108,11 @@ def run(job: Path, catalog: Path) -> Path:
     return Path(res.maps_store)
 
 
+# waypoints.csv writes latitude and longitude to 8 decimals (about a millimetre): a leg read
+# back from it is a leg shorter than the turn radius only when shorter by more than this
+LEG_ROUNDING = 0.01
+
+
 def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
     import csv
 
@@ -191,7 +196,7 @@ def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
                 bilinear_track=b_track,
                 bilinear_legs=b_legs,
                 bilinear_cover=cover,
-                short_legs=int(np.sum(wleg < turn_m * (1 - 1e-9))),
+                short_legs=int(np.sum(wleg < turn_m - LEG_ROUNDING)),
                 shortest_leg=float(wleg.min()),
                 altitude_median=p.get("auv:altitude_median_m"),
                 altitude_p90=p.get("auv:altitude_p90_m"),
@@ -423,7 +428,8 @@ def main() -> None:
           exceeds the true one by at most the sampling's covering radius, given), the track
           and the legs densified every 5 m. Altitude and reversals are the Item's
           (`auv:altitude_median_m`, `auv:altitude_p90_m`, `auv:vertical_reversals_per_km`);
-          short legs: waypoint legs shorter than the vehicle's minimum turn radius.""")
+          short legs: waypoint legs shorter than the vehicle's minimum turn radius (by more than
+          the 1 cm the CSV's rounded latitudes and longitudes can take off a leg).""")
     rep.table(
         [
             "mission",

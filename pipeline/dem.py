@@ -261,6 +261,80 @@ def _holds_a_valid_cell(array: Path) -> bool:
     return False
 
 
+# the root attribute of a DEM store listing the chunks not stored because all their cells
+# are no-data (the fill value): any other chunk absent is damage
+EMPTY_CHUNKS_ATTR = "unstored_chunks"
+
+
+def _stored_chunks(array: Path) -> set:
+    """The chunk indices ``(row, col)`` stored under the Zarr v3 array ``array`` (its
+    ``c/<row>/<col>`` files)."""
+    out = set()
+    base = array / "c"
+    for root, _dirs, files in os.walk(base):
+        rel = Path(root).relative_to(base).parts
+        for f in files:
+            parts = (*rel, f)
+            if len(parts) == 2 and all(p.isdigit() for p in parts):
+                out.add((int(parts[0]), int(parts[1])))
+    return out
+
+
+def _unstored_chunks(array: Path, grid: tuple) -> list:
+    stored = _stored_chunks(array)
+    return [[i, j] for i in range(grid[0]) for j in range(grid[1]) if (i, j) not in stored]
+
+
+def _guarded(path: Path, elev: xr.DataArray, unstored) -> xr.DataArray:
+    """The elevation of this tool's DEM store ``path`` read so that damage is named: a chunk
+    missing that held data (not among ``unstored``), or one that cannot be decoded, is one
+    :class:`InvalidDEMError` naming the chunk (the reader would take the first for no-data
+    and fail deep in a computation on the second)."""
+    import zarr
+
+    array = path / "elevation"
+    rows, cols = zarr.open_array(str(array), mode="r").cdata_shape
+    expected = {(i, j) for i in range(rows) for j in range(cols)}
+    expected -= {tuple(c) for c in unstored}
+    missing = sorted(expected - _stored_chunks(array))
+    if missing:
+        i, j = missing[0]
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        raise InvalidDEMError(
+            f"DEM store {path} is damaged: chunk c/{i}/{j} of its elevation is missing{more} "
+            "(it held data); import the DEM again (pipeline dem import ... --overwrite, or "
+            "pipeline run --overwrite)"
+        )
+    data = elev.data
+    if not isinstance(data, da.Array):
+        return elev
+    guarded = da.map_blocks(
+        _read_block,
+        str(array),
+        dtype=data.dtype,
+        chunks=data.chunks,
+        meta=np.empty((0, 0), data.dtype),
+    )
+    return elev.copy(data=guarded)
+
+
+def _read_block(array: str, block_info=None):
+    import zarr
+
+    (r0, r1), (c0, c1) = block_info[None]["array-location"]
+    try:
+        return zarr.open_array(array, mode="r")[r0:r1, c0:c1]
+    except Exception as exc:  # noqa: BLE001 - the codecs raise their own types
+        i, j = block_info[None]["chunk-location"]
+        what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        store = str(Path(array).parent)
+        raise InvalidDEMError(
+            f"DEM store {store} is damaged: chunk c/{i}/{j} of its elevation cannot be decoded "
+            f"({type(exc).__name__}: {what}); import the DEM again (pipeline dem import ... "
+            "--overwrite, or pipeline run --overwrite)"
+        ) from None
+
+
 def _no_valid_cells(path) -> str:
     return (
         f"DEM file {path} holds no valid elevation: every cell is no-data (NaN or the file's "
@@ -321,6 +395,9 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
             store_in_bands(data, grid, progress=_band_log(store))
         if empty is not None and not _holds_a_valid_cell(tmp / "elevation"):
             raise InvalidDEMError(empty)
+        # the chunks left unstored (all no-data): any other found missing later is damage
+        group = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
+        group.attrs[EMPTY_CHUNKS_ATTR] = _unstored_chunks(tmp / "elevation", grid.cdata_shape)
     log.info(
         "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
         store,
@@ -425,6 +502,7 @@ def _read(
     # read in chunks, never a whole large file at once: a GeoTIFF in chunks of the requested
     # side, a NetCDF file in dask's automatic chunks (about 128 MiB), a Zarr store in its own
     dask_chunks = None if chunks is None else {}
+    unstored = None
     try:
         if kind == "tiff":
             import rioxarray
@@ -443,6 +521,7 @@ def _read(
             ds = xr.open_dataset(path, chunks=None if chunks is None else "auto")
         else:
             ds = xr.open_zarr(path, chunks=dask_chunks, consolidated=False)
+            unstored = ds.attrs.get(EMPTY_CHUNKS_ATTR)
     except InvalidDEMError:
         raise
     except Exception as exc:  # the readers raise many types; one clear message for all
@@ -454,6 +533,8 @@ def _read(
     gridded = [str(k) for k, v in ds.data_vars.items() if v.ndim >= 2]
     name = _uncertainty_name(gridded, uncertainty, path, "variable")
     elev = _pick_variable(ds, path, variable, exclude=name)
+    if kind == "zarr" and unstored is not None and elev.name == "elevation":
+        elev = _guarded(path, elev, unstored)  # a store this tool wrote (older ones: as read)
     return elev, (None if name is None else ds[name])
 
 

@@ -174,7 +174,7 @@ class Flight:
 # the flown track and the waypoint legs are sampled (and checked) every SAMPLE_STEP cells at
 # most, closer where the clearance is small against the cell (CLEARANCE_SLACK)
 SAMPLE_STEP = 0.5
-CLEARANCE_SLACK = 5e-4
+CLEARANCE_SLACK = 2e-3
 # the profile's breaks are kept this share beyond a turn radius apart, so that the legs stay
 # at least a turn radius long as their files write them (coordinates rounded)
 LEG_MARGIN = 0.01
@@ -786,20 +786,27 @@ def required_heights_fine(
     missing2 = missing * missing
     flags = partial.size > 0
     span = missing / a
-    mi = -1  # the previous point's highest square
+    mi = -1  # the previous point's highest square, and its highest part there
     mj = -1
+    mu = -1
+    mv = -1
     stack = np.empty((64, 4), dtype=np.int64)
     for s in range(n):
         p = pr[s]
         q = pc[s]
         best = -np.inf
         bad = False
+        first_i = -1
+        first_j = -1
         if mi >= 0:  # the previous point's highest square first: most others then pass
             z00, z01, z10, z11 = _corners(slot, el, tr, tc, mi, mj, np.inf)
             if np.isfinite(z00 + z01 + z10 + z11):
-                best = _parts_max(
-                    z00, z01, z10, z11, mi, mj, p, q, a, k, lim2, rr, spherical, best, stack
-                )
+                best, mu, mv = _parts_max(
+                    z00, z01, z10, z11, mi, mj, p, q, a, k, lim2, rr, spherical, best, stack,
+                    mu, mv,
+                )  # fmt: skip
+                first_i = mi
+                first_j = mj
         i0 = max(0, int(math.floor(p - span)) - 1)
         i1 = min(rows - 2, int(math.floor(p + span)) + 1)
         j0 = max(0, int(math.floor(q - span)) - 1)
@@ -837,13 +844,17 @@ def required_heights_fine(
                 top = max(z00, z01, z10, z11)
                 if top + (math.sqrt(rr - d2) if spherical else 0.0) <= best:
                     continue  # no part of the square can raise the height
-                v = _parts_max(
-                    z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack
+                if i == first_i and j == first_j:
+                    continue  # measured first
+                v, u, w = _parts_max(
+                    z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack, -1, -1
                 )
                 if v > best:
                     best = v
                     mi = i
                     mj = j
+                    mu = u
+                    mv = w
             if bad:
                 break
         out[s] = _height(bad, best, spherical, clearance)
@@ -899,15 +910,26 @@ def _part_bound(z00, z01, z10, z11, i, j, p, q, a, inv, u0, u1, v0, v1, lim2, rr
 
 
 @njit(inline="always", cache=True)
-def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack):
+def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack, hu, hv):
     """The highest of ``best`` and the values over the ``k`` x ``k`` parts of square ``(i,
     j)`` (corners ``z``) less than ``sqrt(lim2)`` from ``(p, q)``: a part's highest bilinear
-    corner, plus the sphere's rise at its box distance (spherical). Branch and bound: the
-    square is halved until single parts, a block of parts passed over where its bound
-    (:func:`_part_bound`, at least the value of each of its parts) cannot beat the best; the
-    result is that of every part measured. ``stack``: scratch rows ``(u0, u1, v0, v1)``, at
-    least ``4 log2(k) + 4``."""
+    corner, plus the sphere's rise at its box distance (spherical); and the part that gave it
+    (``-1, -1`` where none beat ``best``). Branch and bound: the part ``(hu, hv)`` first (the
+    previous point's best, when given), then the square halved until single parts, a block of
+    parts passed over where its bound (:func:`_part_bound`, at least the value of each of its
+    parts) cannot beat the best; the result is that of every part measured. ``stack``: scratch
+    rows ``(u0, u1, v0, v1)``, at least ``4 log2(k) + 4``."""
     inv = 1.0 / k
+    bu = -1
+    bv = -1
+    if hu >= 0:
+        v = _part_bound(
+            z00, z01, z10, z11, i, j, p, q, a, inv, hu, hu + 1, hv, hv + 1, lim2, rr, spherical
+        )
+        if v > best:
+            best = v
+            bu = hu
+            bv = hv
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = 0, k, 0, k
     top = 1
     while top > 0:
@@ -920,6 +942,8 @@ def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, 
             continue
         if u1 - u0 == 1 and v1 - v0 == 1:
             best = bound
+            bu = u0
+            bv = v0
             continue
         um = (u0 + u1 + 1) // 2 if u1 - u0 > 1 else u1
         vm = (v0 + v1 + 1) // 2 if v1 - v0 > 1 else v1
@@ -937,7 +961,7 @@ def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, 
             stack[top, 2] = v0 if cv == 0 else vm
             stack[top, 3] = vm if cv == 0 else v1
             top += 1
-    return best
+    return best, bu, bv
 
 
 @njit(inline="always", cache=True)
@@ -1593,10 +1617,10 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     sagitta
     ``c^2 / (8 r)`` of the chord between samples ``c`` apart; spherical: the samples clear of
     the seabed by ``R' = sqrt((R + sagitta)^2 + (L/2)^2)``, ``L`` the longest 3-D step between
-    samples, keep every point of the step ``R`` away (samples close enough that ``R'``
-    exceeds ``R`` by at most ``CLEARANCE_SLACK * R``); horizontal and vertical: a sample's
-    heights cover every point within a step of it (a point of a step is as high as one of
-    its two ends)."""
+    samples, keep every point of the step ``R`` away (samples close enough that the step's
+    share of ``R' - R`` is at most ``CLEARANCE_SLACK * R``; the sagitta adds to it);
+    horizontal and vertical: a sample's heights cover every point within a step of it (a point
+    of a step is as high as one of its two ends)."""
     grade = math.sqrt(1.0 + slope * slope)
     step = SAMPLE_STEP
     if method == "spherical":

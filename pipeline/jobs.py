@@ -88,8 +88,9 @@ _OUTPUT_KEYS = {"catalog", "quicklooks", "performance_report"}
 # Raised whenever a change of the code makes a mission's result differ for the same inputs (the
 # planners' paths, the flight), so that a job plans its finished missions again instead of
 # keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h, 3 the
-# default window margin of MCPC's sections halved (section_size // 8).
-RESULTS_REVISION = 3
+# default window margin of MCPC's sections halved (section_size // 8), 4 the flight's heights
+# against the continuous seabed and its profile's breaks a turn radius apart.
+RESULTS_REVISION = 4
 
 _COORD = Param("coordinate", "float", None, "")
 

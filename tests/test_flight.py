@@ -24,7 +24,13 @@ from test_planners import reference_graph
 
 import pipeline
 from pipeline import exports
-from pipeline.flight import Vehicle, band_profile, pitch_envelope, with_flight
+from pipeline.flight import (
+    CLEARANCE_SLACK,
+    Vehicle,
+    band_profile,
+    pitch_envelope,
+    with_flight,
+)
 
 # ------------------------------------------------------------------ the profile kernels
 
@@ -1200,7 +1206,10 @@ def test_the_route_flown_keeps_r_from_the_continuous_seabed(tmp_path, kind, rati
     if kind == "flat":
         assert np.ptp(w[:, 2]) < 1e-6 and f.reversals_per_km == 0.0
         if method == "spherical":
-            assert f.altitude_median_m == pytest.approx(clearance, rel=1e-3)
+            # at R on flat ground, up to the sampling's allowance (flight.CLEARANCE_SLACK of
+            # R for the steps, and the sagitta of the longest chord, half a cell, on an arc)
+            sag = (0.5 * 100.0) ** 2 / (8 * f.turn_radius_m)  # (cells of 100 m)
+            assert clearance <= f.altitude_median_m <= clearance * (1 + CLEARANCE_SLACK) + sag
     if kind == "plane":
         assert f.reversals_per_km == 0.0
 
