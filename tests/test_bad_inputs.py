@@ -806,3 +806,33 @@ def test_a_map_two_cells_thin_plans_and_draws_its_quicklook(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rgb, _, _ = shaded_relief(np.linspace(-10, 0, 7)[None, :], 100.0)
     assert rgb.shape == (1, 7, 4) and np.isfinite(rgb).all()
+
+
+def test_a_damaged_dem_store_names_its_chunk(tmp_path):
+    """A DEM store written by this tool records the chunks it left unstored (all no-data): one
+    of those reads as no-data, any other found missing is damage named at once (it was planned
+    on as a no-data hole); a chunk that cannot be decoded is named too (exit 4 before)."""
+    z = random_surface((48, 48)).astype(np.float32) - 3000.0
+    z[:16, :16] = np.nan  # one whole chunk of no-data: not stored, and not damage
+    dem = tmp_path / "dem.zarr"
+    src = tmp_path / "in.nc"
+    _nc(src, metric_dataarray(z).rename("elevation"))
+    assert invoke("dem", "import", src, dem, "--chunks", "16").exit_code == 0
+    chunks = dem / "elevation" / "c"
+    assert not (chunks / "0" / "0").exists() and (chunks / "1" / "1").exists()
+    read = pipeline.open_dem(dem).values
+    assert np.isnan(read[:16, :16]).all() and np.isfinite(read[16:, 16:]).all()
+    good = tmp_path / "good.zarr"
+    shutil.copytree(dem, good)
+    (chunks / "1" / "2").unlink()
+    one_line_error(
+        invoke("dem", "info", dem), 2, "is damaged: chunk c/1/2 of its elevation is missing"
+    )
+    res = invoke("build-maps", dem, tmp_path / "m.zarr", "--clearance", "100")
+    one_line_error(res, 2, "chunk c/1/2 of its elevation is missing (it held data)")
+    shutil.rmtree(dem)
+    shutil.copytree(good, dem)
+    (chunks / "2" / "0").write_bytes(b"\x00not a chunk" * 20)
+    res = invoke("build-maps", dem, tmp_path / "m.zarr", "--clearance", "100")
+    one_line_error(res, 2, "chunk c/2/0 of its elevation cannot be decoded")
+    assert not (tmp_path / "m.zarr").exists()
