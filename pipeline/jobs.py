@@ -338,7 +338,53 @@ def load_job(path: str | os.PathLike) -> Job:
     # absolute so that workers in other directories or on other machines write where the
     # client reads
     job.catalog = Path(os.path.abspath(job.catalog))
+    if job.synthetic is not None:
+        _check_size(path, job, job.synthetic["shape"])
     return job
+
+
+# a grid cut into more chunks than this is refused: each is a task of every layer and pass,
+# and the graphs of so many grow the client by gigabytes before anything is written
+MAX_CHUNKS = 10_000
+# bytes a cell of the DEM and maps stores take before compression: the DEM (4), the maps'
+# elevation, safety and accumulation (4 each), passable and ridge (1 each), components (4),
+# and each landmark's distances (4)
+STORE_BYTES_PER_CELL = 4 + 4 + 4 + 4 + 1 + 1 + 4
+# the stores compress by at most this much (the demo's stores: 1.7x)
+BEST_COMPRESSION = 4.0
+
+
+def _check_size(path: Path, job: "Job", shape) -> None:
+    """Refuse, at the dry run, a grid the run could not carry: more than :data:`MAX_CHUNKS`
+    chunks, or stores that would not fit on the catalog's disk even compressed as well as
+    stores ever are; each with the estimate."""
+    rows, cols = (int(v) for v in shape)
+    side = int(job.chunks) if isinstance(job.chunks, int) else int(min(job.chunks))
+    count = -(-rows // side) * -(-cols // side)
+    if count > MAX_CHUNKS:
+        need = 64 * math.ceil(math.sqrt(rows * cols / MAX_CHUNKS) / 64)
+        _fail(
+            path,
+            f"[dem] chunks = {job.chunks} cuts the {rows} x {cols} grid into {count:,} chunks "
+            f"(a task each, per layer and pass; at most {MAX_CHUNKS:,}); use chunks = {need} "
+            "or more",
+        )
+    per_cell = STORE_BYTES_PER_CELL + 4 * int(job.maps.get("landmarks") or 0)
+    need = rows * cols * per_cell
+    where = job.catalog
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        free = shutil.disk_usage(where).free
+    except OSError:
+        return
+    if need / BEST_COMPRESSION > free:
+        _fail(
+            path,
+            f"the DEM and maps stores of a {rows} x {cols} grid need about {need / 1e9:,.0f} GB "
+            f"(at least {need / BEST_COMPRESSION / 1e9:,.0f} GB compressed); {free / 1e9:,.1f} "
+            f"GB are free at {where}: a smaller grid, or a catalog on a larger disk",
+        )
 
 
 def _load_maps(path, doc, job, cell_size: float | None):

@@ -7,6 +7,7 @@ assertion that it ends in one line naming the problem and a documented exit code
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -836,3 +837,25 @@ def test_a_damaged_dem_store_names_its_chunk(tmp_path):
     res = invoke("build-maps", dem, tmp_path / "m.zarr", "--clearance", "100")
     one_line_error(res, 2, "chunk c/2/0 of its elevation cannot be decoded")
     assert not (tmp_path / "m.zarr").exists()
+
+
+def test_a_grid_the_run_cannot_carry_is_refused_at_the_dry_run(tmp_path):
+    """Too many chunks (a task each, per layer and pass) or stores larger than the disk even
+    compressed: one line with the estimate at the dry run, before anything is written."""
+    free = shutil.disk_usage(tmp_path).free
+    side = int(math.sqrt(free / (22 + 4 * 8) * 4 * 2)) + 1  # twice the disk, compressed 4x
+    cases = [
+        ("[dem]\nchunks = 2\n[dem.synthetic]\nshape = [300, 300]\n", "into 22,500 chunks"),
+        ("[dem.synthetic]\nshape = [200000, 200000]\n", "use chunks = 2048 or more"),
+        (
+            f"[dem]\nchunks = {max(2048, 64 * (side // 64 // 90 + 1))}\n"
+            f"[dem.synthetic]\nshape = [{side}, {side}]\n",
+            "GB compressed)",
+        ),
+    ]
+    for text, match in cases:
+        job = tmp_path / "job.toml"
+        job.write_text(text + "[output]\ncatalog = 'cat'\n")
+        for args in (("run", job, "--dry-run"), ("run", job)):
+            one_line_error(invoke(*args), 2, match)
+        assert not (tmp_path / "cat").exists()
