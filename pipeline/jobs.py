@@ -354,7 +354,7 @@ STORE_BYTES_PER_CELL = 4 + 4 + 4 + 4 + 1 + 1 + 4
 BEST_COMPRESSION = 4.0
 
 
-def _check_size(path: Path, job: "Job", shape) -> None:
+def _check_size(path: Path, job: Job, shape) -> None:
     """Refuse, at the dry run, a grid the run could not carry: more than :data:`MAX_CHUNKS`
     chunks, or stores that would not fit on the catalog's disk even compressed as well as
     stores ever are; each with the estimate."""
