@@ -431,8 +431,24 @@ def reading(source) -> Iterator[None]:
 
         netcdf = isinstance(exc, RuntimeError) and ("NetCDF" in str(exc) or "HDF" in str(exc))
         if isinstance(exc, RasterioError) or netcdf:
-            raise InvalidDEMError(f"cannot read DEM file {source}: {exc}") from exc
+            raise InvalidDEMError(f"cannot read DEM file {source}: {reader_message(exc)}") from exc
         raise
+
+
+def reader_message(exc: BaseException) -> str:
+    """A reader's error with what caused it (GDAL's own words come as the cause of rasterio's
+    "Read failed. See previous exception for details.")."""
+    parts, seen = [], set()
+    while exc is not None and id(exc) not in seen and len(parts) < 3:
+        seen.add(id(exc))
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        if text and "See previous exception" not in text:
+            parts.append(text)
+        elif text:
+            parts.append(text.split(". See previous exception")[0])
+        exc = exc.__cause__ or exc.__context__
+    kept = [p for k, p in enumerate(parts) if not any(p in q for q in parts[:k])]
+    return ": ".join(kept) or "unreadable"
 
 
 def import_dem(
@@ -525,7 +541,7 @@ def _read(
     except InvalidDEMError:
         raise
     except Exception as exc:  # the readers raise many types; one clear message for all
-        raise InvalidDEMError(f"cannot read DEM file {path}: {exc}") from exc
+        raise InvalidDEMError(f"cannot read DEM file {path}: {reader_message(exc)}") from exc
     if _is_old_gmt(ds):
         if uncertainty is not None:
             raise InvalidDEMError(f"DEM file {path} (a 1-D GMT grid) has no {uncertainty!r}")

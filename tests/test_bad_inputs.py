@@ -129,6 +129,11 @@ def _dem_file(kind, tmp: Path) -> Path:
         with rasterio.open(p, "w", **opts) as dst:
             dst.write(z.astype("float32"), 1)
         return p
+    if kind == "asc with fewer rows than its header":
+        text = "ncols 30\nnrows 20\nxllcorner 0\nyllcorner 0\ncellsize 50\nNODATA_value -9999\n"
+        text += "".join(" ".join(f"{v:.2f}" for v in row) + "\n" for row in z[:12])
+        (tmp / "short.asc").write_text(text)
+        return tmp / "short.asc"
     if kind == "unknown format":
         (tmp / "dem.txt").write_text("1 2 3\n")
         return tmp / "dem.txt"
@@ -153,6 +158,7 @@ DEM_CASES = [
     ("unknown format", "DEM"),
     ("rotated tif", "is rotated or skewed (its geotransform's rotation terms are 5 and 3)"),
     ("control points tif", "georeferenced by ground control points only"),
+    ("asc with fewer rows than its header", "File short, can't read line 12"),
 ]
 
 
