@@ -238,6 +238,10 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
         ):
             maps = build_maps(dem, out, chunks=chunks, overwrite=overwrite, **params)
         share = float(maps["passable"].mean().compute())
+        if share == 0.0:
+            from .planners.core import NO_PASSABLE
+
+            click.echo(f"warning: {NO_PASSABLE}", err=True)
         click.echo(
             f"wrote {out} in {time.perf_counter() - t0:.1f} s; "
             f"{100 * share:.1f} % of cells passable"

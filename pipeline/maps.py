@@ -56,6 +56,7 @@ from .dem import cell_size, open_dem, require_valid_cells
 from .exceptions import InvalidParameterError
 from .landmarks import component_sizes, landmarks_staged, memory_per_landmark
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
+from .planners.core import NO_PASSABLE
 from .ridges import default_min_accumulation, flood_and_solve, tile_accumulation
 from .safety import block_kernel, passable, passable_cells, safety_map
 from .store import MAPS_VERSION, attrs_signature, block_writer, open_maps
@@ -282,8 +283,12 @@ def build_maps(
             for p in (scratch, labels):  # tasks still running may write after a failure
                 remove_settled(p)
             raise
+        passable_cells = int(component_sizes(sizes)[1:].sum())
+        if passable_cells == 0:
+            log.warning("maps %s: %s", store, NO_PASSABLE)
         group = zarr.open_group(tmp, mode="r+", zarr_format=3)
         attrs = {
+            "passable_cells": passable_cells,
             "title": "pipeline maps store",
             "maps_version": MAPS_VERSION,
             "parameters": json.dumps(params),

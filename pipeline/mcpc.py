@@ -48,6 +48,7 @@ from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
 from .params import CELL_SIZE, PLANNING, check_planner
 from .planners.core import (
+    NO_PASSABLE,
     Trajectory,
     check_arrays,
     heuristic,
@@ -732,7 +733,7 @@ def _check_endpoints(m: MapsStore, start, goal):
                 r,
                 c,
                 nearest_passable(ok, (r, c), (r0, c0)),
-                f"no passable cell within {h} cells",
+                NO_PASSABLE if m.passable_cells == 0 else f"no passable cell within {h} cells",
             )
     return out
 

@@ -785,6 +785,8 @@ class MapsStore:
             params = attrs.get("parameters")
             self.parameters = json.loads(params) if isinstance(params, str) else params
             self.crs_wkt = attrs.get("crs_wkt")
+            # the count of passable cells (stores built before it was kept: None)
+            self.passable_cells = attrs.get("passable_cells")
             self.shape = tuple(int(v) for v in group["safety"].shape)
             self.cell_size = float(attrs["cell_size"])
             self.x = np.asarray(group["x"][:], dtype=np.float64)

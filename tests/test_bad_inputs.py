@@ -865,3 +865,20 @@ def test_a_grid_the_run_cannot_carry_is_refused_at_the_dry_run(tmp_path):
         for args in (("run", job, "--dry-run"), ("run", job)):
             one_line_error(invoke(*args), 2, match)
         assert not (tmp_path / "cat").exists()
+
+
+def test_depths_positive_down_are_named_at_map_level(tmp_path):
+    """A GeoTIFF of depths (positive down, no attribute saying so) makes maps with no passable
+    cell: the build says so, with the likely cause, and so does every mission's failure (each
+    said only that its start was on land)."""
+    import rioxarray  # noqa: F401
+
+    depths = np.random.default_rng(1).uniform(2900.0, 3100.0, (40, 40)).astype(np.float32)
+    tif = tmp_path / "depths.tif"
+    metric_dataarray(depths, a=100.0).rio.write_crs("EPSG:32610").rio.to_raster(tif)
+    maps = tmp_path / "m.zarr"
+    res = invoke("build-maps", tif, maps, "--clearance", "100", "--landmarks", "2")
+    assert res.exit_code == 0, res.output
+    assert "no cell of the maps is passable" in res.output and "positive down" in res.output
+    with pytest.raises(pipeline.PipelineError, match="if its values are depths, positive down"):
+        pipeline.plan(maps, (5, 5), (30, 30), client="synchronous")

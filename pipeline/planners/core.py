@@ -792,6 +792,14 @@ def off_map_error(name: str, r: int, c: int, shape) -> InvalidEndpointError:
     )
 
 
+# said where a maps store has no passable cell: the likeliest cause is a DEM of depths
+NO_PASSABLE = (
+    "no cell of the maps is passable: the DEM lies above the surface limit (sea level less "
+    "the surface clearance) everywhere; if its values are depths, positive down, negate them "
+    "(or give the variable the attribute positive = 'down') and build the maps again"
+)
+
+
 def not_passable_error(name: str, r: int, c: int, near, none_hint: str) -> InvalidEndpointError:
     hint = f"nearest passable cell: {near}" if near else none_hint
     return InvalidEndpointError(
@@ -808,9 +816,7 @@ def check_endpoint(name: str, cell, passable: np.ndarray) -> tuple[int, int]:
     if not (0 <= r < rows and 0 <= c < cols):
         raise off_map_error(name, r, c, passable.shape)
     if not passable[r, c]:
-        raise not_passable_error(
-            name, r, c, nearest_passable(passable, (r, c)), "no cell of the map is passable"
-        )
+        raise not_passable_error(name, r, c, nearest_passable(passable, (r, c)), NO_PASSABLE)
     return r, c
 
 
