@@ -743,6 +743,8 @@ def _canonicalise(
             cell,
         )
         geographic = True
+    if geographic:
+        arr = _unwrapped(arr)
     arr = _crop(arr, path, crs, geographic, region)  # before anything reads a value
     if geographic:
         lat, lon = np.asarray(arr["y"].values, float), np.asarray(arr["x"].values, float)
@@ -752,6 +754,7 @@ def _canonicalise(
                 f"beyond +-360 (latitudes {lat.min():g} to {lat.max():g}, longitudes "
                 f"{lon.min():g} to {lon.max():g}); fix its coordinates"
             )
+        _check_geographic_extent(path, lat, lon)
     sign = _depth_sign(arr, path)
     attrs = {k: v for k, v in arr.attrs.items() if k in ("long_name", "standard_name", "title")}
     values = arr.astype(np.float32) * np.float32(sign) if sign != 1 else arr.astype(np.float32)
@@ -983,6 +986,46 @@ def _depth_sign(arr: xr.DataArray, path: Path) -> int:
         log.warning("DEM %s has positive='down' (depths): negating to elevation, positive up", path)
         return -1
     return 1
+
+
+# a lon/lat grid is projected onto one azimuthal equidistant grid around its centre: beyond
+# this angle from the centre (degrees of arc) its distortion grows past a few per cent
+MAX_GEOGRAPHIC_RADIUS = 30.0
+
+
+def _unwrapped(arr: xr.DataArray) -> xr.DataArray:
+    """A lon/lat grid whose longitudes cross the antimeridian as ``..., 179.9, -179.9, ...``
+    with longitudes continuing past 180 instead (one drop of more than 180 degrees)."""
+    lon = np.asarray(arr["x"].values, dtype=np.float64)
+    d = np.diff(lon)
+    drops = np.flatnonzero(d < -180.0)
+    if lon.size < 3 or drops.size != 1 or np.sum(d > 0) != d.size - 1:
+        return arr
+    fixed = lon.copy()
+    fixed[drops[0] + 1 :] += 360.0
+    return arr.assign_coords(x=fixed)
+
+
+def _check_geographic_extent(path: Path, lat: np.ndarray, lon: np.ndarray) -> None:
+    """Refuse a lon/lat grid reaching farther than :data:`MAX_GEOGRAPHIC_RADIUS` from its
+    centre: one projected grid cannot hold it without great distortion (a whole globe has no
+    such grid at all)."""
+    lat0, lon0 = math.radians(float(lat.mean())), math.radians(float(lon.mean()))
+    far = 0.0
+    for la in (lat.min(), lat.max()):
+        for lo in (lon.min(), lon.max()):
+            p, q = math.radians(float(la)), math.radians(float(lo))
+            c = math.sin(lat0) * math.sin(p) + math.cos(lat0) * math.cos(p) * math.cos(q - lon0)
+            far = max(far, math.degrees(math.acos(min(1.0, max(-1.0, c)))))
+    if far > MAX_GEOGRAPHIC_RADIUS or float(np.ptp(lon)) > 2 * MAX_GEOGRAPHIC_RADIUS / max(
+        math.cos(lat0), 0.05
+    ):
+        raise InvalidDEMError(
+            f"DEM file {path} is a lon/lat grid reaching {far:.0f} degrees of arc from its "
+            f"centre (latitudes {lat.min():g} to {lat.max():g}, longitudes {lon.min():g} to "
+            f"{lon.max():g}): one projected grid holds at most {MAX_GEOGRAPHIC_RADIUS:g} without "
+            "great distortion; give a bbox around the region to plan on"
+        )
 
 
 def _reproject_geographic(

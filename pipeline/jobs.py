@@ -375,10 +375,11 @@ def _check_size(path: Path, job: Job, shape) -> None:
     while not where.exists() and where != where.parent:
         where = where.parent
     try:
-        free = shutil.disk_usage(where).free
+        usage = shutil.disk_usage(where)
     except OSError:
         return
-    if need / BEST_COMPRESSION > free:
+    free = usage.free
+    if usage.total > 0 and need / BEST_COMPRESSION > free:  # (no size: not a disk, /proc)
         _fail(
             path,
             f"the DEM and maps stores of a {rows} x {cols} grid need about {need / 1e9:,.0f} GB "

@@ -882,3 +882,37 @@ def test_depths_positive_down_are_named_at_map_level(tmp_path):
     assert "no cell of the maps is passable" in res.output and "positive down" in res.output
     with pytest.raises(pipeline.PipelineError, match="if its values are depths, positive down"):
         pipeline.plan(maps, (5, 5), (30, 30), client="synchronous")
+
+
+def _lonlat_nc(path, lat, lon, z=None):
+    if z is None:
+        z = np.random.default_rng(0).uniform(-4000, -3000, (len(lat), len(lon)))
+    da = xr.DataArray(
+        z.astype(np.float32), dims=("lat", "lon"), coords={"lat": lat, "lon": lon}, name="elevation"
+    )
+    da["lat"].attrs.update(units="degrees_north", standard_name="latitude")
+    da["lon"].attrs.update(units="degrees_east", standard_name="longitude")
+    return _nc(path, da)
+
+
+def test_lonlat_grids_at_the_antimeridian_and_the_pole(tmp_path):
+    """A grid whose longitudes cross 180 degrees as 179.9, -179.9 reads as the same grid with
+    longitudes past 180; one ending at 180, and one reaching latitude 90, read with valid
+    cells; a whole globe is refused in one line (it ended in an internal error)."""
+    lat = np.linspace(-10.0, -5.0, 51)
+    east = np.linspace(175.05, 184.95, 100)
+    z = np.random.default_rng(3).uniform(-4000, -3000, (51, 100))
+    wrapped = np.where(east > 180.0, east - 360.0, east)
+    a = pipeline.open_dem(_lonlat_nc(tmp_path / "a.nc", lat, east, z), resolution=5000.0)
+    b = pipeline.open_dem(_lonlat_nc(tmp_path / "b.nc", lat, wrapped, z), resolution=5000.0)
+    np.testing.assert_array_equal(a.values, b.values)
+    assert np.isfinite(a.values).mean() > 0.4
+    for k, (la, lo) in enumerate(
+        [(lat, np.linspace(170.0, 180.0, 101)), (np.linspace(88, 90, 21), np.linspace(0, 10, 101))]
+    ):
+        d = pipeline.open_dem(_lonlat_nc(tmp_path / f"c{k}.nc", la, lo), resolution=2000.0)
+        assert np.isfinite(d.values).mean() > 0.4
+    glob = _lonlat_nc(
+        tmp_path / "g.nc", np.linspace(-89.5, 89.5, 180), np.linspace(-179.5, 179.5, 360)
+    )
+    one_line_error(invoke("dem", "info", glob), 2, "give a bbox around the region to plan on")
