@@ -119,6 +119,28 @@ def main(verbose: bool) -> None:
     """Plan near-bottom AUV cruise trajectories over large seabed grids (RA* + MCPC)."""
     _VERBOSE["on"] = verbose
     _setup_logging(verbose)
+    _stop_on_sigterm()
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's, a container's stop): unwinds as an interrupt does, so that the
+    cluster and the files in flight are closed as on Ctrl-C, and ends in one line."""
+
+
+def _stop_on_sigterm() -> None:
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return  # (signals are the main thread's)
+
+    def stop(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second one ends at once
+        # the cluster's client cancels its waits as it closes: asyncio would log each
+        logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, stop)
 
 
 @main.group()
@@ -354,6 +376,13 @@ class _errors:
             exc, SystemExit | click.exceptions.Exit | click.ClickException | click.exceptions.Abort
         ):
             return False
+        if isinstance(exc, Terminated):
+            click.echo(
+                "error: terminated (SIGTERM); what finished is kept, and a re-run goes on "
+                "from there",
+                err=True,
+            )
+            sys.exit(143)
         if isinstance(exc, KeyboardInterrupt):
             click.echo("error: interrupted", err=True)
             sys.exit(130)

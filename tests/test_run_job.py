@@ -1027,3 +1027,27 @@ def test_a_result_that_cannot_be_written_keeps_the_earlier_one(tmp_path, stores,
     assert res.ok and res.replanned == 1
     item = json.loads((root / "missions" / "east" / "east.json").read_text())
     assert item["properties"]["auv:goal"] == [140, 280]
+
+
+def test_sigterm_ends_a_run_in_one_line_and_the_rerun_goes_on(tmp_path):
+    """SIGTERM (a scheduler's or a container's stop) while the maps are built: exit 143, one
+    line saying so, no traceback and no leaked semaphore; the re-run completes the job."""
+    import signal
+
+    job = write_job(tmp_path, missions=TWO, name="term")
+    proc = subprocess.Popen(
+        [str(EXE), "run", str(job)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True
+    )
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if "building the maps store" in line:
+            proc.send_signal(signal.SIGTERM)
+            break
+    rest = proc.stderr.read()
+    assert proc.wait(timeout=120) == 143, "".join(lines) + rest
+    assert "Traceback" not in rest and "semaphore" not in rest, rest
+    assert rest.strip().splitlines()[-1].startswith("error: terminated (SIGTERM)")
+    proc = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert set(_props(tmp_path / "cat")) == {"east", "south"}
