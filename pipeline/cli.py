@@ -287,7 +287,13 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
 )
 @click.option("--dry-run", is_flag=True, help="Validate the job file and stop.")
 @click.option("--overwrite", is_flag=True, help="Recompute what exists already.")
-def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite):
+@click.option(
+    "--prune",
+    is_flag=True,
+    help="Remove what the catalog holds that the job no longer uses (stores of other DEM or "
+    "maps parameters, folders of missions no longer in the job).",
+)
+def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite, prune):
     """Run the job file JOB (TOML): DEM and maps stores, every mission, the results catalog.
 
     Exit status: 0 every mission planned and certified; 1 some missions failed (each is an
@@ -307,6 +313,7 @@ def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite):
             dashboard_address=dashboard_address,
             overwrite=overwrite,
             dry_run=dry_run,
+            prune=prune,
         )
         if dry_run:
             click.echo(

@@ -540,6 +540,7 @@ def run_job(
     dry_run: bool = False,
     scheduler_file: str | os.PathLike | None = None,
     dashboard_address: str | None = None,
+    prune: bool = False,
 ) -> JobResult:
     """Run a job file: DEM store, maps store, every mission, the results catalog.
 
@@ -551,7 +552,9 @@ def run_job(
     ``<catalog>/performance-report.html`` unless ``[output] performance_report = false``.
     ``scheduler`` (an address or a
     ``distributed.Client``) or ``scheduler_file`` name the cluster to run on
-    (:func:`pipeline.cluster.session`).
+    (:func:`pipeline.cluster.session`). What the catalog holds that the job no longer makes
+    (stores of other DEM or maps parameters, folders of missions no longer in the job) is
+    counted in the log, and removed with ``prune`` (:func:`stale`).
 
     Examples
     --------
@@ -594,6 +597,7 @@ def run_job(
             lonlat=bool(res.crs_wkt),
         )
         res.report = _report(job, maps_store)
+        _prune(job, dem_store, maps_store, prune)
     res.seconds = time.perf_counter() - t0
     log.info(
         "job %s: %d planned, %d skipped (finished before), %d failed; catalog %s (%.1f s)",
@@ -605,6 +609,62 @@ def run_job(
         res.seconds,
     )
     return res
+
+
+def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
+    """What the catalog of ``job`` holds that this tool made and the job no longer uses: DEM
+    and maps stores (this tool's, by their mark) other than ``dem_store`` and ``maps_store``,
+    and mission folders (each with its Item) of missions no longer in the job."""
+    from ._io import own_store
+    from .catalog import COLLECTION, mission_id
+
+    out = []
+    for kind, pattern, keep in (
+        ("DEM", "dem-*.zarr", dem_store),
+        ("maps", "maps-*.zarr", maps_store),
+    ):
+        for p in sorted(job.catalog.glob(pattern)):
+            if p != keep and own_store(p, kind):
+                out.append(p)
+    ids = {mission_id(m["name"]) for m in job.missions}
+    folder = job.catalog / COLLECTION
+    if folder.is_dir():
+        for p in sorted(folder.iterdir()):
+            if p.is_dir() and p.name not in ids and (p / f"{p.name}.json").is_file():
+                out.append(p)
+    return out
+
+
+def _size(p: Path) -> int:
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file() and not f.is_symlink())
+
+
+def _prune(job: Job, dem_store: Path, maps_store: Path, remove: bool) -> None:
+    old = stale(job, dem_store, maps_store)
+    if not old:
+        return
+    size = sum(_size(p) for p in old)
+    if remove:
+        for p in old:
+            shutil.rmtree(p, ignore_errors=True)
+        log.info(
+            "pruned %d stores and mission folders the job no longer uses (%.2f GB)",
+            len(old),
+            size / 1e9,
+        )
+        return
+    names = ", ".join(p.name for p in old[:3]) + (
+        f" and {len(old) - 3} more" if len(old) > 3 else ""
+    )
+    log.info(
+        "catalog %s holds %d stores and mission folders the job no longer uses (%s; %.2f GB): "
+        "`pipeline run %s --prune` removes them",
+        job.catalog,
+        len(old),
+        names,
+        size / 1e9,
+        job.path,
+    )
 
 
 def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:

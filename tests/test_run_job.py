@@ -1051,3 +1051,38 @@ def test_sigterm_ends_a_run_in_one_line_and_the_rerun_goes_on(tmp_path):
     proc = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert set(_props(tmp_path / "cat")) == {"east", "south"}
+
+
+def test_old_stores_and_missions_are_counted_and_pruned_on_request(
+    tmp_path, stores, local_client, caplog
+):
+    """A job whose maps parameters changed and one of whose missions was removed: the run says
+    what the catalog holds that the job no longer uses, and removes it only with prune; what
+    the job uses and a user's file stay."""
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="prune")
+    root = tmp_path / "cat"
+    run_job(job, scheduler=local_client)
+    old_maps = next(root.glob("maps-*.zarr"))
+    job.write_text(
+        job.read_text()
+        .replace("clearance = 150.0", "clearance = 200.0")
+        .replace('name = "south"', 'name = "north"')
+    )
+    (root / "notes.txt").write_text("mine")
+    with caplog.at_level("INFO", logger="pipeline.jobs"):
+        res = run_job(job, scheduler=local_client)
+    assert res.ok and old_maps.exists() and (root / "missions" / "south").exists()
+    assert "holds 2 stores and mission folders the job no longer uses" in caplog.text
+    assert "--prune` removes them" in caplog.text
+    proc = subprocess.run(
+        [str(EXE), "run", str(job), "--prune", "--scheduler", local_client.scheduler.address],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "pruned 2 stores and mission folders" in proc.stderr
+    assert not old_maps.exists() and not (root / "missions" / "south").exists()
+    assert len(list(root.glob("maps-*.zarr"))) == 1 and len(list(root.glob("dem-*.zarr"))) == 1
+    assert set(_props(root)) == {"east", "north"} and (root / "notes.txt").read_text() == "mine"
