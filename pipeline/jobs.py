@@ -338,7 +338,7 @@ def load_job(path: str | os.PathLike) -> Job:
     # absolute so that workers in other directories or on other machines write where the
     # client reads
     job.catalog = Path(os.path.abspath(job.catalog))
-    if job.synthetic is not None:
+    if job.dem_path is None and "shape" in (job.synthetic or {}):
         _check_size(path, job, job.synthetic["shape"])
     return job
 
