@@ -239,7 +239,10 @@ def dem_info(path):
     help="A dask scheduler file (JSON) instead of an address.",
 )
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, **params):
+@click.option(
+    "--workers", type=int, default=None, help="Worker processes of the local cluster (default 2)."
+)
+def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, workers, **params):
     """Build the maps store OUT (elevation, safety, passable, accumulation, ridge, component,
     landmark distances) from the DEM at DEM_PATH."""
     from ._io import is_url, require_writable
@@ -255,9 +258,10 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
         if is_url(out):
             require_writable(out)
         with (
-            session(scheduler, scheduler_file),
+            session(scheduler, scheduler_file, workers=workers) as client,
             _progress(f"building {params['method']} maps of {dem_path} into {out}"),
         ):
+            click.echo(f"dask dashboard: {client.dashboard_link}", err=True)
             maps = build_maps(dem, out, chunks=chunks, overwrite=overwrite, **params)
         share = float(maps["passable"].mean().compute())
         if share == 0.0:
@@ -293,7 +297,14 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     help="Remove what the catalog holds that the job no longer uses (stores of other DEM or "
     "maps parameters, folders of missions no longer in the job).",
 )
-def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite, prune):
+@click.option(
+    "--workers",
+    type=int,
+    default=None,
+    help="Worker processes of the local cluster (default 2, or dask's configuration "
+    "auv_pipeline.workers); with --scheduler, the cluster's own.",
+)
+def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite, prune, workers):
     """Run the job file JOB (TOML): DEM and maps stores, every mission, the results catalog.
 
     Exit status: 0 every mission planned and certified; 1 some missions failed (each is an
@@ -314,6 +325,7 @@ def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite, p
             overwrite=overwrite,
             dry_run=dry_run,
             prune=prune,
+            workers=workers,
         )
         if dry_run:
             click.echo(

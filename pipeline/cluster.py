@@ -63,8 +63,9 @@ HOUSEKEEPING = {  # key: (ours, dask's default)
 }
 
 
-def local_cluster(dashboard_address: str = ":0"):
-    """A LocalCluster of 2 single-threaded worker processes (the default everywhere), their
+def local_cluster(dashboard_address: str = ":0", workers: int | None = None):
+    """A LocalCluster of :func:`local_workers` single-threaded worker processes (2 unless
+    ``workers`` or dask's configuration says otherwise), their
     allocator set by :data:`WORKER_ENV`, their housekeeping by :data:`HOUSEKEEPING`, its
     scheduler's messages to them sent every :data:`STREAM_INTERVAL_S` at most
     (:func:`prompt`)."""
@@ -80,7 +81,7 @@ def local_cluster(dashboard_address: str = ":0"):
     # process gets its nanny's configuration
     with dask.config.set({key: env, **cfg}):
         cluster = LocalCluster(
-            n_workers=LOCAL_WORKERS,
+            n_workers=local_workers(workers),
             threads_per_worker=1,
             processes=True,
             dashboard_address=dashboard_address,
@@ -280,17 +281,54 @@ def shutdown() -> None:
 IN_PROCESS = ("synchronous", "threads")
 
 
-def get_client(client=None):
+def get_client(client=None, *, own: str = "cluster"):
     """The cluster to plan on: ``"synchronous"`` (in this process, a mission's sections in
     turn), ``"threads"`` (in this process, a mission's sections shared by a thread per core),
     a ``distributed.Client``, a scheduler address, or None: the current default client if
-    there is one, else a LocalCluster of 2 single-threaded workers started once per process.
-    A client is returned :func:`prompt`."""
+    there is one, else (``own="cluster"``) a LocalCluster of :func:`local_workers`
+    single-threaded workers started once per process, or (``own="threads"``) this process's
+    threads. A client is returned :func:`prompt`."""
     if isinstance(client, str) and client in IN_PROCESS:
         return client
+    if client is None and own == "threads":
+        active = _active_client()
+        if active is None:
+            return "threads"
+        client = active
     got = _client(client)
     prompt(got)
     return got
+
+
+def _active_client():
+    """The distributed client this process made current (``Client()``, ``with client:``), or
+    None; never starts one."""
+    try:
+        from distributed import default_client
+
+        return default_client()
+    except (ImportError, ValueError):
+        return None
+
+
+def local_workers(workers: int | None = None) -> int:
+    """How many worker processes a LocalCluster of this tool's has: ``workers`` when given,
+    else dask's configuration ``auv_pipeline.workers`` (``DASK_AUV_PIPELINE__WORKERS``), else
+    :data:`LOCAL_WORKERS`."""
+    import dask
+
+    value = workers if workers is not None else dask.config.get("auv_pipeline.workers", None)
+    if value is None:
+        return LOCAL_WORKERS
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        n = 0
+    if n < 1 or n != float(value):
+        raise InvalidParameterError(
+            f"the number of workers must be a whole number of at least 1, got {value!r}"
+        )
+    return n
 
 
 def _client(client):
@@ -350,10 +388,11 @@ def check_dashboard_address(address) -> None:
 
 
 @contextmanager
-def session(scheduler=None, scheduler_file=None, dashboard_address=None):
+def session(scheduler=None, scheduler_file=None, dashboard_address=None, workers=None):
     """A client for a job or a command: ``scheduler`` (an address or a ``Client``, used as it
-    is and left open), the scheduler named in ``scheduler_file``, or a new LocalCluster of 2
-    single-threaded workers (its dashboard at ``dashboard_address``, by default on loopback,
+    is and left open), the scheduler named in ``scheduler_file``, or a new LocalCluster of
+    :func:`local_workers` (``workers``, by default 2) single-threaded workers (its dashboard at
+    ``dashboard_address``, by default on loopback,
     port 8787 when free). The client is the
     default client inside the block, in every thread."""
     from distributed import Client
@@ -362,6 +401,7 @@ def session(scheduler=None, scheduler_file=None, dashboard_address=None):
         raise InvalidParameterError("give a scheduler address or a scheduler file, not both")
     if dashboard_address is not None:
         check_dashboard_address(dashboard_address)
+    n_workers = local_workers(workers)  # (checked before anything starts)
     if scheduler_file is not None:
         scheduler = address_of(scheduler_file)
     import dask
@@ -375,7 +415,7 @@ def session(scheduler=None, scheduler_file=None, dashboard_address=None):
     if scheduler:
         client = connect(scheduler, set_as_default=False)
     else:
-        cluster = local_cluster(dashboard_address or _free_dashboard_address())
+        cluster = local_cluster(dashboard_address or _free_dashboard_address(), n_workers)
         client = Client(cluster, set_as_default=False)
         if QUIET_TASK_ERRORS:
             from ._quiet import QuietTaskErrors

@@ -507,6 +507,7 @@ class JobResult:
     planned: int = 0
     skipped: int = 0
     failed: list = field(default_factory=list)  # names of failed missions (this run or before)
+    workers: int = 0  # the cluster's workers (0: no cluster was needed)
     uncertified: list = field(default_factory=list)  # planned, bound not proven (this run)
     dashboard: str | None = None
     ran: int = 0  # missions this run planned or tried
@@ -541,6 +542,7 @@ def run_job(
     scheduler_file: str | os.PathLike | None = None,
     dashboard_address: str | None = None,
     prune: bool = False,
+    workers: int | None = None,
 ) -> JobResult:
     """Run a job file: DEM store, maps store, every mission, the results catalog.
 
@@ -554,7 +556,8 @@ def run_job(
     ``distributed.Client``) or ``scheduler_file`` name the cluster to run on
     (:func:`pipeline.cluster.session`). What the catalog holds that the job no longer makes
     (stores of other DEM or maps parameters, folders of missions no longer in the job) is
-    counted in the log, and removed with ``prune`` (:func:`stale`).
+    counted in the log, and removed with ``prune`` (:func:`stale`). ``workers``: the local
+    cluster's worker processes (default 2, or dask's configuration ``auv_pipeline.workers``).
 
     Examples
     --------
@@ -567,6 +570,10 @@ def run_job(
         from .cluster import check_dashboard_address
 
         check_dashboard_address(dashboard_address)
+    if workers is not None:
+        from .cluster import local_workers
+
+        local_workers(workers)
     dem_store = job.catalog / f"dem-{job.dem_fingerprint()}.zarr"
     maps_store = job.catalog / f"maps-{job.maps_fingerprint()}.zarr"
     t0 = time.perf_counter()
@@ -587,7 +594,14 @@ def run_job(
         check_catalog(job.catalog, job.name)  # (as another run may have left it)
         remove_temporaries(job.catalog)
         res = _run_locked(
-            job, dem_store, maps_store, overwrite, scheduler, scheduler_file, dashboard_address
+            job,
+            dem_store,
+            maps_store,
+            overwrite,
+            scheduler,
+            scheduler_file,
+            dashboard_address,
+            workers,
         )
         res.catalog = write_catalog(
             job.catalog,
@@ -670,7 +684,7 @@ def _prune(job: Job, dem_store: Path, maps_store: Path, remove: bool) -> None:
 def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
     import datetime as dt
 
-    scheduler, scheduler_file, _ = cluster
+    scheduler, scheduler_file, *_ = cluster
     missions = _sorted_missions(job, overwrite)
     if (
         scheduler is None
@@ -697,7 +711,8 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         res = JobResult(
             job, dem_store, False, 0.0, maps_store=maps_store, dashboard=client.dashboard_link
         )
-        log.info("dask dashboard: %s", client.dashboard_link)
+        res.workers = len(client.scheduler_info().get("workers", {}))
+        log.info("dask dashboard: %s (%d workers)", client.dashboard_link, res.workers)
         # the first run after an install compiles the kernels on both workers at once, so that
         # no stage (and no mission's recorded runtime) holds the compilation
         ensure_compiled(client)

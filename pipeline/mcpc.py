@@ -831,9 +831,9 @@ def plan(
         The largest map (rows x cols) on which an uncertified MCPC path is planned again on
         the whole map; 0 never does.
     client : None, "synchronous", "threads", scheduler address or distributed.Client
-        Where the sections run (see :func:`pipeline.cluster.get_client`). For one mission at
-        a time in a process of its own, ``"threads"`` is the quickest on the benchmark
-        machine (README, "client").
+        Where the sections run (see :func:`pipeline.cluster.get_client`). None: the dask
+        client this process made current, if there is one, else this process's threads (no
+        cluster is started for one mission: a plain script needs no main guard).
 
     Returns
     -------
@@ -859,7 +859,7 @@ def plan(
     start, goal = _check_endpoints(m, start, goal)
     # the components layer proves reachability at once, either way (_Reach)
     reach = _Reach(m, start, goal)
-    run_on = get_client(client)
+    run_on = get_client(client, own="threads")  # no cluster of its own for one mission
     extra: dict = {
         "mcpc": bool(mcpc),
         "rho": rho,
