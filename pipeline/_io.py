@@ -408,6 +408,29 @@ def require_writable(url: str) -> None:
         raise unreachable(url, exc) from None
 
 
+# the variable of a store that holds its CRS, as CF conventions and rioxarray have it
+GRID_MAPPING = "spatial_ref"
+
+
+def grid_mapping(crs_wkt: str | None):
+    """The CF grid-mapping variable of the CRS ``crs_wkt`` (as rioxarray writes it: a 0-d
+    variable whose attributes are the CRS's CF parameters, ``crs_wkt`` and GDAL's
+    ``spatial_ref``), or None without a CRS. A layer names it in its ``grid_mapping``."""
+    if not crs_wkt:
+        return None
+    import numpy as np
+    import xarray as xr
+    from pyproj import CRS
+
+    crs = CRS.from_wkt(crs_wkt)
+    try:
+        attrs = crs.to_cf()
+    except Exception:  # noqa: BLE001 - a CRS without a CF form: its WKT only
+        attrs = {}
+    attrs.update(crs_wkt=crs_wkt, spatial_ref=crs_wkt)
+    return xr.DataArray(np.int32(0), attrs=attrs)
+
+
 # the names of the tool's temporaries: a dot, the name, .tmp- and a random hex tag (and the
 # suffix a writer needs, or a maps build's scratch stores beside its store)
 TEMPORARY = re.compile(r"^\..+\.tmp-[0-9a-f]{8,12}(\.png|\.html|-scratch|-components)?$")

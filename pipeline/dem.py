@@ -22,7 +22,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._io import atomic_path, layer_codec, store_in_bands
+from ._io import GRID_MAPPING, atomic_path, grid_mapping, layer_codec, store_in_bands
 from ._jit import njit
 from .exceptions import InvalidDEMError, InvalidParameterError
 from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
@@ -78,6 +78,68 @@ def cell_size(dem: xr.DataArray) -> float:
             "open the DEM with pipeline.open_dem to resample it"
         )
     return abs(dx)
+
+
+def as_dem(dem, chunks=DEFAULT_CHUNK) -> xr.DataArray:
+    """``dem`` as the DEM the pipeline's stages take: a path is opened with :func:`open_dem`;
+    an xarray DataArray (or a Dataset's elevation variable), such as ``rioxarray.open_rasterio``
+    gives, keeps its no-data and its CRS: the no-data value of ``rio.nodata``, ``_FillValue``
+    or ``missing_value`` (attributes or encoding), and a masked array's mask, become NaN; the
+    CRS of ``rio.crs`` (a ``spatial_ref`` or ``grid_mapping`` variable) becomes its
+    ``crs_wkt``; a band dimension of one band is dropped. Anything else (a bare numpy array,
+    several bands) is one :class:`InvalidDEMError` naming what to pass."""
+    if isinstance(dem, str | os.PathLike):
+        return open_dem(dem, chunks=chunks)
+    if isinstance(dem, xr.Dataset):
+        dem = _pick_variable(dem, Path("<Dataset>"), None)
+    if not isinstance(dem, xr.DataArray):
+        return open_dem(dem)  # (its one line names what to pass)
+    extra = [d for d in dem.dims if d not in ("y", "x")]
+    if any(dem.sizes[d] != 1 for d in extra) or set(dem.dims) - set(extra) != {"y", "x"}:
+        raise InvalidDEMError(
+            f"a DEM is one 2-D grid with dims ('y', 'x'), got dims {dem.dims} of sizes "
+            f"{tuple(dem.shape)}; select one band or time step (dem.sel(band=1)), or open "
+            "the file with pipeline.open_dem"
+        )
+    if extra:
+        dem = dem.squeeze(extra, drop=True)
+    dem = dem.transpose("y", "x")
+    attrs = dict(dem.attrs)
+    crs = _crs_of(dem)  # (rio.crs: a spatial_ref or grid_mapping variable; or an attribute)
+    data = dem.data
+    if isinstance(data, np.ma.MaskedArray):
+        dem = dem.copy(data=np.ma.filled(data.astype(np.float32), np.nan))
+    nodata = _nodata_of(dem)
+    if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
+        dem = dem.where(dem != nodata)
+        log.info("DEM: the no-data value %g read as NaN", nodata)
+    if dem.dtype.kind != "f":
+        dem = dem.astype(np.float32)
+    for key in ("_FillValue", "missing_value", "nodata"):
+        attrs.pop(key, None)
+    dem.attrs = attrs
+    dem.encoding = {}
+    if crs is not None and "crs_wkt" not in attrs:
+        dem.attrs["crs_wkt"] = crs.to_wkt()
+    dem = dem.drop_vars([c for c in ("spatial_ref", "crs") if c in dem.coords])
+    return dem
+
+
+def _nodata_of(dem: xr.DataArray):
+    """The no-data value a DataArray declares, or None."""
+    try:
+        import rioxarray  # noqa: F401
+
+        value = dem.rio.nodata
+        if value is not None:
+            return value
+    except Exception:  # noqa: BLE001 - no rioxarray, or coordinates it cannot read
+        pass
+    for where in (dem.attrs, dem.encoding):
+        for key in ("_FillValue", "missing_value", "nodata"):
+            if where.get(key) is not None:
+                return np.asarray(where[key]).ravel()[0].item()
+    return None
 
 
 def open_dem(
@@ -372,6 +434,10 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     out = dem.copy(data=data)
     out.attrs[CANONICAL_ATTR] = CANONICAL_VERSION
     out.encoding = {}
+    mapping = grid_mapping(out.attrs.get("crs_wkt"))
+    if mapping is not None:  # the CRS the CF way too (rioxarray, GDAL), and GDAL's Zarr way
+        out.attrs.update(grid_mapping=GRID_MAPPING, _CRS={"wkt": out.attrs["crs_wkt"]})
+        out = out.assign_coords({GRID_MAPPING: mapping})
     ds = out.to_dataset(name="elevation")
     ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
     encoding = {"elevation": {"chunks": ch, "compressors": layer_codec()}}

@@ -39,8 +39,10 @@ import xarray as xr
 import zarr
 
 from ._io import (
+    GRID_MAPPING,
     WINDOW_LAYERS,
     check_replaceable,
+    grid_mapping,
     is_url,
     layer_encoding,
     load_window,
@@ -52,7 +54,7 @@ from ._io import (
 from ._jit import njit
 from .cluster import computing_client
 from .components import join_tiles, label_tile, relabel_tile
-from .dem import cell_size, open_dem, require_valid_cells
+from .dem import as_dem, cell_size, require_valid_cells
 from .exceptions import InvalidParameterError
 from .landmarks import component_sizes, landmarks_staged, memory_per_landmark
 from .params import DEFAULT_CHUNK, MAPS, chunks2d
@@ -347,8 +349,7 @@ def _checked(
     """:func:`build_maps`' arguments checked, before any compute: ``(dem as float32 in the
     store's chunks, store, chunks, cell size, safety map, passable map (both lazy),
     min_accumulation, landmarks)``."""
-    if not isinstance(dem, xr.DataArray):
-        dem = open_dem(dem, chunks=chunks or DEFAULT_CHUNK)
+    dem = as_dem(dem, chunks=chunks or DEFAULT_CHUNK)
     store = location(store) if is_url(store) else Path(store)
     check_replaceable(store, "maps", overwrite)
     if chunks is None:
@@ -492,8 +493,13 @@ def _create(layers: dict, dem: xr.DataArray, path, ch, *, mode: str = "w") -> tu
     their block writers (:func:`pipeline.store.block_writer`: the bytes zarr writes, in half
     its time for a 1024^2 float32 shard and a fifth for a bool one), in ``layers``' order."""
     ds = xr.Dataset(coords=dem.coords)
+    mapping = grid_mapping(dem.attrs.get("crs_wkt"))
+    if mapping is not None and mode == "w":
+        ds = ds.assign_coords({GRID_MAPPING: mapping})
     for k, v in layers.items():
         dtype, attrs = (v.dtype, v.attrs) if isinstance(v, xr.DataArray) else v
+        if mapping is not None:  # the CF way (rioxarray, GDAL's netCDF) and GDAL's Zarr way
+            attrs = {**attrs, "grid_mapping": GRID_MAPPING, "_CRS": {"wkt": dem.attrs["crs_wkt"]}}
         ds[k] = (("y", "x"), da.empty(dem.shape, chunks=ch, dtype=dtype), attrs)
     ds.to_zarr(  # the metadata and the coordinates now; the blocks by the passes' tasks
         path,

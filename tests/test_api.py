@@ -95,3 +95,56 @@ def test_the_local_clusters_size(tmp_path):
         with pytest.raises(pipeline.PipelineError, match="number of workers must be a whole"):
             pipeline.run_job(job, workers=bad, dry_run=True)
     assert np.isfinite(res.seconds)
+
+
+def _nodata_tif(path):
+    import rioxarray  # noqa: F401
+    from conftest import metric_dataarray
+
+    z = np.random.default_rng(0).uniform(-3100.0, -2900.0, (80, 80)).astype(np.float32)
+    z[:, 40:42] = -9999.0  # a band of no-data across the map
+    da = metric_dataarray(z, a=100.0).rio.write_crs("EPSG:32610").rio.write_nodata(-9999.0)
+    da.rio.to_raster(path)
+    return path
+
+
+@pytest.fixture
+def synchronous():
+    import dask
+
+    with dask.config.set(scheduler="synchronous"):
+        yield
+
+
+def test_a_dataarray_keeps_its_nodata_and_its_crs_through_every_stage(tmp_path, synchronous):
+    """``rioxarray.open_rasterio`` as a notebook calls it (``masked=False``: -9999 in the
+    values, the nodata in ``rio.nodata``): the no-data band is never passable (it was, and a
+    mission planned through it), and the CRS is the maps store's, read back by rioxarray from
+    its CF grid-mapping variable and by the store itself; a DataArray with ``_FillValue`` in its
+    attributes alike; several bands are one line naming what to pass."""
+    import rioxarray
+    import xarray as xr
+
+    tif = _nodata_tif(tmp_path / "nd.tif")
+    raw = rioxarray.open_rasterio(tif)
+    assert raw.rio.nodata == -9999.0 and float(raw.min()) == -9999.0
+    for k, dem in enumerate([raw, raw.squeeze("band", drop=True)]):
+        maps = tmp_path / f"m{k}.zarr"
+        pipeline.build_maps(dem, maps, clearance=100.0, landmarks=2)
+        ds = pipeline.open_maps(maps)
+        assert not ds["passable"].values[:, 40:42].any()
+        assert np.isnan(ds["elevation"].values[:, 40:42]).all()
+        assert ds.rio.crs.to_epsg() == 32610
+        assert xr.open_zarr(maps, consolidated=False).rio.crs.to_epsg() == 32610
+        assert pipeline.open_store(maps).crs_wkt is not None
+    fill = raw.squeeze("band", drop=True).drop_vars("spatial_ref")
+    fill.attrs = {"_FillValue": -9999.0}
+    pipeline.build_maps(fill, tmp_path / "f.zarr", clearance=100.0, landmarks=2)
+    assert not pipeline.open_maps(tmp_path / "f.zarr")["passable"].values[:, 40:42].any()
+    three = xr.concat([raw, raw, raw], dim="band")
+    with pytest.raises(pipeline.PipelineError, match="select one band"):
+        pipeline.build_maps(three, tmp_path / "t.zarr", clearance=100.0)
+    # the DEM store keeps the CRS the same way
+    pipeline.write_dem(pipeline.open_dem(tif), tmp_path / "dem.zarr")
+    assert xr.open_zarr(tmp_path / "dem.zarr", consolidated=False).rio.crs.to_epsg() == 32610
+    assert "UTM zone 10N" in pipeline.open_dem(tmp_path / "dem.zarr").attrs["crs_wkt"]
