@@ -770,9 +770,13 @@ def _finish(
 
 def plan(
     maps,
-    start,
-    goal,
+    start=None,
+    goal=None,
     *,
+    start_xy=None,
+    goal_xy=None,
+    start_lonlat=None,
+    goal_lonlat=None,
     planner: str = PLANNING.planner.default,
     omega: float = PLANNING.omega.default,
     mcpc: bool = PLANNING.mcpc.default,
@@ -801,7 +805,11 @@ def plan(
         A maps store (:func:`pipeline.build_maps`), the Dataset :func:`pipeline.open_maps`
         returned for it, or its :class:`pipeline.store.MapsStore`.
     start, goal : (row, col)
-        Fine cells.
+        Fine cells; or, instead of either, as a job file gives them:
+    start_xy, goal_xy : (x, y)
+        Map coordinates (metres, the maps' CRS).
+    start_lonlat, goal_lonlat : (lon, lat)
+        WGS84 longitude and latitude (the maps need a CRS). Each end in exactly one form.
     planner : str
         The planner of every section (and of the whole map with ``mcpc=False``): a name of
         :data:`pipeline.planners.PLANNERS`.
@@ -856,7 +864,22 @@ def plan(
     coarse_weight = PLANNING.coarse_weight.check(coarse_weight)
     mcpc = PLANNING.mcpc.check(mcpc)
     repair_max_cells = PLANNING.repair_max_cells.check(repair_max_cells)
-    start, goal = _check_endpoints(m, start, goal)
+    given = {
+        k: v
+        for k, v in dict(
+            start=start,
+            goal=goal,
+            start_xy=start_xy,
+            goal_xy=goal_xy,
+            start_lonlat=start_lonlat,
+            goal_lonlat=goal_lonlat,
+        ).items()
+        if v is not None
+    }
+    from .missions import endpoint_cells
+
+    ends = endpoint_cells(m, given)  # as a job file gives them
+    start, goal = _check_endpoints(m, ends["start"], ends["goal"])
     # the components layer proves reachability at once, either way (_Reach)
     reach = _Reach(m, start, goal)
     run_on = get_client(client, own="threads")  # no cluster of its own for one mission

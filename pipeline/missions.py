@@ -39,7 +39,8 @@ log = logging.getLogger(__name__)
 _PLAN_KEYS = PLANNING.names()
 # the keys a mission's dict is read for; any other is kept for the caller (a name, a tag),
 # unless it is a near miss of one of these (``omgea``), which would be planned as if absent
-_MISSION_KEYS = sorted(_PLAN_KEYS | {"start", "goal", "vehicle", "name"})
+_ENDPOINT_KEYS = {f"{end}{form}" for end in ("start", "goal") for form in ("", "_xy", "_lonlat")}
+_MISSION_KEYS = sorted(_PLAN_KEYS | _ENDPOINT_KEYS | {"vehicle", "name"})
 
 
 def failed_trajectory(mission: dict, message: str) -> Trajectory:
@@ -61,6 +62,34 @@ def failed_trajectory(mission: dict, message: str) -> Trajectory:
     )
 
 
+def endpoint_form(mission: dict, end: str) -> tuple[str, object]:
+    """``(form, value)`` of a mission's ``end`` (``"start"`` or ``"goal"``) as a job file
+    gives it: ``end`` a cell ``(row, col)``, ``end_xy`` map coordinates or ``end_lonlat``
+    (longitude, latitude); exactly one of them, else one :class:`InvalidParameterError`."""
+    forms = [
+        (f, mission[k])
+        for f, k in (("cell", end), ("xy", f"{end}_xy"), ("lonlat", f"{end}_lonlat"))
+        if k in mission
+    ]
+    if len(forms) != 1:
+        raise InvalidParameterError(
+            f"a mission needs exactly one of {end} (a cell), {end}_xy or {end}_lonlat, got "
+            f"{mission!r}"
+        )
+    return forms[0]
+
+
+def endpoint_cells(m, mission: dict) -> dict:
+    """``mission`` with its start and goal as cells of the maps store ``m`` (from any of the
+    forms :func:`endpoint_form` reads; the cells the job file's loader gives)."""
+    out = dict(mission)
+    for end in ("start", "goal"):
+        form, value = endpoint_form(mission, end)
+        # a cell as given: the planner checks it is one (a row of 1.5 is no cell)
+        out[end] = value if form == "cell" else m.cell_of(end, form, value)
+    return out
+
+
 def _normalise(m) -> dict:
     if isinstance(m, dict):
         mission = dict(m)
@@ -72,8 +101,8 @@ def _normalise(m) -> dict:
                 f"a mission must be a dict with start and goal, or a (start, goal) pair, got {m!r}"
             ) from None
         mission = {"start": start, "goal": goal}
-    if "start" not in mission or "goal" not in mission:
-        raise InvalidParameterError(f"a mission needs start and goal cells, got {mission!r}")
+    for end in ("start", "goal"):
+        endpoint_form(mission, end)  # exactly one of the three forms
     for key in mission:
         if key in _MISSION_KEYS:
             continue
@@ -163,7 +192,7 @@ def plan_missions(
     items, invalid = [], {}
     for i, x in enumerate(missions):
         try:
-            items.append(_normalise(x))
+            items.append(endpoint_cells(m, _normalise(x)))
         except InvalidParameterError as exc:  # this mission fails with the reason, not the batch
             items.append(dict(x) if isinstance(x, dict) else {"mission": x})
             invalid[i] = str(exc)

@@ -148,3 +148,47 @@ def test_a_dataarray_keeps_its_nodata_and_its_crs_through_every_stage(tmp_path, 
     pipeline.write_dem(pipeline.open_dem(tif), tmp_path / "dem.zarr")
     assert xr.open_zarr(tmp_path / "dem.zarr", consolidated=False).rio.crs.to_epsg() == 32610
     assert "UTM zone 10N" in pipeline.open_dem(tmp_path / "dem.zarr").attrs["crs_wkt"]
+
+
+def test_endpoints_in_the_api_as_in_job_files(tmp_path, synchronous):
+    """``plan`` and ``plan_missions`` take the ends as a job file does (a cell, ``_xy`` or
+    ``_lonlat``) and plan from the cells a job gives for them: the same cells as the job's
+    Item records, checked both ways (the cell's own centre and its lon/lat by pyproj)."""
+    from pyproj import Transformer
+
+    import pipeline.jobs as jobs
+
+    tif = _nodata_tif(tmp_path / "nd.tif")
+    maps = tmp_path / "m.zarr"
+    pipeline.build_maps(pipeline.open_dem(tif), maps, clearance=100.0, landmarks=2)
+    m = pipeline.open_store(maps)
+    s, g = (5, 5), (70, 30)  # (the no-data band at columns 40-41 parts the map)
+    xy = [(float(m.x[c]), float(m.y[r])) for r, c in (s, g)]
+    to_ll = Transformer.from_crs(m.crs_wkt, "EPSG:4326", always_xy=True)
+    ll = [to_ll.transform(*p) for p in xy]
+    ref = pipeline.plan(maps, s, g)
+    for kw in (
+        dict(start_xy=xy[0], goal_xy=xy[1]),
+        dict(start_lonlat=ll[0], goal_lonlat=ll[1]),
+        dict(start=s, goal_lonlat=ll[1]),
+    ):
+        t = pipeline.plan(maps, **kw)
+        assert [tuple(t.cells[0]), tuple(t.cells[-1])] == [s, g] and t.length_m == ref.length_m
+    got = pipeline.plan_missions(
+        maps,
+        [{"start_lonlat": ll[0], "goal_xy": xy[1]}, {"start": s, "start_xy": xy[0], "goal": g}],
+        client="synchronous",
+    )
+    assert [tuple(got[0].cells[0]), tuple(got[0].cells[-1])] == [s, g]
+    assert got[1].status == "failed" and "exactly one of start" in got[1].message
+    with pytest.raises(pipeline.PipelineError, match="exactly one of goal"):
+        pipeline.plan(maps, s)
+    # the job file's loader and store give the same cells
+    job = tmp_path / "job.toml"
+    job.write_text(
+        f"[dem]\npath = 'nd.tif'\n[maps]\nclearance = 100.0\nlandmarks = 2\n[[missions]]\n"
+        f"start_lonlat = [{ll[0][0]!r}, {ll[0][1]!r}]\ngoal_xy = [{xy[1][0]!r}, {xy[1][1]!r}]\n"
+    )
+    mission = jobs.load_job(job).missions[0]
+    cells = [m.cell_of(e, mission[f"{e}_form"], mission[f"{e}_input"]) for e in ("start", "goal")]
+    assert cells == [s, g]

@@ -431,7 +431,7 @@ def test_a_malformed_mission_fails_alone(store, local_client, client):
     )
     assert [t.status for t in got] == ["ok", "failed", "failed", "ok", "failed"]
     assert "a mission must be a dict with start and goal" in got[1].message
-    assert "a mission needs start and goal cells" in got[2].message
+    assert "a mission needs exactly one of goal (a cell), goal_xy or goal_lonlat" in got[2].message
     assert "mission key 'omgea' is no option of a mission: did you mean 'omega'?" in got[4].message
     assert sorted(seen) == [0, 1, 2, 3, 4] and seen[2][0]["name"] == "no goal"
     assert seen[3][0]["priority"] == 2  # a key of the caller's own, kept
