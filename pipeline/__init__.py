@@ -21,6 +21,7 @@ from .exceptions import (
     InvalidParameterError,
     JobFileError,
     PipelineError,
+    PipelineWarning,
     SchedulerError,
     StoreExistsError,
     UnreachableGoalError,
@@ -81,7 +82,16 @@ def __dir__():
     return sorted(set(globals()) | set(__all__))
 
 
-__version__ = "0.1.0"
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("auv-pipeline")  # the installed package's metadata (pyproject.toml)
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "0+unknown"
+
+
+__version__ = _version()
 
 __all__ = [
     "InvalidDEMError",
@@ -91,6 +101,7 @@ __all__ = [
     "MapsStore",
     "PLANNERS",
     "PipelineError",
+    "PipelineWarning",
     "SchedulerError",
     "StoreExistsError",
     "Trajectory",

@@ -50,9 +50,15 @@ def _option(param: Param, *, flag: str | None = None):
 
 
 def _setup_logging(verbose: bool) -> None:
+    import warnings
+
     import dask
 
     from . import cluster
+    from .exceptions import PipelineWarning
+
+    # the log says what a PipelineWarning says: one line each, not two
+    warnings.simplefilter("ignore", PipelineWarning)
 
     cluster.QUIET_TASK_ERRORS = not verbose
     # distributed installs its own INFO handler when imported: keep it to warnings

@@ -24,7 +24,7 @@ import xarray as xr
 
 from ._io import GRID_MAPPING, atomic_path, grid_mapping, layer_codec, store_in_bands
 from ._jit import njit
-from .exceptions import InvalidDEMError, InvalidParameterError
+from .exceptions import InvalidDEMError, InvalidParameterError, notice
 from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,7 @@ def as_dem(dem, chunks=DEFAULT_CHUNK) -> xr.DataArray:
     nodata = _nodata_of(dem)
     if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
         dem = dem.where(dem != nodata)
-        log.info("DEM: the no-data value %g read as NaN", nodata)
+        notice(log, "DEM: its no-data value %g read as NaN", nodata)
     if dem.dtype.kind != "f":
         dem = dem.astype(np.float32)
     for key in ("_FillValue", "missing_value", "nodata"):
@@ -800,7 +800,8 @@ def _canonicalise(
         arr = _synthesise_coords(arr, path, cell_size)
     geographic = _is_geographic(arr, crs, xdim, ydim)
     if not geographic and crs is None and (cell := _degree_cell(arr)) is not None:
-        log.warning(
+        notice(
+            log,
             "DEM %s has no coordinate reference system, and its cells of %g units with "
             "coordinates within longitude and latitude ranges are no metres: read as lon/lat "
             "(WGS84); give the file its CRS (a .prj beside an .asc, or gdal_edit.py -a_srs) "
@@ -983,7 +984,8 @@ def _regularise(values: xr.DataArray, path: Path) -> xr.DataArray:
             values = values.assign_coords({dim: c[0] + step * np.arange(c.size)})
             continue
         d = np.diff(c)
-        log.warning(
+        notice(
+            log,
             "DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
             "resampling linearly onto an even grid",
             path,
@@ -1049,7 +1051,7 @@ def _degree_cell(arr: xr.DataArray) -> float | None:
 
 def _depth_sign(arr: xr.DataArray, path: Path) -> int:
     if str(arr.attrs.get("positive", "")).lower() == "down":
-        log.warning("DEM %s has positive='down' (depths): negating to elevation, positive up", path)
+        notice(log, "DEM %s has positive='down' (depths): negating to elevation, positive up", path)
         return -1
     return 1
 
@@ -1116,7 +1118,8 @@ def _reproject_geographic(
     dy_m = dlat * metres_per_degree
     a = resolution or float(f"{math.sqrt(dx_m * dy_m):.3g}")
     dst = CRS.from_proj4(f"+proj=aeqd +lat_0={lat0:.6f} +lon_0={lon0:.6f} +datum=WGS84 +units=m")
-    log.warning(
+    notice(
+        log,
         "DEM %s is in geographic coordinates: reprojecting to a local azimuthal "
         "equidistant projection centred at (%.4f E, %.4f N) with %.3g m cells",
         path,
@@ -1313,7 +1316,7 @@ def _resample_square(
     """Bilinear resample onto square cells (of ``resolution``, by default of the geometric-mean
     size), keeping the extent."""
     a = resolution or float(f"{math.sqrt(dx * dy):.4g}")
-    log.warning("DEM %s has cells of %g x %g m: resampling to square %g m cells", path, dx, dy, a)
+    notice(log, "DEM %s has cells of %g x %g m: resampling to square %g m cells", path, dx, dy, a)
     x = np.asarray(values["x"].values)
     y = np.asarray(values["y"].values)
     x0, x1 = x.min() - dx / 2, x.max() + dx / 2

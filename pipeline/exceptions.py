@@ -41,3 +41,17 @@ class SchedulerError(PipelineError):
 
 class CatalogBusyError(PipelineError):
     """Another run holds the catalog's lock."""
+
+
+class PipelineWarning(UserWarning):
+    """A step that changed the data as it was read (reprojected, resampled, negated depths, a
+    no-data value read as NaN): logged, and warned so that a notebook shows it too."""
+
+
+def notice(logger, msg: str, *args) -> None:
+    """Log ``msg % args`` as a warning of ``logger`` and warn it as a :class:`PipelineWarning`
+    (the command line shows the log line only)."""
+    import warnings
+
+    logger.warning(msg, *args)
+    warnings.warn(msg % args if args else msg, PipelineWarning, stacklevel=3)

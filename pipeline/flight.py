@@ -170,6 +170,34 @@ class Flight:
     def ok(self) -> bool:
         return not self.problems
 
+    def __repr__(self) -> str:
+        """One line: flyable or the number of problems, flown length and duration,
+        waypoints, the least clearance and altitude; the arrays are in the fields."""
+        state = "ok" if self.ok else f"{len(self.problems)} problems"
+        return (
+            f"Flight({state}, {self.flown_length_m / 1e3:.3f} km in "
+            f"{self.duration_s / 3600:.2f} h, {len(self.waypoints)} waypoints, min clearance "
+            f"{self.min_clearance_m:.1f} m, altitude median {self.altitude_median_m:.0f} m)"
+        )
+
+    def to_dataframe(self):
+        """The flown track as a pandas DataFrame, a row a sample: ``x``, ``y``, ``z``,
+        ``s_m``, ``time_s``, ``seabed_m``, ``required_m``, ``altitude_m``."""
+        import pandas as pd
+
+        return pd.DataFrame(
+            {
+                "x": self.x,
+                "y": self.y,
+                "z": self.z,
+                "s_m": self.s,
+                "time_s": self.time_s,
+                "seabed_m": self.seabed_m,
+                "required_m": self.required_m,
+                "altitude_m": self.altitude_m,
+            }
+        )
+
 
 # the flown track and the waypoint legs are sampled (and checked) every SAMPLE_STEP cells at
 # most, closer where the clearance is small against the cell (CLEARANCE_SLACK)

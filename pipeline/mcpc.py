@@ -894,7 +894,7 @@ def plan(
     bound = _Bound(m, start, goal, extra)
     if not mcpc:
         reach.check()
-        return _certify(_plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+        return _done(m, _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
     try:
         t = _plan_mcpc(
             m,
@@ -919,12 +919,12 @@ def plan(
         # start and goal share a component, so a path exists that the coarse map or the
         # sections missed (a passage narrower than rho cells): plan the whole map
         extra["fallback"] = f"MCPC found no path ({exc}); planned on the whole map instead"
-        return _certify(_plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+        return _done(m, _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
     if certified(t.length_m, t.lower_bound_m, omega):
-        return _certify(t)
+        return _done(m, t)
     cells = m.shape[0] * m.shape[1]
     if cells > repair_max_cells:
-        return _certify(t, repair=f"the map's {cells} cells exceed repair_max_cells")
+        return _done(m, t, repair=f"the map's {cells} cells exceed repair_max_cells")
     # repair: one search over the whole map, whose planner proves its own bound
     tr = time.perf_counter()
     repair = {
@@ -936,7 +936,7 @@ def plan(
     extra = {**t.extra, "repair": repair}
     whole = _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound)
     repair["seconds"] = time.perf_counter() - tr
-    return _certify(whole)
+    return _done(m, whole)
 
 
 class _Reach:
@@ -993,6 +993,14 @@ def certified(length: float, lower: float, omega: float) -> bool:
     """Whether ``length <= omega * lower`` (up to ``CERTIFY_TOLERANCE``): with ``lower`` a
     proven lower bound on the optimum, the proof that ``length <= omega * L*``."""
     return length <= omega * lower * (1.0 + CERTIFY_TOLERANCE)
+
+
+def _done(m, t: Trajectory, repair: str | None = None) -> Trajectory:
+    """:func:`_certify`, and the maps' CRS kept with the trajectory (``extra["crs_wkt"]``:
+    :meth:`Trajectory.to_geodataframe` gives its points in it)."""
+    if m.crs_wkt:
+        t.extra["crs_wkt"] = m.crs_wkt
+    return _certify(t, repair)
 
 
 def _certify(t: Trajectory, repair: str | None = None) -> Trajectory:

@@ -192,3 +192,56 @@ def test_endpoints_in_the_api_as_in_job_files(tmp_path, synchronous):
     mission = jobs.load_job(job).missions[0]
     cells = [m.cell_of(e, mission[f"{e}_form"], mission[f"{e}_input"]) for e in ("start", "goal")]
     assert cells == [s, g]
+
+
+def test_results_a_python_user_expects(tmp_path, synchronous):
+    """Short reprs, the path and the route as a GeoDataFrame in the maps' CRS, the flight as a
+    DataFrame; ``python -m pipeline``; the version from the installed metadata; a LICENSE of
+    the declared kind and the ``py.typed`` marker in the package."""
+    import importlib.metadata
+    from pathlib import Path
+
+    from pipeline.flight import with_flight
+
+    tif = _nodata_tif(tmp_path / "nd.tif")
+    maps = tmp_path / "m.zarr"
+    pipeline.build_maps(pipeline.open_dem(tif), maps, clearance=100.0, landmarks=2)
+    t = pipeline.plan(maps, (5, 5), (70, 30))
+    text = repr(t)
+    assert len(text) < 300 and text.startswith("Trajectory(ok, ra_star") and "km" in text
+    with_flight(maps, t)
+    assert len(repr(t)) < 500 and "Flight(ok" in repr(t)
+    gdf = t.to_geodataframe()
+    assert gdf.crs.to_epsg() == 32610
+    grid = gdf[gdf["kind"] == "grid path"]
+    np.testing.assert_allclose(np.column_stack([grid.geometry.x, grid.geometry.y]), t.points[:, :2])
+    assert (gdf["kind"] == "waypoint").sum() == len(t.flight.waypoints)
+    df = t.flight.to_dataframe()
+    assert len(df) == len(t.flight.z)
+    np.testing.assert_allclose(df["altitude_m"], df["z"] - df["seabed_m"])
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "--version"], capture_output=True, text=True
+    )
+    assert proc.returncode == 0 and importlib.metadata.version("auv-pipeline") in proc.stdout
+    assert pipeline.__version__ == importlib.metadata.version("auv-pipeline")
+    root = Path(pipeline.__file__).parent
+    assert (root / "py.typed").exists()
+    licence = (root.parent / "LICENSE").read_text()
+    assert licence.startswith("BSD 3-Clause License")
+    assert importlib.metadata.metadata("auv-pipeline")["License-Expression"] == "BSD-3-Clause"
+
+
+def test_data_changing_steps_are_warned_to_a_notebook(tmp_path):
+    """Reprojecting a lon/lat grid and reading a DataArray's no-data value raise a
+    ``pipeline.PipelineWarning`` (a notebook shows it; the logger had a NullHandler)."""
+    import rioxarray
+    from test_bad_inputs import _lonlat_nc
+
+    nc = _lonlat_nc(tmp_path / "ll.nc", np.linspace(40, 41, 21), np.linspace(-70, -69, 21))
+    with pytest.warns(pipeline.PipelineWarning, match="reprojecting to a local azimuthal"):
+        pipeline.open_dem(nc)
+    raw = rioxarray.open_rasterio(_nodata_tif(tmp_path / "nd.tif"))
+    from pipeline.dem import as_dem
+
+    with pytest.warns(pipeline.PipelineWarning, match="no-data value -9999 read as NaN"):
+        as_dem(raw)
