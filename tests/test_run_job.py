@@ -108,6 +108,18 @@ def write_job(
     return p
 
 
+def console(job, client, *flags, **kw):
+    """``pipeline run JOB FLAGS`` through the installed console script, on ``client``'s
+    scheduler (a real process, as an operator runs it)."""
+    return subprocess.run(
+        [str(EXE), "run", str(job), *flags, "--scheduler", client.scheduler.address],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        **kw,
+    )
+
+
 @pytest.fixture(scope="session")
 def stores(tmp_path_factory, local_client):
     """The DEM and maps stores of the 300^2 test jobs, built once by a job without missions;
@@ -711,12 +723,7 @@ def test_a_second_run_on_a_busy_catalog_refuses(tmp_path, local_client):
     with catalog_lock(tmp_path / "cat"):
         with pytest.raises(pipeline.PipelineError, match="is in use by another run"):
             run_job(job, scheduler=local_client)
-        proc = subprocess.run(
-            [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+        proc = console(job, local_client)
     assert proc.returncode == 3, proc.stderr
     assert proc.stderr.count("\n") == 1 and "is in use by another run (pid" in proc.stderr
 
@@ -960,12 +967,7 @@ def test_a_finished_mission_keeps_its_exit_code_and_its_files(tmp_path, stores, 
     item = json.loads(east.read_text())
     item["properties"]["auv:status"] = "uncertified"  # as a run that could not certify it
     east.write_text(json.dumps(item))
-    proc = subprocess.run(
-        [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    proc = console(job, local_client)
     assert proc.returncode == 5, proc.stderr
     res = run_job(job, scheduler=local_client)
     assert res.uncertified == ["east"] and not res.failed and res.skipped == 2
@@ -1013,13 +1015,7 @@ def test_a_result_that_cannot_be_written_keeps_the_earlier_one(tmp_path, stores,
     def limit():
         resource.setrlimit(resource.RLIMIT_FSIZE, (4_000, 4_000))
 
-    proc = subprocess.run(
-        [str(EXE), "run", str(job), "--scheduler", local_client.scheduler.address],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        preexec_fn=limit,
-    )
+    proc = console(job, local_client, preexec_fn=limit)
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
     assert "east: its earlier result is kept" in proc.stderr
     assert (root / "missions" / "east" / "east.json").read_text() == before
@@ -1075,12 +1071,7 @@ def test_old_stores_and_missions_are_counted_and_pruned_on_request(
     assert res.ok and old_maps.exists() and (root / "missions" / "south").exists()
     assert "holds 2 stores and mission folders the job no longer uses" in caplog.text
     assert "--prune` removes them" in caplog.text
-    proc = subprocess.run(
-        [str(EXE), "run", str(job), "--prune", "--scheduler", local_client.scheduler.address],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    proc = console(job, local_client, "--prune")
     assert proc.returncode == 0, proc.stderr
     assert "pruned 2 stores and mission folders" in proc.stderr
     assert not old_maps.exists() and not (root / "missions" / "south").exists()
