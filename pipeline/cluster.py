@@ -3,8 +3,9 @@ address, a scheduler file, a ``distributed.Client``, ``"synchronous"``, ``"threa
 client.
 
 - :func:`get_client` serves the planning functions: the current default client if there is
-  one, else a LocalCluster of 2 single-threaded workers started once per process (closed at
-  exit, or by :func:`shutdown`); an address is connected once per process.
+  one, else for ``plan_missions`` a LocalCluster of :func:`local_workers` single-threaded
+  workers started once per process (closed at exit, or by :func:`shutdown`), and for one
+  ``plan()`` this process's threads (no cluster); an address is connected once per process.
 - :func:`session` serves jobs and the command line: a client for the duration of a ``with``
   block, the default client meanwhile, closed (with its LocalCluster) at the end.
 
