@@ -24,6 +24,7 @@ import xarray as xr
 
 from ._io import GRID_MAPPING, atomic_path, grid_mapping, layer_codec, store_in_bands
 from ._jit import njit
+from ._types import Box, Chunks, DEMLike
 from .exceptions import InvalidDEMError, InvalidParameterError, notice
 from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
 
@@ -80,7 +81,7 @@ def cell_size(dem: xr.DataArray) -> float:
     return abs(dx)
 
 
-def as_dem(dem, chunks=DEFAULT_CHUNK) -> xr.DataArray:
+def as_dem(dem: DEMLike, chunks: Chunks = DEFAULT_CHUNK) -> xr.DataArray:
     """``dem`` as the DEM the pipeline's stages take: a path is opened with :func:`open_dem`;
     an xarray DataArray (or a Dataset's elevation variable), such as ``rioxarray.open_rasterio``
     gives, keeps its no-data and its CRS: the no-data value of ``rio.nodata``, ``_FillValue``
@@ -144,14 +145,14 @@ def _nodata_of(dem: xr.DataArray):
 
 def open_dem(
     path: str | os.PathLike,
-    chunks=DEFAULT_CHUNK,
+    chunks: Chunks = DEFAULT_CHUNK,
     *,
     variable: str | None = None,
     cell_size: float | None = None,
     resolution: float | None = None,
     validate: bool = True,
-    bbox=None,
-    bbox_xy=None,
+    bbox: Box | None = None,
+    bbox_xy: Box | None = None,
     uncertainty_k: float | None = None,
     uncertainty: str | None = None,
 ) -> xr.DataArray:
@@ -405,7 +406,11 @@ def _no_valid_cells(path) -> str:
 
 
 def write_dem(
-    dem: xr.DataArray, store: str | os.PathLike, *, chunks=DEFAULT_CHUNK, overwrite: bool = False
+    dem: xr.DataArray,
+    store: str | os.PathLike,
+    *,
+    chunks: Chunks = DEFAULT_CHUNK,
+    overwrite: bool = False,
 ) -> Path:
     """Write ``dem`` as the canonical chunked Zarr (v3) store, atomically.
 
@@ -521,13 +526,13 @@ def import_dem(
     source: str | os.PathLike,
     store: str | os.PathLike,
     *,
-    chunks=DEFAULT_CHUNK,
+    chunks: Chunks = DEFAULT_CHUNK,
     variable: str | None = None,
     cell_size: float | None = None,
     resolution: float | None = None,
     overwrite: bool = False,
-    bbox=None,
-    bbox_xy=None,
+    bbox: Box | None = None,
+    bbox_xy: Box | None = None,
     uncertainty_k: float | None = None,
     uncertainty: str | None = None,
 ) -> Path:

@@ -39,11 +39,16 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._jit import njit
 from ._threads import shared_pool
+from ._types import Maps, VehicleLike
+
+if TYPE_CHECKING:
+    from .planners.core import Trajectory
 from .exceptions import InvalidParameterError
 from .params import VEHICLE
 
@@ -1390,7 +1395,7 @@ class Corridor:
         return self.grid()[0]
 
 
-def fly(maps, traj, vehicle=None) -> Flight:
+def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     """The track a vehicle flies for ``traj`` (a planned :class:`Trajectory`) on the maps store
     ``maps``, and its waypoints: see the module's description. ``vehicle``: a
     :class:`Vehicle`, a dict of its keys, or None (the defaults).

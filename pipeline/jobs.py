@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ._io import TEMPORARY
+from ._types import ClientLike
 from .exceptions import (
     CatalogBusyError,
     InvalidDEMError,
@@ -536,7 +537,7 @@ def _report(job: Job, maps_store: Path) -> Path:
 
 def run_job(
     path: str | os.PathLike,
-    scheduler=None,
+    scheduler: ClientLike = None,
     overwrite: bool = False,
     dry_run: bool = False,
     scheduler_file: str | os.PathLike | None = None,

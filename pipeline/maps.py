@@ -52,6 +52,7 @@ from ._io import (
     target,
 )
 from ._jit import njit
+from ._types import Chunks, DEMLike
 from .cluster import computing_client
 from .components import join_tiles, label_tile, relabel_tile
 from .dem import as_dem, cell_size, require_valid_cells
@@ -85,7 +86,7 @@ def _block_hash(block, r0, c0, ncols):
     return h
 
 
-def dem_hash(dem: xr.DataArray):
+def dem_hash(dem: xr.DataArray) -> str | da.Array:
     """A 64-bit content hash of the DEM's float32 values (NaN-normalised), independent of how
     it is chunked. Returns a hex string, or a dask array of per-chunk partials when lazy."""
     ncols = dem.shape[1]
@@ -114,7 +115,7 @@ def _hex(partials) -> str:
 
 
 def build_maps(
-    dem,
+    dem: DEMLike,
     store: str | os.PathLike,
     *,
     method: str = MAPS.method.default,
@@ -124,7 +125,7 @@ def build_maps(
     surface_clearance: float | None = None,
     min_accumulation: int | None = None,
     landmarks: int = MAPS.landmarks.default,
-    chunks=None,
+    chunks: Chunks = None,
     overwrite: bool = False,
 ) -> xr.Dataset:
     """Build the maps of ``dem`` chunk-wise and write them to the Zarr store ``store``.

@@ -44,6 +44,7 @@ from ._inbox import Inbox, post
 from ._jit import njit
 from ._share import Claims, ThreadClaims, split
 from ._threads import cores, shared_pool
+from ._types import Cell, ClientLike, Maps, Pair
 from .cluster import get_client
 from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
 from .params import CELL_SIZE, PLANNING, check_planner
@@ -769,14 +770,14 @@ def _finish(
 
 
 def plan(
-    maps,
-    start=None,
-    goal=None,
+    maps: Maps,
+    start: Cell | None = None,
+    goal: Cell | None = None,
     *,
-    start_xy=None,
-    goal_xy=None,
-    start_lonlat=None,
-    goal_lonlat=None,
+    start_xy: Pair | None = None,
+    goal_xy: Pair | None = None,
+    start_lonlat: Pair | None = None,
+    goal_lonlat: Pair | None = None,
     planner: str = PLANNING.planner.default,
     omega: float = PLANNING.omega.default,
     mcpc: bool = PLANNING.mcpc.default,
@@ -786,7 +787,7 @@ def plan(
     coarse_planner: str = PLANNING.coarse_planner.default,
     coarse_weight: float = PLANNING.coarse_weight.default,
     repair_max_cells: int = PLANNING.repair_max_cells.default,
-    client=None,
+    client: ClientLike = None,
 ) -> Trajectory:
     """Plan a mission on a maps store, coarse to fine (MCPC) or in one window, and certify it.
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from ._jit import njit
 from ._threads import cores
+from ._types import ClientLike, Maps, VehicleLike
 from .cluster import IN_PROCESS, get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
@@ -116,14 +117,14 @@ def _normalise(m) -> dict:
 
 
 def plan_missions(
-    maps,
+    maps: Maps,
     missions: Sequence,
     *,
-    client=None,
+    client: ClientLike = None,
     defaults: dict | None = None,
     max_concurrent: int = 4,
     on_done: Callable[[int, dict, Trajectory], None] | None = None,
-    vehicle=None,
+    vehicle: VehicleLike = None,
     quicklooks: bool = False,
     missions_per_task: int | None = None,
 ) -> list[Trajectory]:

@@ -20,6 +20,7 @@ import threading
 import uuid
 from collections import OrderedDict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,10 @@ from ._io import (
     store_exists,
     unreachable,
 )
+from ._types import Chunks, Maps
+
+if TYPE_CHECKING:
+    import xarray as xr
 from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
 from .params import LATITUDE, LONGITUDE, PLANNING
 
@@ -1125,7 +1130,7 @@ _STORES: dict = {}
 _STORES_LOCK = threading.Lock()
 
 
-def open_store(maps) -> MapsStore:
+def open_store(maps: Maps) -> MapsStore:
     """The :class:`MapsStore` of a path, of a Dataset from :func:`open_maps`, or ``maps``
     itself; one per store and process while the store is unchanged."""
     if isinstance(maps, MapsStore):
@@ -1158,7 +1163,7 @@ def open_store(maps) -> MapsStore:
     return got[1]
 
 
-def open_maps(store: str | os.PathLike, chunks="store"):
+def open_maps(store: str | os.PathLike, chunks: Chunks = "store") -> xr.Dataset:
     """Open a maps store lazily as an ``xarray.Dataset``; ``chunks="store"`` keeps the blocks
     the store was written in (its shards: a dask chunk per shard, not per inner chunk).
     ``attrs["store"]`` holds its path, so :func:`pipeline.plan` accepts the Dataset too."""

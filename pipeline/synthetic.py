@@ -24,6 +24,7 @@ import numpy as np
 import xarray as xr
 
 from ._jit import njit
+from ._types import Chunks
 from .params import DEFAULT_CHUNK, GENERATOR_VERSION, SYNTHETIC, chunks2d, shape2d
 
 _LATTICE = 9  # seamount lattice cells per map side
@@ -295,10 +296,10 @@ def local_crs(lon0: float, lat0: float, x0: float, y0: float):
 
 
 def synthetic_dem(
-    shape,
+    shape: tuple[int, int] | int,
     cell_size: float = SYNTHETIC.cell_size.default,
     seed: int = SYNTHETIC.seed.default,
-    chunks=DEFAULT_CHUNK,
+    chunks: Chunks = DEFAULT_CHUNK,
     islands: int = SYNTHETIC.islands.default,
     origin_lon: float = SYNTHETIC.origin_lon.default,
     origin_lat: float = SYNTHETIC.origin_lat.default,

@@ -245,3 +245,25 @@ def test_data_changing_steps_are_warned_to_a_notebook(tmp_path):
 
     with pytest.warns(pipeline.PipelineWarning, match="no-data value -9999 read as NaN"):
         as_dem(raw)
+
+
+def test_every_public_function_is_typed():
+    """Each function ``pipeline`` exports annotates its parameters and its result (the
+    package ships ``py.typed``)."""
+    import inspect
+
+    untyped = {}
+    for name in pipeline.__all__:
+        obj = getattr(pipeline, name)
+        if not inspect.isfunction(obj):
+            continue
+        sig = inspect.signature(obj)
+        bare = [
+            p.name
+            for p in sig.parameters.values()
+            if p.annotation is inspect.Parameter.empty
+            and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        ]
+        if bare or sig.return_annotation is inspect.Signature.empty:
+            untyped[name] = bare
+    assert untyped == {}

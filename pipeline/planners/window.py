@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._types import Cell
 from ..exceptions import UnreachableGoalError
 from ..params import CELL_SIZE, PLANNING, check_planner
 from .core import (
@@ -21,18 +22,18 @@ from .registry import PLANNERS
 
 
 def plan_window(
-    surface,
-    ridge,
-    passable,
-    start,
-    goal,
+    surface: np.ndarray,
+    ridge: np.ndarray,
+    passable: np.ndarray,
+    start: Cell,
+    goal: Cell,
     *,
     cell_size: float,
     planner: str = PLANNING.planner.default,
     omega: float = PLANNING.omega.default,
-    x=None,
-    y=None,
-    landmarks=None,
+    x: np.ndarray | None = None,
+    y: np.ndarray | None = None,
+    landmarks: np.ndarray | None = None,
 ) -> Trajectory:
     """Plan on one in-memory window.
 
