@@ -111,7 +111,11 @@ def as_dem(dem: DEMLike, chunks: Chunks = DEFAULT_CHUNK) -> xr.DataArray:
     if isinstance(data, np.ma.MaskedArray):
         dem = dem.copy(data=np.ma.filled(data.astype(np.float32), np.nan))
     nodata = _nodata_of(dem)
-    if nodata is not None and not (isinstance(nodata, float) and math.isnan(nodata)):
+    try:  # NaN (a float of any width) is no-data already
+        real = nodata is not None and not math.isnan(float(nodata))
+    except (TypeError, ValueError):
+        real = nodata is not None
+    if real:
         dem = dem.where(dem != nodata)
         notice(log, "DEM: its no-data value %g read as NaN", nodata)
     if dem.dtype.kind != "f":

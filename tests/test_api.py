@@ -267,3 +267,18 @@ def test_every_public_function_is_typed():
         if bare or sig.return_annotation is inspect.Signature.empty:
             untyped[name] = bare
     assert untyped == {}
+
+
+def test_a_nan_nodata_is_no_notice(tmp_path, synchronous):
+    """A DEM whose no-data is NaN already (this tool's stores, a float GeoTIFF) is taken as it
+    is, with no warning of a changed value."""
+    import warnings
+
+    from pipeline.dem import as_dem
+
+    dem = pipeline.synthetic_dem((40, 40), chunks=None)
+    dem.attrs["_FillValue"] = np.float32("nan")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", pipeline.PipelineWarning)
+        out = as_dem(dem)
+    np.testing.assert_array_equal(out.values, dem.values)
