@@ -192,6 +192,15 @@ def is_url(p) -> bool:
     return isinstance(p, str) and "://" in p and not p.startswith("file://")
 
 
+# a URL of any scheme (file:// and http:// too): DEM files are read from local paths only
+_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
+
+
+def has_scheme(p) -> bool:
+    """Whether ``p`` is written as a URL of any scheme (``s3://``, ``http://``, ``file://``)."""
+    return isinstance(p, str) and _SCHEME.match(p) is not None
+
+
 def location(p) -> str:
     """The canonical name of a store: a URL as given (no trailing ``/``), else the absolute
     path. Workers open stores by this name."""
@@ -412,10 +421,11 @@ def require_writable(url: str) -> None:
 GRID_MAPPING = "spatial_ref"
 
 
-def grid_mapping(crs_wkt: str | None):
-    """The CF grid-mapping variable of the CRS ``crs_wkt`` (as rioxarray writes it: a 0-d
-    variable whose attributes are the CRS's CF parameters, ``crs_wkt`` and GDAL's
-    ``spatial_ref``), or None without a CRS. A layer names it in its ``grid_mapping``."""
+def grid_mapping(crs_wkt: str | None) -> tuple | None:
+    """How a store holds the CRS ``crs_wkt`` (None without one): ``(variable, attrs)``, the CF
+    grid-mapping variable as rioxarray writes it (a 0-d variable whose attributes are the CRS's
+    CF parameters, ``crs_wkt`` and GDAL's ``spatial_ref``; named :data:`GRID_MAPPING`) and the
+    attributes each layer takes: ``grid_mapping`` naming it, and GDAL's Zarr ``_CRS``."""
     if not crs_wkt:
         return None
     import numpy as np
@@ -428,7 +438,8 @@ def grid_mapping(crs_wkt: str | None):
     except Exception:  # noqa: BLE001 - a CRS without a CF form: its WKT only
         attrs = {}
     attrs.update(crs_wkt=crs_wkt, spatial_ref=crs_wkt)
-    return xr.DataArray(np.int32(0), attrs=attrs)
+    layer = {"grid_mapping": GRID_MAPPING, "_CRS": {"wkt": crs_wkt}}
+    return xr.DataArray(np.int32(0), attrs=attrs), layer
 
 
 # the names of the tool's temporaries: a dot, the name, .tmp- and a random hex tag (and the

@@ -13,7 +13,6 @@ import functools
 import logging
 import math
 import os
-import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -22,7 +21,14 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._io import GRID_MAPPING, atomic_path, grid_mapping, layer_codec, store_in_bands
+from ._io import (
+    GRID_MAPPING,
+    atomic_path,
+    grid_mapping,
+    has_scheme,
+    layer_codec,
+    store_in_bands,
+)
 from ._jit import njit
 from ._types import Box, Chunks, DEMLike
 from .exceptions import InvalidDEMError, InvalidParameterError, notice
@@ -126,7 +132,7 @@ def as_dem(dem: DEMLike, chunks: Chunks = DEFAULT_CHUNK) -> xr.DataArray:
     dem.encoding = {}
     if crs is not None and "crs_wkt" not in attrs:
         dem.attrs["crs_wkt"] = crs.to_wkt()
-    dem = dem.drop_vars([c for c in ("spatial_ref", "crs") if c in dem.coords])
+    dem = dem.drop_vars([c for c in (GRID_MAPPING, "crs") if c in dem.coords])
     return dem
 
 
@@ -211,7 +217,7 @@ def open_dem(
             f"not a {type(path).__module__}.{type(path).__qualname__}; wrap an array as "
             "xr.DataArray(z, dims=('y', 'x'), coords={'y': ..., 'x': ...})"
         )
-    if isinstance(path, str) and re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", path):
+    if has_scheme(path):
         raise InvalidDEMError(
             f"DEM {path} is a URL: DEMs are read from local files (GeoTIFF, NetCDF, Zarr, BAG, "
             "ASCII grid); download it first (maps stores may live on object storage)"
@@ -313,19 +319,16 @@ def _nonnegative_sigma(block: np.ndarray, path: str, name: str) -> np.ndarray:
     return block
 
 
-def _holds_a_valid_cell(array: Path) -> bool:
+def _holds_a_valid_cell(array: Path, stored: set) -> bool:
     """Whether the Zarr array just written holds a valid (non-NaN) cell: written without its
-    empty chunks and with NaN as its fill value, it does exactly when a chunk was stored (no
-    pass over the data); otherwise it is read back."""
+    empty chunks and with NaN as its fill value, it does exactly when a chunk was stored
+    (``stored``, :func:`_stored_chunks`: no pass over the data); otherwise it is read back."""
     import zarr
 
     fill = zarr.open_array(array, mode="r").metadata.fill_value
     if fill is None or not np.isnan(fill):
         return bool(np.isfinite(da.from_zarr(str(array))).any().compute())
-    for _root, _dirs, files in os.walk(array / "c"):
-        if files:
-            return True
-    return False
+    return bool(stored)
 
 
 # the root attribute of a DEM store listing the chunks not stored because all their cells
@@ -345,11 +348,6 @@ def _stored_chunks(array: Path) -> set:
             if len(parts) == 2 and all(p.isdigit() for p in parts):
                 out.add((int(parts[0]), int(parts[1])))
     return out
-
-
-def _unstored_chunks(array: Path, grid: tuple) -> list:
-    stored = _stored_chunks(array)
-    return [[i, j] for i in range(grid[0]) for j in range(grid[1]) if (i, j) not in stored]
 
 
 def _guarded(path: Path, elev: xr.DataArray, unstored) -> xr.DataArray:
@@ -445,8 +443,8 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
     out.encoding = {}
     mapping = grid_mapping(out.attrs.get("crs_wkt"))
     if mapping is not None:  # the CRS the CF way too (rioxarray, GDAL), and GDAL's Zarr way
-        out.attrs.update(grid_mapping=GRID_MAPPING, _CRS={"wkt": out.attrs["crs_wkt"]})
-        out = out.assign_coords({GRID_MAPPING: mapping})
+        out.attrs.update(mapping[1])
+        out = out.assign_coords({GRID_MAPPING: mapping[0]})
     ds = out.to_dataset(name="elevation")
     ds.attrs = {"title": "pipeline DEM store", CANONICAL_ATTR: CANONICAL_VERSION}
     encoding = {"elevation": {"chunks": ch, "compressors": layer_codec()}}
@@ -468,11 +466,14 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
                 str(tmp / "elevation"), mode="r+", config={"write_empty_chunks": False}
             )
             store_in_bands(data, grid, progress=_band_log(store))
-        if empty is not None and not _holds_a_valid_cell(tmp / "elevation"):
+        stored = _stored_chunks(tmp / "elevation")
+        if empty is not None and not _holds_a_valid_cell(tmp / "elevation", stored):
             raise InvalidDEMError(empty)
         # the chunks left unstored (all no-data): any other found missing later is damage
+        rows, cols = grid.cdata_shape
+        unstored = [[i, j] for i in range(rows) for j in range(cols) if (i, j) not in stored]
         group = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
-        group.attrs[EMPTY_CHUNKS_ATTR] = _unstored_chunks(tmp / "elevation", grid.cdata_shape)
+        group.attrs[EMPTY_CHUNKS_ATTR] = unstored
     log.info(
         "wrote DEM store %s (%d x %d cells of %.6g m, chunks %s)",
         store,

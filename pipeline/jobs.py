@@ -39,7 +39,6 @@ import json
 import logging
 import math
 import os
-import re
 import shutil
 import socket
 import time
@@ -49,7 +48,7 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ._io import TEMPORARY
+from ._io import TEMPORARY, has_scheme
 from ._types import ClientLike
 from .exceptions import (
     CatalogBusyError,
@@ -74,6 +73,8 @@ from .params import (
     Schema,
     check_clearance,
     check_region,
+    endpoint_forms,
+    endpoint_key,
     shape2d,
 )
 
@@ -259,7 +260,7 @@ def load_job(path: str | os.PathLike) -> Job:
     job.chunks = given.get("chunks", DEFAULT_CHUNK)
     if "path" in dem:
         given_path = _typed(path, dem, "path", str, "dem.", "a file path")
-        if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*://", given_path):
+        if has_scheme(given_path):
             _fail(
                 path,
                 f"dem.path {given_path!r} is a URL: DEMs are read from local files (GeoTIFF, "
@@ -457,7 +458,7 @@ def _load_missions(path, doc, job):
         folders[key] = name
         mission = {"name": name}
         for end in ("start", "goal"):
-            forms = [k for k in (end, f"{end}_xy", f"{end}_lonlat") if k in m]
+            forms = [endpoint_key(end, f) for f in endpoint_forms(m, end)]
             if len(forms) != 1:
                 _fail(
                     path,
@@ -477,7 +478,7 @@ def _load_missions(path, doc, job):
             ):
                 what = "[row, col] of integers" if integer else "a pair of numbers"
                 _fail(path, f"{where}{key} must be {what}, got {v!r}")
-            form = key[len(end) :].lstrip("_") or "cell"
+            form = endpoint_forms(m, end)[0]
             if form != "cell":
                 try:
                     for x, param in zip(

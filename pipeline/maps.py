@@ -496,11 +496,11 @@ def _create(layers: dict, dem: xr.DataArray, path, ch, *, mode: str = "w") -> tu
     ds = xr.Dataset(coords=dem.coords)
     mapping = grid_mapping(dem.attrs.get("crs_wkt"))
     if mapping is not None and mode == "w":
-        ds = ds.assign_coords({GRID_MAPPING: mapping})
+        ds = ds.assign_coords({GRID_MAPPING: mapping[0]})
     for k, v in layers.items():
         dtype, attrs = (v.dtype, v.attrs) if isinstance(v, xr.DataArray) else v
         if mapping is not None:  # the CF way (rioxarray, GDAL's netCDF) and GDAL's Zarr way
-            attrs = {**attrs, "grid_mapping": GRID_MAPPING, "_CRS": {"wkt": dem.attrs["crs_wkt"]}}
+            attrs = {**attrs, **mapping[1]}
         ds[k] = (("y", "x"), da.empty(dem.shape, chunks=ch, dtype=dtype), attrs)
     ds.to_zarr(  # the metadata and the coordinates now; the blocks by the passes' tasks
         path,

@@ -31,7 +31,7 @@ from .cluster import IN_PROCESS, get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
 from .mcpc import coarse_rho, plan
-from .params import MISSIONS_PER_TASK, PLANNING
+from .params import ENDPOINT_FORMS, MISSIONS_PER_TASK, PLANNING, endpoint_forms, endpoint_key
 from .planners.core import Trajectory
 from .store import open_store
 
@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 _PLAN_KEYS = PLANNING.names()
 # the keys a mission's dict is read for; any other is kept for the caller (a name, a tag),
 # unless it is a near miss of one of these (``omgea``), which would be planned as if absent
-_ENDPOINT_KEYS = {f"{end}{form}" for end in ("start", "goal") for form in ("", "_xy", "_lonlat")}
+_ENDPOINT_KEYS = {endpoint_key(end, f) for end in ("start", "goal") for f in ENDPOINT_FORMS}
 _MISSION_KEYS = sorted(_PLAN_KEYS | _ENDPOINT_KEYS | {"vehicle", "name"})
 
 
@@ -67,17 +67,13 @@ def endpoint_form(mission: dict, end: str) -> tuple[str, object]:
     """``(form, value)`` of a mission's ``end`` (``"start"`` or ``"goal"``) as a job file
     gives it: ``end`` a cell ``(row, col)``, ``end_xy`` map coordinates or ``end_lonlat``
     (longitude, latitude); exactly one of them, else one :class:`InvalidParameterError`."""
-    forms = [
-        (f, mission[k])
-        for f, k in (("cell", end), ("xy", f"{end}_xy"), ("lonlat", f"{end}_lonlat"))
-        if k in mission
-    ]
+    forms = endpoint_forms(mission, end)
     if len(forms) != 1:
         raise InvalidParameterError(
             f"a mission needs exactly one of {end} (a cell), {end}_xy or {end}_lonlat, got "
             f"{mission!r}"
         )
-    return forms[0]
+    return forms[0], mission[endpoint_key(end, forms[0])]
 
 
 def endpoint_cells(m, mission: dict) -> dict:

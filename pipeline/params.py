@@ -409,6 +409,21 @@ def check_planner(planner, omega, name: str = "planner") -> tuple[str, float]:
     return planner, PLANNING.omega.check(omega)
 
 
+# the forms a mission's end takes, in job files and in the API: a cell (``start``), map
+# coordinates (``start_xy``) or longitude and latitude (``start_lonlat``)
+ENDPOINT_FORMS = ("cell", "xy", "lonlat")
+
+
+def endpoint_key(end: str, form: str) -> str:
+    """The key of ``end`` (``"start"``, ``"goal"``) in ``form`` (:data:`ENDPOINT_FORMS`)."""
+    return end if form == "cell" else f"{end}_{form}"
+
+
+def endpoint_forms(mission: dict, end: str) -> list[str]:
+    """The forms in which ``mission`` gives its ``end`` (one, when it is well made)."""
+    return [f for f in ENDPOINT_FORMS if endpoint_key(end, f) in mission]
+
+
 def check_region(bbox, bbox_xy, where: str = "") -> tuple | None:
     """``("lonlat" | "xy", box)`` from a DEM's ``bbox`` (WGS84 degrees) or ``bbox_xy`` (the
     file's own coordinates), checked, or None (no region). ``where`` prefixes the names in the
