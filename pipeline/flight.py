@@ -1686,16 +1686,16 @@ def _arcs_of(leg: np.ndarray) -> list:
     return [(b, e, int(leg[b - 1]) + 1) for b, e in zip(first.tolist(), end.tolist(), strict=True)]
 
 
-def _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a) -> np.ndarray:
+def _track_sigma(wr, wc, pr, pc, leg, arcs, tan_d, sig_corner, a) -> np.ndarray:
     """Where each sample of the flown track (the corners' arcs) lies along the waypoint route
     (metres from the start, along the straight legs): a straight sample at its own place; the
-    samples of the arc at corner ``k`` spread evenly over ``[sigma_k - t, sigma_k + t]``
-    (``t`` the arc's tangent length), in turn."""
+    samples of the arc at corner ``k`` (``arcs``, :func:`_arcs_of`) spread evenly over
+    ``[sigma_k - t, sigma_k + t]`` (``t`` the arc's tangent length), in turn."""
     out = np.empty(len(pr))
     straight = leg >= 0
     k = leg[straight]
     out[straight] = sig_corner[k] + a * np.hypot(pr[straight] - wr[k], pc[straight] - wc[k])
-    for b, e, corner in _arcs_of(leg):
+    for b, e, corner in arcs:
         t = tan_d[corner] * a
         out[b:e] = sig_corner[corner] - t + 2.0 * t * np.arange(e - b) / (e - b)
     return out
@@ -1748,19 +1748,21 @@ def vertical_profile(
     the pitch holds on the legs and on the arcs (the route's slope limited over a turn by the
     ratio of the arc's chords to the route they stand for); the profile is a few straight
     pieces inside a band above the lowest such profile (:func:`band_profile`), the narrowest of
-    ``bands`` that needs at most ``want`` waypoints, with no break of the profile ending a
-    leg shorter than ``min_leg`` where the line past it keeps the limits
-    (:func:`resolve_short_legs`)."""
+    ``bands`` that needs at most ``want`` waypoints. Its breaks stay ``min_leg`` from turns,
+    from each other and from the ends where the limits allow: the slope lowered over a turn
+    reaches ``min_leg`` either side of it (:func:`turn_slopes`), and a break still ending a
+    shorter leg is removed or moved (:func:`resolve_short_legs`)."""
     sig = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(qr), np.diff(qc)))))
     sig_corner = sig[vi]
-    sig_t = _track_sigma(wr, wc, pr, pc, leg, tan_d, sig_corner, a)
+    arcs = _arcs_of(leg)
+    sig_t = _track_sigma(wr, wc, pr, pc, leg, arcs, tan_d, sig_corner, a)
     h = np.where(np.isnan(hq), -np.inf, hq)
     ht = np.where(np.isnan(h_track), -np.inf, h_track)
     j = np.clip(np.searchsorted(sig, sig_t, side="right") - 1, 0, len(sig) - 2)
     np.maximum.at(h, j, ht)
     np.maximum.at(h, j + 1, ht)
     arc_n = np.zeros(len(wr), dtype=np.int64)
-    for b, e, corner in _arcs_of(leg):
+    for b, e, corner in arcs:
         arc_n[corner] = e - b
     k = np.flatnonzero(np.isfinite(radii) & (tan_d > 0))  # the turns
     theta = 2.0 * np.arctan(tan_d[k] / radii[k])
