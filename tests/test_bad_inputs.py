@@ -916,3 +916,18 @@ def test_lonlat_grids_at_the_antimeridian_and_the_pole(tmp_path):
         tmp_path / "g.nc", np.linspace(-89.5, 89.5, 180), np.linspace(-179.5, 179.5, 360)
     )
     one_line_error(invoke("dem", "info", glob), 2, "give a bbox around the region to plan on")
+
+
+def test_a_dem_store_read_through_its_guard_equals_its_source_for_awkward_chunks(tmp_path):
+    """The guarded read of a DEM store (a block a chunk, each decoded with its damage named)
+    gives the grid as written, with a last chunk row and column of one cell and one chunk of
+    no-data left unstored."""
+    z = random_surface((49, 33)).astype(np.float32) - 3000.0
+    z[:16, 16:32] = np.nan
+    src = _nc(tmp_path / "in.nc", metric_dataarray(z).rename("elevation"))
+    dem = tmp_path / "dem.zarr"
+    assert invoke("dem", "import", src, dem, "--chunks", "16").exit_code == 0
+    assert not (dem / "elevation" / "c" / "0" / "1").exists()
+    got = pipeline.open_dem(dem, chunks=16)
+    assert got.data.chunks == ((16, 16, 16, 1), (16, 16, 1))
+    np.testing.assert_array_equal(got.values, pipeline.open_dem(src, chunks=None).values)
