@@ -263,10 +263,10 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
         check_build_arguments(dem, out, chunks=chunks, overwrite=overwrite, **params)
         if is_url(out):
             require_writable(out)
-        with (
-            session(scheduler, scheduler_file, workers=workers) as client,
-            _progress(f"building {params['method']} maps of {dem_path} into {out}"),
-        ):
+        with session(scheduler, scheduler_file, workers=workers) as client:
+            # the passes tell their progress in the log (dask's own bar sees only its local
+            # schedulers); the dashboard shows each task
+            click.echo(f"building {params['method']} maps of {dem_path} into {out}", err=True)
             click.echo(f"dask dashboard: {client.dashboard_link}", err=True)
             maps = build_maps(dem, out, chunks=chunks, overwrite=overwrite, **params)
         share = float(maps["passable"].mean().compute())

@@ -163,6 +163,55 @@ def computing_client():
     return owner if hasattr(owner, "scheduler_info") else None
 
 
+# the least time between two progress lines of a computation (:func:`compute_told`)
+TELL_S = 2.0
+
+
+def compute_told(tasks, tell=None, what: str = "tasks") -> tuple:
+    """``dask.compute(*tasks)`` (delayed objects) with, from 10 tasks up, ``tell(msg, *args)``
+    called as a tenth of them is finished ("3 of 30 tasks") if :data:`TELL_S` seconds have gone
+    since the last call (or the start): on a distributed client as its futures finish, on dask's
+    local schedulers as its tasks do. A task's error is raised as soon as it is known, as
+    ``dask.compute`` raises it."""
+    import time
+
+    import dask
+
+    tasks = list(tasks)
+    n = len(tasks)
+    if tell is None or n < 10:
+        return dask.compute(*tasks)
+    last = [time.monotonic()]
+
+    def told(done: int) -> None:
+        now = time.monotonic()
+        if done * 10 // n > (done - 1) * 10 // n and now - last[0] >= TELL_S:
+            tell("%d of %d %s", done, n, what)
+            last[0] = now
+
+    client = computing_client()
+    if client is None:
+        from dask.callbacks import Callback
+
+        keys, done = {t.key for t in tasks}, [0]
+
+        def finished(key, result, dsk, state, worker_id) -> None:
+            if key in keys:
+                done[0] += 1
+                told(done[0])
+
+        with Callback(posttask=finished):
+            return dask.compute(*tasks)
+    from distributed import as_completed
+
+    futures = client.compute(tasks)
+    for done, future in enumerate(as_completed(futures, loop=client.loop), 1):
+        if future.status == "error":
+            future.result()  # raises the task's error
+        told(done)
+    return tuple(client.gather(futures))
+
+
 def connect(address: str, *, timeout: float | None = None, set_as_default: bool = False):
     """A client of the scheduler at ``address``, or one :class:`SchedulerError` after
     ``timeout`` seconds (default ``AUV_PIPELINE_CONNECT_TIMEOUT_S``, else 30)."""

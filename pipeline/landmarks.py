@@ -70,6 +70,7 @@ from ._grid8 import DC, DR, flat_offsets, inside
 from ._heap import grown
 from ._io import inner_chunks, layer_codec, storage_chunks
 from ._jit import njit
+from .cluster import compute_told
 from .planners.core import LANDMARK_MARGIN, edge_length
 from .planners.sweep import (
     FIXED_CAP,
@@ -756,7 +757,11 @@ def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tup
         return []  # no passable cell
     big = large_components(None, counts)
     task = dask.delayed(_region_sums, pure=False)
-    parts = dask.compute(*[task(store, r, f, big) for r in regions])
+    parts = compute_told(
+        [task(store, r, f, big) for r in regions],
+        None if log is None else (lambda m, *a: log("placing: " + m, *a)),
+        "regions summed",
+    )
     mean, ok = coarse_mean(*assembled(shape, f, parts), f)
     cells: list[tuple[int, int]] = []
     for cr, cc in place_coarse(mean, ok, a * f, k):

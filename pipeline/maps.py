@@ -53,7 +53,7 @@ from ._io import (
 )
 from ._jit import njit
 from ._types import Chunks, DEMLike
-from .cluster import computing_client
+from .cluster import compute_told, computing_client
 from .components import join_tiles, label_tile, relabel_tile
 from .dem import as_dem, cell_size, require_valid_cells
 from .exceptions import InvalidParameterError
@@ -193,17 +193,17 @@ def build_maps(
     elev = dem.copy()
     elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
     t0 = time.perf_counter()
+
+    def say(msg, *args) -> None:
+        log.info(f"maps {store}: " + msg, *args)
+
     with target(store, kind="maps", overwrite=overwrite) as tmp:
         # beside the store, on the same storage: every worker reads and writes them
         scratch, labels = tmp + "-scratch", tmp + "-components"
         try:
             # passes 1-2: tiles flooded once (each keeping its DEM tile in the scratch), the
             # fill and flow summaries solved globally
-            st = flood_and_solve(
-                dem.data,
-                scratch,
-                log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a),
-            )
+            st = flood_and_solve(dem.data, scratch, log=say)
             # pass 3: every layer of every tile written and its components labelled, one task
             # a tile that reads its haloed DEM from the scratch tiles
             kernel, depth = block_kernel(
@@ -242,7 +242,9 @@ def build_maps(
                 tmp,
                 ch,
             )
-            parts = tiles.run(_layers_tile, st.solution, writers)
+            parts = tiles.run(
+                _layers_tile, st.solution, writers, lambda m, *a: say("layers: " + m, *a)
+            )
             partials = [p[0] for p in parts]
             log.info(
                 "maps %s: layers written (elevation, safety, passable, accumulation, ridge)",
@@ -265,7 +267,9 @@ def build_maps(
                 ch,
                 mode="a",
             )
-            sizes = tiles.run(_component_tile, joined, writers)
+            sizes = tiles.run(
+                _component_tile, joined, writers, lambda m, *a: say("components: " + m, *a)
+            )
             log.info("maps %s: components labelled", store)
             # the scratch tiles (about 13 bytes a cell) go before the landmark searches,
             # which read the store's layers back through the page cache
@@ -277,7 +281,7 @@ def build_maps(
                 tmp,
                 landmarks,
                 a,
-                log=lambda msg, *a: log.info(f"maps {store}: " + msg, *a),
+                log=say,
                 counts=component_sizes(sizes),
             )
             landmarks_s = time.perf_counter() - tl
@@ -426,17 +430,20 @@ class _Tiles:
             int(self.c_off[bj + 1]),
         )
 
-    def run(self, task, shared, writers) -> list:
+    def run(self, task, shared, writers, tell=None, what: str = "tiles") -> list:
         """``task(self, bi, bj, shared, writers)`` for every tile, one dask task each (no task
         depends on another: each reads its tiles from the scratch), in the tile grid's order;
-        ``shared`` is a dask key (persisted on a cluster)."""
+        ``shared`` is a dask key (persisted on a cluster). ``tell`` hears of the progress
+        (:func:`pipeline.cluster.compute_told`)."""
         return list(
-            dask.compute(
-                *[
+            compute_told(
+                [
                     dask.delayed(task, pure=False)(self, bi, bj, shared, writers)
                     for bi in range(len(self.r_off) - 1)
                     for bj in range(self.nbc)
-                ]
+                ],
+                tell,
+                what,
             )
         )
 

@@ -52,6 +52,7 @@ from ._heap import grown
 from ._io import load_tile, load_window, save_tile, tile_array
 from ._jit import njit
 from ._threads import shared_pool
+from .cluster import compute_told
 from .dem import cell_size as _cell_size
 from .dem import check_dem, require_valid_cells
 from .params import MAPS
@@ -1194,6 +1195,11 @@ def _offsets(chunks) -> tuple:
     return tuple(np.concatenate([[0], np.cumsum(c)]).astype(np.int64) for c in chunks)
 
 
+def _prefixed(log, prefix: str):
+    """``log`` with ``prefix`` before each message, or None without a log."""
+    return None if log is None else (lambda msg, *a: log(prefix + msg, *a))
+
+
 def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
     """Passes 1 and 2 of the staged build of the DEM ``z`` (see the section comment): every
     tile flooded once, the fill's spill edges solved, every tile's D8 codes and flow summary,
@@ -1220,12 +1226,14 @@ def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
         dtype=np.int8,
         meta=np.empty((0, 0), np.int8),
     ).compute()
-    edges = dask.compute(
-        *[
+    edges = compute_told(
+        [
             dask.delayed(_scratch_flood, pure=False)(scratch, (bi, bj), r_off, c_off)
             for bi in range(nbr)
             for bj in range(nbc)
-        ]
+        ],
+        _prefixed(log, "fill: "),
+        "tiles flooded",
     )
     solves.result()
     ids, spill = _solve_fill(*edges)
@@ -1239,12 +1247,14 @@ def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
     (geometry,) = dask.persist(
         dask.delayed((tables, bases, r_off, c_off, nbr, nbc, ncols), pure=True)
     )
-    flow = dask.compute(
-        *[
+    flow = compute_told(
+        [
             dask.delayed(_scratch_flow_summary, pure=False)(bi, bj, geometry, scratch)
             for bi in range(nbr)
             for bj in range(nbc)
-        ]
+        ],
+        _prefixed(log, "flow: "),
+        "tiles summarised",
     )
     (solution,) = dask.persist(dask.delayed(_solve_flow(*flow), pure=True))
     if log:

@@ -282,3 +282,65 @@ def test_a_nan_nodata_is_no_notice(tmp_path, synchronous):
         warnings.simplefilter("error", pipeline.PipelineWarning)
         out = as_dem(dem)
     np.testing.assert_array_equal(out.values, dem.values)
+
+
+@pytest.mark.parametrize("on", ["threads", "cluster"])
+def test_a_maps_build_tells_its_progress(tmp_path, monkeypatch, caplog, local_client, on):
+    """Each pass of a build over many tiles says, in the log, how many of its tiles are done
+    (each tenth, at most every ``TELL_S`` seconds: here every tenth), on dask's threads and on
+    a distributed cluster alike (dask's own progress bar sees only the first); the layers are
+    those of a build that tells nothing."""
+    import logging
+    import re
+
+    import dask
+
+    from pipeline import cluster
+
+    dem = pipeline.synthetic_dem((96, 80), cell_size=50.0, chunks=16, islands=0)
+    scheduler = local_client.get if on == "cluster" else "threads"
+    with dask.config.set(scheduler=scheduler), caplog.at_level(logging.INFO, "pipeline"):
+        quiet = pipeline.build_maps(dem, tmp_path / "quiet.zarr", clearance=150.0, landmarks=1)
+        monkeypatch.setattr(cluster, "TELL_S", 0.0)
+        caplog.clear()
+        told = pipeline.build_maps(dem, tmp_path / "told.zarr", clearance=150.0, landmarks=1)
+    lines = [r.getMessage() for r in caplog.records]
+    for what in ("fill: ", "flow: ", "layers: ", "components: ", "placing: "):
+        counts = [
+            (int(m[1]), int(m[2]))
+            for line in lines
+            if (m := re.search(re.escape(what) + r"(\d+) of (\d+) ", line))
+        ]
+        assert len(counts) == 10, (what, lines)  # 30 tiles (6 x 5): one line a tenth
+        assert [d for d, _ in counts] == [3 * k for k in range(1, 11)] and {
+            n for _, n in counts
+        } == {30}
+    for name in ("elevation", "safety", "passable", "ridge", "component", "landmark_distance"):
+        np.testing.assert_array_equal(told[name].values, quiet[name].values)
+
+
+def test_a_failed_task_is_raised_before_the_others_finish(local_client, tmp_path):
+    """A task's error reaches the caller of a told computation as soon as it is known, as
+    dask.compute raises it: not after the other tasks (12 s of them on two workers). The first
+    task to start fails (whichever the scheduler starts first)."""
+    import os
+    import time
+
+    import dask
+
+    from pipeline.cluster import compute_told
+
+    def task(i, first):
+        try:
+            os.close(os.open(first, os.O_CREAT | os.O_EXCL))
+        except FileExistsError:
+            time.sleep(1.0)
+            return i
+        raise ValueError(f"tile {i} is damaged")
+
+    first = str(tmp_path / "first")
+    tasks = [dask.delayed(task, pure=False)(i, first) for i in range(24)]
+    t0 = time.perf_counter()
+    with dask.config.set(scheduler=local_client.get), pytest.raises(ValueError, match="damaged"):
+        compute_told(tasks, lambda *a: None)
+    assert time.perf_counter() - t0 < 4.0

@@ -189,7 +189,7 @@ def test_cli_build_maps(tmp_path, local_client):
         ],
     )
     assert res.exit_code == 0, res.output
-    assert "passable" in res.output
+    assert "passable" in res.output and "dask dashboard: http" in res.output
     maps = pipeline.open_maps(tmp_path / "maps.zarr")
     assert maps.attrs["parameters"]["method"] == "horizontal"
     assert maps.attrs["parameters"]["landmarks"] == 3 == maps["landmark_distance"].shape[0]
