@@ -39,6 +39,7 @@ _LAZY = {
     "write_dem": "dem",
     "Flight": "flight",
     "Vehicle": "flight",
+    "write_mission": "exports",
     "fly": "flight",
     "run_job": "jobs",
     "build_maps": "maps",
@@ -128,6 +129,7 @@ __all__ = [
     "safety_map",
     "synthetic_dem",
     "write_dem",
+    "write_mission",
 ]
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

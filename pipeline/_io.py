@@ -446,17 +446,23 @@ def grid_mapping(crs_wkt: str | None) -> tuple | None:
 # suffix a writer needs, or a maps build's scratch stores beside its store)
 TEMPORARY = re.compile(r"^\..+\.tmp-[0-9a-f]{8,12}(\.png|\.html|-scratch|-components)?$")
 
-# the attribute by which a store of each kind says, in its root zarr.json, that this tool
-# wrote it: only such a store is ever replaced
-STORE_MARKS = {"DEM": "pipeline_dem_version", "maps": "maps_version"}
+# the attribute by which a store of each kind says, in its root zarr.json (a mission folder:
+# in its mission.json), that this tool wrote it: only such a store or folder is ever replaced
+STORE_MARKS = {
+    "DEM": "pipeline_dem_version",
+    "maps": "maps_version",
+    "mission": "pipeline_mission_version",
+}
+MARK_FILES = {"DEM": "zarr.json", "maps": "zarr.json", "mission": "mission.json"}
 
 
 def own_store(p, kind: str) -> bool:
-    """Whether ``p`` (a path or a URL) holds a ``kind`` store (``"DEM"`` or ``"maps"``) that
-    this tool wrote: its root ``zarr.json`` names the kind's mark (:data:`STORE_MARKS`)."""
+    """Whether ``p`` (a path or a URL) holds a ``kind`` store (``"DEM"`` or ``"maps"``), or a
+    mission folder (``"mission"``), that this tool wrote: the ``attributes`` of its root
+    ``zarr.json`` (``mission.json``) name the kind's mark (:data:`STORE_MARKS`)."""
     import json
 
-    meta = join(p, "zarr.json")
+    meta = join(p, MARK_FILES[kind])
     try:
         if is_url(p):
             fs, path = filesystem(meta)
@@ -483,7 +489,8 @@ def check_replaceable(path, kind: str, overwrite: bool) -> None:
         )
     if not own_store(path, kind):
         raise StoreExistsError(
-            f"{path} exists and is not a {kind} store this tool wrote, so --overwrite does not "
+            f"{path} exists and is not a {kind} {'folder' if kind == 'mission' else 'store'} "
+            "this tool wrote, so --overwrite does not "
             "replace it; give another output path, or move it away yourself"
         )
 

@@ -18,11 +18,17 @@ import re
 import struct
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 from xml.sax.saxutils import escape
 
 import numpy as np
 
 from ._jit import njit
+from ._types import Maps, PathLike
+
+if TYPE_CHECKING:
+    from .flight import Flight
+    from .planners.core import Trajectory
 
 PARQUET = "application/vnd.apache.parquet"
 # the files that need latitudes and longitudes: not written for a DEM without a CRS
@@ -544,3 +550,94 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
         (folder / file).write_bytes(content)
         out[key] = (file, *meta)
     return out
+
+
+# the version of a mission folder's layout (write_mission's mission.json)
+MISSION_FOLDER_VERSION = 1
+
+
+def write_mission(
+    maps: Maps,
+    traj: Trajectory,
+    flight: Flight,
+    folder: PathLike,
+    *,
+    name: str | None = None,
+    overwrite: bool = False,
+) -> dict[str, Path]:
+    """Write a mission's files for people and vehicles into the new folder ``folder``, as a
+    job writes them into its catalog: the flown track and the grid path (GeoParquet), the
+    waypoints (CSV, GeoJSON), a QGroundControl / ArduSub mission, a KML file and an IMC plan
+    (docs/file-formats.md), and ``mission.json`` (the trajectory's and the flight's figures).
+
+    Parameters
+    ----------
+    maps : path, xarray.Dataset or MapsStore
+        The maps store ``traj`` was planned on (its CRS and sea level).
+    traj : Trajectory
+        A planned trajectory (:func:`pipeline.plan`).
+    flight : Flight
+        Its flight (:func:`pipeline.fly`).
+    folder : path
+        Written atomically (complete, or not at all); an existing folder is replaced only with
+        ``overwrite`` and only when this function wrote it.
+    name : str, optional
+        The mission's name in the files (default: the folder's name).
+
+    Returns
+    -------
+    dict
+        ``{file kind: path}`` of the files written (without a CRS, the files in longitude
+        and latitude are not written).
+
+    Examples
+    --------
+    >>> f = pipeline.fly("maps.zarr", t, {"speed_m_s": 1.5})          # doctest: +SKIP
+    >>> pipeline.write_mission("maps.zarr", t, f, "out/m1")["qgc"]   # doctest: +SKIP
+    PosixPath('out/m1/mission.waypoints')
+    """
+    import dataclasses
+    import json
+
+    from ._io import STORE_MARKS, atomic_path, has_scheme
+    from .exceptions import InvalidParameterError
+    from .store import open_store
+
+    if has_scheme(str(folder)):
+        raise InvalidParameterError(f"{folder}: mission files are written to a local folder")
+    if not traj.planned or flight is None:
+        raise InvalidParameterError(
+            "write_mission needs a planned trajectory and its flight: "
+            "f = pipeline.fly(maps, t) after t = pipeline.plan(...)"
+        )
+    m = open_store(maps)
+    folder = Path(folder)
+    name = folder.name if name is None else str(name)
+    sea = float(m.parameters.get("sea_level_m", 0.0))
+    flown = dataclasses.replace(traj, flight=flight)
+    with atomic_path(folder, kind="mission", overwrite=overwrite) as tmp:
+        tmp.mkdir()
+        files = write_mission_files(tmp, name, name, flown, m.crs_wkt, sea)
+        skipped = files.pop("skipped", None)
+        figures = {
+            "name": name,
+            "status": traj.status,
+            "length_m": traj.length_m,
+            "lower_bound_m": traj.lower_bound_m,
+            "omega": traj.omega,
+            "certified_ratio": traj.certified_ratio,
+            "ridge_ratio": traj.ridge_ratio,
+            "flown_length_m": flight.flown_length_m,
+            "duration_s": flight.duration_s,
+            "waypoints": len(flight.waypoints),
+            "vehicle": flight.vehicle.to_dict(),
+            "files": sorted(f for f, *_ in files.values()),
+            "skipped": skipped,
+        }
+        figures = {
+            k: None if isinstance(v, float) and not math.isfinite(v) else v
+            for k, v in figures.items()
+        }
+        meta = {"attributes": {STORE_MARKS["mission"]: MISSION_FOLDER_VERSION}, **figures}
+        (tmp / "mission.json").write_text(json.dumps(meta, indent=1, allow_nan=False))
+    return {key: folder / f for key, (f, *_) in files.items()}

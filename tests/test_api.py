@@ -344,3 +344,44 @@ def test_a_failed_task_is_raised_before_the_others_finish(local_client, tmp_path
     with dask.config.set(scheduler=local_client.get), pytest.raises(ValueError, match="damaged"):
         compute_told(tasks, lambda *a: None)
     assert time.perf_counter() - t0 < 4.0
+
+
+def test_write_mission_writes_a_folder_of_its_own_and_replaces_only_that(store, tmp_path):
+    """``write_mission``: the vehicle files of one flown mission in a new folder; the
+    QGroundControl file loads in pymavlink with a waypoint for each of the flight's and the
+    home position; the waypoints lie where the flight's do (pyproj); a second write needs
+    ``overwrite``, which replaces the folder it wrote and never a folder of the user's (whose
+    file stays as it was); a trajectory without its flight, or a URL, is one error."""
+    from pymavlink import mavwp
+    from pyproj import Transformer
+
+    path, s, g = store
+    t = pipeline.plan(path, tuple(s), tuple(g))
+    f = pipeline.fly(path, t, {"max_pitch_deg": 15.0})
+    files = pipeline.write_mission(path, t, f, tmp_path / "m1")
+    assert set(files) == {"track", "grid-path", "waypoints-csv", "waypoints", "qgc", "kml", "imc"}
+    assert all(p.parent == tmp_path / "m1" and p.is_file() for p in files.values())
+    loader = mavwp.MAVWPLoader()
+    assert loader.load(str(files["qgc"])) == len(f.waypoints) + 1
+    m = pipeline.open_store(path)
+    lon, lat = Transformer.from_crs(m.crs_wkt, 4326, always_xy=True).transform(
+        f.waypoints[:, 0], f.waypoints[:, 1]
+    )
+    got = np.array([(loader.wp(k + 1).y, loader.wp(k + 1).x) for k in range(len(f.waypoints))])
+    np.testing.assert_allclose(got, np.c_[lon, lat], rtol=0, atol=1e-7)
+    with pytest.raises(pipeline.StoreExistsError, match="exists already"):
+        pipeline.write_mission(path, t, f, tmp_path / "m1")
+    pipeline.write_mission(path, t, f, tmp_path / "m1", overwrite=True, name="again")
+    assert '"name": "again"' in (tmp_path / "m1" / "mission.json").read_text()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    with pytest.raises(pipeline.StoreExistsError, match="not a mission folder this tool wrote"):
+        pipeline.write_mission(path, t, f, mine, overwrite=True)
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+    assert (mine / "notes.txt").read_text() == "keep me"
+    with pytest.raises(pipeline.InvalidParameterError, match="its flight"):
+        pipeline.write_mission(path, t, None, tmp_path / "m2")
+    with pytest.raises(pipeline.InvalidParameterError, match="local folder"):
+        pipeline.write_mission(path, t, f, "s3://bucket/m3")
+    assert not (tmp_path / "m2").exists()
