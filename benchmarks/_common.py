@@ -158,7 +158,7 @@ CLUSTER_PREAMBLE = """
 import time, dask, pipeline, shutil, resource, xarray as xr
 from pathlib import Path
 from distributed import Client
-from pipeline.cluster import local_cluster
+from pipeline.runtime.cluster import local_cluster
 src = "{src}"
 if not Path(src).exists():
     with dask.config.set(scheduler="threads"):
@@ -215,7 +215,7 @@ def maps_store(n: int, *, min_accumulation: int = BENCH_MIN_ACC) -> Path:
     # are built the way a job builds them, by a LocalCluster of 2 single-threaded workers
     code = (
         "import dask, pipeline\nfrom distributed import Client\n"
-        + "from pipeline.cluster import local_cluster\n"
+        + "from pipeline.runtime.cluster import local_cluster\n"
         + (
             "with dask.config.set(scheduler='threads', num_workers=2):"
             if n <= 5000

@@ -162,7 +162,7 @@ def missions(ok, comp, k: int, seed: int, min_frac: float, cross_row: int | None
 
 def study(client, name, store: Path, k: int, min_frac: float, seed: int, cross=None) -> list:
     import pipeline
-    from pipeline import landmarks as lm
+    from pipeline.maps import landmarks as lm
     from pipeline.planners.core import heuristic
 
     ds = pipeline.open_maps(store)
@@ -435,7 +435,7 @@ def exact_search(n: int, k: int) -> list[dict]:
 def measure(quick: bool):
     from distributed import Client
 
-    from pipeline.cluster import local_cluster
+    from pipeline.runtime.cluster import local_cluster
 
     k = 4 if quick else 12
     side = 1000 if quick else 2000

@@ -84,7 +84,7 @@ result = {{"seconds": time.perf_counter() - t, "read_bytes": rchar() - b,
 IMPORT_LONLAT_CLUSTER = """
 import time, resource, pipeline, odc.geo.xr, rioxarray, rasterio
 from distributed import Client
-from pipeline.cluster import local_cluster
+from pipeline.runtime.cluster import local_cluster
 with local_cluster(dashboard_address=None) as cluster, Client(cluster) as client:
     pipeline.import_dem("{tif}", "{store}-warm", chunks=1024, overwrite=True,
                         bbox=(-29.9, 40.1, -29.6, 40.4))

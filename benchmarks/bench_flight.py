@@ -240,11 +240,11 @@ def overhead(n: int, k: int) -> dict:
     from distributed import Client
 
     import pipeline
-    from pipeline.cluster import local_cluster
-    from pipeline.exports import write_mission_files
+    from pipeline.dem.synthetic import local_crs
     from pipeline.flight import with_flight
-    from pipeline.plots import mission_quicklook
-    from pipeline.synthetic import local_crs
+    from pipeline.outputs.files import write_mission_files
+    from pipeline.outputs.plots import mission_quicklook
+    from pipeline.runtime.cluster import local_cluster
 
     store = maps_store(n)
     m = pipeline.open_store(store)

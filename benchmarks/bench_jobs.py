@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 THROUGHPUT = """
 import time, numpy as np, pipeline
 from distributed import Client
-from pipeline.cluster import local_cluster
+from pipeline.runtime.cluster import local_cluster
 store = "{store}"
 ok = pipeline.open_maps(store)["passable"].values
 rng = np.random.default_rng(11)
@@ -92,7 +92,7 @@ with local_cluster(dashboard_address=None) as cl, \\
     # ends (the independent clearance check, the mission's files and STAC Item; no quick-look)
     import tempfile
     from pathlib import Path
-    from pipeline.catalog import write_mission
+    from pipeline.outputs.catalog import write_mission
     from pipeline.missions import min_clearance
     named = [dict(m, name=f"m{{i}}") for i, m in enumerate(missions[:{k_rec}])]
     maps = pipeline.open_store(store)

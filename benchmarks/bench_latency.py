@@ -34,7 +34,7 @@ from _common import OUT, machine, maps_store, passable_neighbour
 from _report import Report, faster
 from bench_mcpc import missions
 
-from pipeline._threads import cores
+from pipeline.runtime.threads import cores
 
 RUNS = (
     ("ra_star, cluster", "ra_star", "cluster"),
@@ -183,7 +183,7 @@ def margin_tradeoff(m, ms) -> dict:
 
 def _stamp(token: str, me: int, inbox) -> float:
     """A section task that does nothing: its end time, also posted to ``inbox``."""
-    from pipeline._inbox import post
+    from pipeline.runtime.inbox import post
 
     t = time.time()
     post(inbox, token, me, t)
@@ -193,9 +193,9 @@ def _stamp(token: str, me: int, inbox) -> float:
 def result_delay(client, k: int = 40) -> dict:
     """How long after two tasks that do nothing end their results reach the client, and the
     whole round trip, through the futures (``gather``) and through the scheduler's queue
-    (``pipeline._inbox``, as a mission's sections): medians in seconds, the two ways taken in
+    (``pipeline.runtime.inbox``, as a mission's sections): medians in seconds, the two ways taken in
     turn, 30 ms apart (a mission's pace)."""
-    from pipeline._inbox import Inbox
+    from pipeline.runtime.inbox import Inbox
 
     got: dict = {"future": [], "queue": []}
     for _ in range(k):
@@ -258,7 +258,7 @@ def main() -> None:
     )
     from distributed import Client
 
-    from pipeline.cluster import local_cluster
+    from pipeline.runtime.cluster import local_cluster
 
     with (
         local_cluster(dashboard_address=None) as cl,
@@ -390,7 +390,7 @@ def main() -> None:
           scheduler, the scheduler tells the client, the client fetches the data) it arrived
           {1e3 * fut["after_end"]:.1f} ms after the task ended, a round trip of
           {1e3 * fut["round_trip"]:.1f} ms; through the queue on the scheduler that `plan()`'s
-          section tasks post to (`pipeline._inbox`) {1e3 * que["after_end"]:.1f} ms after, a
+          section tasks post to (`pipeline.runtime.inbox`) {1e3 * que["after_end"]:.1f} ms after, a
           round trip of {1e3 * que["round_trip"]:.1f} ms.""")
     big = max(rows)
 

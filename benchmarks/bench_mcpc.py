@@ -170,7 +170,7 @@ def plot_table4(store, paths, png):
     import matplotlib.pyplot as plt
 
     import pipeline
-    from pipeline.plots import hillshade_axes
+    from pipeline.outputs.plots import hillshade_axes
 
     ds = pipeline.open_maps(store)
     fig, ax = plt.subplots(figsize=(9, 8.2), dpi=110)
@@ -313,7 +313,7 @@ def plot_case_study(store, t, res, png):
     from matplotlib.colors import ListedColormap
 
     import pipeline
-    from pipeline.plots import hillshade_axes
+    from pipeline.outputs.plots import hillshade_axes
 
     ds = pipeline.open_maps(store)
     x, y = ds["x"].values / 1e3, ds["y"].values / 1e3
@@ -356,7 +356,7 @@ def plot_sections(store, t, png):
     import matplotlib.pyplot as plt
 
     import pipeline
-    from pipeline.plots import hillshade_axes
+    from pipeline.outputs.plots import hillshade_axes
 
     ds = pipeline.open_maps(store)
     fig, ax = plt.subplots(figsize=(9, 8.2), dpi=110)
@@ -436,7 +436,7 @@ def main() -> None:
           unless said. Times are the wall time of `plan()` on the client.""")
     from distributed import Client
 
-    from pipeline.cluster import local_cluster
+    from pipeline.runtime.cluster import local_cluster
 
     with (
         local_cluster(dashboard_address=None) as cl,

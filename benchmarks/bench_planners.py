@@ -102,7 +102,7 @@ def tables23() -> dict:
 def plot200(res: dict, png: Path) -> None:
     import matplotlib.pyplot as plt
 
-    from pipeline.plots import hillshade_axes
+    from pipeline.outputs.plots import hillshade_axes
 
     dem, ridge, _ = case200_maps()
     fig, axes = plt.subplots(2, 2, figsize=(11, 10.5), dpi=100)

@@ -94,7 +94,7 @@ def plot(rows, info, png: Path) -> None:
     from matplotlib.colors import ListedColormap
 
     import pipeline
-    from pipeline.plots import hillshade_axes
+    from pipeline.outputs.plots import hillshade_axes
 
     ds = pipeline.open_maps(info["maps"])
     fig, ax = plt.subplots(figsize=(11, 8.4), dpi=100)

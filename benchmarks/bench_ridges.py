@@ -27,7 +27,7 @@ RIDGE_ZARR = (
     + """
 out = "{out}"
 dem = pipeline.open_dem(src, chunks=1024)
-from pipeline.ridges import ridge_layers_staged, default_min_accumulation
+from pipeline.maps.ridges import ridge_layers_staged, default_min_accumulation
 marks = []
 t0 = time.perf_counter()
 filled, acc, rdg = ridge_layers_staged(dem.data, out + "/scratch.zarr",
@@ -55,7 +55,7 @@ result = dict(total_s=t4 - t0, flood_and_fill_solve_s=marks[0] - t0,
 OURS_MEM = """
 import os; os.sched_setaffinity(0, {{0}})  # one core
 import time, numpy as np, pipeline
-from pipeline.ridges import fill_single, accumulation_single, default_min_accumulation
+from pipeline.maps.ridges import fill_single, accumulation_single, default_min_accumulation
 z = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=1, chunks=None).values
 fill_single(z[:50, :50]); accumulation_single(fill_single(z[:50, :50]))   # warm cache
 t = time.perf_counter()
@@ -70,7 +70,7 @@ import os; os.sched_setaffinity(0, {{0}})  # one core
 import sys, time, numpy as np, pipeline
 sys.path.insert(0, "tests")
 from conftest import pysheds_ridges                   # the tests' pysheds runner
-from pipeline.ridges import default_min_accumulation
+from pipeline.maps.ridges import default_min_accumulation
 z = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=1, chunks=None).values
 pysheds_ridges(z[:50, :50])                           # compile its kernels
 t = time.perf_counter()
@@ -86,7 +86,7 @@ import os; os.sched_setaffinity(0, {{0}})  # one core
 import time, numpy as np, pipeline, rasterio
 from rasterio.transform import from_origin
 import whitebox_workflows as wbw
-from pipeline.ridges import default_min_accumulation
+from pipeline.maps.ridges import default_min_accumulation
 z = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=1, chunks=None).values
 tif = "{out}/wbw-dem.tif"
 with rasterio.open(tif, "w", driver="GTiff", height={n}, width={n}, count=1, dtype="float32",
@@ -119,7 +119,7 @@ import numpy as np, pipeline, matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.colors import ListedColormap
-from pipeline import plots
+from pipeline.outputs import plots
 dem = pipeline.synthetic_dem((2000, 2000), seed=0, chunks=500)
 rdg = pipeline.ridge_map(dem).values
 from scipy import ndimage

@@ -25,7 +25,7 @@ for R in (300.0, 200.0):
 SCIPY = """
 import time, numpy as np, pipeline
 from scipy import ndimage
-from pipeline.safety import disc_widths, sphere_heights
+from pipeline.maps.safety import disc_widths, sphere_heights
 dem = pipeline.synthetic_dem(({n}, {n}), cell_size=30.0, seed=0, chunks=None)
 z = dem.values
 R, a = 300.0, 30.0

@@ -30,7 +30,7 @@ marks = []
 class Marks(logging.Handler):
     def emit(self, record):
         marks.append((time.perf_counter(), record.getMessage()))
-lg = logging.getLogger("pipeline.maps")
+lg = logging.getLogger("pipeline.maps.build")
 lg.setLevel(logging.INFO)
 lg.addHandler(Marks())
 out = Path("{out}")

@@ -105,7 +105,7 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
     import dask.array as da
     from dask.core import flatten, get_dependencies
 
-    from .cluster import computing_client
+    from .runtime.cluster import computing_client
 
     stored = da.store(data, target, lock=False, compute=False)
     client = computing_client()

@@ -54,8 +54,8 @@ def _setup_logging(verbose: bool) -> None:
 
     import dask
 
-    from . import cluster
     from .exceptions import PipelineWarning
+    from .runtime import cluster
 
     # the log says what a PipelineWarning says: one line each, not two
     warnings.simplefilter("ignore", PipelineWarning)
@@ -170,7 +170,7 @@ def dem() -> None:
 def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
     """Write a virtual mid-ocean-ridge DEM to the Zarr store OUT."""
     from .dem import write_dem
-    from .synthetic import synthetic_dem
+    from .dem.synthetic import synthetic_dem
 
     with _errors():
         t0 = time.perf_counter()
@@ -252,9 +252,9 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     """Build the maps store OUT (elevation, safety, passable, accumulation, ridge, component,
     landmark distances) from the DEM at DEM_PATH."""
     from ._io import is_url, require_writable
-    from .cluster import session
     from .dem import open_dem
-    from .maps import build_maps, check_build_arguments
+    from .maps.build import build_maps, check_build_arguments
+    from .runtime.cluster import session
 
     with _errors():
         t0 = time.perf_counter()

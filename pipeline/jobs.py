@@ -432,7 +432,7 @@ def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:
 
 
 def _load_missions(path, doc, job):
-    from .catalog import mission_id
+    from .outputs.catalog import mission_id
 
     ms = doc.get("missions", [])
     if not isinstance(ms, list) or not all(isinstance(m, dict) for m in ms):
@@ -524,8 +524,8 @@ class JobResult:
 
 
 def _report(job: Job, maps_store: Path) -> Path:
-    """The catalog's offline report, ``index.html`` (:mod:`pipeline.report`)."""
-    from .report import write_report
+    """The catalog's offline report, ``index.html`` (:mod:`pipeline.outputs.report`)."""
+    from .outputs.report import write_report
     from .store import open_store
 
     maps = open_store(maps_store) if (maps_store / "zarr.json").exists() else None
@@ -556,7 +556,7 @@ def run_job(
     ``<catalog>/performance-report.html`` unless ``[output] performance_report = false``.
     ``scheduler`` (an address or a
     ``distributed.Client``) or ``scheduler_file`` name the cluster to run on
-    (:func:`pipeline.cluster.session`). What the catalog holds that the job no longer makes
+    (:func:`pipeline.runtime.cluster.session`). What the catalog holds that the job no longer makes
     (stores of other DEM or maps parameters, folders of missions no longer in the job) is
     counted in the log, and removed with ``prune`` (:func:`stale`). ``workers``: the local
     cluster's worker processes (default 2, or dask's configuration ``auv_pipeline.workers``).
@@ -569,11 +569,11 @@ def run_job(
     """
     job = load_job(path)
     if dashboard_address is not None:  # at the dry run too, not when a cluster starts
-        from .cluster import check_dashboard_address
+        from .runtime.cluster import check_dashboard_address
 
         check_dashboard_address(dashboard_address)
     if workers is not None:
-        from .cluster import local_workers
+        from .runtime.cluster import local_workers
 
         local_workers(workers)
     dem_store = job.catalog / f"dem-{job.dem_fingerprint()}.zarr"
@@ -590,7 +590,7 @@ def run_job(
             job.catalog,
         )
         return JobResult(job, dem_store, dem_store.exists(), 0.0, maps_store=maps_store)
-    from .catalog import write_catalog
+    from .outputs.catalog import write_catalog
 
     with catalog_lock(job.catalog):
         check_catalog(job.catalog, job.name)  # (as another run may have left it)
@@ -632,7 +632,7 @@ def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
     and maps stores (this tool's, by their mark) other than ``dem_store`` and ``maps_store``,
     and mission folders (each with its Item) of missions no longer in the job."""
     from ._io import own_store
-    from .catalog import COLLECTION, mission_id
+    from .outputs.catalog import COLLECTION, mission_id
 
     out = []
     for kind, pattern, keep in (
@@ -706,8 +706,8 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         return res
     from distributed import performance_report
 
-    from .cluster import session
-    from .warmup import ensure_compiled
+    from .runtime.cluster import session
+    from .runtime.warmup import ensure_compiled
 
     with session(*cluster) as client:
         res = JobResult(
@@ -855,7 +855,7 @@ def _sorted_missions(job: Job, overwrite: bool) -> list[tuple[dict, dict | None,
     Item when it finished as it is defined now (None: to be planned; always with
     ``overwrite``), and whether it finished under another definition (its fields, the maps, the
     DEM, the library's defaults or results revision). Read once a run, before its cluster."""
-    from .catalog import damaged_assets, finished
+    from .outputs.catalog import damaged_assets, finished
 
     out = []
     for m in job.missions:
@@ -887,7 +887,7 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
         return True
     # here, not above: a run on stores it reuses imports neither xarray nor dask.array
     from .dem import import_dem, write_dem
-    from .synthetic import synthetic_dem
+    from .dem.synthetic import synthetic_dem
 
     log.info("writing the DEM store %s", store)
     try:
@@ -918,7 +918,7 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
         log.info("maps store %s is up to date: reusing it", store)
         return False
     from .dem import open_dem
-    from .maps import build_maps
+    from .maps.build import build_maps
 
     log.info("building the maps store %s (%s)", store, job.maps)
     try:
@@ -1015,7 +1015,7 @@ class _Recorder:
             reason = f"its result could not be written: {type(exc).__name__}: {exc}"
             log.error("[%d/%d] %s: FAILED: %s", self.count, self.total, name, reason)
             self.res.failed.append(name)
-            from .catalog import finished
+            from .outputs.catalog import finished
 
             before = finished(self.job.catalog, name)
             if before is not None and before["properties"].get("auv:status") != "failed":
@@ -1057,7 +1057,7 @@ class _Recorder:
             log.warning("[%d/%d] %s: FAILED: %s", self.count, self.total, name, traj.message)
 
     def _write(self, mission, traj, clr=math.nan, png=None):
-        from .catalog import write_mission
+        from .outputs.catalog import write_mission
 
         write_mission(
             self.job.catalog,

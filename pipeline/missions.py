@@ -24,15 +24,15 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 
 import numpy as np
 
-from ._jit import njit
-from ._threads import cores
 from ._types import ClientLike, Maps, VehicleLike
-from .cluster import IN_PROCESS, get_client
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
 from .mcpc import coarse_rho, plan
 from .params import ENDPOINT_FORMS, MISSIONS_PER_TASK, PLANNING, endpoint_forms, endpoint_key
 from .planners.core import Trajectory
+from .runtime.cluster import IN_PROCESS, get_client
+from .runtime.jit import njit
+from .runtime.threads import cores
 from .store import open_store
 
 log = logging.getLogger(__name__)
@@ -154,10 +154,11 @@ def plan_missions(
         :func:`pipeline.fly`); a flight that breaks a vehicle limit or needs more energy than
         the battery holds fails the mission with the reason.
     quicklooks : bool
-        Draw each planned mission's quick-look PNG (:func:`pipeline.plots.mission_quicklook`,
-        titled with the mission's ``name``) where the mission was planned, on the worker that
-        planned it: its bytes are ``trajectory.extra["quicklook_png"]`` (about 1 MB each; a
-        caller that keeps many trajectories should take them out in ``on_done``).
+        Draw each planned mission's quick-look PNG
+        (:func:`pipeline.outputs.plots.mission_quicklook`, titled with the mission's
+        ``name``) where the mission was planned, on the worker that planned it: its bytes are
+        ``trajectory.extra["quicklook_png"]`` (about 1 MB each; a caller that keeps many
+        trajectories should take them out in ``on_done``).
     missions_per_task : int, optional
         On a cluster, how many missions one task plans, in turn. dask costs the scheduler and
         this client about 2 ms of CPU a task, which at 50 missions/s on 2 cores takes a sixth
@@ -283,7 +284,7 @@ _DRAWING = threading.Lock()
 def _quicklook_png(m, t: Trajectory, name) -> bytes:
     import io
 
-    from .plots import mission_quicklook
+    from .outputs.plots import mission_quicklook
 
     with _DRAWING:
         return mission_quicklook(m, t, io.BytesIO(), title=name, crs_wkt=m.crs_wkt).getvalue()

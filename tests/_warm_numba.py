@@ -4,11 +4,11 @@ finish in seconds):
 
     python tests/_warm_numba.py first|second MARKS
 
-- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``; writes
+- first: the first half of the library's warm-up (``pipeline.runtime.warmup.HALVES``; writes
   MARKS/first), then the argument types only the tests use (MARKS/tests), then the pysheds
   kernels the comparisons call (conftest.pysheds_ridges on a small grid; MARKS/pysheds).
 - second: the other half, then (once the first is done) stamps the library compiled
-  (``pipeline.warmup.mark_compiled``) where both halves ran to their end, else runs the
+  (``pipeline.runtime.warmup.mark_compiled``) where both halves ran to their end, else runs the
   library's whole warm-up (from the cache, what the halves compiled); writes MARKS/library,
   which every test process waits for. (Running the whole warm-up from the cache to stamp it
   took 2-5 s: MARKS/library after 25.6-27.0 s in a fresh numba cache, 23.3-25.4 s now, three
@@ -20,7 +20,7 @@ tests' own types compiled before MARKS/first, as they were, the tests started af
 The modules that call kernels with the tests' own types, and the session's cluster, wait for
 MARKS/tests (conftest.test_kernels_compiled): compiling them beside this process cost the two
 test processes 75 s of compilation in a fresh clone. Any other test that needs a kernel still
-being compiled here compiles it itself: numba's cache takes both (pipeline._jit).
+being compiled here compiles it itself: numba's cache takes both (pipeline.runtime.jit).
 """
 
 import sys
@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from conftest import compile_test_kernels  # noqa: E402
 
-from pipeline.warmup import HALVES, compile_parts, ensure_compiled, mark_compiled  # noqa: E402
+from pipeline.runtime.warmup import HALVES, compile_parts, ensure_compiled, mark_compiled  # noqa: E402
 
 half, marks = sys.argv[1], Path(sys.argv[2])
 work = marks / "work"

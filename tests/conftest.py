@@ -25,14 +25,14 @@ def pytest_sessionstart(session):
     """In a fresh environment numba compiles every kernel on first use (about two minutes of
     one core for the library's, about 20 s for the pysheds kernels the comparisons call), then
     caches it on disk. Two processes (tests/_warm_numba.py) compile the library's kernels in
-    the two halves of ``pipeline.warmup`` at once; then one compiles the argument types only
+    the two halves of ``pipeline.runtime.warmup`` at once; then one compiles the argument types only
     the tests use, then pysheds', while the tests run. Under pytest-xdist (``./dev test`` runs
     one test process per core, up to 4) only the controller starts them; every test process
     waits for the library's kernels (the cores are busy compiling them meanwhile), the pysheds
     comparisons for pysheds'."""
     if hasattr(session.config, "workerinput"):  # an xdist worker: the controller started them
         return
-    from pipeline.warmup import is_compiled
+    from pipeline.runtime.warmup import is_compiled
 
     marks = Path(tempfile.mkdtemp(prefix="pipeline-warm-"))
     os.environ[_WARM_DIR] = str(marks)  # inherited by the xdist workers started after this
@@ -161,9 +161,9 @@ def pysheds_ridges(z):
 
 def compile_kernels() -> None:
     """Compile every numba kernel the tests use into numba's on-disk cache: the pipeline's own
-    warm-up (pipeline.warmup, as a job's first run does), then the argument types only the
+    warm-up (pipeline.runtime.warmup, as a job's first run does), then the argument types only the
     tests use (the session cluster runs this before its workers start)."""
-    from pipeline.warmup import ensure_compiled
+    from pipeline.runtime.warmup import ensure_compiled
 
     ensure_compiled()
     compile_test_kernels()
@@ -174,7 +174,7 @@ def compile_test_kernels() -> None:
     import dask
 
     import pipeline
-    from pipeline.ridges import accumulation_single, fill_single
+    from pipeline.maps.ridges import accumulation_single, fill_single
 
     with dask.config.set(scheduler="synchronous"):
         small = pipeline.synthetic_dem((40, 40), chunks=None)
@@ -190,8 +190,8 @@ def compile_test_kernels() -> None:
         )
     # what the tests call directly: the landmarks' Dijkstra on float64 heights (the library
     # runs it on a store's float32 ones), the searches' heap on its own
-    from pipeline._heap import heap_pop, heap_push, heap_reserve
-    from pipeline.landmarks import dijkstra
+    from pipeline.maps.landmarks import dijkstra
+    from pipeline.planners.heap import heap_pop, heap_push, heap_reserve
 
     dijkstra(surface, ok, 30.0, np.array([0], dtype=np.int64))
     keys, items = heap_reserve(np.empty(1), np.empty(1, dtype=np.int64), 0, 2)
@@ -207,7 +207,7 @@ def local_client(tmp_path_factory, test_kernels_compiled):
     kernels rather than compile them a second time beside it)."""
     from distributed import Client
 
-    from pipeline.cluster import local_cluster
+    from pipeline.runtime.cluster import local_cluster
 
     compile_kernels()
     cluster = local_cluster()
@@ -296,7 +296,7 @@ def random_surface(shape, seed=0, flats=False, holes=False) -> np.ndarray:
 
 def quantisation_error_bound(surface, ok, side: int) -> float:
     """An independent bound (numpy, from the definition) on how far a passable cell's height in
-    a landmark search's quantised surface (pipeline.landmarks.quantised: 65 534 steps of its
+    a landmark search's quantised surface (pipeline.maps.landmarks.quantised: 65 534 steps of its
     ``side`` x ``side`` block's relief) may lie from its float32 height: half a step, and a
     little more for the step's float32 rounding and float64 sums of heights."""
     z = np.where(ok, np.asarray(surface, dtype=np.float64), np.nan)
@@ -423,11 +423,11 @@ def stop_dask_cluster(sched, procs) -> None:
 @pytest.fixture(scope="module")
 def real_cluster(tmp_path_factory):
     """A real `dask scheduler` and two single-threaded `dask worker` processes on loopback."""
-    import pipeline.cluster
+    import pipeline.runtime.cluster
 
     addr, sched, procs = start_dask_cluster(tmp_path_factory.mktemp("cluster"))
     yield addr
-    pipeline.cluster.shutdown()  # the clients plan() opened, before their scheduler goes
+    pipeline.runtime.cluster.shutdown()  # the clients plan() opened, before their scheduler goes
     stop_dask_cluster(sched, procs)
 
 

@@ -295,7 +295,7 @@ def test_a_maps_build_tells_its_progress(tmp_path, monkeypatch, caplog, local_cl
 
     import dask
 
-    from pipeline import cluster
+    from pipeline.runtime import cluster
 
     dem = pipeline.synthetic_dem((96, 80), cell_size=50.0, chunks=16, islands=0)
     scheduler = local_client.get if on == "cluster" else "threads"
@@ -328,7 +328,7 @@ def test_a_failed_task_is_raised_before_the_others_finish(local_client, tmp_path
 
     import dask
 
-    from pipeline.cluster import compute_told
+    from pipeline.runtime.cluster import compute_told
 
     def task(i, first):
         try:

@@ -461,7 +461,8 @@ def test_a_full_disk_while_building_maps_is_one_line_and_exit_3(tmp_path):
     )
     assert proc.returncode == 3, proc.stderr
     assert proc.stderr.strip().splitlines()[-1].startswith("error: file too large")
-    # the failed task's traceback, which its worker logs too, is not on stderr (pipeline._quiet)
+    # the failed task's traceback, which its worker logs too, is not on stderr
+    # (pipeline.runtime.quiet)
     assert "Traceback" not in proc.stderr and "Compute Failed" not in proc.stderr, proc.stderr
     assert not (tmp_path / "maps.zarr").exists()
 
@@ -569,7 +570,10 @@ API = [
     (lambda: _tiny_window(cell_size=float("nan")), "`cell_size` must be"),
     (lambda: pipeline.plan_missions("/nonexistent.zarr", []), "does not exist"),
     (lambda: pipeline.open_store(42), "`maps` must be"),
-    (lambda: pipeline.cluster.get_client(3.5), "`client` must be None, 'synchronous', 'threads',"),
+    (
+        lambda: pipeline.runtime.cluster.get_client(3.5),
+        "`client` must be None, 'synchronous', 'threads',",
+    ),
 ]
 
 
@@ -699,7 +703,7 @@ def test_two_jobs_never_share_a_catalog(tmp_path, local_client):
 
 
 def test_two_mission_names_of_one_folder_are_refused(tmp_path):
-    from pipeline.catalog import mission_id
+    from pipeline.outputs.catalog import mission_id
 
     for a, b in [("a b", mission_id("a b")), ("Deep", "deep")]:
         job = tmp_path / "job.toml"
@@ -798,7 +802,7 @@ def test_a_map_two_cells_thin_plans_and_draws_its_quicklook(tmp_path):
     """A 2 x 1000 grid (a survey line): planned, flown and drawn (the shading's slopes needed
     two cells a side of the thinned picture, and the mission was recorded failed)."""
     from pipeline.flight import with_flight
-    from pipeline.plots import mission_quicklook, shaded_relief
+    from pipeline.outputs.plots import mission_quicklook, shaded_relief
 
     z = np.full((2, 1000), -3000.0, np.float32)
     z[:, 500:510] = -2900.0

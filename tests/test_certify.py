@@ -22,8 +22,8 @@ from test_components import A, wall_with_gap_dem
 from test_planners import reference_graph
 
 import pipeline
-from pipeline import landmarks as lm
-from pipeline.components import label_components
+from pipeline.maps import landmarks as lm
+from pipeline.maps.components import label_components
 from pipeline.store import MapsStore
 
 EXE = Path(sys.executable).parent / "pipeline"
@@ -357,7 +357,7 @@ def test_component_sizes_from_the_build_equal_the_layers_bincount(tmp_path, monk
         seen["counts"] = counts
         return staged(store, k, a, log, counts)
 
-    monkeypatch.setattr(pipeline.maps, "landmarks_staged", spy)
+    monkeypatch.setattr(pipeline.maps.build, "landmarks_staged", spy)
     z = random_surface((97, 65), seed=4) * 300.0 - 1000.0
     z[40:43, :] = 80.0  # land across: two components (the sizes of labels 0, 1, 2)
     dem = metric_dataarray(z.astype(np.float32), a=A)

@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 from test_planners import check_path, reference_graph, reference_length
 
 import pipeline
-from pipeline.components import components_staged, label_components
+from pipeline.maps.components import components_staged, label_components
 
 
 def reference_partition(ok: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Flyable missions (pipeline.flight, pipeline.exports): the flown track and its waypoints
+"""Flyable missions (pipeline.flight, pipeline.outputs.files): the flown track and its waypoints
 checked against the terrain by brute force (every DEM grid point, scipy's KD-tree), against
 scipy's optimum, and every file read back by an independent reader (pymavlink, fastkml,
 geopandas, imcpy, pyproj)."""
@@ -23,7 +23,6 @@ from test_certify import missions, optimum
 from test_planners import reference_graph
 
 import pipeline
-from pipeline import exports
 from pipeline.flight import (
     CLEARANCE_SLACK,
     Vehicle,
@@ -31,6 +30,7 @@ from pipeline.flight import (
     pitch_envelope,
     with_flight,
 )
+from pipeline.outputs import files as exports
 
 # ------------------------------------------------------------------ the profile kernels
 
@@ -283,7 +283,7 @@ def test_waypoints_geojson_is_the_json_of_the_rounded_values():
     document of the values rounded as documented (lon and lat 8 decimals, heights 2, time 1,
     ``round``), built here as dicts; halfway and negative-zero values included. A value that
     is not finite is null."""
-    from pipeline.exports import waypoints_geojson
+    from pipeline.outputs.files import waypoints_geojson
 
     rng = np.random.default_rng(11)
     n = 400

@@ -38,7 +38,7 @@ def test_build_maps_store(tmp_path):
     np.testing.assert_array_equal(maps["passable"].values, (z < 0) & (ref <= -300.0))
     # ridge layers equal the single-array computation (checked against pysheds in
     # test_ridges.py), threshold 1112 cells = 1 km^2 of 30 m cells
-    from pipeline.ridges import accumulation_single, fill_single
+    from pipeline.maps.ridges import accumulation_single, fill_single
 
     acc = accumulation_single(fill_single(z))
     np.testing.assert_array_equal(maps["accumulation"].values, acc)
@@ -67,8 +67,8 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, 
     test_ridges.py), built by dask's threads so that tiles are written in parallel, each
     tile's safety halo read across as many scratch tiles as it spans (a last chunk of one
     cell is merged into the tile before it, and its store block written from there)."""
-    from pipeline.components import label_components
-    from pipeline.ridges import accumulation_single, fill_single
+    from pipeline.maps.components import label_components
+    from pipeline.maps.ridges import accumulation_single, fill_single
 
     dem = pipeline.synthetic_dem(shape, cell_size=30.0, seed=3, chunks=chunks)
     maps = pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=300.0, min_accumulation=8)
@@ -84,7 +84,7 @@ def test_every_layer_equals_the_in_memory_result_on_awkward_chunkings(tmp_path, 
     labels, _ = label_components(maps["passable"].values)  # checked against scipy's csgraph
     np.testing.assert_array_equal(maps["component"].values, labels)
     # landmark layers (in chunks of their own): the in-memory layers from the same cells
-    from pipeline import landmarks
+    from pipeline.maps import landmarks
 
     cells = pipeline.open_store(tmp_path / "m.zarr").landmarks
     ok = maps["passable"].values.astype(bool)

@@ -397,7 +397,7 @@ def test_plan_missions_runs_each_mission_as_one_task(store, local_client):
 
     from matplotlib import image
 
-    from pipeline.plots import mission_quicklook
+    from pipeline.outputs.plots import mission_quicklook
 
     assert "quicklook_png" not in got[2].extra
     for i, t in enumerate(got[:2]):
@@ -640,7 +640,7 @@ def test_a_mission_in_a_new_process_needs_neither_xarray_nor_dask_array(store, t
 
 def _released(start: str, finish: str) -> bool:
     """A task's release by its client: once done, or while the scheduler has not yet heard it
-    done (its results reached the client through the queue, pipeline._inbox)."""
+    done (its results reached the client through the queue, pipeline.runtime.inbox)."""
     return start == "memory" or (start == "processing" and finish in ("released", "forgotten"))
 
 
@@ -699,11 +699,11 @@ def test_a_missions_tasks_are_sent_within_a_millisecond(store, local_client):
     """distributed batches a client's messages to its scheduler every 10 ms and a scheduler's
     to a worker every 5 ms: a mission of about 10 ms then met the batch that released the
     mission before it, and its tasks waited for the next. A client that plans is sent every
-    pipeline.cluster.STREAM_INTERVAL_S (1 ms), and so is the scheduler of local_cluster() to
+    pipeline.runtime.cluster.STREAM_INTERVAL_S (1 ms), and so is the scheduler of local_cluster() to
     each of its workers, those added later included."""
     from distributed import Client
 
-    from pipeline.cluster import STREAM_INTERVAL_S, local_cluster
+    from pipeline.runtime.cluster import STREAM_INTERVAL_S, local_cluster
 
     assert STREAM_INTERVAL_S <= 0.001
 
@@ -739,8 +739,8 @@ def _faults_reallocating(nbytes: int) -> int:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
 def test_local_cluster_workers_reuse_freed_memory(local_client):
     """The workers of the default local cluster take a freed 2 MiB array's memory back for the
-    next one (pipeline.cluster.WORKER_ENV): with dask's own setting every array above 128 KiB
-    is a fresh mapping, 512 page faults for 2 MiB (below numpy's 4 MiB huge-page size)."""
+    next one (pipeline.runtime.cluster.WORKER_ENV): with dask's own setting every array above
+    128 KiB is a fresh mapping, 512 page faults for 2 MiB (below numpy's 4 MiB huge-page size)."""
     faults = local_client.run(_faults_reallocating, 2 * 2**20)
     assert len(faults) == 2
     assert all(f < 64 for f in faults.values()), faults
@@ -760,7 +760,7 @@ def _cpu_s() -> float:
 
 def test_local_cluster_housekeeping_is_sparse_and_a_users_setting_wins(local_client):
     """The scheduler, nannies and workers of local_cluster() wake for their housekeeping at
-    pipeline.cluster.HOUSEKEEPING's intervals, not dask's (event loop check every 20 ms,
+    pipeline.runtime.cluster.HOUSEKEEPING's intervals, not dask's (event loop check every 20 ms,
     profile samples every 10 ms, ...): idle, each worker process uses under 2.5 % of a core
     (4 % with dask's; 0.8 % measured). A value set in dask's configuration wins."""
     import time
@@ -768,7 +768,7 @@ def test_local_cluster_housekeeping_is_sparse_and_a_users_setting_wins(local_cli
     import dask
     from distributed import Client
 
-    from pipeline.cluster import HOUSEKEEPING, local_cluster
+    from pipeline.runtime.cluster import HOUSEKEEPING, local_cluster
 
     ms = {k: 1000 * dask.utils.parse_timedelta(v) for k, (v, _) in HOUSEKEEPING.items()}
     tick, profile = ms["distributed.admin.tick.interval"], ms["distributed.worker.profile.interval"]
@@ -812,7 +812,7 @@ def _loaded(dask_worker=None) -> dict:
 
 def test_local_cluster_workers_end_at_once_when_closed():
     """A closed worker of local_cluster() ends its process without Python's own shutdown
-    (pipeline._exit): the cluster closes in well under the 0.6-1.1 s it took after a job's
+    (pipeline.runtime.exit): the cluster closes in well under the 0.6-1.1 s it took after a job's
     missions (0.05-0.07 s measured), its processes are gone and their scratch directories
     removed (distributed's close ran to its end)."""
     import os
@@ -821,8 +821,8 @@ def test_local_cluster_workers_end_at_once_when_closed():
     import psutil
     from distributed import Client
 
-    from pipeline._exit import NAME
-    from pipeline.cluster import local_cluster
+    from pipeline.runtime.cluster import local_cluster
+    from pipeline.runtime.exit import NAME
 
     cluster = local_cluster()
     client = Client(cluster, set_as_default=False)
@@ -847,7 +847,7 @@ def _claim_all(token, me, bounds, barrier, pause_s):
     then take sections (``pause_s`` each) until none is left; the sections taken, in order."""
     import time
 
-    from pipeline._share import Claims
+    from pipeline.runtime.share import Claims
 
     got = []
     with Claims(token, me, bounds) as claims:
@@ -866,7 +866,7 @@ def test_runs_share_their_sections_between_processes_each_exactly_once():
     import uuid
     from concurrent.futures import ProcessPoolExecutor
 
-    from pipeline._share import Claims
+    from pipeline.runtime.share import Claims
 
     token, bounds = uuid.uuid4().hex, [0, 10, 20]
     ctx = mp.get_context("spawn")
@@ -887,7 +887,7 @@ def test_a_run_whose_task_has_not_opened_the_claims_is_not_taken(tmp_path):
     only; a task that opens the claims after the first has gone starts afresh."""
     import uuid
 
-    from pipeline._share import Claims
+    from pipeline.runtime.share import Claims
 
     token, bounds = uuid.uuid4().hex, [0, 3, 7]
     with Claims(token, 0, bounds) as c:
@@ -904,7 +904,7 @@ def test_sections_of_a_lost_task_are_planned_again(store, local_client, monkeypa
     import uuid
 
     import pipeline.mcpc as mcpc
-    from pipeline._share import Claims
+    from pipeline.runtime.share import Claims
 
     ref = pipeline.plan(store, **MISSION, planner="lagrangian", client="synchronous", **SMALL)
     n = len(ref.extra["sections"])
@@ -1107,7 +1107,7 @@ def test_threads_a_helper_that_cannot_start_is_not_waited_for(store, monkeypatch
     import time
 
     import pipeline.mcpc as mcpc
-    from pipeline._threads import shared_pool
+    from pipeline.runtime.threads import shared_pool
 
     ref = pipeline.plan(store, **MISSION, planner="lagrangian", client="synchronous", **SMALL)
     monkeypatch.setattr(mcpc, "cores", lambda: 2)
@@ -1165,7 +1165,7 @@ def test_thread_claims_take_each_section_once():
     import threading
     import time
 
-    from pipeline._share import ThreadClaims
+    from pipeline.runtime.share import ThreadClaims
 
     bounds = [0, 10, 20, 31]
     claims = ThreadClaims(bounds)
@@ -1236,7 +1236,7 @@ def test_without_a_shared_file_a_task_plans_its_own_run(monkeypatch, tmp_path):
     and leaves no file."""
     import uuid
 
-    import pipeline._share as share
+    import pipeline.runtime.share as share
 
     token, bounds = uuid.uuid4().hex, [0, 3, 7]
     monkeypatch.setattr(share, "fcntl", None)
@@ -1274,9 +1274,9 @@ def test_a_mission_asks_for_the_worker_threads_at_most_once_a_second(monkeypatch
 
 def test_section_results_reach_the_client_through_the_schedulers_queue(store, local_client):
     """Each section task posts its results to a queue on the scheduler that the client waits
-    on (pipeline._inbox), sooner than through the task's future: every task of a mission posts
-    once, the client's next mission posts to the same queue, and the path is the one planned in
-    this process."""
+    on (pipeline.runtime.inbox), sooner than through the task's future: every task of a
+    mission posts once, the client's next mission posts to the same queue, and the path is
+    the one planned in this process."""
 
     def count_posts(dask_scheduler):
         ext = dask_scheduler.extensions["queues"]
@@ -1328,7 +1328,7 @@ def test_failing_section_tasks_are_reported_and_a_scheduler_without_queues_still
     from distributed import Client, LocalCluster
 
     from pipeline import mcpc
-    from pipeline._inbox import Inbox
+    from pipeline.runtime.inbox import Inbox
 
     ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
 
@@ -1347,18 +1347,22 @@ def test_failing_section_tasks_are_reported_and_a_scheduler_without_queues_still
     ):
         same(client)
         with monkeypatch.context() as mp:
-            mp.setattr("pipeline._inbox.POLL", 30.0)  # the watch would take 30 s: the note is seen
+            mp.setattr(
+                "pipeline.runtime.inbox.POLL", 30.0
+            )  # the watch would take 30 s: the note is seen
             mp.setattr(mcpc, "read_section", fail)
             t0 = time.perf_counter()
             with pytest.raises(RuntimeError, match="the disk went away"):
                 pipeline.plan(store, **MISSION, client=client, **SMALL)
             assert time.perf_counter() - t0 < 15.0
-            mp.setattr("pipeline._inbox.POLL", 0.1)  # no note: the watch sees the failed futures
+            mp.setattr(
+                "pipeline.runtime.inbox.POLL", 0.1
+            )  # no note: the watch sees the failed futures
             mp.setattr(mcpc, "post", lambda *args: None)
             with pytest.raises(RuntimeError, match="the disk went away"):
                 pipeline.plan(store, **MISSION, client=client, **SMALL)
             mp.undo()  # still no post: the watch sees the futures done
-            mp.setattr("pipeline._inbox.POLL", 0.1)
+            mp.setattr("pipeline.runtime.inbox.POLL", 0.1)
             mp.setattr(mcpc, "post", lambda *args: None)
             same(client)
         same(client)  # the queue serves again (late posts of the failed runs passed over)

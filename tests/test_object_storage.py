@@ -17,9 +17,9 @@ from test_mcpc import MISSION, SMALL, wall_dem
 from test_planners import check_path
 
 import pipeline
-import pipeline.cluster
+import pipeline.runtime.cluster
 from pipeline.exceptions import PipelineError, StoreExistsError
-from pipeline.landmarks import VARIABLE
+from pipeline.maps.landmarks import VARIABLE
 
 BUILD = dict(clearance=60.0, min_accumulation=8, landmarks=2)
 
@@ -66,7 +66,7 @@ def test_a_store_on_s3_is_built_and_planned_on_by_the_workers(s3, tmp_path, loca
     settings = {k: os.environ[k] for k in os.environ if k.startswith("AWS_")}
     local_client.run(_settle, settings)
     try:
-        with pipeline.cluster.session(local_client):
+        with pipeline.runtime.cluster.session(local_client):
             pipeline.build_maps(dem(), url, **BUILD)
         # nothing but the store is left in the bucket (no scratch store, no write probe)
         s3.invalidate_cache()

@@ -210,9 +210,9 @@ def test_whole_large_map_takes_the_bucketed_search():
 
 
 def test_heap_keeps_order_while_it_grows():
-    """The searches' heap (``pipeline._heap``), grown by ``heap_reserve`` between pushes from
-    1 slot to thousands, pops every key in sorted order (against numpy's sort)."""
-    from pipeline._heap import heap_pop, heap_push, heap_reserve
+    """The searches' heap (``pipeline.planners.heap``), grown by ``heap_reserve`` between
+    pushes from 1 slot to thousands, pops every key in sorted order (against numpy's sort)."""
+    from pipeline.planners.heap import heap_pop, heap_push, heap_reserve
 
     rng = np.random.default_rng(7)
     keys = rng.random(5000)

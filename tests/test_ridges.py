@@ -19,7 +19,7 @@ from hypothesis.extra.numpy import arrays
 
 import pipeline
 from pipeline.exceptions import InvalidDEMError, InvalidParameterError
-from pipeline.ridges import (
+from pipeline.maps.ridges import (
     DC,
     DR,
     accumulation_single,
@@ -296,7 +296,7 @@ def test_staged_build_path_equals_single_array(tmp_path, chunks):
     import dask
     import dask.array as da
 
-    from pipeline.ridges import ridge_layers_staged
+    from pipeline.maps.ridges import ridge_layers_staged
 
     z = random_surface((90, 70), seed=21, flats=True, holes=True)
     F = fill_single(z)

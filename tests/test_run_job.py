@@ -769,7 +769,7 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
     assert all(p.read_text() == "mine" for p in users)
     assert sorted(root.glob(".*.tmp-*")) == [root / ".notes.tmp-1"]
     assert report.stat().st_mtime_ns == before  # the no-op run kept the last report
-    # and the hillshade of the same maps store (pipeline.report.hillshade)
+    # and the hillshade of the same maps store (pipeline.outputs.report.hillshade)
     assert (root / "report" / "hillshade.png").stat().st_mtime_ns == shade
     assert len(list((root / "reports").glob("performance-*.html"))) == 1
 
@@ -809,7 +809,7 @@ def test_a_run_on_stores_it_reuses_imports_neither_xarray_nor_dask_array(tmp_pat
 def test_the_reports_hillshade_is_drawn_once_per_maps_store(tmp_path, stores):
     """A second report on the same maps store reuses the picture the first drew (the same
     pixels as one drawn anew); another store, or a note that does not read, draws it again."""
-    from pipeline.report import hillshade
+    from pipeline.outputs.report import hillshade
     from pipeline.store import open_store
 
     src = next(stores.glob("maps-*.zarr"))

@@ -494,7 +494,7 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     """A quick-look's plan view: a region of a sixteenth of the map or more from the overview
     (block means at the block centres, ridge where a block has any), a smaller one from every
     k-th cell of the elevation and the ridge of each k x k block (numpy on the layers)."""
-    from pipeline.plots import plan_layers
+    from pipeline.outputs.plots import plan_layers
 
     path = _maps_of(random_surface((64, 48), seed=6, holes=True), tmp_path)
     m = pipeline.open_store(path)

@@ -309,9 +309,9 @@ def test_the_planner_decides_on_the_ground_between_the_two_ends():
 @pytest.mark.parametrize("seed", range(6))
 def test_distances_to_every_cell_equal_dijkstra_bit_for_bit(seed):
     """The whole map as the region (a landmark's layer): the same float64 values as the bucket
-    Dijkstra of ``pipeline.landmarks``, bit for bit, and scipy's to rounding, on awkward shapes
+    Dijkstra of ``pipeline.maps.landmarks``, bit for bit, and scipy's to rounding, on awkward shapes
     with islands (one row, one column, odd sizes) and in a maze that turns back 8 times."""
-    from pipeline import landmarks as lm
+    from pipeline.maps import landmarks as lm
 
     if seed == 5:
         surface, passable = maze(60, 8)
@@ -335,7 +335,7 @@ def test_a_layer_past_the_budget_comes_from_dijkstra(monkeypatch):
     """With the sweeps' budget cut below one relaxation a cell, a landmark's layer is
     Dijkstra's, and still scipy's distances, less at most a unit and the quantised heights'
     errors a move (``quantisation_error_bound``)."""
-    from pipeline import landmarks as lm
+    from pipeline.maps import landmarks as lm
 
     surface, _, passable = obstacle_map((50, 60), 7, density=0.2)
     z = surface.astype(np.float32)
@@ -359,7 +359,7 @@ def test_fixed_point_distances_lie_less_than_a_unit_a_move_below_scipys(seed, bi
     them (every move is at least ``A`` long: a relative ``2^-bits + 2 err / A``), the capped
     ones at the cap, not reached exactly where scipy's are inf (also past the cap, which the
     two finest units reach on these maps). Awkward shapes, obstacles, a maze."""
-    from pipeline import landmarks as lm
+    from pipeline.maps import landmarks as lm
 
     if seed == 5:
         surface, passable = maze(60, 8)

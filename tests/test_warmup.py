@@ -1,5 +1,5 @@
-"""The first run's up-front compilation (pipeline.warmup): announced, run in two halves on two
-workers, stamped so that later runs skip it, and never fatal."""
+"""The first run's up-front compilation (pipeline.runtime.warmup): announced, run in two halves
+on two workers, stamped so that later runs skip it, and never fatal."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import os
 
 import pytest
 
-from pipeline import warmup
+from pipeline.runtime import warmup
 
 
 def test_fingerprint_follows_every_source_file(tmp_path):
@@ -33,7 +33,7 @@ def stamp(tmp_path, monkeypatch):
 
 
 def test_compiles_once_in_two_halves_on_two_workers(local_client, stamp, caplog):
-    caplog.set_level(logging.DEBUG, logger="pipeline.warmup")
+    caplog.set_level(logging.DEBUG, logger="pipeline.runtime.warmup")
     assert not warmup.is_compiled()
     seconds = warmup.ensure_compiled(local_client)
     assert seconds > 0 and warmup.is_compiled() and stamp.exists()
@@ -54,7 +54,7 @@ def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
         raise OSError("no space left on device")
 
     monkeypatch.setattr(warmup, "_compile", broken)
-    caplog.set_level(logging.INFO, logger="pipeline.warmup")
+    caplog.set_level(logging.INFO, logger="pipeline.runtime.warmup")
     warmup.ensure_compiled(None)
     assert "compile as they are first used instead" in caplog.text
     assert "no space left on device" in caplog.text
@@ -63,7 +63,7 @@ def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
 
 _PLAN_EVERY_PLANNER = """
 import json, numpy as np, pipeline
-from pipeline import landmarks
+from pipeline.maps import landmarks
 from pipeline.planners import core, ra_star
 z = np.random.default_rng(1).normal(size=(40, 40)).astype(np.float32) * 50 - 3000
 ok = np.ones(z.shape, bool)
@@ -109,7 +109,7 @@ def _child_env() -> dict:
 _CACHE_CHILD = """
 import sys, time
 sys.path.insert(0, sys.argv[1])
-import pipeline._jit  # the package's kernels compile through it
+import pipeline.runtime.jit  # the package's kernels compile through it
 import numpy as np
 import kernel
 print("compiling", flush=True)
@@ -121,7 +121,7 @@ print("saved", flush=True)
 def test_a_kernel_is_saved_to_numbas_cache_under_the_lock(tmp_path):
     """numba's cache index is read, extended and written back by each save, so processes that
     save signatures of one kernel at once lose some (24 of 240 in 4 processes compiling 30
-    kernels each for a dtype of their own, in step, without the lock of pipeline._jit; none
+    kernels each for a dtype of their own, in step, without the lock of pipeline.runtime.jit; none
     with it). Here this process holds the cache directory's lock while a real process
     compiles a kernel: its signature reaches the cache only once the lock is released."""
     import fcntl
@@ -129,7 +129,7 @@ def test_a_kernel_is_saved_to_numbas_cache_under_the_lock(tmp_path):
     import sys
     import time
 
-    from pipeline._jit import LOCK_NAME
+    from pipeline.runtime.jit import LOCK_NAME
 
     (tmp_path / "kernel.py").write_text(
         "from numba import njit\n\n\n@njit(cache=True)\ndef f(x):\n    return x.sum()\n"
@@ -155,11 +155,11 @@ def test_a_kernel_is_saved_to_numbas_cache_under_the_lock(tmp_path):
 
 
 # a process that runs pkg.caller.twice_plus (its cache: pkg/__pycache__) with the stamps of
-# pipeline._jit following the imports of pkg's modules ("follow") or numba's own ("numba")
+# pipeline.runtime.jit following the imports of pkg's modules ("follow") or numba's own ("numba")
 _STALE_CHILD = """
 import json, sys
 sys.path.insert(0, sys.argv[1])
-import pipeline._jit as jit
+import pipeline.runtime.jit as jit
 if sys.argv[2] == "follow":
     jit.ROOTS.append(sys.argv[1])
 from pkg.caller import twice_plus
@@ -177,7 +177,7 @@ _CALLER = (
 def test_a_kernel_compiles_again_when_a_module_it_calls_changes(tmp_path):
     """numba keys a kernel's cache by its own file: after an edit to a module whose function
     the kernel calls, the next process ran the kernel's old machine code (the landmark
-    searches kept sweep.py's old overloads so). With pipeline._jit's stamps the kernel
+    searches kept sweep.py's old overloads so). With pipeline.runtime.jit's stamps the kernel
     compiles again, and loads from the cache while nothing changes. Real processes, numba's
     real cache beside a package of two modules."""
     import json
@@ -210,34 +210,39 @@ def test_a_kernel_compiles_again_when_a_module_it_calls_changes(tmp_path):
 
 
 def test_the_stamps_follow_the_package_imports():
-    """What a kernel's cache stamp covers (pipeline._jit.dependencies), on the package
+    """What a kernel's cache stamp covers (pipeline.runtime.jit.dependencies), on the package
     itself: the landmark searches reach the sweeps' overloads and the planners' core, not the
     MCPC module; the sweeps do not reach the landmark layers; the core reaches the modules it
     imports and nothing else."""
-    from pipeline._jit import ROOTS, dependencies
+    from pipeline.runtime.jit import ROOTS, dependencies
 
     def deps(name):
         return {os.path.relpath(p, ROOTS[0]) for p in dependencies(os.path.join(ROOTS[0], name))}
 
-    landmarks = deps("landmarks.py")
-    assert {"landmarks.py", "planners/sweep.py", "planners/core.py", "_heap.py"} <= landmarks
-    assert "landmarks.py" not in deps("planners/sweep.py")
+    landmarks = deps("maps/landmarks.py")
+    assert {
+        "maps/landmarks.py",
+        "planners/sweep.py",
+        "planners/core.py",
+        "planners/heap.py",
+    } <= landmarks
+    assert "maps/landmarks.py" not in deps("planners/sweep.py")
     assert deps("planners/core.py") == {
         "planners/core.py",
-        "_grid8.py",
-        "_heap.py",
-        "_jit.py",
+        "planners/grid.py",
+        "planners/heap.py",
+        "runtime/jit.py",
         "exceptions.py",
     }
-    assert "mcpc.py" not in landmarks
+    assert not any(p.startswith("mcpc/") for p in landmarks)
 
 
 def test_the_stamps_read_every_form_of_relative_import(tmp_path):
-    """pipeline._jit.imported on a package written for it: names over several lines with
+    """pipeline.runtime.jit.imported on a package written for it: names over several lines with
     comments between them, ``as``, a submodule imported by name from its package, an import
     inside a function, two dots; an absolute import and a name that is not a module add
     nothing of their own."""
-    from pipeline._jit import dependencies, imported
+    from pipeline.runtime.jit import dependencies, imported
 
     (tmp_path / "pkg" / "sub").mkdir(parents=True)
     files = {

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._grid8 import DC, DR, flat_offsets
-from .._heap import grown, heap_pop, heap_push, heap_reserve
-from .._jit import njit
 from ..exceptions import InvalidEndpointError, InvalidParameterError
+from ..runtime.jit import njit
+from .grid import DC, DR, flat_offsets
+from .heap import grown, heap_pop, heap_push, heap_reserve
 
 
 @dataclass
@@ -135,7 +135,7 @@ def heuristic(a, r, c, gr, gc, octile):
     return a * math.sqrt(dr * dr + dc * dc)
 
 
-# landmark distances (ALT, :mod:`pipeline.landmarks`) are float32: a bound from them is taken
+# landmark distances (ALT, :mod:`pipeline.maps.landmarks`) are float32: a bound from them is taken
 # less this relative margin (float32 rounding and float64 summation), so that it never exceeds
 # the true distance
 LANDMARK_MARGIN = 2.0**-22
@@ -408,8 +408,9 @@ def _bucket_put(pk, pi, pn, head, free, top, nfree, b, key, item):
 @njit(cache=True)
 def _pool_reserve(pk, pi, pn, top, nfree, extra):
     """The bucket pool's arrays with room for ``extra`` more nodes (its free list's ``nfree``
-    first, then the slots from ``top``), grown as :func:`~pipeline._heap.heap_reserve` grows a
-    heap; outside a search's inner loop, for the same reason."""
+    first, then the slots from ``top``), grown as
+    :func:`~pipeline.planners.heap.heap_reserve` grows a heap; outside a search's inner loop,
+    for the same reason."""
     if nfree >= extra or top + extra <= pk.size:
         return pk, pi, pn
     size = max(2 * pk.size, top + extra)

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from .._jit import njit
+from ..runtime.jit import njit
 from .astar import ASTAR
 from .core import (
     NO_GOAL,
@@ -116,11 +116,11 @@ JOINT = 2.0
 
 def goal_layer(lm, surface, passable, a, t):
     """The landmark rows ``lm`` and one more: the exact length from every cell of the window to
-    the goal ``t`` (:func:`pipeline.landmarks.dijkstra` from it; the graph is symmetric), the
+    the goal ``t`` (:func:`pipeline.maps.landmarks.dijkstra` from it; the graph is symmetric), the
     goal as its own landmark. Its bound ``|d(v) - d(t)| = d(v)`` is the exact length to the goal,
     made consistent as every landmark's (``landmark_shrink``), where the octile distance ignores
     the terrain's rise and fall."""
-    from ..landmarks import dijkstra  # the module imports this package's core
+    from ..maps.landmarks import dijkstra  # the module imports this package's core
 
     rows, cols = surface.shape
     dg = dijkstra(surface, passable, a, np.array([t[0] * cols + t[1]], dtype=np.int64))

@@ -30,9 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._grid8 import DC, DR
-from .._heap import heap_pop, heap_push, heap_reserve
-from .._jit import njit
+from ..runtime.jit import njit
 from .core import (
     CLOSED,
     INWAIT,
@@ -44,6 +42,8 @@ from .core import (
     heuristic,
     relax_successors,
 )
+from .grid import DC, DR
+from .heap import heap_pop, heap_push, heap_reserve
 
 
 @njit(inline="always", cache=True)

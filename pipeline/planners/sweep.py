@@ -46,9 +46,9 @@ import numpy as np
 from numba import types
 from numba.extending import overload
 
-from .._grid8 import DC, DR
-from .._jit import njit
+from ..runtime.jit import njit
 from .core import edge_cost, heuristic
+from .grid import DC, DR
 
 # the first bound is (1 + SLACK) times the octile distance: the benchmark maps' optima lie
 # 0.1-1.3 % above it (benchmarks/bench_certify.py); a larger slack widens the region (at
@@ -120,7 +120,7 @@ def _along(surface, ok, a, u, d, i, j0, j1):
 
 
 # A safety surface held in 2 bytes a cell (the landmark layers' searches,
-# :func:`pipeline.landmarks.quantised`): ``codes`` (uint16, rows x cols; :data:`IMPASSABLE` on
+# :func:`pipeline.maps.landmarks.quantised`): ``codes`` (uint16, rows x cols; :data:`IMPASSABLE` on
 # the cells that are not passable), steps of ``quantum`` above ``base`` in blocks of ``2^shift``
 # cells a side (float32, a value a block). A cell's height ``base + code * quantum`` in float64
 # (:func:`height_at`) lies within its block's ``error`` (float32, metres, a margin for float64
@@ -750,7 +750,7 @@ def distances(surface, passable, a: float, source):
 
 # fixed-point distances (:func:`fixed_point_distances`): values at or above FIXED_CAP are held
 # at it; FIXED_UNREACHED marks a cell not reached. A move must cost less than FIXED_UNREACHED -
-# FIXED_CAP units (the caller's choice of units: pipeline.landmarks.fixed_point_bits keeps it
+# FIXED_CAP units (the caller's choice of units: pipeline.maps.landmarks.fixed_point_bits keeps it
 # under 2^30), so that a cell next to a capped one is reached, and capped
 FIXED_CAP = 2.0**31
 FIXED_UNREACHED = 2**32 - 1
@@ -771,7 +771,7 @@ def fixed_point_distances(surface, passable, a: float, source, bits: int):
     ``a * 2^-bits`` (uint32, rows x cols; :data:`FIXED_UNREACHED` where it does not reach), by
     the whole-map sweeps of :func:`distances` with each move's cost rounded down to a whole unit
     (:func:`whole_units`) and each distance held at :data:`FIXED_CAP`: 4 bytes a cell where
-    float64 takes 8, for the landmark layers (:mod:`pipeline.landmarks`, whose module doc has
+    float64 takes 8, for the landmark layers (:mod:`pipeline.maps.landmarks`, whose module doc has
     the bound's proof), on their :class:`Quantised` surface (``passable`` the same: each move's
     rise lowered by its cells' errors) or on a float32 one with NaN on its impassable cells.
     The sums are whole units, exact in float64: the distances are the exact ones, capped, of a

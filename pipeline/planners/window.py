@@ -56,7 +56,7 @@ def plan_window(
         ``row * a``).
     landmarks : array (k, rows, cols), optional
         Exact shortest-path distances from k landmark cells over this window's graph
-        (:mod:`pipeline.landmarks`; ``inf`` where a landmark does not reach): A*, weighted A*
+        (:mod:`pipeline.maps.landmarks`; ``inf`` where a landmark does not reach): A*, weighted A*
         and the Lagrangian planner then use the landmark bound (made consistent) as their
         heuristic where it beats the octile distance. Distances over a larger map bound this
         window's too (a window's paths are paths of the map), so a window of a maps store may

@@ -43,14 +43,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._jit import njit
-from ._threads import shared_pool
-from ._types import Maps, VehicleLike
+from .._types import Maps, VehicleLike
+from ..runtime.jit import njit
+from ..runtime.threads import shared_pool
 
 if TYPE_CHECKING:
-    from .planners.core import Trajectory
-from .exceptions import InvalidParameterError
-from .params import VEHICLE
+    from ..planners.core import Trajectory
+from ..exceptions import InvalidParameterError
+from ..params import VEHICLE
 
 # -------------------------------------------------------------------------- the vehicle
 
@@ -1330,7 +1330,7 @@ class Corridor:
     bytes)."""
 
     def __init__(self, m, cells: np.ndarray, pad: int):
-        from .store import CACHE
+        from ..store import CACHE
 
         rows, cols = m.shape
         tr, tc = (int(v) for v in CACHE.array(m.path, "elevation").chunks)
@@ -1407,7 +1407,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
     (True, 41)
     """
-    from .store import open_store
+    from ..store import open_store
 
     t0 = time.perf_counter()
     m = open_store(maps)

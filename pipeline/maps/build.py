@@ -16,7 +16,7 @@ scratch tiles and the flow summaries to the second global solve; (3) every layer
 written (its safety surface from its DEM with the structuring element's halo read from the
 scratch tiles, the accumulation from its stored codes and the flow solve) and its passable
 cells labelled; (4) the labels that touch across tile borders are joined in a third small
-solve and the component layer written (:mod:`pipeline.components`); (5) the landmark layers.
+solve and the component layer written (:mod:`pipeline.maps.components`); (5) the landmark layers.
 The scratch stores are removed at the end. With dask's overlap of the source instead, the
 halos took 9 tasks a tile and moved slices between the workers: the 10000^2 build ran 3807
 tasks, and the scheduler's time for them shared the workers' 2 cores.
@@ -38,7 +38,7 @@ import numpy as np
 import xarray as xr
 import zarr
 
-from ._io import (
+from .._io import (
     GRID_MAPPING,
     WINDOW_LAYERS,
     check_replaceable,
@@ -51,18 +51,18 @@ from ._io import (
     remove_tree,
     target,
 )
-from ._jit import njit
-from ._types import Chunks, DEMLike
-from .cluster import compute_told, computing_client
+from .._types import Chunks, DEMLike
+from ..dem import as_dem, cell_size, require_valid_cells
+from ..exceptions import InvalidParameterError
+from ..params import DEFAULT_CHUNK, MAPS, chunks2d
+from ..planners.core import NO_PASSABLE
+from ..runtime.cluster import compute_told, computing_client
+from ..runtime.jit import njit
+from ..store import MAPS_VERSION, attrs_signature, block_writer, open_maps
 from .components import join_tiles, label_tile, relabel_tile
-from .dem import as_dem, cell_size, require_valid_cells
-from .exceptions import InvalidParameterError
 from .landmarks import component_sizes, landmarks_staged, memory_per_landmark
-from .params import DEFAULT_CHUNK, MAPS, chunks2d
-from .planners.core import NO_PASSABLE
 from .ridges import default_min_accumulation, flood_and_solve, tile_accumulation
 from .safety import block_kernel, passable, passable_cells, safety_map
-from .store import MAPS_VERSION, attrs_signature, block_writer, open_maps
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +143,7 @@ def build_maps(
     min_accumulation : int, optional
         Ridge threshold in cells, as :func:`pipeline.ridge_map` (default: a 1 km^2 area).
     landmarks : int
-        Landmark distance layers to store (:mod:`pipeline.landmarks`): the proven lower bound
+        Landmark distance layers to store (:mod:`pipeline.maps.landmarks`): the proven lower bound
         every mission is certified against. 0 stores none (missions are then certified only
         when planned on the whole map).
     chunks : int or (int, int), optional
@@ -375,7 +375,7 @@ def _checked(
 
 def _check_landmark_memory(shape) -> None:
     """Refuse, before any compute, landmark layers whose exact whole-map searches cannot fit:
-    each search holds the map (:func:`pipeline.landmarks.memory_per_landmark`) and would
+    each search holds the map (:func:`pipeline.maps.landmarks.memory_per_landmark`) and would
     otherwise fail only after every other layer was built. A search runs on one dask worker
     (the smallest worker's memory limit counts) or, without a distributed client, two at a
     time in this process (half of this machine's memory each)."""
@@ -434,7 +434,7 @@ class _Tiles:
         """``task(self, bi, bj, shared, writers)`` for every tile, one dask task each (no task
         depends on another: each reads its tiles from the scratch), in the tile grid's order;
         ``shared`` is a dask key (persisted on a cluster). ``tell`` hears of the progress
-        (:func:`pipeline.cluster.compute_told`)."""
+        (:func:`pipeline.runtime.cluster.compute_told`)."""
         return list(
             compute_told(
                 [

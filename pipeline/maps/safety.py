@@ -31,10 +31,10 @@ import xarray as xr
 from llvmlite import ir
 from numba.core.extending import intrinsic
 
-from ._jit import njit
-from .dem import check_dem
-from .exceptions import InvalidParameterError
-from .params import MAPS, check_clearance
+from ..dem import check_dem
+from ..exceptions import InvalidParameterError
+from ..params import MAPS, check_clearance
+from ..runtime.jit import njit
 
 # --------------------------------------------------------------------------- structuring element
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._jit import njit
+from ..runtime.jit import njit
 
 
 @njit(inline="always", cache=True)

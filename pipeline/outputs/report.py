@@ -12,8 +12,8 @@ What it shows, read from the catalog's own files (so it can be written again at 
 
 Layout: ``index.html`` (Leaflet's script and style inlined, the missions' data as JSON inside
 it) and ``report/hillshade.png`` beside it; the mission files are linked where they are. The
-page's template, style and script are ``pipeline/static/report.{html,css,js}``; Leaflet 1.9.4
-ships with the package (``pipeline/static/leaflet``, BSD 2-Clause).
+page's template, style and script are ``pipeline/outputs/static/report.{html,css,js}``;
+Leaflet 1.9.4 ships with the package (``pipeline/outputs/static/leaflet``, BSD 2-Clause).
 """
 
 from __future__ import annotations
@@ -125,7 +125,7 @@ def hillshade(root, maps) -> dict | None:
 
 
 def _hillshade(maps, png: Path) -> dict:
-    """The DEM hillshaded (:func:`pipeline.plots.shaded_relief`), north up, at most
+    """The DEM hillshaded (:func:`pipeline.outputs.plots.shaded_relief`), north up, at most
     ``HILLSHADE_SIDE`` pixels a side; its extent in map metres and its colour scale."""
     import matplotlib.pyplot as plt
 

@@ -21,8 +21,9 @@ NAME = "auv-pipeline-prompt-exit"
 
 
 class PromptExit(WorkerPlugin):
-    """On each worker of a cluster the pipeline starts (:func:`pipeline.cluster.local_cluster`):
-    once the worker has closed, its process skips Python's shutdown."""
+    """On each worker of a cluster the pipeline starts
+    (:func:`pipeline.runtime.cluster.local_cluster`): once the worker has closed, its process
+    skips Python's shutdown."""
 
     idempotent = True
     name = NAME

@@ -4,7 +4,7 @@
 Layout under the catalog directory::
 
     catalog.json                      root catalog
-    index.html, report/hillshade.png  the offline report for a browser (pipeline.report)
+    index.html, report/hillshade.png  the offline report for a browser (pipeline.outputs.report)
     missions/collection.json          the job's Collection; asset missions.parquet
     missions/missions.parquet         one row per mission (LineString, auv: properties)
     missions/<id>/<id>.json           one Item per mission (failed ones too)
@@ -18,7 +18,7 @@ Layout under the catalog directory::
 
 Item geometries are WGS84 longitude/latitude (RFC 7946) when the DEM has a CRS, with the STAC
 projection extension giving the maps' CRS; the file formats are described in
-:mod:`pipeline.exports` and ``docs/flyable-missions.md``.
+:mod:`pipeline.outputs.files` and ``docs/flyable-missions.md``.
 
 A mission's folder is written beside its place and renamed into it when complete, so the
 Item's presence means the mission is finished (a re-run skips it).
@@ -222,7 +222,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
     """Write a mission's files; returns its assets, its geometry and bbox (WGS84 when the DEM
     has a CRS: the waypoint route, or the grid path without a flight) and its flight's
     properties."""
-    from .exports import LONLAT_FILES, PARQUET, to_lonlat, write_grid_path, write_mission_files
+    from .files import LONLAT_FILES, PARQUET, to_lonlat, write_grid_path, write_mission_files
 
     f = traj.flight
     props = {}

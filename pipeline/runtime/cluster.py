@@ -25,13 +25,14 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-from .exceptions import InvalidParameterError, SchedulerError
+from ..exceptions import InvalidParameterError, SchedulerError
 
 LOCAL_WORKERS = 2
 DASHBOARD_PORT = 8787
 
 # Set by the command line without ``-v``: the LocalClusters of :func:`session` leave a failed
-# task's traceback out of stderr (:mod:`pipeline._quiet`; the command prints the error itself)
+# task's traceback out of stderr (:mod:`pipeline.runtime.quiet`; the command prints the error
+# itself)
 QUIET_TASK_ERRORS = False
 
 
@@ -73,7 +74,7 @@ def local_cluster(dashboard_address: str = ":0", workers: int | None = None):
     import dask
     from distributed import LocalCluster
 
-    from ._exit import PromptExit
+    from .exit import PromptExit
 
     key = "distributed.nanny.pre-spawn-environ"
     env = {**dask.config.get(key, {}), **WORKER_ENV}
@@ -219,7 +220,7 @@ def connect(address: str, *, timeout: float | None = None, set_as_default: bool 
     from distributed.comm.addressing import parse_address, parse_host_port
 
     if timeout is None:
-        from .params import env_number
+        from ..params import env_number
 
         timeout = env_number("AUV_PIPELINE_CONNECT_TIMEOUT_S", 30.0, minimum=0.001)
     try:  # before a Client is made: one refused for its address waited 60 s at exit
@@ -468,7 +469,7 @@ def session(scheduler=None, scheduler_file=None, dashboard_address=None, workers
         cluster = local_cluster(dashboard_address or _free_dashboard_address(), n_workers)
         client = Client(cluster, set_as_default=False)
         if QUIET_TASK_ERRORS:
-            from ._quiet import QuietTaskErrors
+            from .quiet import QuietTaskErrors
 
             client.register_plugin(QuietTaskErrors())
     try:

@@ -23,9 +23,9 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._jit import njit
-from ._types import Chunks
-from .params import DEFAULT_CHUNK, GENERATOR_VERSION, SYNTHETIC, chunks2d, shape2d
+from .._types import Chunks
+from ..params import DEFAULT_CHUNK, GENERATOR_VERSION, SYNTHETIC, chunks2d, shape2d
+from ..runtime.jit import njit
 
 _LATTICE = 9  # seamount lattice cells per map side
 

@@ -21,7 +21,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._io import (
+from .._io import (
     GRID_MAPPING,
     atomic_path,
     grid_mapping,
@@ -29,10 +29,10 @@ from ._io import (
     layer_codec,
     store_in_bands,
 )
-from ._jit import njit
-from ._types import Box, Chunks, DEMLike
-from .exceptions import InvalidDEMError, InvalidParameterError, notice
-from .params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
+from .._types import Box, Chunks, DEMLike
+from ..exceptions import InvalidDEMError, InvalidParameterError, notice
+from ..params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
+from ..runtime.jit import njit
 
 log = logging.getLogger(__name__)
 

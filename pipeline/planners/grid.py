@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from ._jit import njit
+from ..runtime.jit import njit
 
 DR = np.array([0, 1, 1, 1, 0, -1, -1, -1], dtype=np.int64)
 DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)

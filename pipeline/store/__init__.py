@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._io import (
+from .._io import (
     exists,
     filesystem,
     is_url,
@@ -35,12 +35,12 @@ from ._io import (
     store_exists,
     unreachable,
 )
-from ._types import Chunks, Maps
+from .._types import Chunks, Maps
 
 if TYPE_CHECKING:
     import xarray as xr
-from .exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
-from .params import LATITUDE, LONGITUDE, PLANNING
+from ..exceptions import InvalidEndpointError, InvalidParameterError, PipelineError
+from ..params import LATITUDE, LONGITUDE, PLANNING
 
 MAPS_VERSION = 1
 LAYERS = ("elevation", "safety", "passable", "accumulation", "ridge")
@@ -600,7 +600,7 @@ class ChunkCache:
         """Bytes kept at most: ``AUV_PIPELINE_CHUNK_CACHE_MB`` (default 1024) MiB, read at
         first use (a bad value is then one line, not an error at import)."""
         if self._budget is None:
-            from .params import env_number
+            from ..params import env_number
 
             self._budget = env_number("AUV_PIPELINE_CHUNK_CACHE_MB", 1024, integer=True) * 2**20
         return self._budget
@@ -828,7 +828,7 @@ class MapsStore:
             self.landmarks = []  # a store built before the landmark layers
         except (TypeError, ValueError):
             raise damaged(path, "its landmarks attribute is malformed") from None
-        from .landmarks import VARIABLE
+        from ..maps.landmarks import VARIABLE
 
         if self.landmarks:
             want = (len(self.landmarks),) + self.shape
@@ -879,7 +879,7 @@ class MapsStore:
     def landmark_distances(self, cell) -> np.ndarray:
         """The distances of ``cell`` from every landmark (metres, ``inf`` where a landmark does
         not reach it): the cell's value in every layer (:meth:`ChunkCache.stack_values`)."""
-        from .landmarks import VARIABLE
+        from ..maps.landmarks import VARIABLE
 
         r, c = int(cell[0]), int(cell[1])
         values = CACHE.stack_values(self.path, VARIABLE, r, c, self.all_chunks_written)
@@ -888,7 +888,7 @@ class MapsStore:
     def landmark_window(self, i: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """Rows ``r0:r1`` and columns ``c0:c1`` of landmark ``i``'s distance layer (read
         directly, not cached: the whole-map search reads large windows once)."""
-        from .landmarks import VARIABLE
+        from ..maps.landmarks import VARIABLE
 
         return CACHE.array(self.path, VARIABLE)[i, r0:r1, c0:c1]
 
@@ -903,9 +903,9 @@ class MapsStore:
 
     def lower_bound(self, start, goal) -> float:
         """A proven lower bound (metres) on the shortest safe path from ``start`` to ``goal``
-        on the whole map: the landmark bound (:func:`pipeline.landmarks.lower_bound`), or 0
+        on the whole map: the landmark bound (:func:`pipeline.maps.landmarks.lower_bound`), or 0
         with no landmark layers."""
-        from .landmarks import lower_bound
+        from ..maps.landmarks import lower_bound
 
         if not self.landmarks:
             return 0.0
@@ -943,7 +943,7 @@ class MapsStore:
             return out
 
         def finish(ds):
-            from .planners.core import check_arrays
+            from ..planners.core import check_arrays
 
             try:  # once: every mission searches these arrays (planners.window.search_window)
                 safety, ridge_cells, passable = check_arrays(
@@ -1182,7 +1182,7 @@ def open_maps(store: str | os.PathLike, chunks: Chunks = "store") -> xr.Dataset:
         if shards is None:
             ds = xr.open_zarr(store, chunks={} if chunks == "store" else chunks, **opts)
         else:  # the layers by their shards; the landmark layers (not sharded) by their chunks
-            from .landmarks import VARIABLE
+            from ..maps.landmarks import VARIABLE
 
             ds = xr.open_zarr(store, chunks=shards, drop_variables=[VARIABLE], **opts)
             if VARIABLE in group:

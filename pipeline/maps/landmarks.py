@@ -66,13 +66,11 @@ import math
 
 import numpy as np
 
-from ._grid8 import DC, DR, flat_offsets, inside
-from ._heap import grown
-from ._io import inner_chunks, layer_codec, storage_chunks
-from ._jit import njit
-from .cluster import compute_told
-from .planners.core import LANDMARK_MARGIN, edge_length
-from .planners.sweep import (
+from .._io import inner_chunks, layer_codec, storage_chunks
+from ..planners.core import LANDMARK_MARGIN, edge_length
+from ..planners.grid import DC, DR, flat_offsets, inside
+from ..planners.heap import grown
+from ..planners.sweep import (
     FIXED_CAP,
     FIXED_UNREACHED,
     IMPASSABLE,
@@ -87,6 +85,8 @@ from .planners.sweep import (
     passable_flat,
     whole_units,
 )
+from ..runtime.cluster import compute_told
+from ..runtime.jit import njit
 
 MIN_COMPONENT_FRACTION = 0.01
 REL_MARGIN = LANDMARK_MARGIN
@@ -325,7 +325,7 @@ def distances_from(surface, passable, a: float, cell) -> np.ndarray:
     ``cell`` to every cell: by the row sweeps of :func:`pipeline.planners.sweep.distances`
     (the same values as :func:`dijkstra`, bit for bit, 12-20x faster at 10000^2), by
     :func:`dijkstra` where they give up (a maze that turns back on itself many times)."""
-    from .planners import sweep
+    from ..planners import sweep
 
     surface = np.ascontiguousarray(surface)
     if surface.dtype != np.float32:
@@ -379,7 +379,7 @@ def layer_distances(surface, passable, a: float, cell):
     The row sweeps compute it, or Dijkstra's algorithm where they give up; where a distance
     reaches the cap (a maze whose paths run more than four times round the map), again in
     units 16 times as long, down to :data:`CAPPED_BITS`."""
-    from .planners import sweep
+    from ..planners import sweep
 
     r, c = int(cell[0]), int(cell[1])
     if isinstance(surface, Quantised):
@@ -581,7 +581,7 @@ def _layers_task(store: str, items: list, a: float) -> None:
     as a quantised surface (:func:`quantised_surface`, 2 bytes a cell)."""
     import zarr
 
-    from .store import block_writer
+    from ..store import block_writer
 
     g = zarr.open_group(store, mode="r", zarr_format=3)
     surface, mask = quantised_surface(store, g), None
@@ -622,7 +622,7 @@ def _return_freed_memory() -> None:
 def search_slots() -> int:
     """How many landmark searches run at once: the worker threads of the distributed client
     dask computes on, else two (this process's threads, half of its memory each)."""
-    from .cluster import computing_client
+    from ..runtime.cluster import computing_client
 
     client = computing_client()
     if client is None:
@@ -646,7 +646,7 @@ def whole_layer(store: str, group, var: str, rows=None) -> np.ndarray:
     1.71 s through zarr, the passable mask 0.10 s against 0.64 s), else through zarr. One row
     of shards is mapped at a time (the mapped pages count in the process's memory: the whole
     layer mapped at once made its copy's peak twice the layer)."""
-    from .store import MappedLayer
+    from ..store import MappedLayer
 
     arr = group[var]
     r0, r1 = rows if rows is not None else (0, arr.shape[0])

@@ -23,12 +23,12 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from ._jit import njit
-from ._types import Maps, PathLike
+from .._types import Maps, PathLike
+from ..runtime.jit import njit
 
 if TYPE_CHECKING:
-    from .flight import Flight
-    from .planners.core import Trajectory
+    from ..flight import Flight
+    from ..planners.core import Trajectory
 
 PARQUET = "application/vnd.apache.parquet"
 # the files that need latitudes and longitudes: not written for a DEM without a CRS
@@ -599,9 +599,9 @@ def write_mission(
     import dataclasses
     import json
 
-    from ._io import STORE_MARKS, atomic_path, has_scheme
-    from .exceptions import InvalidParameterError
-    from .store import open_store
+    from .._io import STORE_MARKS, atomic_path, has_scheme
+    from ..exceptions import InvalidParameterError
+    from ..store import open_store
 
     if has_scheme(str(folder)):
         raise InvalidParameterError(f"{folder}: mission files are written to a local folder")

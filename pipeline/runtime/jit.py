@@ -17,7 +17,7 @@ file lock (numba issue 10128); numba 0.68 has none. Here every save holds an exc
 data. Loading needs no lock: numba writes both files whole and renames them into place.
 
 numba also keys a kernel's cached machine code by its own source file only: a kernel that
-calls or inlines a function of another module (``pipeline.landmarks``' searches take the
+calls or inlines a function of another module (``pipeline.maps.landmarks``' searches take the
 heights through ``pipeline.planners.sweep``'s overloads) kept the old code of that function
 after its module changed, until its own file changed too. Here the stamp numba keeps with the
 cache of each kernel under :data:`ROOTS` (the package) also holds the content of every module
@@ -47,7 +47,7 @@ __all__ = ["njit"]
 LOCK_NAME = "auv-pipeline-numba.lock"  # in each cache directory the package's kernels use
 
 # the directories whose kernels' cache stamps follow their imports (:func:`dependencies`)
-ROOTS = [os.path.dirname(os.path.abspath(__file__))]
+ROOTS = [os.path.dirname(os.path.dirname(os.path.abspath(__file__)))]
 
 
 @contextlib.contextmanager

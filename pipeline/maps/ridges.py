@@ -47,15 +47,15 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ._grid8 import DC, DIST, DR, flat_offsets, inside
-from ._heap import grown
-from ._io import load_tile, load_window, save_tile, tile_array
-from ._jit import njit
-from ._threads import shared_pool
-from .cluster import compute_told
-from .dem import cell_size as _cell_size
-from .dem import check_dem, require_valid_cells
-from .params import MAPS
+from .._io import load_tile, load_window, save_tile, tile_array
+from ..dem import cell_size as _cell_size
+from ..dem import check_dem, require_valid_cells
+from ..params import MAPS
+from ..planners.grid import DC, DIST, DR, flat_offsets, inside
+from ..planners.heap import grown
+from ..runtime.cluster import compute_told
+from ..runtime.jit import njit
+from ..runtime.threads import shared_pool
 
 OUTLET = -1
 

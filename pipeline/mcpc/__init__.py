@@ -40,15 +40,10 @@ from numbers import Integral
 
 import numpy as np
 
-from ._inbox import Inbox, post
-from ._jit import njit
-from ._share import Claims, ThreadClaims, split
-from ._threads import cores, shared_pool
-from ._types import Cell, ClientLike, Maps, Pair
-from .cluster import get_client
-from .exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
-from .params import CELL_SIZE, PLANNING, check_planner
-from .planners.core import (
+from .._types import Cell, ClientLike, Maps, Pair
+from ..exceptions import InvalidParameterError, PipelineError, UnreachableGoalError
+from ..params import CELL_SIZE, PLANNING, check_planner
+from ..planners.core import (
     NO_PASSABLE,
     Trajectory,
     check_arrays,
@@ -58,9 +53,14 @@ from .planners.core import (
     off_map_error,
     path_metrics,
 )
-from .planners.registry import PLANNERS
-from .planners.window import search_path, search_window
-from .store import MapsStore, open_store
+from ..planners.registry import PLANNERS
+from ..planners.window import search_path, search_window
+from ..runtime.cluster import get_client
+from ..runtime.inbox import Inbox, post
+from ..runtime.jit import njit
+from ..runtime.share import Claims, ThreadClaims, split
+from ..runtime.threads import cores, shared_pool
+from ..store import MapsStore, open_store
 
 __all__ = [
     "CERTIFY_TOLERANCE",
@@ -470,8 +470,9 @@ def _shared_batch(
     inbox: str | None = None,
 ) -> list:
     """Run ``me`` of ``sections`` (split at ``bounds``) in one task, then sections left in
-    the other runs, taken from their backs (:mod:`pipeline._share`): ``(index, result)``
-    pairs, also posted to ``inbox`` (:mod:`pipeline._inbox`; on an error, a note saying so)."""
+    the other runs, taken from their backs (:mod:`pipeline.runtime.share`): ``(index,
+    result)`` pairs, also posted to ``inbox`` (:mod:`pipeline.runtime.inbox`; on an error, a
+    note saying so)."""
     out = []
     checked = _checked(store, planner, omega)
     try:
@@ -550,8 +551,9 @@ def _read_windows(store: MapsStore, windows: list, futures: list) -> None:
 def _threaded(store: MapsStore, sections: list, planner: str, omega: float) -> list:
     """In this process (``client="threads"``): ``sections`` split into one run of consecutive
     sections per core, this thread planning the first and helper threads the others
-    (:func:`pipeline._threads.shared_pool` ``"sections"``), each taking sections left in the
-    others' runs from their backs once its own is done (:class:`pipeline._share.ThreadClaims`);
+    (:func:`pipeline.runtime.threads.shared_pool` ``"sections"``), each taking sections left
+    in the others' runs from their backs once its own is done
+    (:class:`pipeline.runtime.share.ThreadClaims`);
     the searches release the GIL. A helper that has not started when this thread finds
     nothing left (the pool busy with another mission's sections, ``plan_missions``) is
     cancelled: its run was taken by the others. In a dask worker, one thread plans them all
@@ -583,10 +585,10 @@ def _threaded(store: MapsStore, sections: list, planner: str, omega: float) -> l
 def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -> list:
     """Plan ``sections``; on a cluster as one task per worker thread, each a run of
     consecutive sections (they share chunks, which the worker then decodes once) that, once
-    done, takes sections left in the other runs (:mod:`pipeline._share`). Measured on 2
+    done, takes sections left in the other runs (:mod:`pipeline.runtime.share`). Measured on 2
     workers (benchmarks/RESULTS.md, "One mission"): two tasks per thread cost 30-40 % more
     than one per thread (more round trips, and chunks decoded by both workers). The tasks'
-    results come through a queue on the scheduler (:mod:`pipeline._inbox`), sooner than
+    results come through a queue on the scheduler (:mod:`pipeline.runtime.inbox`), sooner than
     through their futures, which are gathered when the queue cannot serve. In one process a
     :class:`_ReadAhead` of the mission plans its first run with the windows it read."""
     if isinstance(client, _ReadAhead):
@@ -640,7 +642,7 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
 # The worker threads of a client's cluster, asked of the scheduler at most once a second per
 # client: asking is a round trip before the mission's tasks can go (0.85 ms of a 23 ms mission
 # at 2000^2). A count that is a second old is harmless: with fewer threads than tasks the
-# tasks run in turn, each its own run (pipeline._share); with more, some stay idle.
+# tasks run in turn, each its own run (pipeline.runtime.share); with more, some stay idle.
 SLOTS_SECONDS = 1.0
 _SLOTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -840,7 +842,7 @@ def plan(
         The largest map (rows x cols) on which an uncertified MCPC path is planned again on
         the whole map; 0 never does.
     client : None, "synchronous", "threads", scheduler address or distributed.Client
-        Where the sections run (see :func:`pipeline.cluster.get_client`). None: the dask
+        Where the sections run (see :func:`pipeline.runtime.cluster.get_client`). None: the dask
         client this process made current, if there is one, else this process's threads (no
         cluster is started for one mission: a plain script needs no main guard).
 
@@ -877,7 +879,7 @@ def plan(
         ).items()
         if v is not None
     }
-    from .missions import endpoint_cells
+    from ..missions import endpoint_cells
 
     ends = endpoint_cells(m, given)  # as a job file gives them
     start, goal = _check_endpoints(m, ends["start"], ends["goal"])

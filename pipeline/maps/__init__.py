@@ -1,0 +1,4 @@
+"""Stage 2, the maps: the safety surface and the passable cells (:mod:`.safety`), the ridge
+lines from flow accumulation (:mod:`.ridges`), the connected components (:mod:`.components`),
+the landmark distance layers of the proven lower bound (:mod:`.landmarks`), and the staged,
+chunk-wise build that writes them all to a maps store (:mod:`.build`)."""
