@@ -55,7 +55,7 @@ def run_side(client, n: int, k: int, procs=()) -> dict:
     import pyastar2d
 
     import pipeline
-    from pipeline.store import open_store
+    from pipeline.store.maps_store import open_store
 
     m = open_store(maps_store(n))
     # read past the chunk cache of this process, which plans the missions: through it, every

@@ -54,9 +54,9 @@ _LAZY = {
     "ridge_map": "maps.ridges",
     "passable": "maps.safety",
     "safety_map": "maps.safety",
-    "MapsStore": "store",
-    "open_maps": "store",
-    "open_store": "store",
+    "MapsStore": "store.maps_store",
+    "open_maps": "store.maps_store",
+    "open_store": "store.maps_store",
     "synthetic_dem": "dem.synthetic",
 }
 

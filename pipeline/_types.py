@@ -11,7 +11,7 @@ if TYPE_CHECKING:
     from distributed import Client
 
     from .flight import Vehicle
-    from .store import MapsStore
+    from .store.maps_store import MapsStore
 
 # a file or store: a path, or for stores a URL (s3://...)
 PathLike = str | os.PathLike

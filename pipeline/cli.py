@@ -251,10 +251,10 @@ def dem_info(path):
 def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, workers, **params):
     """Build the maps store OUT (elevation, safety, passable, accumulation, ridge, component,
     landmark distances) from the DEM at DEM_PATH."""
-    from ._io import is_url, require_writable
     from .dem import open_dem
     from .maps.build import build_maps, check_build_arguments
     from .runtime.cluster import session
+    from .store.paths import is_url, require_writable
 
     with _errors():
         t0 = time.perf_counter()

@@ -48,7 +48,6 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ._io import TEMPORARY, has_scheme
 from ._types import ClientLike
 from .exceptions import (
     CatalogBusyError,
@@ -77,6 +76,7 @@ from .params import (
     endpoint_key,
     shape2d,
 )
+from .store.paths import TEMPORARY, has_scheme
 
 log = logging.getLogger(__name__)
 
@@ -526,7 +526,7 @@ class JobResult:
 def _report(job: Job, maps_store: Path) -> Path:
     """The catalog's offline report, ``index.html`` (:mod:`pipeline.outputs.report`)."""
     from .outputs.report import write_report
-    from .store import open_store
+    from .store.maps_store import open_store
 
     maps = open_store(maps_store) if (maps_store / "zarr.json").exists() else None
     path = write_report(
@@ -631,8 +631,8 @@ def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
     """What the catalog of ``job`` holds that this tool made and the job no longer uses: DEM
     and maps stores (this tool's, by their mark) other than ``dem_store`` and ``maps_store``,
     and mission folders (each with its Item) of missions no longer in the job."""
-    from ._io import own_store
     from .outputs.catalog import COLLECTION, mission_id
+    from .store.paths import own_store
 
     out = []
     for kind, pattern, keep in (
@@ -940,7 +940,7 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
     """Plan the missions not finished yet (or changed since; ``missions`` as
     :func:`_sorted_missions` gives them), writing each as it ends."""
     from .missions import failed_trajectory, plan_missions
-    from .store import open_store
+    from .store.maps_store import open_store
 
     maps = open_store(maps_store)
     res.crs_wkt = maps.crs_wkt

@@ -33,7 +33,7 @@ from .planners.core import Trajectory
 from .runtime.cluster import IN_PROCESS, get_client
 from .runtime.jit import njit
 from .runtime.threads import cores
-from .store import open_store
+from .store.maps_store import open_store
 
 log = logging.getLogger(__name__)
 

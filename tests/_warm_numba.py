@@ -23,18 +23,26 @@ test processes 75 s of compilation in a fresh clone. Any other test that needs a
 being compiled here compiles it itself: numba's cache takes both (pipeline.runtime.jit).
 """
 
+import atexit
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
+half, marks = sys.argv[1], Path(sys.argv[2])
+work = marks / "work"
+# every mark this half writes is written however it ends (an error in a step, or a failed
+# import): a test process waits for its mark, and compiles what it needs itself once it is there
+atexit.register(
+    lambda: [
+        (marks / m).touch() for m in (("first", "tests", "pysheds"), ("library",))[half != "first"]
+    ]
+)
 
 from conftest import compile_test_kernels  # noqa: E402
 
 from pipeline.runtime.warmup import HALVES, compile_parts, ensure_compiled, mark_compiled  # noqa: E402
 
-half, marks = sys.argv[1], Path(sys.argv[2])
-work = marks / "work"
 if half == "first":
     try:
         compile_parts(work, HALVES[0])

@@ -51,12 +51,12 @@ def test_no_private_name_of_another_module(path):
 def test_the_check_sees_private_names():
     src = (
         "from ..mcpc import _grow\nfrom .core import _trace, Search\nimport pipeline\n"
-        "pipeline.store._STORES\nfrom numpy import _core\n"
+        "pipeline.store.maps_store._STORES\nfrom numpy import _core\n"
     )
     assert [w for _, w in _private_uses(src, ("pipeline", "planners"))] == [
         "from pipeline.mcpc import _grow",
         "from pipeline.planners.core import _trace",
-        "pipeline.store._STORES",
+        "pipeline.store.maps_store._STORES",
     ]
 
 

@@ -24,7 +24,7 @@ from test_planners import reference_graph
 import pipeline
 from pipeline.maps import landmarks as lm
 from pipeline.maps.components import label_components
-from pipeline.store import MapsStore
+from pipeline.store.maps_store import MapsStore
 
 EXE = Path(sys.executable).parent / "pipeline"
 # the landmarks' Dijkstra on float64 heights: the test kernels of the warm-up (conftest)

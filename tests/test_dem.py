@@ -670,7 +670,7 @@ def test_a_banded_write_equals_the_whole_and_reads_each_block_once(scheduler):
     import zarr
     from scipy import ndimage
 
-    from pipeline._io import store_in_bands
+    from pipeline.store.bands import store_in_bands
 
     x = np.random.default_rng(4).normal(size=(301, 201)).astype(np.float32)
     ref = ndimage.maximum_filter(x, size=3, mode="nearest")
@@ -699,7 +699,7 @@ def test_a_banded_write_holds_about_a_band():
     import zarr
     from dask.callbacks import Callback
 
-    from pipeline._io import store_in_bands
+    from pipeline.store.bands import store_in_bands
 
     x = np.random.default_rng(5).normal(size=(1000, 400))
     row = 400 * 50 * 8
@@ -731,8 +731,8 @@ def test_a_reprojection_written_in_bands_reads_each_source_chunk_once(tmp_path, 
     from pyproj import CRS
     from rasterio.warp import calculate_default_transform
 
-    from pipeline._io import store_in_bands
     from pipeline.dem import exact_warp
+    from pipeline.store.bands import store_in_bands
 
     n = 1024
     lon = -60.0 + (np.arange(n) + 0.5) * 0.004

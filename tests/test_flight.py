@@ -1048,7 +1048,7 @@ def test_a_lost_corridor_chunk_is_one_line_naming_it(ridge_store, tmp_path, laye
     import shutil
 
     from pipeline.exceptions import PipelineError
-    from pipeline.store import CACHE
+    from pipeline.store.cache import CACHE
 
     path, ok, *_ = ridge_store
     copy = tmp_path / "maps.zarr"

@@ -257,7 +257,7 @@ def test_scratch_windows_across_tiles_equal_the_map_sliced(tmp_path, where):
     """A window of any size read from the build's scratch tiles (local files memory-mapped,
     or on an fsspec filesystem by row ranges, C- or Fortran-ordered tiles) equals the whole
     map sliced: windows inside one tile, across tiles one cell wide, and the whole map."""
-    from pipeline._io import load_window, save_tile
+    from pipeline.maps.scratch import load_window, save_tile
 
     rng = np.random.default_rng(7)
     z = rng.normal(size=(23, 17)).astype(np.float32)

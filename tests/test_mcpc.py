@@ -555,7 +555,7 @@ def test_a_coarse_level_that_does_not_hold_together_is_damage(store, tmp_path):
     copy = tmp_path / "maps.zarr"
     shutil.copytree(store, copy)
     rho = SMALL["rho"]
-    pipeline.store.MapsStore(copy).coarse(rho)  # written into the copy
+    pipeline.store.maps_store.MapsStore(copy).coarse(rho)  # written into the copy
     group = zarr.open_group(copy / f"coarse-rho{rho}", mode="r+")
     ok = group["passable"][...]
     r, c = np.argwhere(ok)[len(np.argwhere(ok)) // 2]
@@ -564,7 +564,9 @@ def test_a_coarse_level_that_does_not_hold_together_is_damage(store, tmp_path):
     group["safety"][...] = safety
     with pytest.raises(pipeline.PipelineError, match=rf"damaged: its coarse level coarse-rho{rho}"):
         # a new MapsStore: the one open_store keeps has the level in memory, checked
-        pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client="synchronous", **SMALL)
+        pipeline.plan(
+            pipeline.store.maps_store.MapsStore(copy), **MISSION, client="synchronous", **SMALL
+        )
 
 
 @pytest.mark.parametrize("rho", [4, 7])
@@ -576,11 +578,11 @@ def test_the_coarse_level_is_the_block_means_of_the_fine_maps(store, arrays, tmp
     MapsStore (as in another process) equal."""
     import shutil
 
-    from pipeline.store import COARSE_RIDGE_FRACTION
+    from pipeline.store.schema import COARSE_RIDGE_FRACTION
 
     copy = tmp_path / "maps.zarr"
     shutil.copytree(store, copy)
-    co = pipeline.store.MapsStore(copy).coarse(rho)
+    co = pipeline.store.maps_store.MapsStore(copy).coarse(rho)
     n = -(-240 // rho)
     want = {k: np.full((n, n), np.nan) for k in ("safety", "ridge", "passable")}
     for i in range(n):
@@ -597,7 +599,7 @@ def test_the_coarse_level_is_the_block_means_of_the_fine_maps(store, arrays, tmp
     np.testing.assert_array_equal(co["ridge_cells"], want["ridge"] >= COARSE_RIDGE_FRACTION)
     assert co["safety"].dtype == np.float32 and co["passable"].dtype == bool
     assert 0 < co["passable"].sum() < n * n and co["ridge_cells"].any()
-    again = pipeline.store.MapsStore(copy).coarse(rho)  # read from the store this time
+    again = pipeline.store.maps_store.MapsStore(copy).coarse(rho)  # read from the store this time
     for key, value in co.items():
         np.testing.assert_array_equal(again[key], value)
         assert again[key].dtype == value.dtype
@@ -1035,7 +1037,7 @@ def test_a_nan_height_at_a_passable_cell_fails_the_section_with_the_reason(
     with pytest.raises(
         pipeline.UnreachableGoalError, match=r"NaN or infinite at passable cell"
     ) as err:
-        pipeline.plan(pipeline.store.MapsStore(copy), **MISSION, client=run_on, **SMALL)
+        pipeline.plan(pipeline.store.maps_store.MapsStore(copy), **MISSION, client=run_on, **SMALL)
     assert "\n" not in str(err.value)
 
 

@@ -810,7 +810,7 @@ def test_the_reports_hillshade_is_drawn_once_per_maps_store(tmp_path, stores):
     """A second report on the same maps store reuses the picture the first drew (the same
     pixels as one drawn anew); another store, or a note that does not read, draws it again."""
     from pipeline.outputs.report import hillshade
-    from pipeline.store import open_store
+    from pipeline.store.maps_store import open_store
 
     src = next(stores.glob("maps-*.zarr"))
     maps = open_store(src)

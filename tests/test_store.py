@@ -13,9 +13,8 @@ from conftest import metric_dataarray, random_surface
 from zarr.codecs import BloscCodec, GzipCodec, ZstdCodec
 
 import pipeline
-from pipeline.store import (
-    CACHE,
-    ChunkCache,
+from pipeline.store.cache import CACHE, ChunkCache
+from pipeline.store.zarr_direct import (
     MappedLayer,
     ShardWriter,
     ZarrBlockWriter,
@@ -200,7 +199,7 @@ def test_shard_files_stay_open_within_a_bound_while_threads_read_them(tmp_path, 
     import os
     from concurrent.futures import ThreadPoolExecutor
 
-    monkeypatch.setattr("pipeline.store.OPEN_FILES", 1)
+    monkeypatch.setattr("pipeline.store.zarr_direct.OPEN_FILES", 1)
     rng = np.random.default_rng(9)
     data = rng.normal(size=(512, 512)).astype(np.float32)
     _array(tmp_path / "a", data, (32, 32), CODECS["blosc-lz4-shuffle"], shards=(128, 128))
@@ -341,7 +340,7 @@ def test_a_bad_shard_index_is_damage_not_a_traceback(tmp_path, codec):
 def test_mapped_shards_stay_within_a_bound_and_their_chunks_go_with_them(tmp_path, monkeypatch):
     """A mapped layer keeps at most MAPPED_SHARDS shards mapped; the chunk views of a shard it
     unmaps go with it, and windows across every shard still equal zarr's reads."""
-    import pipeline.store as store_mod
+    import pipeline.store.zarr_direct as store_mod
 
     monkeypatch.setattr(store_mod, "MAPPED_SHARDS", 2)
     data = _sharded_layer(tmp_path, codec="none")  # 40 x 40, shards 16^2 of inner chunks 8^2
@@ -403,7 +402,7 @@ def test_a_store_rebuilt_in_place_is_not_read_through_old_chunks(tmp_path):
 def test_a_local_store_keeps_the_window_layers_uncompressed_and_reads_them_mapped(tmp_path):
     """build_maps writes safety, ridge and passable without a compressor in a local store (the
     other layers compressed); their windows, copied from the mapped shards, equal zarr's."""
-    from pipeline._io import WINDOW_LAYERS
+    from pipeline.store.schema import WINDOW_LAYERS
 
     path = _maps_of(random_surface((70, 45), seed=4) * 400.0, tmp_path)
     group = zarr.open_group(path, mode="r")
@@ -428,7 +427,7 @@ def test_values_at_cells_equal_zarr_in_mapped_and_compressed_layers(tmp_path):
     the passable layer) against zarr's whole layer, at random cells and at the corners of the
     last chunks (one cell wide: 70 x 49 in chunks of 16), for the mapped, uncompressed layers
     and the compressed ones read through the chunk cache."""
-    from pipeline._io import WINDOW_LAYERS
+    from pipeline.store.schema import WINDOW_LAYERS
 
     path = _maps_of(random_surface((70, 49), seed=6) * 400.0, tmp_path)
     group = zarr.open_group(path, mode="r")
@@ -485,7 +484,7 @@ def test_overview_is_the_block_mean_of_the_elevation_and_any_ridge(tmp_path, fac
             assert ov["ridge"][i, j] == rb.any()
     assert np.isnan(ov["elevation"]).any() and ov["ridge"].any()
     # written into the store once: a new process (a fresh MapsStore) reads the same arrays
-    again = pipeline.store.MapsStore(str(path)).overview(factor)
+    again = pipeline.store.maps_store.MapsStore(str(path)).overview(factor)
     np.testing.assert_array_equal(again["elevation"], ov["elevation"])
     assert (path / f"overview-f{factor}" / "zarr.json").is_file()
 

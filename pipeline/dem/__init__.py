@@ -21,18 +21,13 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from .._io import (
-    GRID_MAPPING,
-    atomic_path,
-    grid_mapping,
-    has_scheme,
-    layer_codec,
-    store_in_bands,
-)
 from .._types import Box, Chunks, DEMLike
 from ..exceptions import InvalidDEMError, InvalidParameterError, notice
 from ..params import CELL_SIZE, DEFAULT_CHUNK, DEM, check_region, chunks2d
 from ..runtime.jit import njit
+from ..store.bands import store_in_bands
+from ..store.paths import atomic_path, has_scheme
+from ..store.schema import GRID_MAPPING, grid_mapping, layer_codec
 
 log = logging.getLogger(__name__)
 

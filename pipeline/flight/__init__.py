@@ -1330,7 +1330,7 @@ class Corridor:
     bytes)."""
 
     def __init__(self, m, cells: np.ndarray, pad: int):
-        from ..store import CACHE
+        from ..store.cache import CACHE
 
         rows, cols = m.shape
         tr, tc = (int(v) for v in CACHE.array(m.path, "elevation").chunks)
@@ -1407,7 +1407,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
     (True, 41)
     """
-    from ..store import open_store
+    from ..store.maps_store import open_store
 
     t0 = time.perf_counter()
     m = open_store(maps)

@@ -38,19 +38,6 @@ import numpy as np
 import xarray as xr
 import zarr
 
-from .._io import (
-    GRID_MAPPING,
-    WINDOW_LAYERS,
-    check_replaceable,
-    grid_mapping,
-    is_url,
-    layer_encoding,
-    load_window,
-    location,
-    remove_settled,
-    remove_tree,
-    target,
-)
 from .._types import Chunks, DEMLike
 from ..dem import as_dem, cell_size, require_valid_cells
 from ..exceptions import InvalidParameterError
@@ -58,11 +45,22 @@ from ..params import DEFAULT_CHUNK, MAPS, chunks2d
 from ..planners.core import NO_PASSABLE
 from ..runtime.cluster import compute_told, computing_client
 from ..runtime.jit import njit
-from ..store import MAPS_VERSION, attrs_signature, block_writer, open_maps
+from ..store.maps_store import open_maps
+from ..store.paths import check_replaceable, is_url, location, remove_settled, remove_tree, target
+from ..store.schema import (
+    GRID_MAPPING,
+    MAPS_VERSION,
+    WINDOW_LAYERS,
+    attrs_signature,
+    grid_mapping,
+    layer_encoding,
+)
+from ..store.zarr_direct import block_writer
 from .components import join_tiles, label_tile, relabel_tile
 from .landmarks import component_sizes, landmarks_staged, memory_per_landmark
 from .ridges import default_min_accumulation, flood_and_solve, tile_accumulation
 from .safety import block_kernel, passable, passable_cells, safety_map
+from .scratch import load_window
 
 log = logging.getLogger(__name__)
 
@@ -498,8 +496,9 @@ def _create(layers: dict, dem: xr.DataArray, path, ch, *, mode: str = "w") -> tu
     """Create the 2-D ``layers`` (each a DataArray on the DEM's grid, or ``(dtype, attrs)``)
     in the Zarr store ``path`` (``mode`` "w": a new store; "a": layers added) in blocks of
     ``ch``, with no values yet (xarray writes the metadata and the coordinates); return
-    their block writers (:func:`pipeline.store.block_writer`: the bytes zarr writes, in half
-    its time for a 1024^2 float32 shard and a fifth for a bool one), in ``layers``' order."""
+    their block writers (:func:`pipeline.store.zarr_direct.block_writer`: the bytes zarr
+    writes, in half its time for a 1024^2 float32 shard and a fifth for a bool one), in
+    ``layers``' order."""
     ds = xr.Dataset(coords=dem.coords)
     mapping = grid_mapping(dem.attrs.get("crs_wkt"))
     if mapping is not None and mode == "w":

@@ -23,8 +23,8 @@ import dask.array as da
 import numpy as np
 from scipy import ndimage
 
-from .._io import load_tile, save_tile
 from ..runtime.jit import njit
+from .scratch import load_tile, save_tile
 
 CROSS = ndimage.generate_binary_structure(2, 1)
 

@@ -66,7 +66,6 @@ import math
 
 import numpy as np
 
-from .._io import inner_chunks, layer_codec, storage_chunks
 from ..planners.core import LANDMARK_MARGIN, edge_length
 from ..planners.grid import DC, DR, flat_offsets, inside
 from ..planners.heap import grown
@@ -87,6 +86,7 @@ from ..planners.sweep import (
 )
 from ..runtime.cluster import compute_told
 from ..runtime.jit import njit
+from ..store.schema import inner_chunks, layer_codec, storage_chunks
 
 MIN_COMPONENT_FRACTION = 0.01
 REL_MARGIN = LANDMARK_MARGIN
@@ -581,7 +581,7 @@ def _layers_task(store: str, items: list, a: float) -> None:
     as a quantised surface (:func:`quantised_surface`, 2 bytes a cell)."""
     import zarr
 
-    from ..store import block_writer
+    from ..store.zarr_direct import block_writer
 
     g = zarr.open_group(store, mode="r", zarr_format=3)
     surface, mask = quantised_surface(store, g), None
@@ -646,7 +646,7 @@ def whole_layer(store: str, group, var: str, rows=None) -> np.ndarray:
     1.71 s through zarr, the passable mask 0.10 s against 0.64 s), else through zarr. One row
     of shards is mapped at a time (the mapped pages count in the process's memory: the whole
     layer mapped at once made its copy's peak twice the layer)."""
-    from ..store import MappedLayer
+    from ..store.zarr_direct import MappedLayer
 
     arr = group[var]
     r0, r1 = rows if rows is not None else (0, arr.shape[0])

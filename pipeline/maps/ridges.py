@@ -47,7 +47,6 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from .._io import load_tile, load_window, save_tile, tile_array
 from ..dem import cell_size as _cell_size
 from ..dem import check_dem, require_valid_cells
 from ..params import MAPS
@@ -56,6 +55,7 @@ from ..planners.heap import grown
 from ..runtime.cluster import compute_told
 from ..runtime.jit import njit
 from ..runtime.threads import shared_pool
+from .scratch import load_tile, load_window, save_tile, tile_array
 
 OUTLET = -1
 
@@ -1030,7 +1030,7 @@ def ridge_map(
 # --------------------------------------------------------------------------- staged build
 # For maps built into a store (build_maps), each tile is filled once: its local fill and, for
 # every cell, the index of its label in the tile's perimeter list go to scratch tiles, one file
-# a tile and layer (:func:`pipeline._io.save_tile`).
+# a tile and layer (:func:`pipeline.maps.scratch.save_tile`).
 # The flow pass finishes the fill elementwise (max(local fill, spill[label])) on a tile plus
 # a one-cell halo, takes its D8 codes and flow summary, and stores the codes as scratch tiles
 # too; the accumulation pass reads a tile's codes alone. No tile is filled twice, and

@@ -60,7 +60,7 @@ from ..runtime.inbox import Inbox, post
 from ..runtime.jit import njit
 from ..runtime.share import Claims, ThreadClaims, split
 from ..runtime.threads import cores, shared_pool
-from ..store import MapsStore, open_store
+from ..store.maps_store import MapsStore, open_store
 
 __all__ = [
     "CERTIFY_TOLERANCE",
@@ -806,7 +806,7 @@ def plan(
     ----------
     maps : path, xarray.Dataset or MapsStore
         A maps store (:func:`pipeline.build_maps`), the Dataset :func:`pipeline.open_maps`
-        returned for it, or its :class:`pipeline.store.MapsStore`.
+        returned for it, or its :class:`pipeline.store.maps_store.MapsStore`.
     start, goal : (row, col)
         Fine cells; or, instead of either, as a job file gives them:
     start_xy, goal_xy : (x, y)

@@ -599,9 +599,9 @@ def write_mission(
     import dataclasses
     import json
 
-    from .._io import STORE_MARKS, atomic_path, has_scheme
     from ..exceptions import InvalidParameterError
-    from ..store import open_store
+    from ..store.maps_store import open_store
+    from ..store.paths import STORE_MARKS, atomic_path, has_scheme
 
     if has_scheme(str(folder)):
         raise InvalidParameterError(f"{folder}: mission files are written to a local folder")

@@ -272,7 +272,7 @@ def _widen(store: Path, t) -> None:
     """The kernels of corners too close for the turn radius (``widen_turns``), which the tiny
     mission's flight may not meet: its grid path's corners with a radius of 10 cells."""
     from ..flight import Corridor, widen_turns
-    from ..store import open_store
+    from ..store.maps_store import open_store
 
     m = open_store(store)
     cells = np.asarray(t.cells, dtype=np.int64)

@@ -1,0 +1,134 @@
+"""The maps store's format, written down once: its version, its layers, the attributes whose
+signature proves the store complete and unchanged, and how its layers are chunked and
+compressed.
+
+A maps store is a Zarr v3 group: one 2-D array a layer (``elevation``, ``safety``,
+``passable``, ``accumulation``, ``ridge``, ``component``; ``landmark_distance`` is 3-D), every
+layer sharded by the store's chunks into inner chunks of at most :data:`INNER_CHUNK` cells a
+side, the CRS as a CF grid-mapping variable (``spatial_ref``), and the build's parameters,
+the DEM's content hash and a signature of them in the group's attributes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..exceptions import PipelineError
+
+if TYPE_CHECKING:
+    pass
+
+
+MAPS_VERSION = 1
+
+
+LAYERS = ("elevation", "safety", "passable", "accumulation", "ridge")
+
+
+_SIGNED = ("maps_version", "parameters", "cell_size", "dem_hash", "crs_wkt", "all_chunks_written")
+
+
+def attrs_signature(attrs: dict) -> str:
+    """A hash of the attributes that define what a maps store holds: a store whose attributes
+    were edited after it was built no longer matches it."""
+    what = {k: attrs.get(k) for k in _SIGNED}
+    if "landmarks" in attrs:  # stores built before the landmark layers have none
+        what["landmarks"] = attrs["landmarks"]
+    return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def damaged(path, what: str) -> PipelineError:
+    return PipelineError(
+        f"maps store {path} is damaged: {what}; rebuild it (build_maps overwrite=True, "
+        "`pipeline build-maps --overwrite`, or `pipeline run --overwrite`)"
+    )
+
+
+COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine cells are
+
+
+def layer_codec():
+    """The codec of every Zarr layer the pipeline keeps (DEM stores, maps layers, landmark
+    distances): blosc LZ4 with byte shuffle. Builds read the DEM several times and missions
+    read windows of the maps layers and the landmark chunks at both ends. Measured on 1024^2
+    float32 blocks of the benchmark maps: synthetic elevation decodes 3.3x faster than with
+    zarr's default (zstd level 0: 0.87 ms against 2.88), encodes 4.5x faster and compresses
+    more (1.74:1 against 1.24:1); landmark distances decode 5.2x faster than with blosc zstd
+    and bit shuffle (0.68 ms against 3.53) at the same ratio (2.88:1)."""
+    from zarr.codecs import BloscCodec
+
+    return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
+
+
+INNER_CHUNK = 256  # the largest side of a maps layer's inner chunk (the unit a window reads)
+
+
+def inner_chunks(chunks, largest: int = INNER_CHUNK) -> tuple[int, ...]:
+    """The inner chunk of a maps layer whose shards are ``chunks``: on each side the largest
+    divisor of the shard's side that is at most ``largest`` (:data:`INNER_CHUNK`: 1024 -> 256,
+    300 -> 150, 89 -> 89)."""
+    return tuple(
+        next(d for d in range(min(int(c), largest), 0, -1) if int(c) % d == 0) for c in chunks
+    )
+
+
+# The layers a mission's sections read window by window. In a local store they are kept
+# uncompressed: a window is then copied straight out of the shard files, memory-mapped
+# (pipeline.store.cache.ChunkCache.window), with no decoding and no decoded chunk held. At 10000^2
+# the decoding (blosc LZ4: 66-99 us a 256^2 float32 inner chunk, 53 us a bool one) and the
+# fresh memory of the decoded chunks made a mission's reads 34 ms, longer than its searches
+# (21 ms); mapped, 13-16 ms (benchmarks/RESULTS.md, "One mission against pyastar2d"). The cost
+# is disk: 4 + 1 + 1 bytes a cell (a 10000^2 store's three layers 600 MB, against 245 MB
+# compressed). On object storage, where bytes travel, they stay compressed.
+WINDOW_LAYERS = ("safety", "ridge", "passable")
+
+
+def layer_encoding(chunks, compress: bool = True) -> dict:
+    """The Zarr encoding of a maps layer written in blocks of ``chunks``: shards of ``chunks``
+    (what a dask task writes, what dask reads the layer by) holding inner chunks of
+    :func:`inner_chunks` (what a mission reads), each compressed with :func:`layer_codec`
+    unless ``compress`` is false (:data:`WINDOW_LAYERS` of a local store).
+    A section's window (about 150^2 cells) covers a few 256^2 inner chunks; with 1024^2
+    chunks it decoded whole chunks: 11.5 M cells a layer for a mission across the 10000^2 map
+    against 3.4 M (benchmarks/bench_latency.py)."""
+    shards = tuple(int(c) for c in chunks)
+    return {
+        "chunks": inner_chunks(shards),
+        "shards": shards,
+        "compressors": layer_codec() if compress else None,
+    }
+
+
+def storage_chunks(arr) -> tuple[int, ...]:
+    """The blocks a Zarr array was written in: its shards, or its chunks without sharding (the
+    dask chunks to read it with)."""
+    shards = getattr(arr, "shards", None)
+    return tuple(int(v) for v in (shards if shards is not None else arr.chunks))
+
+
+# the variable of a store that holds its CRS, as CF conventions and rioxarray have it
+GRID_MAPPING = "spatial_ref"
+
+
+def grid_mapping(crs_wkt: str | None) -> tuple | None:
+    """How a store holds the CRS ``crs_wkt`` (None without one): ``(variable, attrs)``, the CF
+    grid-mapping variable as rioxarray writes it (a 0-d variable whose attributes are the CRS's
+    CF parameters, ``crs_wkt`` and GDAL's ``spatial_ref``; named :data:`GRID_MAPPING`) and the
+    attributes each layer takes: ``grid_mapping`` naming it, and GDAL's Zarr ``_CRS``."""
+    if not crs_wkt:
+        return None
+    import xarray as xr
+    from pyproj import CRS
+
+    crs = CRS.from_wkt(crs_wkt)
+    try:
+        attrs = crs.to_cf()
+    except Exception:  # noqa: BLE001 - a CRS without a CF form: its WKT only
+        attrs = {}
+    attrs.update(crs_wkt=crs_wkt, spatial_ref=crs_wkt)
+    layer = {"grid_mapping": GRID_MAPPING, "_CRS": {"wkt": crs_wkt}}
+    return xr.DataArray(np.int32(0), attrs=attrs), layer
