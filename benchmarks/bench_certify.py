@@ -163,7 +163,7 @@ def missions(ok, comp, k: int, seed: int, min_frac: float, cross_row: int | None
 def study(client, name, store: Path, k: int, min_frac: float, seed: int, cross=None) -> list:
     import pipeline
     from pipeline.maps import landmarks as lm
-    from pipeline.planners.core import heuristic
+    from pipeline.planners.search import heuristic
 
     ds = pipeline.open_maps(store)
     surface = ds["safety"].values
@@ -372,12 +372,7 @@ def exact_search(n: int, k: int) -> list[dict]:
     import pyastar2d
 
     import pipeline
-    from pipeline.planners.core import (
-        NO_GOAL,
-        NO_LANDMARKS,
-        astar_search_bucketed,
-        search_arrays,
-    )
+    from pipeline.planners.search import NO_GOAL, NO_LANDMARKS, astar_search_bucketed, search_arrays
 
     store = maps_store(n)
     m = pipeline.open_store(store)

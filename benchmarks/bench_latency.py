@@ -147,7 +147,7 @@ def margin_tradeoff(m, ms) -> dict:
     ratio and the missions certified. Each mission runs with both margins, in turn first, so
     that the chunk reads the first one pays fall on both alike."""
     import pipeline
-    from pipeline.mcpc import default_parameters
+    from pipeline.mcpc.algorithm import default_parameters
 
     d = default_parameters(m.shape, m.cell_size)
     margins = {"default": d["margin"], "quarter": max(d["rho"], d["section_size"] // 4)}

@@ -277,7 +277,7 @@ def case_study(client):
     """Figure 14: 2000^2, RA*+MCPC omega 3 between opposite corners; time, mean clearance."""
     import pipeline
     from pipeline.missions import clearances
-    from pipeline.planners.core import nearest_passable
+    from pipeline.planners.endpoints import nearest_passable
 
     store = maps_store(2000)
     ok = pipeline.open_maps(store)["passable"].values

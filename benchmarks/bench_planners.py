@@ -293,7 +293,7 @@ for s, t in missions:
 RA5000 = """
 import time, numpy as np, pipeline
 from pipeline.planners import plan_window
-from pipeline.planners.core import nearest_passable
+from pipeline.planners.endpoints import nearest_passable
 ds = pipeline.open_maps("{store}")
 S = ds.safety.values; rdg = ds.ridge.values; ok = ds.passable.values
 n = S.shape[0]

@@ -271,7 +271,7 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
             maps = build_maps(dem, out, chunks=chunks, overwrite=overwrite, **params)
         share = float(maps["passable"].mean().compute())
         if share == 0.0:
-            from .planners.core import NO_PASSABLE
+            from .planners.endpoints import NO_PASSABLE
 
             click.echo(f"warning: {NO_PASSABLE}", err=True)
         click.echo(

@@ -27,13 +27,14 @@ import numpy as np
 from ._types import ClientLike, Maps, VehicleLike
 from .exceptions import InvalidParameterError, PipelineError
 from .flight import Vehicle, with_flight
-from .mcpc import coarse_rho, plan
+from .mcpc.algorithm import coarse_rho
+from .mcpc.plan import plan
 from .params import ENDPOINT_FORMS, MISSIONS_PER_TASK, PLANNING, endpoint_forms, endpoint_key
-from .planners.core import Trajectory
 from .runtime.cluster import IN_PROCESS, get_client
 from .runtime.jit import njit
 from .runtime.threads import cores
 from .store.maps_store import open_store
+from .trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

@@ -190,7 +190,7 @@ def compile_test_kernels() -> None:
         )
     # what the tests call directly: the landmarks' Dijkstra on float64 heights (the library
     # runs it on a store's float32 ones), the searches' heap on its own
-    from pipeline.maps.landmarks import dijkstra
+    from pipeline.planners.bounds import dijkstra
     from pipeline.planners.heap import heap_pop, heap_push, heap_reserve
 
     dijkstra(surface, ok, 30.0, np.array([0], dtype=np.int64))

@@ -1,4 +1,4 @@
-"""The code's shape: no module reaches into another module's private names."""
+"""The code's shape: no module reaches into another subpackage's private names."""
 
 from __future__ import annotations
 
@@ -42,10 +42,29 @@ def _private_uses(source: str, package: tuple):
 FILES = sorted(p for d in ("pipeline", "tests", "benchmarks") for p in (ROOT / d).rglob("*.py"))
 
 
+def _outside(package: tuple, what: str) -> bool:
+    """Whether the private name in ``what`` (``from pipeline.x.y import _z`` or
+    ``pipeline.x.y._z``) belongs to another subpackage than ``package``: the modules of one
+    subpackage (``pipeline.store``) share their private names; a top-level module of
+    ``pipeline``, the tests and the benchmarks share none."""
+    module = what.split()[1] if what.startswith("from ") else what.rsplit(".", 1)[0]
+    owner = tuple(module.split(".")[:-1])
+    return not (len(package) > 1 and package[0] == "pipeline" and owner == package)
+
+
 @pytest.mark.parametrize("path", FILES, ids=[str(p.relative_to(ROOT)) for p in FILES])
-def test_no_private_name_of_another_module(path):
-    uses = list(_private_uses(path.read_text(), path.parent.relative_to(ROOT).parts))
+def test_no_private_name_of_another_subpackage(path):
+    package = path.parent.relative_to(ROOT).parts
+    uses = [u for u in _private_uses(path.read_text(), package) if _outside(package, u[1])]
     assert not uses, f"{path.relative_to(ROOT)} uses private names: {uses}"
+
+
+def test_a_subpackage_shares_its_private_names_only_within():
+    assert not _outside(("pipeline", "store"), "from pipeline.store.cache import _x")
+    assert _outside(("pipeline", "mcpc"), "from pipeline.store.cache import _x")
+    assert _outside(("pipeline",), "from pipeline.jobs import _x")
+    assert _outside(("tests",), "pipeline.store.cache._x")
+    assert _outside(("pipeline", "store"), "from pipeline.store import _x")  # its __init__
 
 
 def test_the_check_sees_private_names():

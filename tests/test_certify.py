@@ -24,7 +24,9 @@ from test_planners import reference_graph
 import pipeline
 from pipeline.maps import landmarks as lm
 from pipeline.maps.components import label_components
+from pipeline.planners import bounds
 from pipeline.store.maps_store import MapsStore
+from pipeline.store.schema import VARIABLE
 
 EXE = Path(sys.executable).parent / "pipeline"
 # the landmarks' Dijkstra on float64 heights: the test kernels of the warm-up (conftest)
@@ -56,7 +58,7 @@ def test_dijkstra_equals_scipy(seed, shape, land, nsrc):
     if cells.size == 0:
         return
     src = np.random.default_rng(seed).choice(cells, size=min(nsrc, cells.size), replace=False)
-    got = lm.dijkstra(surface, ok, 7.5, src.astype(np.int64))
+    got = bounds.dijkstra(surface, ok, 7.5, src.astype(np.int64))
     want = scipy_distances(surface, ok, 7.5, src)
     np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
     fin = np.isfinite(want)
@@ -85,7 +87,7 @@ def test_lower_bound_never_exceeds_the_optimum(seed, shape, land, k):
         opt = scipy_dijkstra(g, directed=False, indices=s[0] * shape[1] + s[1])[
             t[0] * shape[1] + t[1]
         ]
-        lb = lm.lower_bound([d[s] for d in layers], [d[t] for d in layers])
+        lb = bounds.lower_bound([d[s] for d in layers], [d[t] for d in layers])
         if math.isfinite(opt):
             assert 0.0 <= lb <= opt
         else:
@@ -126,7 +128,7 @@ def test_the_landmark_heuristic_expands_fewer_cells_behind_a_wall(wall):
     path, surface, ok, graph = wall
     m = pipeline.open_store(path)
     start, goal = (20, 150), (180, 150)
-    layers = pipeline.open_maps(path)[lm.VARIABLE].values
+    layers = pipeline.open_maps(path)[VARIABLE].values
     ridge = np.zeros(ok.shape, bool)
     plain = pipeline.plan_window(surface, ridge, ok, start, goal, cell_size=A, planner="astar")
     alt = pipeline.plan_window(
@@ -147,7 +149,7 @@ def test_the_bound_is_exact_on_a_line_through_a_landmark():
     ok[1] = True
     d = lm.landmark_layer(surface, ok, A, (1, 0))
     opt = scipy_distances(surface, ok, A, [1 * 40 + 5])[1, 33]
-    lb = lm.lower_bound([d[1, 5]], [d[1, 33]])
+    lb = bounds.lower_bound([d[1, 5]], [d[1, 33]])
     assert opt * (1 - 1e-6) <= lb <= opt
 
 
@@ -262,7 +264,7 @@ def test_store_layers_equal_the_in_memory_ones_for_any_chunking(tmp_path, chunks
     assert m.landmarks == lm.place_landmarks(surface, ok, A, 5)
     for i, cell in enumerate(m.landmarks):
         np.testing.assert_array_equal(
-            ds[lm.VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
+            ds[VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
         )
 
 
@@ -280,7 +282,7 @@ def test_every_landmark_chunk_is_written_also_where_it_does_not_reach(tmp_path):
     m = pipeline.open_store(tmp_path / "m.zarr")
     comp = pipeline.open_maps(tmp_path / "m.zarr")["component"].values
     assert len({int(comp[c]) for c in m.landmarks}) == 2  # one in each region
-    arr = zarr.open_array(str(tmp_path / "m.zarr" / lm.VARIABLE), mode="r")
+    arr = zarr.open_array(str(tmp_path / "m.zarr" / VARIABLE), mode="r")
     assert arr.chunks == (1, 100, 40) and arr.shards == (1, 300, 40)
     # every inner chunk of every layer is read from the store (a missing one is damage in a
     # complete store), and some are all inf
@@ -289,7 +291,7 @@ def test_every_landmark_chunk_is_written_also_where_it_does_not_reach(tmp_path):
     import shutil
 
     shutil.copytree(tmp_path / "m.zarr", tmp_path / "gone.zarr")  # read afresh (no cache)
-    (tmp_path / "gone.zarr" / lm.VARIABLE / "c" / "1" / "0" / "0").unlink()
+    (tmp_path / "gone.zarr" / VARIABLE / "c" / "1" / "0" / "0").unlink()
     with pytest.raises(pipeline.PipelineError, match="missing"):
         pipeline.open_store(tmp_path / "gone.zarr").landmark_distances((250, 20))
     assert m.lower_bound((5, 5), (190, 30)) > 0 and m.lower_bound((280, 5), (295, 30)) > 0
@@ -374,7 +376,7 @@ def test_component_sizes_from_the_build_equal_the_layers_bincount(tmp_path, monk
     assert len(cells) > 2 and cells == lm.place_landmarks(surface, ok, A, 5)
     for i, cell in enumerate(cells):
         np.testing.assert_array_equal(
-            ds[lm.VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
+            ds[VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
         )
 
 
@@ -462,7 +464,7 @@ def test_a_landmark_task_holds_one_distance_array_at_a_time(tmp_path, monkeypatc
     surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
     for i, cell in enumerate(cells):
         np.testing.assert_array_equal(
-            ds[lm.VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
+            ds[VARIABLE][i].values, lm.landmark_layer(surface, ok, A, cell)
         )
 
 
@@ -484,7 +486,7 @@ def test_a_landmark_task_where_no_fixed_point_serves_takes_the_float32_heights(
     surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
     for i, cell in enumerate(cells):
         want = scipy_distances(surface, ok, A, [cell[0] * ok.shape[1] + cell[1]])
-        got = ds[lm.VARIABLE][i].values
+        got = ds[VARIABLE][i].values
         np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
         fin = np.isfinite(want)
         np.testing.assert_allclose(got[fin], want[fin], rtol=2.0**-24 + 1e-12)
@@ -536,11 +538,11 @@ def test_a_store_whose_landmark_layer_is_gone_is_damaged(tmp_path):
     dem = metric_dataarray((random_surface((40, 40)) * 50 - 1000).astype(np.float32), a=A)
     with dask.config.set(scheduler="synchronous"):
         pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=2)
-    shutil.rmtree(tmp_path / "m.zarr" / lm.VARIABLE / "c" / "1")  # layer 1's chunks
+    shutil.rmtree(tmp_path / "m.zarr" / VARIABLE / "c" / "1")  # layer 1's chunks
     m = pipeline.open_store(tmp_path / "m.zarr")
     with pytest.raises(pipeline.PipelineError, match=r"chunk \(1, 0, 0\) of its layer"):
         m.lower_bound((1, 1), (38, 38))
-    shutil.rmtree(tmp_path / "m.zarr" / lm.VARIABLE)
+    shutil.rmtree(tmp_path / "m.zarr" / VARIABLE)
     with pytest.raises(pipeline.PipelineError, match="landmark layers .* are missing"):
         MapsStore(tmp_path / "m.zarr")  # (open_store would keep the store it opened)
 
@@ -601,7 +603,7 @@ def test_ok_implies_the_bound_against_scipy(wall, omega, planner):
         opt = optimum(graph, ok.shape, s, g)
         assert t.lower_bound_m <= opt  # proven: never above the optimum
         assert t.status == "ok", t.message  # repaired when needed, so always certified here
-        assert t.length_m <= omega * opt * (1 + pipeline.mcpc.CERTIFY_TOLERANCE)
+        assert t.length_m <= omega * opt * (1 + pipeline.mcpc.certify.CERTIFY_TOLERANCE)
         assert t.certified_ratio == pytest.approx(t.length_m / t.lower_bound_m)
 
 

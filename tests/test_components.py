@@ -93,7 +93,7 @@ def test_unreachable_is_proven_and_instant(wall_store, mcpc, rho, monkeypatch):
     """The goal inside the closed ring: the components say so before any window is read,
     whether the coarse search finds no path (rho 2) or one through the ring (rho 20, blocks
     wider than its wall), and for the whole map."""
-    import pipeline.mcpc as mcpc_module
+    import pipeline.mcpc.runners as mcpc_module
 
     read = []
     monkeypatch.setattr(mcpc_module, "read_section", lambda *args: read.append(args))

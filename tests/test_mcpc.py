@@ -15,7 +15,8 @@ from test_planners import check_path, independent_metrics, reference_length
 
 import pipeline
 from pipeline.exceptions import InvalidParameterError
-from pipeline.mcpc import Section, plan_sections, remove_loops, restore, segment
+from pipeline.mcpc.algorithm import remove_loops, restore, segment
+from pipeline.mcpc.runners import Section, plan_sections
 
 A = 30.0
 WALL_ROW, WALL_END = 120, 200  # land wall on row 120 from col 0 to col 199
@@ -113,7 +114,7 @@ def test_joints_are_snapped_to_the_nearest_passable_cell_of_both_windows(tmp_pat
     with none, the mission cannot be cut there."""
     import dask
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.algorithm as mcpc
 
     rng = np.random.default_rng(11)
     z = random_surface((81, 65), seed=11) * 100.0 - 2000.0
@@ -250,7 +251,7 @@ def test_the_coarse_path_is_within_its_weight_of_the_coarse_optimum(
     """The coarse A* is weighted A* of weight min(coarse_weight, omega) for the bounded
     planners, exact A* for the optimal ones: its path is at most that factor longer than the
     coarse map's optimum (scipy on the coarse graph), and equal to it at weight 1."""
-    from pipeline.planners.core import path_metrics
+    from pipeline.planners.paths import path_metrics
 
     m = pipeline.open_store(store)
     t = pipeline.plan(
@@ -801,7 +802,7 @@ def _loaded(dask_worker=None) -> dict:
     import numpy as np
     import xarray  # noqa: F401
 
-    from pipeline.planners.core import off_ridge_to_goal
+    from pipeline.planners.bounds import off_ridge_to_goal
 
     ok = np.ones((3, 3), dtype=bool)
     off_ridge_to_goal(ok, ok, 30.0, 1, 1, -1, -1)
@@ -905,7 +906,7 @@ def test_sections_of_a_lost_task_are_planned_again(store, local_client, monkeypa
     import os
     import uuid
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
     from pipeline.runtime.share import Claims
 
     ref = pipeline.plan(store, **MISSION, planner="lagrangian", client="synchronous", **SMALL)
@@ -950,7 +951,7 @@ def test_a_batch_in_this_process_reads_each_next_window_in_a_helper_thread(store
     on its own. A second batch at the same time reads its own (the helper is taken)."""
     import threading
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
 
     ref = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
     sections = _sections_of(ref)
@@ -983,7 +984,7 @@ def test_a_mission_in_this_process_reads_its_windows_ahead_and_frees_the_helper(
     helper reads, the GIL changes hands every 0.5 ms at most (Python's 5 ms before and after)."""
     import threading
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
 
     ref = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
     real, readers, switch = mcpc.read_section, [], []
@@ -1005,7 +1006,7 @@ def test_a_mission_in_this_process_reads_its_windows_ahead_and_frees_the_helper(
         raise pipeline.UnreachableGoalError("no passable cell near the joint (1, 2)")
 
     with monkeypatch.context() as mp:
-        mp.setattr(mcpc, "_snapped_joints", no_joint)
+        mp.setattr("pipeline.mcpc.plan._snapped_joints", no_joint)
         whole = pipeline.plan(store, **MISSION, planner="astar", client="synchronous", **SMALL)
     assert "no passable cell near the joint" in whole.extra["fallback"]
     readers.clear()
@@ -1053,7 +1054,7 @@ def test_threads_share_a_missions_sections_and_plan_each_once(store, monkeypatch
     import threading
     import time
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
 
     ref = pipeline.plan(store, **MISSION, planner=planner, client="synchronous", **SMALL)
     n = len(ref.extra["sections"])
@@ -1108,7 +1109,7 @@ def test_threads_a_helper_that_cannot_start_is_not_waited_for(store, monkeypatch
     import threading
     import time
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
     from pipeline.runtime.threads import shared_pool
 
     ref = pipeline.plan(store, **MISSION, planner="lagrangian", client="synchronous", **SMALL)
@@ -1143,7 +1144,7 @@ def test_threads_an_error_in_a_helper_is_raised_not_lost(store, monkeypatch):
     import threading
     import time
 
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
 
     ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)
     real = mcpc._plan_checked
@@ -1200,7 +1201,7 @@ def test_plan_missions_in_threads(store, monkeypatch):
     """plan_missions(client="threads"): the missions in client threads, the trajectories
     those of the missions planned in turn; a mission's sections shared by threads only while
     fewer missions than cores are in flight (2 cores here)."""
-    import pipeline.mcpc as mcpc
+    import pipeline.mcpc.runners as mcpc
     import pipeline.missions as pm
 
     real, shared = mcpc._threaded, []
@@ -1256,7 +1257,7 @@ def test_a_mission_asks_for_the_worker_threads_at_most_once_a_second(monkeypatch
     otherwise): a worker added shows once the count is that old."""
     from distributed import Client, LocalCluster
 
-    from pipeline import mcpc
+    from pipeline.mcpc import runners as mcpc
 
     with (
         LocalCluster(
@@ -1329,7 +1330,7 @@ def test_failing_section_tasks_are_reported_and_a_scheduler_without_queues_still
 
     from distributed import Client, LocalCluster
 
-    from pipeline import mcpc
+    from pipeline.mcpc import runners as mcpc
     from pipeline.runtime.inbox import Inbox
 
     ref = pipeline.plan(store, **MISSION, client="synchronous", **SMALL)

@@ -19,7 +19,7 @@ from test_planners import check_path
 import pipeline
 import pipeline.runtime.cluster
 from pipeline.exceptions import PipelineError, StoreExistsError
-from pipeline.maps.landmarks import VARIABLE
+from pipeline.store.schema import VARIABLE
 
 BUILD = dict(clearance=60.0, min_accumulation=8, landmarks=2)
 

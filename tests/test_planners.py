@@ -133,7 +133,8 @@ def test_bucketed_search_against_scipy(seed):
     ones: Dijkstra (weight 0) and A* find scipy's optimum, weighted A* a path within its
     weight, each traced path measured independently equals its g; with a 100 km cliff in the
     map (moves up it cost more than all the buckets ahead span: the far heap) as well."""
-    from pipeline.planners.core import (
+    from pipeline.planners.paths import trace_path
+    from pipeline.planners.search import (
         BUCKET_WIDTH,
         BUCKETS,
         NO_GOAL,
@@ -141,7 +142,6 @@ def test_bucketed_search_against_scipy(seed):
         TIE,
         astar_search_bucketed,
         search_arrays,
-        trace_path,
     )
 
     surface, ridge, passable = obstacle_map((45, 38), seed, density=0.15 + 0.05 * seed)
@@ -180,14 +180,14 @@ def test_whole_large_map_takes_the_bucketed_search():
     """A window from ``BUCKET_CELLS`` cells on is searched with the two-level open list (by
     Dijkstra, weighted A*, and A* where the sweeps give up), and A* there finds the optimum: on
     flat open ground the octile distance, in closed form."""
-    from pipeline.planners.core import (
+    from pipeline.planners.paths import trace_path
+    from pipeline.planners.search import (
         BUCKET_CELLS,
         NO_GOAL,
         NO_LANDMARKS,
         astar_search_bucketed,
         search_arrays,
         search_kernel,
-        trace_path,
     )
 
     rows, cols = 2100, 2000
@@ -636,15 +636,9 @@ def test_off_ridge_bound_and_the_lagrangian_searches_against_scipy(seed):
     the start, it stops there: each cell's bound the smaller of that and the start's. A* with
     either in the heuristic finds scipy's optimum of length + w x off-ridge length, for
     several w, also with the exact lengths to the goal (``goal_layer``, scipy's too)."""
-    from pipeline.planners.core import (
-        OFF_DIAGONAL,
-        OFF_UNITS,
-        astar_search,
-        astar_search_bucketed,
-        off_ridge_to_goal,
-        search_arrays,
-    )
+    from pipeline.planners.bounds import OFF_DIAGONAL, OFF_UNITS, off_ridge_to_goal
     from pipeline.planners.lagrangian import goal_layer
+    from pipeline.planners.search import astar_search, astar_search_bucketed, search_arrays
 
     surface, ridge, passable = obstacle_map((30, 34), seed, density=0.15)
     ridge = np.random.default_rng(seed).random(surface.shape) < 0.4
@@ -715,13 +709,8 @@ def test_lagrangian_bound_against_scipy(shape, seed):
     bound of a larger weight, used for this one (the planner does), is one too, and so is the
     bound of a smaller weight raised to this one (``raised_bound``). A* with them finds scipy's
     optimum. Also on windows one cell thin, start and goal anywhere."""
-    from pipeline.planners.core import (
-        astar_search,
-        lagrangian_bound,
-        off_ridge_to_goal,
-        raised_bound,
-        search_arrays,
-    )
+    from pipeline.planners.bounds import lagrangian_bound, off_ridge_to_goal, raised_bound
+    from pipeline.planners.search import astar_search, search_arrays
 
     rng = np.random.default_rng(seed)
     surface = (
@@ -850,7 +839,7 @@ def test_off_ridge_bound_on_thin_windows_and_goals_at_the_edge(shape):
     with the goal in every corner and at the middle of every side: its search runs on the
     window framed by cells it may not enter, which must neither be entered nor block a move
     along the edge."""
-    from pipeline.planners.core import off_ridge_to_goal
+    from pipeline.planners.bounds import off_ridge_to_goal
 
     rows, cols = shape
     rng = np.random.default_rng(rows * 100 + cols)
@@ -881,7 +870,7 @@ def test_path_steps_are_the_3d_lengths_bit_for_bit(n):
     (sqrt(a a (dr dr + dc dc) + dz dz) with dz in double precision; ``x ** 2`` is C's pow,
     which may differ from ``x * x`` in the last bit): equal to the last bit, for
     float32 and float64 heights, integer cells of either width, several cell sizes."""
-    from pipeline.planners.core import path_steps
+    from pipeline.planners.paths import path_steps
 
     rng = np.random.default_rng(n)
     cells = np.cumsum(rng.integers(-2, 3, (n, 2)), axis=0)
@@ -904,8 +893,10 @@ def test_a_traced_path_and_its_metrics_equal_the_step_by_step_ones(dtype):
     against the path read from the parent moves one by one in Python and measured with Python
     floats, each sum taken by numpy over the same steps: the same cells (offset), heights and
     flags, the lengths bit for bit."""
-    from pipeline.planners.core import DC, DR, PARENT, traced_path
+    from pipeline.planners.grid import DC, DR
+    from pipeline.planners.paths import traced_path
     from pipeline.planners.registry import PLANNERS
+    from pipeline.planners.search import PARENT
 
     surface = (random_surface((40, 50), seed=11) * 600 - 2000).astype(dtype)
     r, o = random_surface((40, 50), seed=12), random_surface((40, 50), seed=13)

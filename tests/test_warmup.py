@@ -63,8 +63,7 @@ def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
 
 _PLAN_EVERY_PLANNER = """
 import json, numpy as np, pipeline
-from pipeline.maps import landmarks
-from pipeline.planners import core, ra_star
+from pipeline.planners import bounds, ra_star, search
 z = np.random.default_rng(1).normal(size=(40, 40)).astype(np.float32) * 50 - 3000
 ok = np.ones(z.shape, bool)
 rdg = np.random.default_rng(2).random(z.shape) < 0.3
@@ -72,7 +71,7 @@ for planner in ("dijkstra", "astar", "wastar", "ra_star", "lagrangian"):
     pipeline.plan_window(z, rdg, ok, (0, 0), (39, 30), cell_size=30.0, planner=planner, omega=1.5)
 # at omega 1 the Lagrangian planner's searches weigh length more: the exact lengths to the goal
 pipeline.plan_window(z, rdg, ok, (0, 0), (39, 30), cell_size=30.0, planner="lagrangian", omega=1.0)
-kernels = (core.astar_search, core.off_ridge_to_goal, ra_star._ra_star, landmarks.dijkstra)
+kernels = (search.astar_search, bounds.off_ridge_to_goal, ra_star._ra_star, bounds.dijkstra)
 print(json.dumps({k.__name__: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values())]
                   for k in kernels}))
 """
@@ -211,9 +210,9 @@ def test_a_kernel_compiles_again_when_a_module_it_calls_changes(tmp_path):
 
 def test_the_stamps_follow_the_package_imports():
     """What a kernel's cache stamp covers (pipeline.runtime.jit.dependencies), on the package
-    itself: the landmark searches reach the sweeps' overloads and the planners' core, not the
-    MCPC module; the sweeps do not reach the landmark layers; the core reaches the modules it
-    imports and nothing else."""
+    itself: the landmark searches reach the sweeps' overloads and the planners' search, not
+    the MCPC package; the sweeps do not reach the landmark layers; the search reaches the
+    modules it imports and nothing else."""
     from pipeline.runtime.jit import ROOTS, dependencies
 
     def deps(name):
@@ -223,12 +222,12 @@ def test_the_stamps_follow_the_package_imports():
     assert {
         "maps/landmarks.py",
         "planners/sweep.py",
-        "planners/core.py",
+        "planners/search.py",
         "planners/heap.py",
     } <= landmarks
     assert "maps/landmarks.py" not in deps("planners/sweep.py")
-    assert deps("planners/core.py") == {
-        "planners/core.py",
+    assert deps("planners/search.py") == {
+        "planners/search.py",
         "planners/grid.py",
         "planners/heap.py",
         "runtime/jit.py",

@@ -48,7 +48,7 @@ from ..runtime.jit import njit
 from ..runtime.threads import shared_pool
 
 if TYPE_CHECKING:
-    from ..planners.core import Trajectory
+    from ..trajectory import Trajectory
 from ..exceptions import InvalidParameterError
 from ..params import VEHICLE
 

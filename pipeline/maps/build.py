@@ -42,7 +42,7 @@ from .._types import Chunks, DEMLike
 from ..dem import as_dem, cell_size, require_valid_cells
 from ..exceptions import InvalidParameterError
 from ..params import DEFAULT_CHUNK, MAPS, chunks2d
-from ..planners.core import NO_PASSABLE
+from ..planners.endpoints import NO_PASSABLE
 from ..runtime.cluster import compute_told, computing_client
 from ..runtime.jit import njit
 from ..store.maps_store import open_maps

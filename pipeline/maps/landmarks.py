@@ -66,156 +66,26 @@ import math
 
 import numpy as np
 
-from ..planners.core import LANDMARK_MARGIN, edge_length
-from ..planners.grid import DC, DR, flat_offsets, inside
-from ..planners.heap import grown
+from ..planners.bounds import dijkstra, fixed_point_dijkstra
+from ..planners.search import LANDMARK_MARGIN
 from ..planners.sweep import (
     FIXED_CAP,
     FIXED_UNREACHED,
     IMPASSABLE,
-    METRES,
     Quantised,
-    cell_error,
-    fixed_units,
-    flat_mask,
-    grid_shape,
-    height_at,
-    lowered,
-    passable_flat,
-    whole_units,
 )
 from ..runtime.cluster import compute_told
 from ..runtime.jit import njit
-from ..store.schema import inner_chunks, layer_codec, storage_chunks
+from ..store.schema import LANDMARK_CHUNK, VARIABLE, inner_chunks, layer_codec, storage_chunks
 
 MIN_COMPONENT_FRACTION = 0.01
+
+
 REL_MARGIN = LANDMARK_MARGIN
+
+
 DEFAULT_LANDMARKS = 8
 
-
-@njit(nogil=True, cache=True)
-def dijkstra(surface, passable, a, sources):
-    """Exact shortest path lengths (float64, ``inf`` where unreached) from the cells
-    ``sources`` (flat indices, distance 0) to every cell, on the planners' graph
-    (:func:`_dijkstra_into`)."""
-    rows, cols = surface.shape
-    dist = np.full(rows * cols, np.inf)
-    _dijkstra_into(surface, passable, a, METRES, sources, dist)
-    return dist.reshape(rows, cols)
-
-
-@njit(nogil=True, cache=True)
-def fixed_point_dijkstra(surface, a, source, bits):
-    """The distances of :func:`~.planners.sweep.fixed_point_distances` (whole units of ``a *
-    2^-bits``, uint32) by :func:`_dijkstra_into`, for a map where the sweeps give up: from the
-    cell ``source`` of ``surface`` (quantised, :func:`quantised`; or float32 with NaN on its
-    impassable cells). The same values (both are the one solution of ``D(v) = min(cap, min_u
-    D(u) + c'(u, v))`` in integers), in 5 bytes a cell besides the surface."""
-    rows, cols = grid_shape(surface)
-    dist = np.full(rows * cols, FIXED_UNREACHED, dtype=np.uint32)
-    units, u = fixed_units(a, bits)
-    start = np.array([source[0] * cols + source[1]], dtype=np.int64)
-    _dijkstra_into(surface, surface, units, u, start, dist)
-    return dist.reshape(rows, cols)
-
-
-@njit(nogil=True, cache=True)
-def _dijkstra_into(surface, passable, a, un, sources, dist):
-    """Shortest path lengths from the cells ``sources`` (flat indices, distance 0) into
-    ``dist`` (flat, all not reached), in the units ``un`` of the row sweeps
-    (:data:`~.planners.sweep.METRES`: float64 metres; the fixed point of
-    :func:`~.planners.sweep.fixed_point_distances`: each move's cost rounded down to whole
-    units, values held at the cap); ``passable`` a mask, or the surface with NaN on its
-    impassable cells.
-
-    A bucket queue (Dial's algorithm with buckets narrower than the shortest edge, ``a``): a
-    cell taken from the lowest bucket cannot be improved by any other cell of that bucket, so
-    its distance is final, as in Dijkstra's algorithm, at O(1) a queue operation. The buckets
-    are circular, as many as the longest edge spans; each is a contiguous array of cells
-    (entries made stale by a later improvement are skipped when taken), so that the wavefront
-    is read and written in order. An edge costs its 3-D length along the surface, as the
-    planners' ``edge_cost`` (``edge_length`` of the same squared horizontal length and rise)."""
-    rows, cols = grid_shape(surface)
-    n = rows * cols
-    okf = flat_mask(passable)
-    done = np.zeros(n, dtype=np.bool_)
-    lo = np.inf
-    hi = -np.inf
-    for i in range(n):
-        if passable_flat(okf, i):
-            r = i // cols
-            z = height_at(surface, r, i - r * cols) * un[0]
-            lo = min(lo, z)
-            hi = max(hi, z)
-    w = a * (1.0 - 1e-7)
-    longest = math.sqrt(2.0 * a * a + (hi - lo) ** 2) if hi >= lo else a
-    nb = int(longest / w) + 2
-    cap = np.full(nb, 1024, dtype=np.int64)
-    fill = np.zeros(nb, dtype=np.int64)
-    buckets = [np.empty(1024, dtype=np.int64) for _ in range(nb)]
-    off = flat_offsets(cols)
-    h2 = np.empty(8)  # each move's squared horizontal length, as edge_cost computes it
-    for k in range(8):
-        h2[k] = a * a * (DR[k] * DR[k] + DC[k] * DC[k])
-    queued = 0
-    for s in sources:
-        dist[s] = 0.0
-        bk = buckets[0]
-        if fill[0] == cap[0]:
-            bk = grown(bk, fill[0], 2 * cap[0])
-            buckets[0] = bk
-            cap[0] *= 2
-        bk[fill[0]] = s
-        fill[0] += 1
-        queued += 1
-    cur = 0  # the bucket index (not wrapped) being emptied
-    while queued > 0:
-        cb = cur % nb
-        if fill[cb] > 64:  # taken in memory order: the wavefront's rows are read in sequence
-            buckets[cb][: fill[cb]].sort()
-        i = 0
-        while i < fill[cb]:  # cells pushed into this bucket meanwhile are taken too
-            u = buckets[cb][i]
-            i += 1
-            queued -= 1
-            if done[u]:
-                continue
-            done[u] = True
-            du = np.float64(dist[u])
-            r = u // cols
-            c = u - r * cols
-            zu = height_at(surface, r, c) * un[0]
-            inner = 0 < r < rows - 1 and 0 < c < cols - 1
-            for k in range(8):
-                if not inner and not inside(r, c, k, rows, cols):
-                    continue
-                v = u + off[k]
-                if done[v] or not passable_flat(okf, v):
-                    continue
-                if k & 1 and not (
-                    passable_flat(okf, u + DC[k]) and passable_flat(okf, u + DR[k] * cols)
-                ):
-                    continue  # no corner cutting
-                vr = r + DR[k]
-                vc = c + DC[k]
-                zv = height_at(surface, vr, vc) * un[0]
-                # the planners' edge (its rise lowered on a Quantised surface)
-                loss = (cell_error(surface, r, c) + cell_error(surface, vr, vc)) * un[0]
-                nd = du + whole_units(edge_length(h2[k], lowered(zv - zu, loss, surface)), dist)
-                if nd < dist[v]:
-                    dist[v] = min(nd, un[1])
-                    b = max(int(nd / w), cur) % nb
-                    if fill[b] == cap[b]:
-                        buckets[b] = grown(buckets[b], fill[b], 2 * cap[b])
-                        cap[b] *= 2
-                    buckets[b][fill[b]] = v
-                    fill[b] += 1
-                    queued += 1
-        fill[cb] = 0
-        cur += 1
-
-
-# --------------------------------------------------------------------------- placement
 
 PLACEMENT_SIDE = 512  # landmarks are placed on a coarse grid of at most this many cells a side
 
@@ -339,7 +209,11 @@ def distances_from(surface, passable, a: float, cell) -> np.ndarray:
 
 
 MIN_BITS = 16  # the unit the map's size asks for: at most 2^-16 of a cell (a bound 1.5e-5 looser)
+
+
 MAX_BITS = 24  # at least 2^-24 of a cell: finer is below the float32 layer's resolution
+
+
 CAPPED_BITS = 8  # where distances pass the cap, coarser units down to 2^-8 of a cell (0.4 %)
 
 
@@ -414,6 +288,8 @@ def layer_distances(surface, passable, a: float, cell):
 # cells) a block's largest error is 0.5 mm in the median block, 9.7 mm in the worst (4 x 4
 # blocks: 0.2 and 5.4 mm, 16 x 16: about twice 8 x 8)
 QUANT_SHIFT = 3
+
+
 QUANT_STEPS = 65534.0  # codes 0 .. 65534; IMPASSABLE (65535) marks a cell not passable
 
 
@@ -527,33 +403,6 @@ def _in_metres(d, unit):
 def landmark_layer(surface, passable, a: float, cell) -> np.ndarray:
     """The float32 distance layer of one landmark (``inf`` outside its component)."""
     return layer_values(*layer_distances(surface, passable, a, cell))
-
-
-def lower_bound(ds: np.ndarray, dg: np.ndarray) -> float:
-    """The proven lower bound on the shortest path between two cells from their landmark
-    distances ``ds``, ``dg`` (one value per landmark; ``inf`` where a landmark does not reach):
-    ``max_l |d_l(s) - d_l(g)|`` less the rounding margin (module doc); 0 with no common
-    landmark."""
-    ds = np.asarray(ds, dtype=np.float64)
-    dg = np.asarray(dg, dtype=np.float64)
-    both = np.isfinite(ds) & np.isfinite(dg)
-    if not both.any():
-        return 0.0
-    b = np.abs(ds[both] - dg[both]) - REL_MARGIN * (ds[both] + dg[both])
-    return float(max(b.max(), 0.0))
-
-
-# --------------------------------------------------------------------------- the maps store
-
-# the layers are sharded as the maps' other layers are, with inner chunks of at most this side:
-# a mission reads one value per landmark at each end, which decodes one inner chunk each.
-# Measured on a 4000^2 layer (chunks of 1024^2 inner 128^2 against 256^2 chunks unsharded):
-# the 16 chunks of a mission's bound decode in 1.0 ms against 3.1 ms (4 ms on the client, more
-# while the workers run its sections), writing a layer takes 0.29 s against 0.16 s and reading
-# it whole 0.27 s against 0.11 s; inner chunks of 64^2 saved 0.6 ms more a mission for 3.3x
-# the write time
-LANDMARK_CHUNK = 128
-VARIABLE = "landmark_distance"  # (landmark, y, x), float32, shards (1, *the maps' chunks)
 
 
 def memory_per_landmark(shape) -> int:

@@ -28,7 +28,7 @@ from ..runtime.jit import njit
 
 if TYPE_CHECKING:
     from ..flight import Flight
-    from ..planners.core import Trajectory
+    from ..trajectory import Trajectory
 
 PARQUET = "application/vnd.apache.parquet"
 # the files that need latitudes and longitudes: not written for a DEM without a CRS

@@ -8,7 +8,7 @@ landmark layers'; ``window``: ``plan_window``, which runs any of them. ``dijkstr
 ``astar`` are optimal; ``wastar``, ``ra_star`` and ``lagrangian`` keep ``length <= omega * L*``.
 """
 
-from .core import Trajectory
+from ..trajectory import Trajectory
 from .registry import PLANNERS
 from .window import plan_window
 

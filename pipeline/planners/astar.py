@@ -5,7 +5,8 @@ ties broken towards the goal."""
 from __future__ import annotations
 
 from . import sweep
-from .core import NO_GOAL, TIE, Planner, Search, landmark_rows, search_arrays, search_kernel
+from .base import Planner, Search
+from .search import NO_GOAL, TIE, landmark_rows, search_arrays, search_kernel
 
 # A* (weight 1) over windows of at least this many cells (a whole map, ``mcpc=False``, and the
 # exact coarse search of astar and dijkstra missions) runs as row sweeps over a bounded region

@@ -20,21 +20,10 @@ import numpy as np
 
 from ..runtime.jit import njit
 from .astar import ASTAR
-from .core import (
-    NO_GOAL,
-    TIE,
-    Planner,
-    Search,
-    edge_cost,
-    heuristic,
-    lagrangian_bound,
-    landmark_rows,
-    off_ridge_to_goal,
-    raised_bound,
-    search_arrays,
-    search_kernel,
-    trace_path,
-)
+from .base import Planner, Search
+from .bounds import lagrangian_bound, off_ridge_to_goal, raised_bound
+from .paths import trace_path
+from .search import NO_GOAL, TIE, edge_cost, heuristic, landmark_rows, search_arrays, search_kernel
 
 # lambda -> 0 end: off-ridge length first, length only as a tie-break
 _OFF_FIRST = 1e7
@@ -116,11 +105,11 @@ JOINT = 2.0
 
 def goal_layer(lm, surface, passable, a, t):
     """The landmark rows ``lm`` and one more: the exact length from every cell of the window to
-    the goal ``t`` (:func:`pipeline.maps.landmarks.dijkstra` from it; the graph is symmetric), the
+    the goal ``t`` (:func:`pipeline.planners.bounds.dijkstra` from it; the graph is symmetric), the
     goal as its own landmark. Its bound ``|d(v) - d(t)| = d(v)`` is the exact length to the goal,
     made consistent as every landmark's (``landmark_shrink``), where the octile distance ignores
     the terrain's rise and fall."""
-    from ..maps.landmarks import dijkstra  # the module imports this package's core
+    from .bounds import dijkstra
 
     rows, cols = surface.shape
     dg = dijkstra(surface, passable, a, np.array([t[0] * cols + t[1]], dtype=np.int64))

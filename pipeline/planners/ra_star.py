@@ -31,19 +31,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime.jit import njit
-from .core import (
-    CLOSED,
-    INWAIT,
-    PARENT,
-    SEEN,
-    Planner,
-    Search,
-    edge_cost,
-    heuristic,
-    relax_successors,
-)
+from .base import Planner, Search
 from .grid import DC, DR
 from .heap import heap_pop, heap_push, heap_reserve
+from .search import CLOSED, INWAIT, PARENT, SEEN, edge_cost, heuristic, relax_successors
 
 
 @njit(inline="always", cache=True)

@@ -4,7 +4,7 @@ line here."""
 from __future__ import annotations
 
 from . import astar, lagrangian, ra_star
-from .core import Planner
+from .base import Planner
 
 PLANNERS: dict[str, Planner] = {
     p.name: p

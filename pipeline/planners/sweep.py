@@ -47,8 +47,8 @@ from numba import types
 from numba.extending import overload
 
 from ..runtime.jit import njit
-from .core import edge_cost, heuristic
 from .grid import DC, DR
+from .search import edge_cost, heuristic
 
 # the first bound is (1 + SLACK) times the octile distance: the benchmark maps' optima lie
 # 0.1-1.3 % above it (benchmarks/bench_certify.py); a larger slack widens the region (at

@@ -10,15 +10,11 @@ import numpy as np
 from .._types import Cell
 from ..exceptions import UnreachableGoalError
 from ..params import CELL_SIZE, PLANNING, check_planner
-from .core import (
-    Trajectory,
-    check_arrays,
-    check_endpoint,
-    heuristic,
-    measured_path,
-    traced_path,
-)
+from ..trajectory import Trajectory
+from .endpoints import check_arrays, check_endpoint
+from .paths import measured_path, traced_path
 from .registry import PLANNERS
+from .search import heuristic
 
 
 def plan_window(

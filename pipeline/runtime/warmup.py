@@ -234,7 +234,8 @@ def _search_each() -> None:
     import pipeline
 
     from ..planners import sweep
-    from ..planners.core import lagrangian_bound, measured_path, off_ridge_to_goal, raised_bound
+    from ..planners.bounds import lagrangian_bound, off_ridge_to_goal, raised_bound
+    from ..planners.paths import measured_path
 
     z, rdg, ok, s, g = _tiny_window()
     for planner in tuple(pipeline.PLANNERS)[::-1]:
@@ -260,7 +261,7 @@ def _search_each() -> None:
 def _search_bucketed() -> None:
     """The A* of windows from BUCKET_CELLS on (whole large maps), which the tiny map is not: a
     part of its own, so that the process with less of the rest to compile takes it."""
-    from ..planners.core import NO_GOAL, NO_LANDMARKS, astar_search_bucketed, search_arrays
+    from ..planners.search import NO_GOAL, NO_LANDMARKS, astar_search_bucketed, search_arrays
 
     z, rdg, ok, s, g = _tiny_window()
     astar_search_bucketed(

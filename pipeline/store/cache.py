@@ -7,14 +7,10 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .paths import exists, join
-
-if TYPE_CHECKING:
-    pass
 from .schema import damaged
 from .zarr_direct import MappedLayer, assemble_window, decoded_buffer, direct_reader
 

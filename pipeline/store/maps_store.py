@@ -93,7 +93,7 @@ class MapsStore:
             self.landmarks = []  # a store built before the landmark layers
         except (TypeError, ValueError):
             raise damaged(path, "its landmarks attribute is malformed") from None
-        from ..maps.landmarks import VARIABLE
+        from .schema import VARIABLE
 
         if self.landmarks:
             want = (len(self.landmarks),) + self.shape
@@ -144,7 +144,7 @@ class MapsStore:
     def landmark_distances(self, cell) -> np.ndarray:
         """The distances of ``cell`` from every landmark (metres, ``inf`` where a landmark does
         not reach it): the cell's value in every layer (:meth:`ChunkCache.stack_values`)."""
-        from ..maps.landmarks import VARIABLE
+        from .schema import VARIABLE
 
         r, c = int(cell[0]), int(cell[1])
         values = CACHE.stack_values(self.path, VARIABLE, r, c, self.all_chunks_written)
@@ -153,7 +153,7 @@ class MapsStore:
     def landmark_window(self, i: int, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """Rows ``r0:r1`` and columns ``c0:c1`` of landmark ``i``'s distance layer (read
         directly, not cached: the whole-map search reads large windows once)."""
-        from ..maps.landmarks import VARIABLE
+        from .schema import VARIABLE
 
         return CACHE.array(self.path, VARIABLE)[i, r0:r1, c0:c1]
 
@@ -168,9 +168,9 @@ class MapsStore:
 
     def lower_bound(self, start, goal) -> float:
         """A proven lower bound (metres) on the shortest safe path from ``start`` to ``goal``
-        on the whole map: the landmark bound (:func:`pipeline.maps.landmarks.lower_bound`), or 0
+        on the whole map: the landmark bound (:func:`pipeline.planners.bounds.lower_bound`), or 0
         with no landmark layers."""
-        from ..maps.landmarks import lower_bound
+        from ..planners.bounds import lower_bound
 
         if not self.landmarks:
             return 0.0
@@ -208,7 +208,7 @@ class MapsStore:
             return out
 
         def finish(ds):
-            from ..planners.core import check_arrays
+            from ..planners.endpoints import check_arrays
 
             try:  # once: every mission searches these arrays (planners.window.search_window)
                 safety, ridge_cells, passable = check_arrays(
@@ -449,7 +449,7 @@ def open_maps(store: str | os.PathLike, chunks: Chunks = "store") -> xr.Dataset:
         if shards is None:
             ds = xr.open_zarr(store, chunks={} if chunks == "store" else chunks, **opts)
         else:  # the layers by their shards; the landmark layers (not sharded) by their chunks
-            from ..maps.landmarks import VARIABLE
+            from .schema import VARIABLE
 
             ds = xr.open_zarr(store, chunks=shards, drop_variables=[VARIABLE], **opts)
             if VARIABLE in group:

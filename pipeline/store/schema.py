@@ -13,15 +13,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..exceptions import PipelineError
-
-if TYPE_CHECKING:
-    pass
-
 
 MAPS_VERSION = 1
 
@@ -132,3 +127,16 @@ def grid_mapping(crs_wkt: str | None) -> tuple | None:
     attrs.update(crs_wkt=crs_wkt, spatial_ref=crs_wkt)
     layer = {"grid_mapping": GRID_MAPPING, "_CRS": {"wkt": crs_wkt}}
     return xr.DataArray(np.int32(0), attrs=attrs), layer
+
+
+# the layers are sharded as the maps' other layers are, with inner chunks of at most this side:
+# a mission reads one value per landmark at each end, which decodes one inner chunk each.
+# Measured on a 4000^2 layer (chunks of 1024^2 inner 128^2 against 256^2 chunks unsharded):
+# the 16 chunks of a mission's bound decode in 1.0 ms against 3.1 ms (4 ms on the client, more
+# while the workers run its sections), writing a layer takes 0.29 s against 0.16 s and reading
+# it whole 0.27 s against 0.11 s; inner chunks of 64^2 saved 0.6 ms more a mission for 3.3x
+# the write time
+LANDMARK_CHUNK = 128
+
+
+VARIABLE = "landmark_distance"  # (landmark, y, x), float32, shards (1, *the maps' chunks)

@@ -13,16 +13,11 @@ import os
 import sys
 import threading
 from collections import OrderedDict
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .paths import filesystem, is_url, join
-from .schema import storage_chunks
-
-if TYPE_CHECKING:
-    pass
-from .schema import damaged
+from .schema import damaged, storage_chunks
 
 _SCRATCH = threading.local()
 

@@ -1,0 +1,420 @@
+"""MCPC: map compression and parallel computing (docs/method.md section 6, the paper's Algorithm 3).
+
+``plan`` compresses the maps by ``rho`` (block means, cached in the maps store), plans a coarse
+path, restores it to fine cells, cuts it into square sections with a margin, snaps the joints
+to passable cells, plans every section as one dask task that reads only its own window from the
+Zarr store, and stitches the sections into one continuous, simple trajectory.
+
+Defaults (all in fine cells; ``a`` is the cell size in metres):
+
+- ``rho = max(2, ceil(max(rows, cols) / 1000))``: a coarse grid of at most about 1000 cells a
+  side, so the coarse search is a few tens of milliseconds at any map size (10 at 10000^2, the
+  paper's value).
+- ``section_size = max(4 * rho, ceil(3000 / a))``: sections of about 3 km (100 cells at 30 m).
+  The planning work of a mission grows as its length times the section side (a window's area
+  per section); larger sections give the ridge search more room, but on the benchmark maps
+  5 km sections reached the same ridge ratio as 3 km ones (44-45 %) at 1.4x the work.
+- ``margin = max(rho, section_size // 8)``: room on each side of a section's bounding square
+  for the fine path to leave the coarse one (to follow a ridge, or round an obstacle the coarse
+  map smoothed away). A failing section is retried with the margin doubled. A window's area per
+  section is ``(1 + 2 margin / section_size)^2`` section squares, and a section's searches
+  cover much of its window (the Lagrangian planner's off-ridge bound all of it): a quarter
+  (2.25 squares, the default until results revision 3) against an eighth (1.56) took 0.9-1.2x
+  the time with RA* and 1.4-1.5x with the Lagrangian planner, for at most 0.6 points more
+  ridge on the benchmark maps, with the same missions certified (benchmarks/RESULTS.md, "One
+  mission against pyastar2d").
+"""
+
+from __future__ import annotations
+
+import time
+from numbers import Integral
+
+import numpy as np
+
+from .._types import Cell, ClientLike, Maps, Pair
+from ..exceptions import InvalidParameterError, UnreachableGoalError
+from ..params import PLANNING, check_planner
+from ..planners.endpoints import (
+    NO_PASSABLE,
+    nearest_passable,
+    not_passable_error,
+    off_map_error,
+)
+from ..planners.paths import path_metrics
+from ..planners.registry import PLANNERS
+from ..planners.search import heuristic
+from ..planners.window import search_window
+from ..runtime.cluster import get_client
+from ..store.maps_store import MapsStore, open_store
+from ..trajectory import Trajectory
+from .algorithm import (
+    _coarse_endpoint,
+    _snapped_joints,
+    coarse_rho,
+    default_margin,
+    default_parameters,
+    remove_loops,
+    restore,
+    segment,
+)
+from .certify import _Bound, _done, _Reach, certified
+from .runners import Section, _ReadAhead, _run, _section_summary, plan_sections
+
+
+def _check_args(planner, omega, m: MapsStore, rho, section_size, margin):
+    planner, omega = check_planner(planner, omega)
+    d = default_parameters(m.shape, m.cell_size)
+    rho = coarse_rho(m, rho)
+    if section_size is None:
+        section_size = max(4 * rho, d["section_size"])
+    section_size = PLANNING.section_size.check(section_size)
+    if section_size < 2 * rho:
+        raise InvalidParameterError(
+            f"`section_size` ({section_size}) must be at least 2 * rho "
+            f"({2 * rho}): a section spans at least two coarse cells"
+        )
+    if margin is None:
+        margin = default_margin(rho, section_size)
+    margin = PLANNING.margin.check(margin)
+    return planner, omega, rho, section_size, margin
+
+
+def _cell(name, value) -> tuple[int, int]:
+    try:
+        r, c = value
+        if not all(isinstance(v, Integral) and not isinstance(v, bool) for v in (r, c)):
+            raise TypeError
+    except (TypeError, ValueError):
+        raise InvalidParameterError(
+            f"`{name}` must be a cell (row, col) of integers, got {value!r}"
+        ) from None
+    return int(r), int(c)
+
+
+def _check_endpoints(m: MapsStore, start, goal):
+    rows, cols = m.shape
+    out = []
+    for name, cell in (("start", start), ("goal", goal)):
+        r, c = _cell(name, cell)
+        if not (0 <= r < rows and 0 <= c < cols):
+            raise off_map_error(name, r, c, m.shape)
+        out.append((r, c))
+    passable = m.values("passable", out)
+    if passable.all():  # one lookup; a window only to name the nearest cell
+        return out
+    for name, (r, c), here in zip(("start", "goal"), out, passable, strict=True):
+        if here:
+            continue  # passable: no window read for it
+        h = 64
+        r0, r1, c0, c1 = max(r - h, 0), min(r + h + 1, rows), max(c - h, 0), min(c + h + 1, cols)
+        ok = m.window("passable", r0, r1, c0, c1)
+        if not ok[r - r0, c - c0]:
+            raise not_passable_error(
+                name,
+                r,
+                c,
+                nearest_passable(ok, (r, c), (r0, c0)),
+                NO_PASSABLE if m.passable_cells == 0 else f"no passable cell within {h} cells",
+            )
+    return out
+
+
+def _finish(
+    m: MapsStore, results: list, planner, omega, start, goal, expansions, t0, extra, lower: float
+) -> Trajectory:
+    """Stitch section results (dropping the duplicated joints), cut any loops, measure;
+    ``lower`` is the proven lower bound on the whole map's optimum known so far."""
+    cells = np.vstack([r.cells if k == 0 else r.cells[1:] for k, r in enumerate(results)])
+    z = np.concatenate([r.z if k == 0 else r.z[1:] for k, r in enumerate(results)])
+    rdg = np.concatenate([r.ridge if k == 0 else r.ridge[1:] for k, r in enumerate(results)])
+    keep = remove_loops(cells)
+    extra["loop_cells_removed"] = int(len(cells) - len(keep))
+    cells, z, rdg = cells[keep], z[keep], rdg[keep]
+    length, ridge_len, ratio = path_metrics(cells, z, rdg, m.cell_size)
+    a = m.cell_size
+    h0 = heuristic(a, start[0], start[1], goal[0], goal[1], True)
+    points = np.column_stack([m.x[cells[:, 1]], m.y[cells[:, 0]], z])
+    return Trajectory(
+        cells=cells,
+        points=points,
+        length_m=length,
+        ridge_length_m=ridge_len,
+        ridge_ratio=ratio,
+        lower_bound_m=float(max(h0, lower)),
+        expansions=int(expansions),
+        runtime_s=time.perf_counter() - t0,
+        planner=planner,
+        omega=float(omega),
+        extra=extra,
+    )
+
+
+def plan(
+    maps: Maps,
+    start: Cell | None = None,
+    goal: Cell | None = None,
+    *,
+    start_xy: Pair | None = None,
+    goal_xy: Pair | None = None,
+    start_lonlat: Pair | None = None,
+    goal_lonlat: Pair | None = None,
+    planner: str = PLANNING.planner.default,
+    omega: float = PLANNING.omega.default,
+    mcpc: bool = PLANNING.mcpc.default,
+    rho: int | None = None,
+    section_size: int | None = None,
+    margin: int | None = None,
+    coarse_planner: str = PLANNING.coarse_planner.default,
+    coarse_weight: float = PLANNING.coarse_weight.default,
+    repair_max_cells: int = PLANNING.repair_max_cells.default,
+    client: ClientLike = None,
+) -> Trajectory:
+    """Plan a mission on a maps store, coarse to fine (MCPC) or in one window, and certify it.
+
+    Certification: ``lower_bound_m`` is a proven lower bound on the shortest safe path ``L*``
+    between start and goal on the whole map (the larger of the octile distance, the landmark
+    bound of the store and, for a search of the whole map, the planner's own bound). The
+    status is ``"ok"`` only when ``length_m <= omega * lower_bound_m`` (up to a relative
+    ``CERTIFY_TOLERANCE`` for floating point), which proves ``length_m <= omega * L*``. A
+    stitched MCPC path that is not certified is planned again on the whole map (whose search
+    proves its own bound) when the map has at most ``repair_max_cells`` cells; otherwise it is
+    returned with status ``"uncertified"`` and the proven ratio in ``message``.
+
+    Parameters
+    ----------
+    maps : path, xarray.Dataset or MapsStore
+        A maps store (:func:`pipeline.build_maps`), the Dataset :func:`pipeline.open_maps`
+        returned for it, or its :class:`pipeline.store.maps_store.MapsStore`.
+    start, goal : (row, col)
+        Fine cells; or, instead of either, as a job file gives them:
+    start_xy, goal_xy : (x, y)
+        Map coordinates (metres, the maps' CRS).
+    start_lonlat, goal_lonlat : (lon, lat)
+        WGS84 longitude and latitude (the maps need a CRS). Each end in exactly one form.
+    planner : str
+        The planner of every section (and of the whole map with ``mcpc=False``): a name of
+        :data:`pipeline.planners.PLANNERS`.
+    omega : float
+        The length bound of the bounded planners, kept per section.
+    mcpc : bool
+        False plans the whole map in one window (one task).
+    rho, section_size, margin : int, optional
+        Compression factor, section side and window margin in fine cells; defaults from the
+        map (module documentation).
+    coarse_planner : str
+        Planner of the coarse path (A*, the paper's choice). Coarse ridge cells are those whose
+        block is at least half ridge.
+    coarse_weight : float
+        For the bounded planners (wastar, ra_star, lagrangian) the coarse A* is weighted A* of
+        weight ``min(coarse_weight, omega)`` (1: exact A*, as in the paper): the coarse path
+        only guides the sections, and at 1.1 it expands 1/90-1/40 of the cells of the exact
+        search (median 0.2-0.4 ms instead of 8-13 ms on the coarse grids of 1000^2 of the
+        benchmark maps) for a path at most 10 % longer than the coarse optimum (0.07-1.2 %,
+        at most 3.6 %, measured). At 1.05 the search on the 2000^2 map's coarse grid, of 60 m
+        cells, whose 3-D lengths exceed the horizontal ones by more than 5 %, took 5x as long
+        (median 2.0 ms), with the same ridge and length after the sections. The optimal
+        planners (astar, dijkstra) keep the exact coarse A*: their stitched paths follow the
+        coarse route, and a 5 % detour there is 5 % on the result. Other coarse planners run
+        with the mission's omega.
+    repair_max_cells : int
+        The largest map (rows x cols) on which an uncertified MCPC path is planned again on
+        the whole map; 0 never does.
+    client : None, "synchronous", "threads", scheduler address or distributed.Client
+        Where the sections run (see :func:`pipeline.runtime.cluster.get_client`). None: the dask
+        client this process made current, if there is one, else this process's threads (no
+        cluster is started for one mission: a plain script needs no main guard).
+
+    Returns
+    -------
+    Trajectory
+        ``status`` "ok" (certified) or "uncertified"; ``certified_ratio`` is ``length_m /
+        lower_bound_m``. ``extra`` holds the parameters, the coarse path, every section
+        (window, attempts, times), the timings of the stages and, when the path was repaired,
+        ``extra["repair"]``.
+
+    Examples
+    --------
+    >>> t = pipeline.plan("maps.zarr", (120, 80), (9800, 9900), omega=2.0)  # doctest: +SKIP
+    """
+    t0 = time.perf_counter()
+    m = open_store(maps)
+    planner, omega, rho, section_size, margin = _check_args(
+        planner, omega, m, rho, section_size, margin
+    )
+    check_planner(coarse_planner, omega, "coarse_planner")
+    coarse_weight = PLANNING.coarse_weight.check(coarse_weight)
+    mcpc = PLANNING.mcpc.check(mcpc)
+    repair_max_cells = PLANNING.repair_max_cells.check(repair_max_cells)
+    given = {
+        k: v
+        for k, v in dict(
+            start=start,
+            goal=goal,
+            start_xy=start_xy,
+            goal_xy=goal_xy,
+            start_lonlat=start_lonlat,
+            goal_lonlat=goal_lonlat,
+        ).items()
+        if v is not None
+    }
+    from ..missions import endpoint_cells
+
+    ends = endpoint_cells(m, given)  # as a job file gives them
+    start, goal = _check_endpoints(m, ends["start"], ends["goal"])
+    # the components layer proves reachability at once, either way (_Reach)
+    reach = _Reach(m, start, goal)
+    run_on = get_client(client, own="threads")  # no cluster of its own for one mission
+    extra: dict = {
+        "mcpc": bool(mcpc),
+        "rho": rho,
+        "section_size": section_size,
+        "margin": margin,
+        "coarse_planner": coarse_planner,
+        "coarse_weight": coarse_weight,
+    }
+    bound = _Bound(m, start, goal, extra)
+    if not mcpc:
+        reach.check()
+        return _done(m, _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+    try:
+        t = _plan_mcpc(
+            m,
+            run_on,
+            planner,
+            omega,
+            start,
+            goal,
+            t0,
+            extra,
+            rho,
+            section_size,
+            margin,
+            coarse_planner,
+            coarse_weight,
+            bound,
+            reach,
+        )
+    except UnreachableGoalError as exc:
+        if not reach.check():  # reachability unknown (a store without components): as it says
+            raise
+        # start and goal share a component, so a path exists that the coarse map or the
+        # sections missed (a passage narrower than rho cells): plan the whole map
+        extra["fallback"] = f"MCPC found no path ({exc}); planned on the whole map instead"
+        return _done(m, _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+    if certified(t.length_m, t.lower_bound_m, omega):
+        return _done(m, t)
+    cells = m.shape[0] * m.shape[1]
+    if cells > repair_max_cells:
+        return _done(m, t, repair=f"the map's {cells} cells exceed repair_max_cells")
+    # repair: one search over the whole map, whose planner proves its own bound
+    tr = time.perf_counter()
+    repair = {
+        "reason": f"the stitched path ({t.length_m:.1f} m) is {t.length_m / t.lower_bound_m:.4f}"
+        f" x the proven lower bound ({t.lower_bound_m:.1f} m), above omega = {omega:g}",
+        "stitched_length_m": t.length_m,
+        "stitched_ridge_ratio": t.ridge_ratio,
+    }
+    extra = {**t.extra, "repair": repair}
+    whole = _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound)
+    repair["seconds"] = time.perf_counter() - tr
+    return _done(m, whole)
+
+
+# landmark layers the whole-map search reads for its heuristic (those that bound the mission
+# best). None by default: measured on the benchmark maps (benchmarks/bench_certify.py), reading
+# one layer of 10000^2 takes about 3.7 s, more than the landmark heuristic saves A* there
+# (6.3 s -> 4.7 s with two layers); on maze-like maps it saves far more. plan_window takes
+# layers directly (``landmarks=``).
+ACTIVE_LANDMARKS = 0
+
+
+def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Trajectory:
+    k = min(ACTIVE_LANDMARKS, len(m.landmarks)) if PLANNERS[planner].uses_landmarks else 0
+    whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal, landmarks=k)
+    res = _run(run_on, m, [whole], planner, omega)[0]
+    if not res.ok:
+        raise UnreachableGoalError(f"no path on the whole map: {res.message}")
+    extra["sections"] = [_section_summary(res, whole)]
+    # a search of the whole map proves its own bound on L*
+    lower = max(bound.value(), res.lower_bound_m)
+    return _finish(m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower)
+
+
+def _plan_mcpc(
+    m,
+    run_on,
+    planner,
+    omega,
+    start,
+    goal,
+    t0,
+    extra,
+    rho,
+    section_size,
+    margin,
+    coarse_planner,
+    coarse_weight,
+    bound,
+    reach,
+) -> Trajectory:
+    # 1-2: compression (cached) and the coarse path
+    tc = time.perf_counter()
+    co = m.coarse(rho)
+    cs = _coarse_endpoint(co["passable"], (start[0] // rho, start[1] // rho))
+    cg = _coarse_endpoint(co["passable"], (goal[0] // rho, goal[1] // rho))
+    if cs is None or cg is None:
+        which = "start" if cs is None else "goal"
+        raise UnreachableGoalError(
+            f"no passable coarse cell near the {which} at rho={rho}; "
+            "try a smaller rho or mcpc=False"
+        )
+    # the coarse A* is weighted A* (see ``coarse_weight``); other planners take omega
+    weight = 1.0 if PLANNERS[planner].optimal else min(coarse_weight, omega)
+    if coarse_planner == "astar" and weight > 1.0:
+        coarse_planner, coarse_omega = "wastar", weight
+    else:
+        coarse_omega = omega
+    try:
+        ct = search_window(  # the coarse level's arrays are checked when it is read
+            co["safety"],
+            co["ridge_cells"],
+            co["passable"],
+            cs,
+            cg,
+            m.cell_size * rho,
+            coarse_planner,
+            coarse_omega,
+        )
+    except UnreachableGoalError:
+        raise UnreachableGoalError(
+            f"no coarse path from {start} to {goal} at rho={rho}: the goal is unreachable, or "
+            "reachable only through passages narrower than rho cells; try a smaller rho or "
+            "mcpc=False"
+        ) from None
+    extra["coarse_cells"] = ct.cells.astype(np.int32)  # an array: quick to send back
+    extra["coarse_s"] = time.perf_counter() - tc
+    reach.check()  # before any section: a goal in another region is no mission
+
+    # 3-5: restore, segment, snap the joints
+    pts = restore(ct.cells, rho, m.shape, start, goal)
+    secs = segment(pts, section_size, margin, m.shape)
+    # in one process the windows are read from now on, while the joints are snapped
+    ahead = _ReadAhead.start(run_on, m, [w for _, _, w in secs])
+    try:
+        joints = _snapped_joints(m, pts, secs, goal, rho, margin)
+        sections = [Section(w, joints[k], joints[k + 1]) for k, (_, _, w) in enumerate(secs)]
+
+        # 6: plan the sections as tasks; retry failures with a doubled margin, then merged
+        tp = time.perf_counter()
+        sections, results = plan_sections(ahead or run_on, m, sections, planner, omega, margin)
+        extra["sections_s"] = time.perf_counter() - tp
+    finally:
+        if ahead is not None:
+            ahead.close()  # a mission that failed before its sections: its reads dropped
+
+    # 7: stitch, then cut any loops
+    extra["sections"] = [_section_summary(r, sec) for r, sec in zip(results, sections, strict=True)]
+    expansions = ct.expansions + sum(r.expansions for r in results)
+    # the sections' own bounds hold on their windows only: the landmark bound is the proof
+    return _finish(m, results, planner, omega, start, goal, expansions, t0, extra, bound.value())
