@@ -241,7 +241,7 @@ def overhead(n: int, k: int) -> dict:
 
     import pipeline
     from pipeline.dem.synthetic import local_crs
-    from pipeline.flight import with_flight
+    from pipeline.flight.fly import with_flight
     from pipeline.outputs.files import write_mission_files
     from pipeline.outputs.plots import mission_quicklook
     from pipeline.runtime.cluster import local_cluster

@@ -33,15 +33,15 @@ from .exceptions import (
 # ``from pipeline import plan`` work as before; so does a submodule reached as an attribute
 # (``pipeline.jobs``).
 _LAZY = {
-    "cell_size": "dem",
-    "import_dem": "dem",
-    "open_dem": "dem",
-    "write_dem": "dem",
-    "Flight": "flight",
-    "Vehicle": "flight",
+    "cell_size": "dem.canonical",
+    "import_dem": "dem.open",
+    "open_dem": "dem.open",
+    "write_dem": "dem.dem_store",
+    "Flight": "flight.vehicle",
+    "Vehicle": "flight.vehicle",
     "write_mission": "outputs.files",
-    "fly": "flight",
-    "run_job": "jobs",
+    "fly": "flight.fly",
+    "run_job": "run",
     "build_maps": "maps.build",
     "dem_hash": "maps.build",
     "plan": "mcpc.plan",

@@ -10,7 +10,7 @@ if TYPE_CHECKING:
     import xarray as xr
     from distributed import Client
 
-    from .flight import Vehicle
+    from .flight.vehicle import Vehicle
     from .store.maps_store import MapsStore
 
 # a file or store: a path, or for stores a URL (s3://...)

@@ -169,7 +169,7 @@ def dem() -> None:
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
     """Write a virtual mid-ocean-ridge DEM to the Zarr store OUT."""
-    from .dem import write_dem
+    from .dem.dem_store import write_dem
     from .dem.synthetic import synthetic_dem
 
     with _errors():
@@ -197,7 +197,7 @@ def dem_synth(out, shape, cell_size, seed, islands, chunks, overwrite, **where):
 def dem_import(source, out, overwrite, **options):
     """Import a GeoTIFF, BAG, ESRI ASCII, NetCDF / GMT grid or Zarr DEM as the Zarr store OUT
     (options: those of open_dem, by the parameter schema), in one pass over the file."""
-    from .dem import import_dem, open_dem
+    from .dem.open import import_dem, open_dem
 
     with _errors():
         t0 = time.perf_counter()
@@ -211,7 +211,8 @@ def dem_import(source, out, overwrite, **options):
 @click.argument("path", type=click.Path())
 def dem_info(path):
     """Describe a DEM file as open_dem sees it."""
-    from .dem import file_chunks, open_dem, reading
+    from .dem.open import open_dem
+    from .dem.readers import file_chunks, reading
 
     with _errors():
         d = open_dem(path, chunks=DEM.chunks.default)
@@ -251,7 +252,7 @@ def dem_info(path):
 def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, workers, **params):
     """Build the maps store OUT (elevation, safety, passable, accumulation, ridge, component,
     landmark distances) from the DEM at DEM_PATH."""
-    from .dem import open_dem
+    from .dem.open import open_dem
     from .maps.build import build_maps, check_build_arguments
     from .runtime.cluster import session
     from .store.paths import is_url, require_writable
@@ -318,7 +319,7 @@ def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite, p
     the environment (disk, permissions, memory, an unreachable scheduler, a catalog in use by
     another run); 4 an internal error (a bug: -v shows the traceback); 5 every mission
     planned, some not certified (status "uncertified", the proven ratio in the Item)."""
-    from .jobs import run_job
+    from .run import run_job
 
     if scheduler and scheduler_file:
         raise click.UsageError("give --scheduler or --scheduler-file, not both")

@@ -26,7 +26,8 @@ import numpy as np
 
 from ._types import ClientLike, Maps, VehicleLike
 from .exceptions import InvalidParameterError, PipelineError
-from .flight import Vehicle, with_flight
+from .flight.fly import with_flight
+from .flight.vehicle import Vehicle
 from .mcpc.algorithm import coarse_rho
 from .mcpc.plan import plan
 from .params import ENDPOINT_FORMS, MISSIONS_PER_TASK, PLANNING, endpoint_forms, endpoint_key

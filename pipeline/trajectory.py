@@ -27,7 +27,7 @@ class Trajectory:
     status: str = "ok"  # "ok" (certified), "uncertified" or "failed"
     message: str = ""
     extra: dict = field(default_factory=dict)
-    flight: object = None  # the flown track (pipeline.flight.Flight), when computed
+    flight: object = None  # the flown track (pipeline.flight.vehicle.Flight), when computed
 
     @property
     def certified_ratio(self) -> float:

@@ -201,7 +201,7 @@ def test_results_a_python_user_expects(tmp_path, synchronous):
     import importlib.metadata
     from pathlib import Path
 
-    from pipeline.flight import with_flight
+    from pipeline.flight.fly import with_flight
 
     tif = _nodata_tif(tmp_path / "nd.tif")
     maps = tmp_path / "m.zarr"
@@ -241,7 +241,7 @@ def test_data_changing_steps_are_warned_to_a_notebook(tmp_path):
     with pytest.warns(pipeline.PipelineWarning, match="reprojecting to a local azimuthal"):
         pipeline.open_dem(nc)
     raw = rioxarray.open_rasterio(_nodata_tif(tmp_path / "nd.tif"))
-    from pipeline.dem import as_dem
+    from pipeline.dem.canonical import as_dem
 
     with pytest.warns(pipeline.PipelineWarning, match="no-data value -9999 read as NaN"):
         as_dem(raw)
@@ -274,7 +274,7 @@ def test_a_nan_nodata_is_no_notice(tmp_path, synchronous):
     is, with no warning of a changed value."""
     import warnings
 
-    from pipeline.dem import as_dem
+    from pipeline.dem.canonical import as_dem
 
     dem = pipeline.synthetic_dem((40, 40), chunks=None)
     dem.attrs["_FillValue"] = np.float32("nan")

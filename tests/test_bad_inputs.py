@@ -801,7 +801,7 @@ def test_a_bare_array_is_not_a_dem():
 def test_a_map_two_cells_thin_plans_and_draws_its_quicklook(tmp_path):
     """A 2 x 1000 grid (a survey line): planned, flown and drawn (the shading's slopes needed
     two cells a side of the thinned picture, and the mission was recorded failed)."""
-    from pipeline.flight import with_flight
+    from pipeline.flight.fly import with_flight
     from pipeline.outputs.plots import mission_quicklook, shaded_relief
 
     z = np.full((2, 1000), -3000.0, np.float32)

@@ -464,7 +464,7 @@ def test_a_geotiff_is_read_in_chunks_not_whole(tmp_path):
     arr.rio.to_raster(tmp_path / "big.tif", tiled=True, blockxsize=64, blockysize=64)
     dem = pipeline.open_dem(tmp_path / "big.tif", chunks=64)
     assert dem.data.chunksize == (64, 64)
-    assert pipeline.dem.file_chunks(tmp_path / "big.tif") == (64, 64)
+    assert pipeline.dem.readers.file_chunks(tmp_path / "big.tif") == (64, 64)
 
 
 # ------------------------------------------------------------------ a region of a file (bbox)
@@ -731,7 +731,7 @@ def test_a_reprojection_written_in_bands_reads_each_source_chunk_once(tmp_path, 
     from pyproj import CRS
     from rasterio.warp import calculate_default_transform
 
-    from pipeline.dem import exact_warp
+    from pipeline.dem.reproject import exact_warp
     from pipeline.store.bands import store_in_bands
 
     n = 1024

@@ -23,13 +23,9 @@ from test_certify import missions, optimum
 from test_planners import reference_graph
 
 import pipeline
-from pipeline.flight import (
-    CLEARANCE_SLACK,
-    Vehicle,
-    band_profile,
-    pitch_envelope,
-    with_flight,
-)
+from pipeline.flight.fly import with_flight
+from pipeline.flight.profile import CLEARANCE_SLACK, band_profile, pitch_envelope
+from pipeline.flight.vehicle import Vehicle
 from pipeline.outputs import files as exports
 
 # ------------------------------------------------------------------ the profile kernels
@@ -163,7 +159,7 @@ def test_flown_tracks_keep_clearance_pitch_turns_and_the_bound(
 
 def test_turns_are_widened_where_the_corners_are_too_close(ridge_store):
     """An out-and-back spur (the path reverses) is cut, not flown with a zero radius."""
-    from pipeline.flight import arcs, widen_turns
+    from pipeline.flight.geometry import arcs, widen_turns
 
     path, ok, *_ = ridge_store
     r = np.array([10.0, 10.0, 10.0, 10.0, 30.0], dtype=np.float64)
@@ -198,7 +194,7 @@ def test_required_heights_clear_the_bilinear_seabed_between_grid_points(ratio, p
     and for squares cut in 2 x 2 and 8 x 8 parts (``required_heights_fine``); and above the
     tight height (the lowest that clears the sampled seabed) by no more than the seabed's rise
     over two cells for whole squares, over two parts' sides for parts."""
-    from pipeline.flight import required_heights, required_heights_fine
+    from pipeline.flight.profile import required_heights, required_heights_fine
 
     rng = np.random.default_rng(3)
     a, n = 100.0, 24
@@ -767,7 +763,7 @@ def test_required_heights_equal_a_brute_force_along_a_track(method, tile):
     diagonal (numpy), NaN wherever a grid point within that is not loaded or a no-data point
     within the radius; a point flagged where a no-data point's grid squares, not the point
     itself, come within the radius."""
-    from pipeline.flight import required_heights
+    from pipeline.flight.profile import required_heights
 
     rng = np.random.default_rng(7)
     rows, cols, a, radius, clearance = 90, 75, 30.0, 260.0, 100.0
@@ -834,7 +830,8 @@ def test_corridor_reads_equal_the_layers_for_awkward_chunkings(tmp_path, shape, 
     over the whole elevation array (numpy)."""
     import dask
 
-    from pipeline.flight import Corridor, required_heights
+    from pipeline.flight.geometry import Corridor
+    from pipeline.flight.profile import required_heights
 
     dem = pipeline.synthetic_dem(shape, cell_size=50.0, seed=2, chunks=chunks, islands=0)
     path = tmp_path / "maps.zarr"
@@ -916,7 +913,7 @@ def test_a_shortcut_leg_is_allowed_by_its_two_rules():
     the pad, a diagonal step cuts no corner, and its off-ridge length (midpoint samples) is at
     most the path's plus half a cell plus the share, at a rate at most the path's plus the
     share. Over random legs on tiles with unloaded ones and the map's edge."""
-    from pipeline.flight import leg_allowed
+    from pipeline.flight.geometry import leg_allowed
 
     rng = np.random.default_rng(3)
     rows, cols, tile, pad, share = 30, 27, 8, 2, 0.02
@@ -981,8 +978,8 @@ def test_route_simplification_equals_the_greedy_rule_level_by_level():
     (tested above) and the tolerance, one level after another until one keeps at most
     ``enough`` corners. Over random wandering polylines on tiles with unloaded ones, passable
     and ridge at random."""
-    import pipeline.flight as flight
-    from pipeline.flight import leg_allowed
+    import pipeline.flight.geometry as flight
+    from pipeline.flight.geometry import leg_allowed
 
     rng = np.random.default_rng(5)
     rows, cols, tile, pad = 40, 44, 8, 2
@@ -1074,7 +1071,7 @@ def test_seabed_under_the_track_is_scipys_bilinear_interpolation(tile):
     point with weight is unknown (a no-data cell or a tile not loaded)."""
     from scipy.interpolate import RegularGridInterpolator
 
-    import pipeline.flight as flight
+    import pipeline.flight.profile as flight
 
     rng = np.random.default_rng(11)
     rows, cols = 31, 27
@@ -1220,7 +1217,7 @@ def test_a_break_ending_a_short_leg_is_removed_or_moved_where_the_limits_allow()
     above every required height and within the pitch limit; else removed and a neighbour's
     height raised as little as the required heights ask (worked out by hand below); else moved
     to 30 m from its neighbours; kept where none of these keeps the limits. Corners stay."""
-    from pipeline.flight import resolve_short_legs
+    from pipeline.flight.profile import resolve_short_legs
 
     sig = np.arange(0.0, 101.0, 1.0)
     z = np.interp(sig, [0, 50, 60, 100], [0.0, 5.0, 5.5, 8.0])
@@ -1274,7 +1271,7 @@ def test_resolved_short_legs_keep_every_limit(seed, min_leg, band):
     its waypoints, keeps every required height, every interval's pitch limit and the surface
     limit, keeps the corners and both ends' heights, and has no more breaks ending short legs
     than before."""
-    from pipeline.flight import pitch_envelope_var, resolve_short_legs
+    from pipeline.flight.profile import pitch_envelope_var, resolve_short_legs
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(20, 300))
@@ -1315,7 +1312,7 @@ def test_turn_slopes_change_no_closer_than_a_leg(seed, min_leg):
     limit where it applies, never lowered off every turn's reach once joined runs are counted,
     and it changes only at places at least ``min_leg`` apart and from both ends (checked
     here interval by interval), so a profile held at the limit breaks no closer."""
-    from pipeline.flight import turn_slopes
+    from pipeline.flight.profile import turn_slopes
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(2, 200))
@@ -1344,7 +1341,7 @@ def test_the_flights_own_clearance_check_measures_the_bilinear_seabed(ratio):
     the height above the seabed under each point."""
     from scipy.interpolate import RegularGridInterpolator
 
-    from pipeline.flight import seabed_clearance
+    from pipeline.flight.profile import seabed_clearance
 
     rng = np.random.default_rng(5)
     a, n = 100.0, 24
@@ -1372,7 +1369,7 @@ def test_profile_figures_count_reversals_and_altitudes():
     """Up 500 m, level 500 m, down 500 m, up 500 m over a seabed 100 m below the start: two
     reversals (the level piece passed over) in 2 km; the altitude's median and 90th
     percentile by numpy over the samples."""
-    from pipeline.flight import profile_figures
+    from pipeline.flight.profile import profile_figures
 
     s = np.linspace(0.0, 2000.0, 2001)
     z = np.interp(s, [0, 500, 1000, 1500, 2000], [0.0, 50.0, 50.0, 0.0, 40.0])

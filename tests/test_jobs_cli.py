@@ -15,7 +15,8 @@ from click.testing import CliRunner
 import pipeline
 from pipeline.cli import main
 from pipeline.exceptions import JobFileError
-from pipeline.jobs import load_job, run_job
+from pipeline.jobs import load_job
+from pipeline.run import run_job
 
 GOOD = """
 name = "small"

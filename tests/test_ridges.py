@@ -272,7 +272,7 @@ def test_all_nodata_dem():
 
 def test_valid_cells_beyond_the_first_chunk_count():
     """The no-data check reads the first chunk, then the rest only when that one is all NaN."""
-    from pipeline.dem import require_valid_cells
+    from pipeline.dem.canonical import require_valid_cells
 
     z = np.full((10, 10), np.nan, np.float32)
     z[9, 9] = -100.0  # in the last chunk only

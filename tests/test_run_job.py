@@ -31,8 +31,9 @@ from scipy.spatial import cKDTree
 
 import pipeline
 from pipeline.exceptions import JobFileError
-from pipeline.jobs import load_job, run_job
+from pipeline.jobs import load_job
 from pipeline.missions import clearances
+from pipeline.run import run_job
 
 ROOT = Path(__file__).parents[1]
 EXE = Path(sys.executable).parent / "pipeline"
@@ -632,7 +633,7 @@ def test_a_changed_mission_or_maps_is_planned_again(tmp_path, stores, local_clie
     first = _run_ids(root)
     # the goal of one mission edited: that one is planned again, the other is skipped
     job.write_text(job.read_text().replace("goal = [150, 290]", "goal = [140, 280]"))
-    with caplog.at_level("INFO", logger="pipeline.jobs"):
+    with caplog.at_level("INFO", logger="pipeline.run"):
         res = run_job(job, scheduler=local_client)
     second = _run_ids(root)
     assert res.skipped == 1 and res.replanned == 1 and res.ok
@@ -717,7 +718,7 @@ def test_any_mission_name_gives_a_catalog_pystac_loads(tmp_path, stores, local_c
 
 
 def test_a_second_run_on_a_busy_catalog_refuses(tmp_path, local_client):
-    from pipeline.jobs import catalog_lock
+    from pipeline.run import catalog_lock
 
     job = write_job(tmp_path, missions="", name="busy")
     with catalog_lock(tmp_path / "cat"):
@@ -1066,7 +1067,7 @@ def test_old_stores_and_missions_are_counted_and_pruned_on_request(
         .replace('name = "south"', 'name = "north"')
     )
     (root / "notes.txt").write_text("mine")
-    with caplog.at_level("INFO", logger="pipeline.jobs"):
+    with caplog.at_level("INFO", logger="pipeline.run"):
         res = run_job(job, scheduler=local_client)
     assert res.ok and old_maps.exists() and (root / "missions" / "south").exists()
     assert "holds 2 stores and mission folders the job no longer uses" in caplog.text

@@ -39,7 +39,7 @@ import xarray as xr
 import zarr
 
 from .._types import Chunks, DEMLike
-from ..dem import as_dem, cell_size, require_valid_cells
+from ..dem.canonical import as_dem, cell_size, require_valid_cells
 from ..exceptions import InvalidParameterError
 from ..params import DEFAULT_CHUNK, MAPS, chunks2d
 from ..planners.endpoints import NO_PASSABLE

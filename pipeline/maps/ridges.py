@@ -47,8 +47,8 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from ..dem import cell_size as _cell_size
-from ..dem import check_dem, require_valid_cells
+from ..dem.canonical import cell_size as _cell_size
+from ..dem.canonical import check_dem, require_valid_cells
 from ..params import MAPS
 from ..planners.grid import DC, DIST, DR, flat_offsets, inside
 from ..planners.heap import grown

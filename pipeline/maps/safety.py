@@ -31,7 +31,7 @@ import xarray as xr
 from llvmlite import ir
 from numba.core.extending import intrinsic
 
-from ..dem import check_dem
+from ..dem.canonical import check_dem
 from ..exceptions import InvalidParameterError
 from ..params import MAPS, check_clearance
 from ..runtime.jit import njit

@@ -27,7 +27,7 @@ from .._types import Maps, PathLike
 from ..runtime.jit import njit
 
 if TYPE_CHECKING:
-    from ..flight import Flight
+    from ..flight.vehicle import Flight
     from ..trajectory import Trajectory
 
 PARQUET = "application/vnd.apache.parquet"

@@ -136,7 +136,8 @@ def _store(tmp: Path, build: bool) -> Path:
     """The tiny maps store: built here (``build``), or waited for (another process builds it)."""
     store, ready = tmp / "maps.zarr", tmp / "maps.ready"
     if build:
-        from ..dem import open_dem, write_dem
+        from ..dem.dem_store import write_dem
+        from ..dem.open import open_dem
         from ..maps.build import build_maps
 
         write_dem(_tiny_dem(), tmp / "dem.zarr", chunks=24, overwrite=True)
@@ -171,7 +172,8 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 pipeline.synthetic_dem((64, 64), chunks=32).compute()
                 _warp()
             elif part == "safety":
-                from ..dem import open_dem, write_dem
+                from ..dem.dem_store import write_dem
+                from ..dem.open import open_dem
 
                 write_dem(_tiny_dem(), tmp / "dem-safety.zarr", chunks=24, overwrite=True)
                 _safety(open_dem(tmp / "dem-safety.zarr", chunks=24))
@@ -272,7 +274,7 @@ def _search_bucketed() -> None:
 def _widen(store: Path, t) -> None:
     """The kernels of corners too close for the turn radius (``widen_turns``), which the tiny
     mission's flight may not meet: its grid path's corners with a radius of 10 cells."""
-    from ..flight import Corridor, widen_turns
+    from ..flight.geometry import Corridor, widen_turns
     from ..store.maps_store import open_store
 
     m = open_store(store)
@@ -363,7 +365,7 @@ def _warp() -> None:
     from pyproj import CRS
     from rasterio.transform import from_origin
 
-    from ..dem import exact_warp
+    from ..dem.reproject import exact_warp
 
     lon, lat = -20.0 + 0.01 * np.arange(40), 40.0 - 0.01 * np.arange(40)
     src = xr.DataArray(np.zeros((40, 40), np.float32), dims=("y", "x"), coords={"y": lat, "x": lon})

@@ -1,0 +1,411 @@
+"""From a planned grid path to a track a vehicle can fly (``fly``): any-angle shortcuts, turns
+rounded to the vehicle's radius, a pitch-limited near-bottom depth profile clear of the
+continuous seabed, waypoints, timing and energy (docs/flyable-missions.md).
+
+The planned path is a chain of grid cells on the safety surface. A vehicle flies neither cell
+centres nor 45-degree staircases, and it cannot climb at 70 degrees. ``fly`` turns the path
+into a track in steps, every one checked against the terrain itself (the DEM, not the safety
+layer):
+
+1. **Shortcuts** (string pulling): from each kept corner of the path, the farthest later one
+   that a straight leg reaches over usable cells (passable, no corner cutting, terrain known
+   around them) without flying more off the ridge cells than the path did.
+2. **Route**: the corners simplified once more (a leg may skip corners it passes within
+   a tolerance of, ``ROUTE_SIMPLIFICATIONS``): the waypoints' horizontal positions.
+3. **Turns**: corners too close for the turn radius are cut where a straight leg between
+   their neighbours is usable; every other corner is rounded by a circular arc of the
+   vehicle's minimum turn radius (never tighter), tangent to both legs: the flown track.
+4. **Required heights**: along the waypoint route and the flown track, sampled every half
+   cell at most, the lowest height ``h(p)`` that keeps the clearance of the maps' method from
+   the continuous seabed (bilinear between the DEM's grid points), conservatively: a grid
+   square's seabed is at most its highest corner, within the square's diagonal of any of its
+   points (:func:`required_heights`); the samples' spacing and ``R'`` slightly above ``R``
+   make it hold between samples and on the arcs too (:func:`_sampling`).
+5. **Depth profile and waypoints**: one profile along the route's straight legs, linear
+   between waypoints (what an autopilot flies): few straight pieces inside a band above the
+   lowest pitch-limited profile over ``h`` (``band_profile``; the arcs' samples bind the route
+   around them, and over a turn the slope is limited so that the arc keeps the pitch); the
+   waypoints are the route's corners and the pieces' ends, and the flown track (the route
+   with its turns) takes its heights from the route (:func:`vertical_profile`).
+
+If the smoothed track breaks a limit (terrain unknown near a shortcut, the profile forced
+above the surface clearance, or a flown length above ``omega`` times the proven lower bound),
+``fly`` falls back to the path's own corners, then to the grid path without arcs; what still
+breaks a limit is listed in ``Flight.problems``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .._types import Maps, VehicleLike
+
+if TYPE_CHECKING:
+    from ..trajectory import Trajectory
+from ..exceptions import InvalidParameterError
+from .geometry import (
+    _LEVELS,
+    Corridor,
+    _corner_vertices,
+    _lookup,
+    _path_off_ridge,
+    _polyline_off_ridge,
+    _route_samples,
+    _route_vertices,
+    _shortcuts,
+    _tight_turns,
+    _too_tight,
+    arcs,
+    widen_turns,
+)
+from .profile import (
+    _METHOD,
+    CHECK_LATTICE,
+    CLEARANCE_SLACK,
+    LEG_MARGIN,
+    SAMPLE_STEP,
+    _bilinear,
+    _closest,
+    _required_threaded,
+    profile_figures,
+    seabed_clearance,
+    subdivisions,
+    vertical_profile,
+)
+from .vehicle import Flight, Vehicle
+
+# waypoint legs may fly above the lowest profile of their route by up to a band: by default the
+# narrowest of these shares of the clearance that needs at most WAYPOINT_SHARE waypoints per
+# grid path cell (fewer waypoints for a little more altitude); [vehicle] waypoint_band_m fixes it
+WAYPOINT_BANDS = (0.25, 0.5, 1.0)
+
+
+WAYPOINT_SHARE = 0.1
+
+
+def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
+    """The track a vehicle flies for ``traj`` (a planned :class:`Trajectory`) on the maps store
+    ``maps``, and its waypoints: see the module's description. ``vehicle``: a
+    :class:`Vehicle`, a dict of its keys, or None (the defaults).
+
+    Examples
+    --------
+    >>> t = pipeline.plan("maps.zarr", (120, 150), (1850, 1800))          # doctest: +SKIP
+    >>> f = pipeline.fly("maps.zarr", t, {"max_pitch_deg": 15})         # doctest: +SKIP
+    >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
+    (True, 41)
+    """
+    from ..store.maps_store import open_store
+
+    t0 = time.perf_counter()
+    m = open_store(maps)
+    veh = Vehicle.of(vehicle)
+    if not traj.planned or len(traj.cells) < 2:
+        raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
+    p = m.parameters
+    a = m.cell_size
+    method = p.get("method", "spherical")
+    clearance = float(p["clearance_m"])
+    radius = clearance
+    if method == "horizontal" and p.get("horizontal_clearance_m"):
+        radius = float(p["horizontal_clearance_m"])
+    surface = p.get("surface_clearance_m")
+    top = float(p.get("sea_level_m", 0.0)) - float(clearance if surface is None else surface)
+    turn_m = veh.turn_radius(a)
+    slope = math.tan(math.radians(veh.max_pitch_deg))
+    step, terrain, top_ok = _sampling(method, a, clearance, radius, slope, turn_m, top)
+    rows, cols = m.shape
+    elem = int(math.ceil((terrain[1] + terrain[4]) / a + math.sqrt(2.0))) + 1
+    pad = elem + int(math.ceil(turn_m / a)) + 2
+    cells = np.asarray(traj.cells, dtype=np.int64)
+    cor = Corridor(m, cells, pad)
+    usable = (cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem)
+    verts = _corner_vertices(cells)
+    vr = cells[verts, 0].astype(np.float64)
+    vc = cells[verts, 1].astype(np.float64)
+    if traj.lower_bound_m > 0:
+        limit = traj.omega * traj.lower_bound_m
+    else:
+        limit = traj.length_m
+    if traj.status != "ok":
+        limit = max(limit, traj.length_m)
+    off, along = _path_off_ridge(cells, cor)
+    keep = _shortcuts(
+        vr, vc, off[verts], along[verts], cor.pas, cor.rdg, *usable[1:], 4 * max(rows, cols)
+    )
+    r_turn = turn_m / a
+
+    # when the flight along shortcuts that keep the ridge cover is longer than the bound
+    # allows, shortcuts free of that rule (the shortest), then the path's own corners (each
+    # made only when needed)
+    def free():
+        kf = _shortcuts(
+            vr, vc, along[verts] * 2.0, along[verts], cor.pas, cor.rdg, *usable[1:],
+            4 * max(rows, cols),
+        )  # fmt: skip
+        return widen_turns(vr[kf], vc[kf], r_turn, usable)
+
+    tries = (
+        ("shortcuts", lambda: widen_turns(vr[keep], vc[keep], r_turn, usable), r_turn),
+        ("straight shortcuts", free, r_turn),
+        ("path vertices", lambda: widen_turns(vr, vc, r_turn, usable), r_turn),
+        ("grid path", lambda: (vr, vc), 0.0),
+    )
+    bands = (
+        (veh.waypoint_band_m,)
+        if veh.waypoint_band_m is not None
+        else tuple(f * clearance for f in WAYPOINT_BANDS)
+    )
+    want = max(2, int(WAYPOINT_SHARE * len(cells)))
+    results = []
+    for name, make, rad in tries:
+        wr, wc = make()
+        # the waypoint route: the corners, a leg skipping those it passes within a tolerance
+        # of; the flown track: the route with its turns rounded
+        if rad > 0:
+            keep_ridge = name != "straight shortcuts"
+            woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
+            # the closest route with few corners
+            rk = _route_vertices(wr, wc, woff, walong, _LEVELS, 0.75 * want, cor.rdg, *usable)
+            sr, sc = widen_turns(wr[rk], wc[rk], rad, usable)
+            # a simplified route whose corners come too close together where no straight leg
+            # can part them: every corner of the smoothing kept instead (more waypoints)
+            if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
+                wr, wc = sr, sc
+        pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)
+        grid = cor.grid()  # the elevation decoded meanwhile
+        qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, step)
+        h_track, unsure = _required_threaded(grid, terrain, pr, pc)
+        hq = np.empty(len(qr))
+        new = shared < 0
+        hq[~new] = h_track[shared[~new]]
+        hq[new], unsure_q = _required_threaded(grid, terrain, qr[new], qc[new])
+        unsure = int(unsure.sum() + unsure_q.sum())
+        prof = vertical_profile(
+            wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands,
+            top_ok, want, turn_m * (1 + LEG_MARGIN),
+        )  # fmt: skip
+        zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
+        route = {"s": prof["sigma"], "z": zq, "h": prof["h"]}
+        z_t = np.interp(sig_t, prof["sigma"], zq)
+        s_t = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
+        track = {
+            "h": h_track,
+            "s": s_t,
+            "z": z_t,
+            "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
+        }
+        track["known"] = not (np.isnan(h_track).any() or np.isnan(hq).any())
+        problems = []
+        if not track["known"]:
+            problems.append("the terrain near the track is unknown (no-data) at some samples")
+        elif max(z_t.max(), zq.max()) > top_ok:
+            problems.append(
+                f"the pitch limit forces the vehicle to {-max(z_t.max(), zq.max()):.0f} m depth, "
+                f"above the surface limit ({-top:.0f} m)"
+            )
+        else:
+            low = min(float(np.min(z_t - h_track)), float(np.min(zq - hq)))
+            if low < -1e-6:  # never by construction: a check of what is written
+                problems.append(f"the route passes {-low:.2f} m below its required height")
+        route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
+        longest = max(track["length"], route_length)
+        over = ""
+        if longest > limit * (1 + 1e-9):
+            over = (
+                f"the flown length {longest:.0f} m exceeds omega x the proven lower "
+                f"bound ({limit:.0f} m)"
+            )
+            problems.append(over)
+        turns = radii[np.isfinite(radii)] * a
+        tight = int(np.sum(_too_tight(turns, turn_m)))
+        if rad == 0:
+            problems.append("turns are not rounded (the smoothed tracks broke a limit)")
+        elif tight:  # corners that widen_turns could not part: the next smoothing may
+            problems.append(
+                f"{tight} turns are tighter than the minimum turn radius {turn_m:g} m "
+                f"(tightest {turns.min():.1f} m): the corners are too close together"
+            )
+        results.append(
+            dict(
+                name=name,
+                pr=pr,
+                pc=pc,
+                radii=radii,
+                track=track,
+                route=route,
+                qr=qr,
+                qc=qc,
+                zq=zq,
+                wi=wi,
+                band=band,
+                route_length=route_length,
+                problems=problems,
+                over=over,
+                unsure=unsure,
+            )
+        )
+        if not problems:
+            break
+    # the first smoothing that keeps every limit; else the first whose only fault is a length
+    # above the proven bound (the mission is then "uncertified", as a planned path would be);
+    # else the first with the fewest faults
+    pick = next((r for r in results if not r["problems"]), None)
+    pick = pick or next((r for r in results if r["problems"] == [r["over"]]), None)
+    pick = pick or min(results, key=lambda r: len(r["problems"]))
+    name, pr, pc, radii = pick["name"], pick["pr"], pick["pc"], pick["radii"]
+    track, route, qr, qc = pick["track"], pick["route"], pick["qr"], pick["qc"]
+    zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
+    problems = list(pick["problems"])
+    z, s, h = track["z"], track["s"], track["h"]
+    # a leg used up by its two arcs leaves a sample where the next arc starts: one sample each
+    once = np.concatenate(([True], np.diff(s) > 0))
+    pr, pc, z, s, h = pr[once], pc[once], z[once], s[once], h[once]
+    turns = radii[np.isfinite(radii)] * a
+    min_turn = 0.0 if name == "grid path" else float(turns.min()) if turns.size else math.inf
+    dz, ds = np.diff(z), np.diff(s)
+    pitch = np.degrees(np.arctan2(np.abs(dz), ds))
+    seg = np.hypot(ds, dz)
+    t = np.concatenate(([0.0], np.cumsum(seg))) / veh.speed_m_s
+    mid_r = np.rint(0.5 * (pr[1:] + pr[:-1])).astype(np.int64)
+    mid_c = np.rint(0.5 * (pc[1:] + pc[:-1])).astype(np.int64)
+    on_ridge = _lookup(cor.rdg, cor.slot, cor.tr, cor.tc, mid_r, mid_c).astype(bool)
+    total = float(seg.sum())
+    x, y = _map_xy(m, pr, pc)
+    # waypoints: every corner of the route and every break of its height profile (wi)
+    wx, wy = _map_xy(m, qr[wi], qc[wi])
+    rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
+    duration = float(t[-1])
+    seabed = _bilinear(*grid, pr, pc)
+    near = profile_figures(s, z, seabed)
+    # what is flown, measured anew against the continuous seabed where it comes closest to its
+    # required heights: never under the clearance by construction, and a mission whose route
+    # came under it would fail here
+    reach = clearance if method == "spherical" else radius if method == "horizontal" else 0.0
+    lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * a / clearance))))
+    least = np.inf
+    for r_, c_, z_, h_ in ((pr, pc, z, h), (qr, qc, zq, route["h"])):
+        k = _closest(z_ - h_)
+        least = min(
+            least, seabed_clearance(*grid, r_[k], c_[k], z_[k], a, reach, _METHOD[method], lattice)
+        )
+    if least < clearance * (1 - 1e-6):
+        problems.append(
+            f"the flown route comes {least:.1f} m from the seabed between grid points, under "
+            f"the clearance {clearance:g} m"
+        )
+    return Flight(
+        x=x,
+        y=y,
+        z=z,
+        s=s,
+        time_s=t,
+        seabed_m=seabed,
+        required_m=h,
+        waypoints=np.column_stack([wx, wy, zq[wi], rt[wi] / veh.speed_m_s]),
+        waypoint_index=wi,
+        vehicle=veh,
+        turn_radius_m=turn_m,
+        flown_length_m=float(track["length"]),
+        route_length_m=route_length,
+        grid_length_m=float(traj.length_m),
+        duration_s=duration,
+        max_pitch_deg=float(pitch.max()) if pitch.size else 0.0,
+        min_turn_radius_m=min_turn,
+        ridge_ratio=float(seg[on_ridge].sum() / total) if total > 0 else 0.0,
+        energy_wh=veh.power_w * duration / 3600.0 if veh.power_w is not None else None,
+        surface_limit_m=top,
+        waypoint_band_m=float(band),
+        smoothing=name,
+        problems=problems,
+        over_bound=pick["over"],
+        seconds=time.perf_counter() - t0,
+        route=np.column_stack([*_map_xy(m, qr, qc), zq]),
+        route_seabed_m=_bilinear(*grid, qr, qc),
+        unknown_seabed_samples=pick["unsure"],
+        min_clearance_m=float(least),
+        short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < turn_m * (1 - 1e-9))),
+        **near,
+    )
+
+
+def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
+    """The sample step (grid units), the ``required_heights`` terrain arguments and the
+    highest height allowed, such that a route whose samples keep their required heights keeps
+    the clearance from the continuous seabed everywhere between them too (docs/method.md
+    section 2): the seabed over a grid square, or over each of its ``k`` x ``k`` parts
+    (:func:`subdivisions`), is at most its highest corner; on an arc the vehicle is within the
+    sagitta
+    ``c^2 / (8 r)`` of the chord between samples ``c`` apart; spherical: the samples clear of
+    the seabed by ``R' = sqrt((R + sagitta)^2 + (L/2)^2)``, ``L`` the longest 3-D step between
+    samples, keep every point of the step ``R`` away (samples close enough that the step's
+    share of ``R' - R`` is at most ``CLEARANCE_SLACK * R``; the sagitta adds to it);
+    horizontal and vertical: a sample's heights cover every point within a step of it (a point
+    of a step is as high as one of its two ends)."""
+    grade = math.sqrt(1.0 + slope * slope)
+    step = SAMPLE_STEP
+    if method == "spherical":
+        eps = CLEARANCE_SLACK * clearance
+        longest = 2.0 * math.sqrt(2.0 * clearance * eps + eps * eps)
+        step = min(SAMPLE_STEP, longest / (a * grade))
+    chord = step * a
+    sag = chord * chord / (8.0 * turn_m) if turn_m > 0 else 0.0
+    k = subdivisions(a, clearance)
+    if method == "spherical":
+        r = math.sqrt((clearance + sag) ** 2 + 0.25 * (chord * grade) ** 2)
+        terrain = (a, r, _METHOD[method], clearance, 0.0, k)
+        top_ok = top + (r - clearance) + 1e-6  # the surface limit is R's, not R''s
+    else:
+        r = radius if method == "horizontal" else 0.0
+        terrain = (a, r, _METHOD[method], clearance, chord + sag, k)
+        top_ok = top + 1e-6
+    return step, terrain, top_ok
+
+
+def _map_xy(m, pr, pc):
+    dx = m.x[1] - m.x[0] if len(m.x) > 1 else m.cell_size
+    dy = m.y[1] - m.y[0] if len(m.y) > 1 else -m.cell_size
+    return m.x[0] + pc * dx, m.y[0] + pr * dy
+
+
+def with_flight(maps, traj, vehicle=None):
+    """``traj`` with its flown track (``traj.flight``) and the status it implies: a flight
+    that breaks a vehicle limit, or needs more energy than the battery holds, fails the
+    mission with the reason (its track is kept for inspection). A mission whose start is its
+    goal has nothing to fly: its message says so, and it has no track or waypoints."""
+    if not traj.planned:
+        return traj
+    if len(traj.cells) < 2:
+        note = "start and goal are the same cell: nothing to fly, no waypoints"
+        traj.message = f"{traj.message}; {note}" if traj.message else note
+        return traj
+    f = fly(maps, traj, vehicle)
+    traj.flight = f
+    veh = f.vehicle
+    reasons = list(f.problems)
+    if veh.battery_wh is not None and f.energy_wh is not None and f.energy_wh > veh.battery_wh:
+        reasons.append(
+            f"the flown track needs {f.energy_wh:.0f} Wh ({f.duration_s / 3600:.1f} h at "
+            f"{veh.speed_m_s:g} m/s and {veh.power_w:g} W), more than the battery's "
+            f"{veh.battery_wh:g} Wh: raise battery_wh or lower the powers, or split the mission"
+        )
+    if f.unknown_seabed_samples:
+        note = (
+            f"the seabed is unknown (a no-data grid point's squares) within the clearance of "
+            f"{f.unknown_seabed_samples} route samples: there the clearance is kept from the "
+            "known seabed only"
+        )
+        traj.message = f"{traj.message}; {note}" if traj.message else note
+    if reasons == [f.over_bound]:  # only the bound: not proven, as for a planned path
+        if traj.status == "ok":
+            traj.status = "uncertified"
+        traj.message = f"{traj.message}; flight: {f.over_bound}" if traj.message else f.over_bound
+    elif reasons:
+        traj.status = "failed"
+        msg = "; ".join(reasons)
+        traj.message = f"{traj.message}; flight: {msg}" if traj.message else f"flight: {msg}"
+    return traj
