@@ -66,7 +66,7 @@ def case200_maps():
 
 
 def tables23() -> dict:
-    from pipeline.planners import plan_window
+    from pipeline.mcpc.window import plan_window
 
     dem, ridge, variants = case200_maps()
     x, y = dem["x"].values, dem["y"].values
@@ -151,7 +151,7 @@ PARETO_OMEGAS = (1.0, 1.1, 1.25, 1.5, 2.0, 2.5, 3.0)
 def pareto(n_missions: int) -> dict:
     """Mean length / L* and ridge ratio per planner and omega on random missions (400^2 map)."""
     import pipeline
-    from pipeline.planners import plan_window
+    from pipeline.mcpc.window import plan_window
 
     dem = pipeline.synthetic_dem((400, 400), cell_size=30.0, seed=1, chunks=None)
     safety = pipeline.safety_map(dem, "spherical", 300.0)
@@ -246,7 +246,7 @@ CORE = """
 import time, numpy as np, pyastar2d
 from scipy import ndimage
 from skimage.graph import MCP_Geometric
-from pipeline.planners import plan_window
+from pipeline.mcpc.window import plan_window
 n = {n}
 rng = np.random.default_rng(0)
 # obstacle map: 0.05 % of the cells seed discs of radius ~12 cells (15 % of the map blocked)
@@ -292,7 +292,7 @@ for s, t in missions:
 
 RA5000 = """
 import time, numpy as np, pipeline
-from pipeline.planners import plan_window
+from pipeline.mcpc.window import plan_window
 from pipeline.planners.endpoints import nearest_passable
 ds = pipeline.open_maps("{store}")
 S = ds.safety.values; rdg = ds.ridge.values; ok = ds.passable.values

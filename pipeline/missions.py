@@ -30,7 +30,14 @@ from .flight.fly import with_flight
 from .flight.vehicle import Vehicle
 from .mcpc.algorithm import coarse_rho
 from .mcpc.plan import plan
-from .params import ENDPOINT_FORMS, MISSIONS_PER_TASK, PLANNING, endpoint_forms, endpoint_key
+from .params import (
+    ENDPOINT_FORMS,
+    MISSIONS_PER_TASK,
+    PLANNING,
+    endpoint_cells,
+    endpoint_form,
+    endpoint_key,
+)
 from .runtime.cluster import IN_PROCESS, get_client
 from .runtime.jit import njit
 from .runtime.threads import cores
@@ -39,10 +46,15 @@ from .trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
+
 _PLAN_KEYS = PLANNING.names()
+
+
 # the keys a mission's dict is read for; any other is kept for the caller (a name, a tag),
 # unless it is a near miss of one of these (``omgea``), which would be planned as if absent
 _ENDPOINT_KEYS = {endpoint_key(end, f) for end in ("start", "goal") for f in ENDPOINT_FORMS}
+
+
 _MISSION_KEYS = sorted(_PLAN_KEYS | _ENDPOINT_KEYS | {"vehicle", "name"})
 
 
@@ -63,30 +75,6 @@ def failed_trajectory(mission: dict, message: str) -> Trajectory:
         status="failed",
         message=message,
     )
-
-
-def endpoint_form(mission: dict, end: str) -> tuple[str, object]:
-    """``(form, value)`` of a mission's ``end`` (``"start"`` or ``"goal"``) as a job file
-    gives it: ``end`` a cell ``(row, col)``, ``end_xy`` map coordinates or ``end_lonlat``
-    (longitude, latitude); exactly one of them, else one :class:`InvalidParameterError`."""
-    forms = endpoint_forms(mission, end)
-    if len(forms) != 1:
-        raise InvalidParameterError(
-            f"a mission needs exactly one of {end} (a cell), {end}_xy or {end}_lonlat, got "
-            f"{mission!r}"
-        )
-    return forms[0], mission[endpoint_key(end, forms[0])]
-
-
-def endpoint_cells(m, mission: dict) -> dict:
-    """``mission`` with its start and goal as cells of the maps store ``m`` (from any of the
-    forms :func:`endpoint_form` reads; the cells the job file's loader gives)."""
-    out = dict(mission)
-    for end in ("start", "goal"):
-        form, value = endpoint_form(mission, end)
-        # a cell as given: the planner checks it is one (a row of 1.5 is no cell)
-        out[end] = value if form == "cell" else m.cell_of(end, form, value)
-    return out
 
 
 def _normalise(m) -> dict:

@@ -502,23 +502,25 @@ def check_clearance(
     return value
 
 
-def env_number(name: str, default: float, *, integer: bool = False, minimum: float = 0.0):
-    """The number in the environment variable ``name`` (``default`` when it is not set), or
-    one :class:`InvalidParameterError` naming the variable where it is not a finite number of
-    at least ``minimum``."""
-    import os
-
-    text = os.environ.get(name)
-    if text is None or not text.strip():
-        return default
-    try:
-        value = int(text) if integer else float(text)
-    except ValueError:
-        value = None
-    if value is None or not math.isfinite(value) or value < minimum:
-        kind = "an integer" if integer else "a number"
+def endpoint_form(mission: dict, end: str) -> tuple[str, object]:
+    """``(form, value)`` of a mission's ``end`` (``"start"`` or ``"goal"``) as a job file
+    gives it: ``end`` a cell ``(row, col)``, ``end_xy`` map coordinates or ``end_lonlat``
+    (longitude, latitude); exactly one of them, else one :class:`InvalidParameterError`."""
+    forms = endpoint_forms(mission, end)
+    if len(forms) != 1:
         raise InvalidParameterError(
-            f"the environment variable {name}={text!r} must be {kind} of at least {minimum:g}; "
-            "set it so, or unset it for the default"
+            f"a mission needs exactly one of {end} (a cell), {end}_xy or {end}_lonlat, got "
+            f"{mission!r}"
         )
-    return value
+    return forms[0], mission[endpoint_key(end, forms[0])]
+
+
+def endpoint_cells(m, mission: dict) -> dict:
+    """``mission`` with its start and goal as cells of the maps store ``m`` (from any of the
+    forms :func:`endpoint_form` reads; the cells the job file's loader gives)."""
+    out = dict(mission)
+    for end in ("start", "goal"):
+        form, value = endpoint_form(mission, end)
+        # a cell as given: the planner checks it is one (a row of 1.5 is no cell)
+        out[end] = value if form == "cell" else m.cell_of(end, form, value)
+    return out

@@ -243,7 +243,7 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
     from distributed import performance_report
 
     from .runtime.cluster import session
-    from .runtime.warmup import ensure_compiled
+    from .warmup import ensure_compiled
 
     with session(*cluster) as client:
         res = JobResult(

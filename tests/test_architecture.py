@@ -107,3 +107,91 @@ def test_the_packages_kernels_compile_through_one_module():
         and (lines := _numba_jit_imports(p.read_text()))
     }
     assert not found, f"kernels compiled past pipeline.runtime.jit: {found}"
+
+
+def _unit(module: str) -> str:
+    """The part of the package a module belongs to: its subpackage (``pipeline.store.cache``:
+    ``store``), or itself for a top-level module (``pipeline.jobs``: ``jobs``)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "pipeline"
+
+
+def _module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(source: str, module: str, package: bool) -> set[str]:
+    """The pipeline modules that ``source`` (module ``module``) imports, at any indentation
+    (a function's imports too), except those only a type checker reads (``if
+    TYPE_CHECKING:``)."""
+    tree = ast.parse(source)
+    typing_only = {
+        id(n)
+        for block in ast.walk(tree)
+        if isinstance(block, ast.If) and "TYPE_CHECKING" in ast.unparse(block.test)
+        for n in ast.walk(block)
+    }
+    here = module.split(".") if package else module.split(".")[:-1]
+    out = set()
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here[: len(here) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.split(".")[0] == "pipeline":
+                out.add(target)
+                out.update(f"{target}.{a.name}" for a in node.names)
+        elif isinstance(node, ast.Import):
+            out.update(a.name for a in node.names if a.name.split(".")[0] == "pipeline")
+    return out
+
+
+def _unit_graph(files, root: Path = ROOT):
+    """The imports between the parts of the package (:func:`_unit`), a networkx graph whose
+    edges name one import each."""
+    import networkx
+
+    modules = {_module_name(p, root): p for p in files}
+    graph = networkx.DiGraph()
+    for module, path in modules.items():
+        for target in _imports(path.read_text(), module, path.name == "__init__.py"):
+            if target in modules and target != "pipeline" and _unit(target) != _unit(module):
+                graph.add_edge(_unit(module), _unit(target), line=f"{module} -> {target}")
+    return graph
+
+
+def test_no_import_cycle_between_the_parts_of_the_package():
+    """The subpackages and top-level modules import one another without a cycle, counting
+    the imports inside functions (a cycle there only waits for its first call): each stage
+    can be read, tested and replaced on top of the ones below it."""
+    import networkx
+
+    graph = _unit_graph(sorted((ROOT / "pipeline").rglob("*.py")))
+    cycles = list(networkx.simple_cycles(graph))
+    assert not cycles, [
+        [graph.edges[a, b]["line"] for a, b in zip(c, c[1:] + c[:1], strict=True)] for c in cycles
+    ]
+    # the stages stand in the order of the pipeline
+    order = ["runtime", "planners", "params", "store", "dem", "maps", "mcpc", "missions", "run"]
+    for low, high in zip(order, order[1:], strict=False):
+        assert not networkx.has_path(graph, low, high), f"{low} reaches {high}"
+
+
+def test_the_cycle_check_sees_a_cycle_through_a_function(tmp_path):
+    pkg = tmp_path / "pipeline"
+    (pkg / "a").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a" / "__init__.py").write_text("")
+    (pkg / "a" / "x.py").write_text("def f():\n    from ..b import y\n")
+    (pkg / "b.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom .a.x import f\nif TYPE_CHECKING:\n"
+        "    from .c import z\ny = 1\n"
+    )
+    (pkg / "c.py").write_text("from .b import y\n")
+    graph = _unit_graph(sorted(pkg.rglob("*.py")), root=tmp_path)
+    assert set(graph.edges) == {("a", "b"), ("b", "a"), ("c", "b")}  # b -> c: a type only

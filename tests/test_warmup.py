@@ -1,4 +1,4 @@
-"""The first run's up-front compilation (pipeline.runtime.warmup): announced, run in two halves
+"""The first run's up-front compilation (pipeline.warmup): announced, run in two halves
 on two workers, stamped so that later runs skip it, and never fatal."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import os
 
 import pytest
 
-from pipeline.runtime import warmup
+from pipeline import warmup
 
 
 def test_fingerprint_follows_every_source_file(tmp_path):
@@ -33,7 +33,7 @@ def stamp(tmp_path, monkeypatch):
 
 
 def test_compiles_once_in_two_halves_on_two_workers(local_client, stamp, caplog):
-    caplog.set_level(logging.DEBUG, logger="pipeline.runtime.warmup")
+    caplog.set_level(logging.DEBUG, logger="pipeline.warmup")
     assert not warmup.is_compiled()
     seconds = warmup.ensure_compiled(local_client)
     assert seconds > 0 and warmup.is_compiled() and stamp.exists()
@@ -54,7 +54,7 @@ def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
         raise OSError("no space left on device")
 
     monkeypatch.setattr(warmup, "_compile", broken)
-    caplog.set_level(logging.INFO, logger="pipeline.runtime.warmup")
+    caplog.set_level(logging.INFO, logger="pipeline.warmup")
     warmup.ensure_compiled(None)
     assert "compile as they are first used instead" in caplog.text
     assert "no space left on device" in caplog.text

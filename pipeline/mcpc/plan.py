@@ -258,7 +258,7 @@ def plan(
         ).items()
         if v is not None
     }
-    from ..missions import endpoint_cells
+    from ..params import endpoint_cells
 
     ends = endpoint_cells(m, given)  # as a job file gives them
     start, goal = _check_endpoints(m, ends["start"], ends["goal"])

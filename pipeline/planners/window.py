@@ -1,4 +1,7 @@
-"""``plan_window``: any registered planner on one in-memory window."""
+"""Any registered planner on one window of arrays (:func:`search_window`, :func:`search_path`):
+the search and its path, traced and measured, for a mission planned in one window and for
+each MCPC section.
+"""
 
 from __future__ import annotations
 
@@ -7,66 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._types import Cell
 from ..exceptions import UnreachableGoalError
-from ..params import CELL_SIZE, PLANNING, check_planner
 from ..trajectory import Trajectory
-from .endpoints import check_arrays, check_endpoint
+from .endpoints import check_endpoint
 from .paths import measured_path, traced_path
 from .registry import PLANNERS
 from .search import heuristic
-
-
-def plan_window(
-    surface: np.ndarray,
-    ridge: np.ndarray,
-    passable: np.ndarray,
-    start: Cell,
-    goal: Cell,
-    *,
-    cell_size: float,
-    planner: str = PLANNING.planner.default,
-    omega: float = PLANNING.omega.default,
-    x: np.ndarray | None = None,
-    y: np.ndarray | None = None,
-    landmarks: np.ndarray | None = None,
-) -> Trajectory:
-    """Plan on one in-memory window.
-
-    Parameters
-    ----------
-    surface : 2-D array
-        The safety surface ``S`` (metres) the vehicle flies on.
-    ridge, passable : 2-D bool arrays
-        Ridge cells and passable cells.
-    start, goal : (row, col)
-    cell_size : float
-        Metres.
-    planner : str
-        A name of the registry (:data:`pipeline.planners.PLANNERS`): ``"dijkstra"``,
-        ``"astar"``, ``"wastar"``, ``"ra_star"``, ``"lagrangian"``.
-    omega : float
-        Length bound (>= 1) for the bounded planners.
-    x, y : 1-D arrays, optional
-        Map coordinates of the columns and rows for ``points`` (default: ``col * a``,
-        ``row * a``).
-    landmarks : array (k, rows, cols), optional
-        Exact shortest-path distances from k landmark cells over this window's graph
-        (:mod:`pipeline.maps.landmarks`; ``inf`` where a landmark does not reach): A*, weighted A*
-        and the Lagrangian planner then use the landmark bound (made consistent) as their
-        heuristic where it beats the octile distance. Distances over a larger map bound this
-        window's too (a window's paths are paths of the map), so a window of a maps store may
-        take its layers.
-
-    Examples
-    --------
-    >>> t = plan_window(S, rdg, ok, (5, 5), (90, 120), cell_size=30.0, planner="astar")
-    ... # doctest: +SKIP
-    """
-    planner, omega = check_planner(planner, omega)
-    a = CELL_SIZE.check(cell_size)
-    surface, ridge, passable = check_arrays(surface, ridge, passable)
-    return search_window(surface, ridge, passable, start, goal, a, planner, omega, x, y, landmarks)
 
 
 @dataclass(frozen=True)

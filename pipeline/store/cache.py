@@ -38,7 +38,7 @@ class ChunkCache:
         """Bytes kept at most: ``AUV_PIPELINE_CHUNK_CACHE_MB`` (default 1024) MiB, read at
         first use (a bad value is then one line, not an error at import)."""
         if self._budget is None:
-            from ..params import env_number
+            from ..runtime.env import env_number
 
             self._budget = env_number("AUV_PIPELINE_CHUNK_CACHE_MB", 1024, integer=True) * 2**20
         return self._budget
