@@ -131,8 +131,8 @@ def check_catalog(name: str, catalog: Path, store: Path) -> list[dict]:
     tree = cKDTree(np.column_stack([xx[keep], yy[keep], z[keep]]))
     surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
     graph = csgraph(surface, ok, a)
-    R = float(m.parameters["clearance_m"])
-    sea = float(m.parameters.get("sea_level_m", 0.0))
+    R = m.parameters.clearance_m
+    sea = m.parameters.sea_level_m
     to_map = Transformer.from_crs("EPSG:4326", m.crs_wkt, always_xy=True) if m.crs_wkt else None
     rows = []
     for item_path in sorted((catalog / "missions").glob("*/*.json")):

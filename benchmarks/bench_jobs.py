@@ -96,7 +96,7 @@ with local_cluster(dashboard_address=None) as cl, \\
     from pipeline.missions import min_clearance
     named = [dict(m, name=f"m{{i}}") for i, m in enumerate(missions[:{k_rec}])]
     maps = pipeline.open_store(store)
-    R = float(maps.parameters["clearance_m"])
+    R = maps.parameters.clearance_m
     t0 = time.perf_counter()
     pipeline.plan_missions(store, named, client=c, vehicle={{}})
     flown_s = time.perf_counter() - t0

@@ -522,3 +522,38 @@ def test_a_quicklooks_plan_view_layers_follow_its_region(tmp_path):
     np.testing.assert_array_equal(sub.values, elev[10:22:3, 5:17:3])
     np.testing.assert_array_equal(sub["x"].values, x[5:17:3])
     np.testing.assert_array_equal(rdg, ridge[10:22, 5:17].reshape(4, 3, 4, 3).any(axis=(1, 3)))
+
+
+def test_a_stores_parameters_are_read_once_with_the_defaults_of_older_stores():
+    """``MapsStore.parameters``: the build's parameters as one frozen object; a store built
+    before a key was kept reads its default (spherical, sea level 0, surface clearance R); the
+    horizontal radius is the horizontal method's own clearance where it was given."""
+    import dataclasses
+
+    from pipeline.store.schema import MapsParameters
+
+    old = MapsParameters.from_attrs('{"clearance_m": 300}')
+    assert (old.method, old.sea_level_m, old.radius_m, old.top_m) == (
+        "spherical",
+        0.0,
+        300.0,
+        -300.0,
+    )
+    h = MapsParameters.from_attrs(
+        {
+            "method": "horizontal",
+            "clearance_m": 100.0,
+            "horizontal_clearance_m": 250.0,
+            "sea_level_m": 5.0,
+            "surface_clearance_m": 20.0,
+        }
+    )
+    assert (h.radius_m, h.top_m) == (250.0, -15.0)
+    assert (
+        MapsParameters.from_attrs(
+            {"method": "spherical", "clearance_m": 100.0, "horizontal_clearance_m": 250.0}
+        ).radius_m
+        == 100.0
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        h.clearance_m = 1.0

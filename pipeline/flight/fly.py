@@ -108,13 +108,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
     p = m.parameters
     a = m.cell_size
-    method = p.get("method", "spherical")
-    clearance = float(p["clearance_m"])
-    radius = clearance
-    if method == "horizontal" and p.get("horizontal_clearance_m"):
-        radius = float(p["horizontal_clearance_m"])
-    surface = p.get("surface_clearance_m")
-    top = float(p.get("sea_level_m", 0.0)) - float(clearance if surface is None else surface)
+    method, clearance, radius, top = p.method, p.clearance_m, p.radius_m, p.top_m
     turn_m = veh.turn_radius(a)
     slope = math.tan(math.radians(veh.max_pitch_deg))
     step, terrain, top_ok = _sampling(method, a, clearance, radius, slope, turn_m, top)

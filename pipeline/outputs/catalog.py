@@ -231,7 +231,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
         files = {"grid-path": ("grid-path.parquet", "planned grid path (cells)", PARQUET, ["data"])}
         xy = traj.points[:, :2]
     else:
-        sea = float(maps.parameters.get("sea_level_m", 0.0))
+        sea = maps.parameters.sea_level_m
         files = write_mission_files(folder, name, mid, traj, crs_wkt, sea)
         skipped = files.pop("skipped", None)
         xy = f.waypoints[:, :2]

@@ -613,7 +613,7 @@ def write_mission(
     m = open_store(maps)
     folder = Path(folder)
     name = folder.name if name is None else str(name)
-    sea = float(m.parameters.get("sea_level_m", 0.0))
+    sea = m.parameters.sea_level_m
     flown = dataclasses.replace(traj, flight=flight)
     with atomic_path(folder, kind="mission", overwrite=overwrite) as tmp:
         tmp.mkdir()

@@ -384,9 +384,7 @@ def mission_quicklook(
     ax.set_title("".join(c if c.isprintable() else "?" for c in str(title)), fontsize=11, y=1.0)
 
     pr = fig.add_subplot(gs[2, :])
-    p = maps.parameters
-    method = p.get("method", "spherical")
-    clearance = p.get("clearance_m")
+    method, clearance = maps.parameters.method, maps.parameters.clearance_m
     if f is not None:
         s = f.s / 1e3
         floor = float(np.nanmin(f.seabed_m)) - 100

@@ -23,7 +23,7 @@ import numpy as np
 
 from .._types import Chunks, Maps
 from .paths import exists, is_url, join, location, stamp, store_exists, unreachable
-from .schema import storage_chunks
+from .schema import MapsParameters, storage_chunks
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -52,8 +52,7 @@ class MapsStore:
         _require_version(path, attrs)
         self.path = path
         try:
-            params = attrs.get("parameters")
-            self.parameters = json.loads(params) if isinstance(params, str) else params
+            self.parameters = MapsParameters.from_attrs(attrs.get("parameters"))
             self.crs_wkt = attrs.get("crs_wkt")
             # the count of passable cells (stores built before it was kept: None)
             self.passable_cells = attrs.get("passable_cells")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -140,3 +141,55 @@ LANDMARK_CHUNK = 128
 
 
 VARIABLE = "landmark_distance"  # (landmark, y, x), float32, shards (1, *the maps' chunks)
+
+
+@dataclass(frozen=True)
+class MapsParameters:
+    """The parameters a maps store was built with (its ``parameters`` attribute), read once:
+    every stage that needs the safety method, the clearances or the sea level takes them from
+    here, with the defaults of stores built before a key was kept."""
+
+    method: str
+    clearance_m: float
+    horizontal_clearance_m: float | None = None
+    sea_level_m: float = 0.0
+    surface_clearance_m: float | None = None
+    min_accumulation: int | None = None
+    landmarks: int = 0
+
+    @classmethod
+    def from_attrs(cls, params) -> MapsParameters:
+        """The parameters of a store's ``parameters`` attribute (a dict, or its JSON text)."""
+        if isinstance(params, str):
+            params = json.loads(params)
+        p = dict(params or {})
+
+        def number(key):
+            return None if p.get(key) is None else float(p[key])
+
+        return cls(
+            method=str(p.get("method", "spherical")),
+            clearance_m=float(p["clearance_m"]),
+            horizontal_clearance_m=number("horizontal_clearance_m"),
+            sea_level_m=float(p.get("sea_level_m", 0.0)),
+            surface_clearance_m=number("surface_clearance_m"),
+            min_accumulation=None
+            if p.get("min_accumulation") is None
+            else int(p["min_accumulation"]),
+            landmarks=int(p.get("landmarks", 0)),
+        )
+
+    @property
+    def radius_m(self) -> float:
+        """The clearance's horizontal radius: ``horizontal_clearance_m`` for the
+        ``horizontal`` method where it was given, else ``clearance_m``."""
+        if self.method == "horizontal" and self.horizontal_clearance_m:
+            return self.horizontal_clearance_m
+        return self.clearance_m
+
+    @property
+    def top_m(self) -> float:
+        """The highest the vehicle may fly: the sea level less the surface clearance (R when
+        none was given)."""
+        surface = self.clearance_m if self.surface_clearance_m is None else self.surface_clearance_m
+        return self.sea_level_m - surface
