@@ -47,6 +47,7 @@ _LAZY = {
     "plan": "mcpc.plan",
     "plan_missions": "missions",
     "PLANNERS": "planners.registry",
+    "Status": "trajectory",
     "Trajectory": "trajectory",
     "plan_window": "mcpc.window",
     "fill_depressions": "maps.ridges",
@@ -94,42 +95,19 @@ def _version() -> str:
 
 __version__ = _version()
 
+# the public names, listed once: the exceptions imported above, then those loaded on first use
 __all__ = [
     "InvalidDEMError",
     "InvalidEndpointError",
     "InvalidParameterError",
     "JobFileError",
-    "MapsStore",
-    "PLANNERS",
     "PipelineError",
     "PipelineWarning",
     "SchedulerError",
     "StoreExistsError",
-    "Trajectory",
     "UnreachableGoalError",
     "__version__",
-    "Flight",
-    "Vehicle",
-    "build_maps",
-    "cell_size",
-    "dem_hash",
-    "fill_depressions",
-    "flow_accumulation",
-    "fly",
-    "import_dem",
-    "open_dem",
-    "open_maps",
-    "open_store",
-    "passable",
-    "plan",
-    "plan_missions",
-    "plan_window",
-    "ridge_map",
-    "run_job",
-    "safety_map",
-    "synthetic_dem",
-    "write_dem",
-    "write_mission",
+    *_LAZY,
 ]
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

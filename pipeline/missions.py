@@ -42,7 +42,7 @@ from .runtime.cluster import IN_PROCESS, get_client
 from .runtime.jit import njit
 from .runtime.threads import cores
 from .store.maps_store import open_store
-from .trajectory import Trajectory
+from .trajectory import Status, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ def failed_trajectory(mission: dict, message: str) -> Trajectory:
         runtime_s=0.0,
         planner=str(mission.get("planner", PLANNING.planner.default)),
         omega=float(omega) if isinstance(omega, int | float) else math.nan,
-        status="failed",
+        status=Status.FAILED,
         message=message,
     )
 
@@ -291,12 +291,12 @@ def _plan_and_fly(m, mission: dict, defaults: dict, vehicle, run_on, i: int) -> 
     try:
         return with_flight(m, t, {**(vehicle or {}), **mission.get("vehicle", {})})
     except PipelineError as exc:
-        t.status = "failed"
+        t.status = Status.FAILED
         t.message = f"its flown track could not be made: {exc}"
         return t
     except Exception as exc:  # noqa: BLE001 - a fault in one flight keeps the planned path
         log.exception("mission %d: the flight failed", i)
-        t.status = "failed"
+        t.status = Status.FAILED
         t.message = (
             f"its flown track could not be made ({type(exc).__name__}: {exc}); the "
             "planned path is kept; this is a bug, please report it with the log"

@@ -28,6 +28,7 @@ from .exceptions import (
 )
 from .jobs import Job, load_job
 from .store.paths import TEMPORARY
+from .trajectory import Status
 
 log = logging.getLogger(__name__)
 
@@ -402,7 +403,7 @@ def _sorted_missions(job: Job, overwrite: bool) -> list[tuple[dict, dict | None,
             # a failure is tried again (its cause, a full disk, a damaged store, may be gone;
             # one the mission itself causes fails again, as fast); so is a result whose files
             # went missing or changed
-            if done["properties"].get("auv:status") == "failed":
+            if done["properties"].get("auv:status") == Status.FAILED:
                 log.info("%s: failed before: planning it again", m["name"])
                 done = None
             elif bad := damaged_assets(job.catalog, done):
@@ -494,7 +495,7 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
             todo.append(m)
         else:
             res.skipped += 1
-            if done["properties"].get("auv:status") == "uncertified":
+            if done["properties"].get("auv:status") == Status.UNCERTIFIED:
                 res.uncertified.append(m["name"])  # (the exit code of its first run)
     if res.skipped:
         log.info("%d missions finished before: skipped (--overwrite plans them again)", res.skipped)
@@ -555,7 +556,7 @@ class _Recorder:
             from .outputs.catalog import finished
 
             before = finished(self.job.catalog, name)
-            if before is not None and before["properties"].get("auv:status") != "failed":
+            if before is not None and before["properties"].get("auv:status") != Status.FAILED:
                 # an earlier result is never replaced by a failure to write this one (the
                 # next run plans the mission again, its fingerprint or files being other)
                 log.error("%s: its earlier result is kept", name)
@@ -567,9 +568,9 @@ class _Recorder:
             return
         if traj.planned:
             self.res.planned += 1
-            if traj.status != "ok":
+            if traj.status != Status.OK:
                 self.res.uncertified.append(name)
-            (log.info if traj.status == "ok" else log.warning)(
+            (log.info if traj.status == Status.OK else log.warning)(
                 "[%d/%d] %s: %s, %.1f km (<= %.3f x the shortest), %.0f %% ridge, min clearance "
                 "%.0f m (%.2f s)%s",
                 self.count,

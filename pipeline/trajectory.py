@@ -6,8 +6,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
+
+
+class Status(StrEnum):
+    """A mission's status: planned and proven within its bound (``OK``), planned but not
+    proven (``UNCERTIFIED``, the proven ratio in the message) or not planned (``FAILED``, the
+    reason in the message). Each is its string too (``Status.OK == "ok"``), as files and
+    catalogs write it."""
+
+    OK = "ok"
+    UNCERTIFIED = "uncertified"
+    FAILED = "failed"
 
 
 @dataclass
@@ -24,7 +36,7 @@ class Trajectory:
     runtime_s: float
     planner: str
     omega: float
-    status: str = "ok"  # "ok" (certified), "uncertified" or "failed"
+    status: Status = Status.OK
     message: str = ""
     extra: dict = field(default_factory=dict)
     flight: object = None  # the flown track (pipeline.flight.vehicle.Flight), when computed
@@ -40,7 +52,7 @@ class Trajectory:
     @property
     def planned(self) -> bool:
         """Whether there is a path (status "ok" or "uncertified")."""
-        return self.status in ("ok", "uncertified")
+        return self.status in (Status.OK, Status.UNCERTIFIED)
 
     def __repr__(self) -> str:
         """One line: status, planner, length, the proven bound and ratio, ridge share, cells

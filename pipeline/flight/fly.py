@@ -47,6 +47,7 @@ from .._types import Maps, VehicleLike
 if TYPE_CHECKING:
     from ..trajectory import Trajectory
 from ..exceptions import InvalidParameterError
+from ..trajectory import Status
 from .geometry import (
     _LEVELS,
     Corridor,
@@ -125,7 +126,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         limit = traj.omega * traj.lower_bound_m
     else:
         limit = traj.length_m
-    if traj.status != "ok":
+    if traj.status != Status.OK:
         limit = max(limit, traj.length_m)
     off, along = _path_off_ridge(cells, cor)
     keep = _shortcuts(
@@ -395,11 +396,11 @@ def with_flight(maps, traj, vehicle=None):
         )
         traj.message = f"{traj.message}; {note}" if traj.message else note
     if reasons == [f.over_bound]:  # only the bound: not proven, as for a planned path
-        if traj.status == "ok":
-            traj.status = "uncertified"
+        if traj.status == Status.OK:
+            traj.status = Status.UNCERTIFIED
         traj.message = f"{traj.message}; flight: {f.over_bound}" if traj.message else f.over_bound
     elif reasons:
-        traj.status = "failed"
+        traj.status = Status.FAILED
         msg = "; ".join(reasons)
         traj.message = f"{traj.message}; flight: {msg}" if traj.message else f"flight: {msg}"
     return traj

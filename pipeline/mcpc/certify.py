@@ -12,7 +12,7 @@ import time
 from ..exceptions import UnreachableGoalError
 from ..runtime.threads import shared_pool
 from ..store.maps_store import MapsStore
-from ..trajectory import Trajectory
+from ..trajectory import Status, Trajectory
 
 
 class _Reach:
@@ -83,10 +83,10 @@ def _certify(t: Trajectory, repair: str | None = None) -> Trajectory:
     """Set the status from the proven bound: "ok" when certified, else "uncertified" with the
     proven ratio in the message."""
     if certified(t.length_m, t.lower_bound_m, t.omega):
-        t.status, t.message = "ok", ""
+        t.status, t.message = Status.OK, ""
         return t
     ratio = t.length_m / t.lower_bound_m if t.lower_bound_m > 0 else math.inf
-    t.status = "uncertified"
+    t.status = Status.UNCERTIFIED
     t.message = (
         f"length {t.length_m:.1f} m is at most {ratio:.4f} x the shortest safe path (proven "
         f"lower bound {t.lower_bound_m:.1f} m), which does not prove the bound omega = "

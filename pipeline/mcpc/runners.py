@@ -27,6 +27,7 @@ from ..runtime.inbox import Inbox, post
 from ..runtime.share import Claims, ThreadClaims, split
 from ..runtime.threads import cores, shared_pool
 from ..store.maps_store import MapsStore
+from ..trajectory import Status
 from .algorithm import _grow
 
 
@@ -62,7 +63,7 @@ class SectionResult:
 
     @property
     def ok(self) -> bool:
-        return self.status == "ok"
+        return self.status == Status.OK
 
 
 def read_section(store: MapsStore, section: Section) -> tuple:
@@ -116,9 +117,9 @@ def _plan_checked(store, section, planner, omega, a, error, read=None) -> Sectio
     r0, r1, c0, c1 = (int(v) for v in section.window)
     layers, read_s = read_section(store, section) if read is None else read
     if isinstance(layers, PipelineError):
-        return SectionResult("failed", section.window, message=str(layers), read_s=read_s)
+        return SectionResult(Status.FAILED, section.window, message=str(layers), read_s=read_s)
     if error is not None:
-        return SectionResult("failed", section.window, message=error, read_s=read_s)
+        return SectionResult(Status.FAILED, section.window, message=error, read_s=read_s)
     surface, ridge, ok, lm = layers
     s = (int(section.start[0]) - r0, int(section.start[1]) - c0)
     g = (int(section.goal[0]) - r0, int(section.goal[1]) - c0)
@@ -127,9 +128,9 @@ def _plan_checked(store, section, planner, omega, a, error, read=None) -> Sectio
         whole = (r0, r1, c0, c1) == (0, store.shape[0], 0, store.shape[1])
         p = search_path(surface, ridge, ok, s, g, a, planner, omega, lm, (r0, c0), whole)
     except PipelineError as e:
-        return SectionResult("failed", section.window, message=str(e), read_s=read_s)
+        return SectionResult(Status.FAILED, section.window, message=str(e), read_s=read_s)
     return SectionResult(
-        "ok",
+        Status.OK,
         section.window,
         cells=p.cells,
         z=p.z,
