@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .store.paths import write_atomically
+
 log = logging.getLogger(__name__)
 
 # the parts of the warm-up, in the order one process runs them all
@@ -98,9 +100,9 @@ def mark_compiled(seconds: float = 0.0) -> None:
     path = _stamp_path()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp-{os.getpid()}")
-        tmp.write_text(json.dumps({"fingerprint": _fingerprint(), "seconds": round(seconds, 1)}))
-        os.replace(tmp, path)
+        write_atomically(
+            path, json.dumps({"fingerprint": _fingerprint(), "seconds": round(seconds, 1)})
+        )
     except OSError:  # a read-only installation: the warm-up runs again next time, harmlessly
         pass
 

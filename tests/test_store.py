@@ -557,3 +557,24 @@ def test_a_stores_parameters_are_read_once_with_the_defaults_of_older_stores():
     )
     with pytest.raises(dataclasses.FrozenInstanceError):
         h.clearance_m = 1.0
+
+
+def test_a_file_is_written_whole_or_not_at_all(tmp_path):
+    """``write_atomically``: the new content replaces the old at once; a write that fails
+    half-way leaves the old file as it was and no temporary beside it."""
+    from pipeline.store.paths import TEMPORARY, write_atomically
+
+    path = tmp_path / "index.html"
+    write_atomically(path, "old")
+    assert path.read_text() == "old"
+
+    def half(tmp):
+        tmp.write_text("half of the new")
+        assert TEMPORARY.match(tmp.name) and tmp.suffix == ".png"
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space"):
+        write_atomically(path, write=half, suffix=".png")
+    assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["index.html"]
+    write_atomically(path, b"\x89new")
+    assert path.read_bytes() == b"\x89new"

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..store.paths import write_atomically
+
 COLLECTION = "missions"
 
 
@@ -324,9 +326,7 @@ def write_catalog(
     gdf = gpd.GeoDataFrame(rows, geometry=geoms, crs="EPSG:4326" if lonlat else None)
     coll_dir = root / COLLECTION
     coll_dir.mkdir(parents=True, exist_ok=True)
-    tmp = coll_dir / f".missions.parquet.tmp-{uuid.uuid4().hex[:8]}"
-    gdf.to_parquet(tmp)
-    os.replace(tmp, coll_dir / "missions.parquet")
+    write_atomically(coll_dir / "missions.parquet", write=gdf.to_parquet)
 
     boxes = [it["bbox"] for it in items if it.get("bbox")]
     bbox = (
@@ -391,6 +391,4 @@ def _item_text(item: dict) -> str:
 
 
 def _atomic_json(path: Path, doc: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, path)
+    write_atomically(path, json.dumps(doc, indent=1))

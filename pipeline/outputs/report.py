@@ -24,12 +24,11 @@ import html
 import json
 import logging
 import math
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
 
+from ..store.paths import write_atomically
 from .catalog import COLLECTION, finished
 
 log = logging.getLogger(__name__)
@@ -72,11 +71,7 @@ def write_report(root, maps=None, *, title: str, mission_names: list[str]) -> Pa
             continue
         data["missions"].append(_mission(root, item, k, crs_wkt))
     page = _page(data)
-    out = root / "index.html"
-    tmp = root / f".index.html.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.write_text(page, encoding="utf-8")
-    os.replace(tmp, out)
-    return out
+    return write_atomically(root / "index.html", page)
 
 
 # --------------------------------------------------------------------------- data
@@ -118,9 +113,7 @@ def hillshade(root, maps) -> dict | None:
     note.unlink(missing_ok=True)  # never beside a picture it does not describe
     data = _hillshade(maps, png)
     if signature is not None:
-        tmp = side / f".hillshade.json.tmp-{uuid.uuid4().hex[:8]}"
-        tmp.write_text(json.dumps({"key": key, "hillshade": data}))
-        os.replace(tmp, note)
+        write_atomically(note, json.dumps({"key": key, "hillshade": data}))
     return data
 
 
@@ -141,10 +134,10 @@ def _hillshade(maps, png: Path) -> dict:
     rgb, vmin, vmax = shaded_relief(z, float(sub.attrs["cell_size"]))
     from PIL import Image
 
-    tmp = png.with_name(f".{png.name}.tmp-{uuid.uuid4().hex[:8]}.png")
     pixels = (np.clip(rgb[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)
-    Image.fromarray(pixels, "RGB").save(tmp, compress_level=3)  # level 6: 3x the time
-    os.replace(tmp, png)
+    image = Image.fromarray(pixels, "RGB")
+    # compression level 6 took 3x the time of level 3
+    write_atomically(png, write=lambda tmp: image.save(tmp, compress_level=3), suffix=".png")
     a = maps.cell_size
     cmap = plt.get_cmap(RELIEF_CMAP)
     stops = [

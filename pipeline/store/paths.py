@@ -275,3 +275,25 @@ def _remove(p: Path) -> None:
         shutil.rmtree(p, ignore_errors=True)
     elif p.exists():
         p.unlink()
+
+
+def write_atomically(path, content: str | bytes | None = None, *, write=None, suffix: str = ""):
+    """Write the file ``path`` whole or not at all: ``content`` (text as UTF-8, or bytes), or
+    what ``write(tmp)`` writes at the path it is given, goes to a temporary beside ``path``
+    (named as :data:`TEMPORARY` says, ending in ``suffix`` where a writer needs one, such as
+    ``.png``), which then replaces ``path``; a failed write removes the temporary. Returns
+    ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}{suffix}")
+    try:
+        if write is not None:
+            write(tmp)
+        elif isinstance(content, bytes):
+            tmp.write_bytes(content)
+        else:
+            tmp.write_text(content, encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
