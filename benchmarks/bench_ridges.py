@@ -273,7 +273,7 @@ def main() -> None:
           priority queue over cells: each cell descends to its lowest lower neighbour, which
           splits the map into basins; one minimax over the basins that touch gives each
           basin's spill level, and a cell's fill is the larger of its height and its basin's
-          spill (proof in `pipeline/ridges.py`). Target (issue 17): at least 1.5x faster than
+          spill (proof in `pipeline/maps/ridges.py`). Target (issue 17): at least 1.5x faster than
           whitebox-workflows on one core with no more memory.""")
     rep.headline(
         "pysheds",

@@ -120,7 +120,7 @@ def test_nodata_in_the_element_makes_safety_nan():
 @pytest.mark.parametrize("method", ["horizontal", "spherical"])
 def test_signed_zeros_and_nodata_bit_for_bit(method):
     """The kernel's maximum may return either operand for a NaN or for -0.0 against +0.0
-    (pipeline/safety.py ``_maximum``): the map still equals the brute force bit for bit, the
+    (pipeline/maps/safety.py ``_maximum``): the map still equals the brute force bit for bit, the
     sign of every zero included, on a DEM of +-0.0 and small whole numbers with scattered
     no-data, at a radius whose disc has cells exactly R away (5 cells of 30 m: a cap height of
     +0.0 there)."""
