@@ -28,6 +28,7 @@ Defaults (all in fine cells; ``a`` is the cell size in metres):
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from numbers import Integral
 
 import numpy as np
@@ -273,35 +274,35 @@ def plan(
         "coarse_planner": coarse_planner,
         "coarse_weight": coarse_weight,
     }
-    bound = _Bound(m, start, goal, extra)
+    req = _Request(
+        m,
+        run_on,
+        planner,
+        omega,
+        start,
+        goal,
+        t0,
+        extra,
+        rho,
+        section_size,
+        margin,
+        coarse_planner,
+        coarse_weight,
+        _Bound(m, start, goal, extra),
+        reach,
+    )
     if not mcpc:
         reach.check()
-        return _done(m, _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+        return _done(m, _plan_whole(req))
     try:
-        t = _plan_mcpc(
-            m,
-            run_on,
-            planner,
-            omega,
-            start,
-            goal,
-            t0,
-            extra,
-            rho,
-            section_size,
-            margin,
-            coarse_planner,
-            coarse_weight,
-            bound,
-            reach,
-        )
+        t = _plan_mcpc(req)
     except UnreachableGoalError as exc:
         if not reach.check():  # reachability unknown (a store without components): as it says
             raise
         # start and goal share a component, so a path exists that the coarse map or the
         # sections missed (a passage narrower than rho cells): plan the whole map
         extra["fallback"] = f"MCPC found no path ({exc}); planned on the whole map instead"
-        return _done(m, _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound))
+        return _done(m, _plan_whole(req))
     if certified(t.length_m, t.lower_bound_m, omega):
         return _done(m, t)
     cells = m.shape[0] * m.shape[1]
@@ -315,8 +316,7 @@ def plan(
         "stitched_length_m": t.length_m,
         "stitched_ridge_ratio": t.ridge_ratio,
     }
-    extra = {**t.extra, "repair": repair}
-    whole = _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound)
+    whole = _plan_whole(req, {**t.extra, "repair": repair})
     repair["seconds"] = time.perf_counter() - tr
     return _done(m, whole)
 
@@ -329,7 +329,40 @@ def plan(
 ACTIVE_LANDMARKS = 0
 
 
-def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Trajectory:
+@dataclass(frozen=True)
+class _Request:
+    """A mission's arguments once :func:`plan` has checked them, as its steps take them."""
+
+    m: MapsStore
+    run_on: object  # where sections run (cluster.get_client)
+    planner: str
+    omega: float
+    start: tuple[int, int]
+    goal: tuple[int, int]
+    t0: float  # when plan() started (perf_counter)
+    extra: dict  # what the trajectory's ``extra`` records of the planning
+    rho: int
+    section_size: int
+    margin: int
+    coarse_planner: str
+    coarse_weight: float
+    bound: _Bound
+    reach: _Reach  # the components layer's proof of reachability
+
+
+def _plan_whole(req: _Request, extra: dict | None = None) -> Trajectory:
+    """One search over the whole map (its planner proves its own bound); ``extra`` (default
+    the request's) is kept with the trajectory."""
+    m, run_on, planner, omega, start, goal = (
+        req.m,
+        req.run_on,
+        req.planner,
+        req.omega,
+        req.start,
+        req.goal,
+    )
+    extra = req.extra if extra is None else extra
+    t0, bound = req.t0, req.bound
     k = min(ACTIVE_LANDMARKS, len(m.landmarks)) if PLANNERS[planner].uses_landmarks else 0
     whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal, landmarks=k)
     res = _run(run_on, m, [whole], planner, omega)[0]
@@ -341,23 +374,26 @@ def _plan_whole(m, run_on, planner, omega, start, goal, t0, extra, bound) -> Tra
     return _finish(m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower)
 
 
-def _plan_mcpc(
-    m,
-    run_on,
-    planner,
-    omega,
-    start,
-    goal,
-    t0,
-    extra,
-    rho,
-    section_size,
-    margin,
-    coarse_planner,
-    coarse_weight,
-    bound,
-    reach,
-) -> Trajectory:
+def _plan_mcpc(req: _Request) -> Trajectory:
+    """Algorithm 3 for one mission: the coarse path, its sections planned where ``req.run_on``
+    runs them, the stitched path measured and bounded."""
+    m, run_on, planner, omega, start, goal = (
+        req.m,
+        req.run_on,
+        req.planner,
+        req.omega,
+        req.start,
+        req.goal,
+    )
+    t0, extra, rho, section_size, margin = (
+        req.t0,
+        req.extra,
+        req.rho,
+        req.section_size,
+        req.margin,
+    )
+    coarse_planner, coarse_weight, bound = req.coarse_planner, req.coarse_weight, req.bound
+    reach = req.reach
     # 1-2: compression (cached) and the coarse path
     tc = time.perf_counter()
     co = m.coarse(rho)
