@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -107,36 +108,100 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     veh = Vehicle.of(vehicle)
     if not traj.planned or len(traj.cells) < 2:
         raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
+    ctx = _context(m, traj, veh)
+    results = []
+    for name, make, rad in _smoothings(ctx):
+        results.append(_attempt(ctx, name, make(), rad))
+        if not results[-1]["problems"]:
+            break
+    return _flight(ctx, traj, _pick(results), t0)
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What every smoothing of one flight shares: the store, the vehicle and the maps'
+    clearances, the sampling, the corridor of cells around the path, its corners, the length
+    limit and the waypoint bands."""
+
+    m: object  # the MapsStore
+    veh: Vehicle
+    a: float  # cell size (m)
+    clearance: float
+    top: float  # the highest height allowed (sea level less the surface clearance)
+    turn_m: float
+    slope: float  # tan(max pitch)
+    step: float
+    terrain: tuple
+    top_ok: float
+    cor: Corridor
+    usable: tuple
+    cells: np.ndarray
+    verts: np.ndarray  # the path's corners (indices into cells)
+    limit: float  # the flown length allowed: omega x the proven lower bound
+    bands: tuple
+    want: int  # waypoints wanted at most
+
+
+def _context(m, traj: Trajectory, veh: Vehicle) -> _Context:
     p = m.parameters
     a = m.cell_size
-    method, clearance, radius, top = p.method, p.clearance_m, p.radius_m, p.top_m
     turn_m = veh.turn_radius(a)
     slope = math.tan(math.radians(veh.max_pitch_deg))
-    step, terrain, top_ok = _sampling(method, a, clearance, radius, slope, turn_m, top)
+    step, terrain, top_ok = _sampling(
+        p.method, a, p.clearance_m, p.radius_m, slope, turn_m, p.top_m
+    )
     rows, cols = m.shape
     elem = int(math.ceil((terrain[1] + terrain[4]) / a + math.sqrt(2.0))) + 1
     pad = elem + int(math.ceil(turn_m / a)) + 2
     cells = np.asarray(traj.cells, dtype=np.int64)
     cor = Corridor(m, cells, pad)
-    usable = (cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem)
-    verts = _corner_vertices(cells)
-    vr = cells[verts, 0].astype(np.float64)
-    vc = cells[verts, 1].astype(np.float64)
-    if traj.lower_bound_m > 0:
-        limit = traj.omega * traj.lower_bound_m
-    else:
-        limit = traj.length_m
+    limit = traj.omega * traj.lower_bound_m if traj.lower_bound_m > 0 else traj.length_m
     if traj.status != Status.OK:
         limit = max(limit, traj.length_m)
-    off, along = _path_off_ridge(cells, cor)
-    keep = _shortcuts(
-        vr, vc, off[verts], along[verts], cor.pas, cor.rdg, *usable[1:], 4 * max(rows, cols)
+    bands = (
+        (veh.waypoint_band_m,)
+        if veh.waypoint_band_m is not None
+        else tuple(f * p.clearance_m for f in WAYPOINT_BANDS)
     )
-    r_turn = turn_m / a
+    return _Context(
+        m=m,
+        veh=veh,
+        a=a,
+        clearance=p.clearance_m,
+        top=p.top_m,
+        turn_m=turn_m,
+        slope=slope,
+        step=step,
+        terrain=terrain,
+        top_ok=top_ok,
+        cor=cor,
+        usable=(cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem),
+        cells=cells,
+        verts=_corner_vertices(cells),
+        limit=limit,
+        bands=bands,
+        want=max(2, int(WAYPOINT_SHARE * len(cells))),
+    )
 
-    # when the flight along shortcuts that keep the ridge cover is longer than the bound
-    # allows, shortcuts free of that rule (the shortest), then the path's own corners (each
-    # made only when needed)
+
+def _smoothings(ctx: _Context) -> tuple:
+    """``(name, make, turn radius in cells)`` of each smoothing to try, in order: ``make()``
+    gives its corners. When the flight along shortcuts that keep the ridge cover is longer
+    than the bound allows, shortcuts free of that rule (the shortest), then the path's own
+    corners (each made only when needed)."""
+    cor, usable, cells, verts = ctx.cor, ctx.usable, ctx.cells, ctx.verts
+    rows, cols = ctx.m.shape
+    vr = cells[verts, 0].astype(np.float64)
+    vc = cells[verts, 1].astype(np.float64)
+    off, along = _path_off_ridge(cells, cor)
+    r_turn = ctx.turn_m / ctx.a
+
+    def kept():
+        keep = _shortcuts(
+            vr, vc, off[verts], along[verts], cor.pas, cor.rdg, *usable[1:], 4 * max(rows, cols)
+        )
+        return widen_turns(vr[keep], vc[keep], r_turn, usable)
+
     def free():
         kf = _shortcuts(
             vr, vc, along[verts] * 2.0, along[verts], cor.pas, cor.rdg, *usable[1:],
@@ -144,114 +209,118 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         )  # fmt: skip
         return widen_turns(vr[kf], vc[kf], r_turn, usable)
 
-    tries = (
-        ("shortcuts", lambda: widen_turns(vr[keep], vc[keep], r_turn, usable), r_turn),
+    return (
+        ("shortcuts", kept, r_turn),
         ("straight shortcuts", free, r_turn),
         ("path vertices", lambda: widen_turns(vr, vc, r_turn, usable), r_turn),
         ("grid path", lambda: (vr, vc), 0.0),
     )
-    bands = (
-        (veh.waypoint_band_m,)
-        if veh.waypoint_band_m is not None
-        else tuple(f * clearance for f in WAYPOINT_BANDS)
-    )
-    want = max(2, int(WAYPOINT_SHARE * len(cells)))
-    results = []
-    for name, make, rad in tries:
-        wr, wc = make()
-        # the waypoint route: the corners, a leg skipping those it passes within a tolerance
-        # of; the flown track: the route with its turns rounded
-        if rad > 0:
-            keep_ridge = name != "straight shortcuts"
-            woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
-            # the closest route with few corners
-            rk = _route_vertices(wr, wc, woff, walong, _LEVELS, 0.75 * want, cor.rdg, *usable)
-            sr, sc = widen_turns(wr[rk], wc[rk], rad, usable)
-            # a simplified route whose corners come too close together where no straight leg
-            # can part them: every corner of the smoothing kept instead (more waypoints)
-            if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
-                wr, wc = sr, sc
-        pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, step)
-        grid = cor.grid()  # the elevation decoded meanwhile
-        qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, step)
-        h_track, unsure = _required_threaded(grid, terrain, pr, pc)
-        hq = np.empty(len(qr))
-        new = shared < 0
-        hq[~new] = h_track[shared[~new]]
-        hq[new], unsure_q = _required_threaded(grid, terrain, qr[new], qc[new])
-        unsure = int(unsure.sum() + unsure_q.sum())
-        prof = vertical_profile(
-            wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, slope, bands,
-            top_ok, want, turn_m * (1 + LEG_MARGIN),
-        )  # fmt: skip
-        zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
-        route = {"s": prof["sigma"], "z": zq, "h": prof["h"]}
-        z_t = np.interp(sig_t, prof["sigma"], zq)
-        s_t = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
-        track = {
-            "h": h_track,
-            "s": s_t,
-            "z": z_t,
-            "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
-        }
-        track["known"] = not (np.isnan(h_track).any() or np.isnan(hq).any())
-        problems = []
-        if not track["known"]:
-            problems.append("the terrain near the track is unknown (no-data) at some samples")
-        elif max(z_t.max(), zq.max()) > top_ok:
-            problems.append(
-                f"the pitch limit forces the vehicle to {-max(z_t.max(), zq.max()):.0f} m depth, "
-                f"above the surface limit ({-top:.0f} m)"
-            )
-        else:
-            low = min(float(np.min(z_t - h_track)), float(np.min(zq - hq)))
-            if low < -1e-6:  # never by construction: a check of what is written
-                problems.append(f"the route passes {-low:.2f} m below its required height")
-        route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
-        longest = max(track["length"], route_length)
-        over = ""
-        if longest > limit * (1 + 1e-9):
-            over = (
-                f"the flown length {longest:.0f} m exceeds omega x the proven lower "
-                f"bound ({limit:.0f} m)"
-            )
-            problems.append(over)
-        turns = radii[np.isfinite(radii)] * a
-        tight = int(np.sum(_too_tight(turns, turn_m)))
-        if rad == 0:
-            problems.append("turns are not rounded (the smoothed tracks broke a limit)")
-        elif tight:  # corners that widen_turns could not part: the next smoothing may
-            problems.append(
-                f"{tight} turns are tighter than the minimum turn radius {turn_m:g} m "
-                f"(tightest {turns.min():.1f} m): the corners are too close together"
-            )
-        results.append(
-            dict(
-                name=name,
-                pr=pr,
-                pc=pc,
-                radii=radii,
-                track=track,
-                route=route,
-                qr=qr,
-                qc=qc,
-                zq=zq,
-                wi=wi,
-                band=band,
-                route_length=route_length,
-                problems=problems,
-                over=over,
-                unsure=unsure,
-            )
+
+
+def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
+    """One smoothing flown: its route, turns, required heights and depth profile, and the
+    limits it breaks (``problems``; ``over``: the flown length above the bound, if so)."""
+    a, cor, usable = ctx.a, ctx.cor, ctx.usable
+    wr, wc = corners
+    # the waypoint route: the corners, a leg skipping those it passes within a tolerance
+    # of; the flown track: the route with its turns rounded
+    if rad > 0:
+        keep_ridge = name != "straight shortcuts"
+        woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
+        # the closest route with few corners
+        rk = _route_vertices(wr, wc, woff, walong, _LEVELS, 0.75 * ctx.want, cor.rdg, *usable)
+        sr, sc = widen_turns(wr[rk], wc[rk], rad, usable)
+        # a simplified route whose corners come too close together where no straight leg
+        # can part them: every corner of the smoothing kept instead (more waypoints)
+        if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
+            wr, wc = sr, sc
+    pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, ctx.step)
+    grid = cor.grid()  # the elevation decoded meanwhile
+    qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, ctx.step)
+    h_track, unsure = _required_threaded(grid, ctx.terrain, pr, pc)
+    hq = np.empty(len(qr))
+    new = shared < 0
+    hq[~new] = h_track[shared[~new]]
+    hq[new], unsure_q = _required_threaded(grid, ctx.terrain, qr[new], qc[new])
+    unsure = int(unsure.sum() + unsure_q.sum())
+    prof = vertical_profile(
+        wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, ctx.slope, ctx.bands,
+        ctx.top_ok, ctx.want, ctx.turn_m * (1 + LEG_MARGIN),
+    )  # fmt: skip
+    zq, wi, band, sig_t = prof["z"], prof["waypoints"], prof["band"], prof["sigma_track"]
+    route = {"s": prof["sigma"], "z": zq, "h": prof["h"]}
+    z_t = np.interp(sig_t, prof["sigma"], zq)
+    s_t = np.concatenate(([0.0], np.cumsum(a * np.hypot(np.diff(pr), np.diff(pc)))))
+    track = {
+        "h": h_track,
+        "s": s_t,
+        "z": z_t,
+        "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
+    }
+    track["known"] = not (np.isnan(h_track).any() or np.isnan(hq).any())
+    problems = []
+    if not track["known"]:
+        problems.append("the terrain near the track is unknown (no-data) at some samples")
+    elif max(z_t.max(), zq.max()) > ctx.top_ok:
+        problems.append(
+            f"the pitch limit forces the vehicle to {-max(z_t.max(), zq.max()):.0f} m depth, "
+            f"above the surface limit ({-ctx.top:.0f} m)"
         )
-        if not problems:
-            break
-    # the first smoothing that keeps every limit; else the first whose only fault is a length
-    # above the proven bound (the mission is then "uncertified", as a planned path would be);
-    # else the first with the fewest faults
+    else:
+        low = min(float(np.min(z_t - h_track)), float(np.min(zq - hq)))
+        if low < -1e-6:  # never by construction: a check of what is written
+            problems.append(f"the route passes {-low:.2f} m below its required height")
+    route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
+    longest = max(track["length"], route_length)
+    over = ""
+    if longest > ctx.limit * (1 + 1e-9):
+        over = (
+            f"the flown length {longest:.0f} m exceeds omega x the proven lower "
+            f"bound ({ctx.limit:.0f} m)"
+        )
+        problems.append(over)
+    turns = radii[np.isfinite(radii)] * a
+    tight = int(np.sum(_too_tight(turns, ctx.turn_m)))
+    if rad == 0:
+        problems.append("turns are not rounded (the smoothed tracks broke a limit)")
+    elif tight:  # corners that widen_turns could not part: the next smoothing may
+        problems.append(
+            f"{tight} turns are tighter than the minimum turn radius {ctx.turn_m:g} m "
+            f"(tightest {turns.min():.1f} m): the corners are too close together"
+        )
+    return dict(
+        name=name,
+        pr=pr,
+        pc=pc,
+        radii=radii,
+        track=track,
+        route=route,
+        qr=qr,
+        qc=qc,
+        zq=zq,
+        wi=wi,
+        band=band,
+        route_length=route_length,
+        problems=problems,
+        over=over,
+        unsure=unsure,
+        grid=grid,
+    )
+
+
+def _pick(results: list) -> dict:
+    """The first smoothing that keeps every limit; else the first whose only fault is a
+    length above the proven bound (the mission is then "uncertified", as a planned path would
+    be); else the first with the fewest faults."""
     pick = next((r for r in results if not r["problems"]), None)
     pick = pick or next((r for r in results if r["problems"] == [r["over"]]), None)
-    pick = pick or min(results, key=lambda r: len(r["problems"]))
+    return pick or min(results, key=lambda r: len(r["problems"]))
+
+
+def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
+    """The picked smoothing measured as it is flown: the track's samples, pitch, timing,
+    ridge share and energy, the waypoints, and its clearance from the continuous seabed."""
+    m, veh, a, cor, grid = ctx.m, ctx.veh, ctx.a, ctx.cor, pick["grid"]
     name, pr, pc, radii = pick["name"], pick["pr"], pick["pc"], pick["radii"]
     track, route, qr, qc = pick["track"], pick["route"], pick["qr"], pick["qc"]
     zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
@@ -276,22 +345,11 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
     duration = float(t[-1])
     seabed = _bilinear(*grid, pr, pc)
-    near = profile_figures(s, z, seabed)
-    # what is flown, measured anew against the continuous seabed where it comes closest to its
-    # required heights: never under the clearance by construction, and a mission whose route
-    # came under it would fail here
-    reach = clearance if method == "spherical" else radius if method == "horizontal" else 0.0
-    lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * a / clearance))))
-    least = np.inf
-    for r_, c_, z_, h_ in ((pr, pc, z, h), (qr, qc, zq, route["h"])):
-        k = _closest(z_ - h_)
-        least = min(
-            least, seabed_clearance(*grid, r_[k], c_[k], z_[k], a, reach, _METHOD[method], lattice)
-        )
-    if least < clearance * (1 - 1e-6):
+    least = _least_clearance(ctx, grid, ((pr, pc, z, h), (qr, qc, zq, route["h"])))
+    if least < ctx.clearance * (1 - 1e-6):
         problems.append(
             f"the flown route comes {least:.1f} m from the seabed between grid points, under "
-            f"the clearance {clearance:g} m"
+            f"the clearance {ctx.clearance:g} m"
         )
     return Flight(
         x=x,
@@ -304,7 +362,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         waypoints=np.column_stack([wx, wy, zq[wi], rt[wi] / veh.speed_m_s]),
         waypoint_index=wi,
         vehicle=veh,
-        turn_radius_m=turn_m,
+        turn_radius_m=ctx.turn_m,
         flown_length_m=float(track["length"]),
         route_length_m=route_length,
         grid_length_m=float(traj.length_m),
@@ -313,7 +371,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         min_turn_radius_m=min_turn,
         ridge_ratio=float(seg[on_ridge].sum() / total) if total > 0 else 0.0,
         energy_wh=veh.power_w * duration / 3600.0 if veh.power_w is not None else None,
-        surface_limit_m=top,
+        surface_limit_m=ctx.top,
         waypoint_band_m=float(band),
         smoothing=name,
         problems=problems,
@@ -323,9 +381,28 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         route_seabed_m=_bilinear(*grid, qr, qc),
         unknown_seabed_samples=pick["unsure"],
         min_clearance_m=float(least),
-        short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < turn_m * (1 - 1e-9))),
-        **near,
+        short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
+        **profile_figures(s, z, seabed),
     )
+
+
+def _least_clearance(ctx: _Context, grid, lines) -> float:
+    """What is flown, measured anew against the continuous seabed where each of ``lines``
+    (``(rows, cols, heights, required heights)``) comes closest to its required heights: never
+    under the clearance by construction, and a mission whose route came under it would fail
+    here."""
+    p = ctx.m.parameters
+    lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * ctx.a / ctx.clearance))))
+    least = np.inf
+    for r_, c_, z_, h_ in lines:
+        k = _closest(z_ - h_)
+        least = min(
+            least,
+            seabed_clearance(
+                *grid, r_[k], c_[k], z_[k], ctx.a, p.reach_m, _METHOD[p.method], lattice
+            ),
+        )
+    return least
 
 
 def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:

@@ -188,6 +188,14 @@ class MapsParameters:
         return self.clearance_m
 
     @property
+    def reach_m(self) -> float:
+        """How far the clearance reaches sideways from a point: R for the spherical method,
+        the horizontal radius for the horizontal one, none for the vertical one."""
+        if self.method == "spherical":
+            return self.clearance_m
+        return self.radius_m if self.method == "horizontal" else 0.0
+
+    @property
     def top_m(self) -> float:
         """The highest the vehicle may fly: the sea level less the surface clearance (R when
         none was given)."""
