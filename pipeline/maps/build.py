@@ -188,8 +188,6 @@ def build_maps(
         "cell_size": a,
         "chunks": list(ch),
     }
-    elev = dem.copy()
-    elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
     t0 = time.perf_counter()
 
     def say(msg, *args) -> None:
@@ -199,91 +197,16 @@ def build_maps(
         # beside the store, on the same storage: every worker reads and writes them
         scratch, labels = tmp + "-scratch", tmp + "-components"
         try:
-            # passes 1-2: tiles flooded once (each keeping its DEM tile in the scratch), the
-            # fill and flow summaries solved globally
-            st = flood_and_solve(dem.data, scratch, log=say)
-            # pass 3: every layer of every tile written and its components labelled, one task
-            # a tile that reads its haloed DEM from the scratch tiles
-            kernel, depth = block_kernel(
-                method, S.attrs["clearance_m"], S.attrs.get("horizontal_clearance_m"), a
-            )
-            tiles = _Tiles(
-                scratch,
-                labels,
-                *st.offsets,
-                ch,
-                dem.shape,
-                kernel,
-                depth,
-                ok.attrs["sea_level_m"],
-                ok.attrs["surface_clearance_m"],
-                min_accumulation,
-            )
-            writers = _create(
-                {
-                    "elevation": elev,
-                    "safety": S,
-                    "passable": ok,
-                    "accumulation": (
-                        np.int32,
-                        {
-                            "long_name": "flow accumulation of the inverted filled DEM",
-                            "units": "cells",
-                        },
-                    ),
-                    "ridge": (
-                        bool,
-                        {"long_name": "ridge cells", "min_accumulation": min_accumulation},
-                    ),
-                },
-                dem,
-                tmp,
-                ch,
-            )
-            parts = tiles.run(
-                _layers_tile, st.solution, writers, lambda m, *a: say("layers: " + m, *a)
-            )
-            partials = [p[0] for p in parts]
-            log.info(
-                "maps %s: layers written (elevation, safety, passable, accumulation, ridge)",
-                store,
-            )
-            # pass 4: the labels that touch across tiles joined, the component layer written
-            table, offsets = join_tiles(
-                *([p[2][k] for p in parts] for k in range(3)), len(tiles.r_off) - 1, tiles.nbc
-            )
-            (joined,) = dask.persist(dask.delayed((table, offsets), pure=True))
-            writers = _create(
-                {
-                    "component": (
-                        np.int32,
-                        {"long_name": "connected component of the passable graph (0: none)"},
-                    )
-                },
-                dem,
-                tmp,
-                ch,
-                mode="a",
-            )
-            sizes = tiles.run(
-                _component_tile, joined, writers, lambda m, *a: say("components: " + m, *a)
-            )
-            log.info("maps %s: components labelled", store)
+            partials, sizes = _tile_passes(dem, S, ok, tmp, scratch, labels, ch, params, say)
             # the scratch tiles (about 13 bytes a cell) go before the landmark searches,
             # which read the store's layers back through the page cache
             remove_tree(scratch)
             remove_tree(labels)
             # pass 5: landmark distance layers (the proven lower bound)
             tl = time.perf_counter()
-            cells = landmarks_staged(
-                tmp,
-                landmarks,
-                a,
-                log=say,
-                counts=component_sizes(sizes),
-            )
+            cells = landmarks_staged(tmp, landmarks, a, log=say, counts=component_sizes(sizes))
             landmarks_s = time.perf_counter() - tl
-            log.info("maps %s: %d landmarks written (%.1f s)", store, len(cells), landmarks_s)
+            say("%d landmarks written (%.1f s)", len(cells), landmarks_s)
         except BaseException:
             for p in (scratch, labels):  # tasks still running may write after a failure
                 remove_settled(p)
@@ -291,25 +214,18 @@ def build_maps(
         passable_cells = int(component_sizes(sizes)[1:].sum())
         if passable_cells == 0:
             log.warning("maps %s: %s", store, NO_PASSABLE)
-        group = zarr.open_group(tmp, mode="r+", zarr_format=3)
-        attrs = {
-            "passable_cells": passable_cells,
-            "title": "pipeline maps store",
-            "maps_version": MAPS_VERSION,
-            "parameters": json.dumps(params),
-            "cell_size": a,
-            "dem_hash": _hex(partials),
-            "all_chunks_written": True,
-            "landmarks": json.dumps(cells),
-            "build_seconds": {
+        _finish_attributes(
+            tmp,
+            dem,
+            params,
+            passable_cells=passable_cells,
+            dem_hash=_hex(partials),
+            landmarks=cells,
+            seconds={
                 "total": round(time.perf_counter() - t0, 2),
                 "landmarks": round(landmarks_s, 2),
             },
-        }
-        if "crs_wkt" in dem.attrs:
-            attrs["crs_wkt"] = dem.attrs["crs_wkt"]
-        attrs["signature"] = attrs_signature(attrs)
-        group.attrs.update(attrs)
+        )
     log.info(
         "built maps store %s (%s, R = %g m, ridge >= %d cells) in %.1f s",
         store,
@@ -319,6 +235,98 @@ def build_maps(
         time.perf_counter() - t0,
     )
     return open_maps(store)
+
+
+def _tile_passes(dem, S, ok, tmp: str, scratch: str, labels: str, ch, params: dict, say):
+    """Passes 1-4 of the build into the store ``tmp``: the tiles flooded and the fill and
+    flow solved (1-2), every layer of every tile written and its components labelled (3), the
+    labels joined across tiles and the component layer written (4). Returns the tiles' DEM
+    hash partials and their component sizes."""
+    a, method = params["cell_size"], params["method"]
+    # passes 1-2: tiles flooded once (each keeping its DEM tile in the scratch), the fill and
+    # flow summaries solved globally
+    st = flood_and_solve(dem.data, scratch, log=say)
+    # pass 3: every layer of every tile written and its components labelled, one task a tile
+    # that reads its haloed DEM from the scratch tiles
+    kernel, depth = block_kernel(
+        method, S.attrs["clearance_m"], S.attrs.get("horizontal_clearance_m"), a
+    )
+    tiles = _Tiles(
+        scratch,
+        labels,
+        *st.offsets,
+        ch,
+        dem.shape,
+        kernel,
+        depth,
+        ok.attrs["sea_level_m"],
+        ok.attrs["surface_clearance_m"],
+        params["min_accumulation"],
+    )
+    elev = dem.copy()
+    elev.attrs = {k: v for k, v in dem.attrs.items() if k not in ("pipeline_dem_version",)}
+    writers = _create(
+        {
+            "elevation": elev,
+            "safety": S,
+            "passable": ok,
+            "accumulation": (
+                np.int32,
+                {"long_name": "flow accumulation of the inverted filled DEM", "units": "cells"},
+            ),
+            "ridge": (
+                bool,
+                {"long_name": "ridge cells", "min_accumulation": params["min_accumulation"]},
+            ),
+        },
+        dem,
+        tmp,
+        ch,
+    )
+    parts = tiles.run(_layers_tile, st.solution, writers, lambda m, *a: say("layers: " + m, *a))
+    say("layers written (elevation, safety, passable, accumulation, ridge)")
+    # pass 4: the labels that touch across tiles joined, the component layer written
+    table, offsets = join_tiles(
+        *([p[2][k] for p in parts] for k in range(3)), len(tiles.r_off) - 1, tiles.nbc
+    )
+    (joined,) = dask.persist(dask.delayed((table, offsets), pure=True))
+    writers = _create(
+        {
+            "component": (
+                np.int32,
+                {"long_name": "connected component of the passable graph (0: none)"},
+            )
+        },
+        dem,
+        tmp,
+        ch,
+        mode="a",
+    )
+    sizes = tiles.run(_component_tile, joined, writers, lambda m, *a: say("components: " + m, *a))
+    say("components labelled")
+    return [p[0] for p in parts], sizes
+
+
+def _finish_attributes(tmp: str, dem, params: dict, **facts) -> None:
+    """The store's attributes, written last (a store without them is incomplete): its
+    format's version, the build's parameters, the DEM's hash and CRS, the landmarks, what the
+    build took, and the signature of them (:func:`pipeline.store.schema.attrs_signature`)."""
+    group = zarr.open_group(tmp, mode="r+", zarr_format=3)
+    attrs = {
+        "passable_cells": facts["passable_cells"],
+        "title": "pipeline maps store",
+        "maps_version": MAPS_VERSION,
+        "parameters": json.dumps(params),
+        "cell_size": params["cell_size"],
+        "dem_hash": facts["dem_hash"],
+        "all_chunks_written": True,
+        "landmarks": json.dumps(facts["landmarks"]),
+        "build_seconds": facts["seconds"],
+    }
+    if "crs_wkt" in dem.attrs:
+        attrs["crs_wkt"] = dem.attrs["crs_wkt"]
+    attrs["signature"] = attrs_signature(attrs)
+    group.attrs.update(attrs)
 
 
 def check_build_arguments(dem, store, **kwargs) -> None:
