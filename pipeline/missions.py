@@ -21,6 +21,7 @@ import threading
 import uuid
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -193,7 +194,9 @@ def plan_missions(
         )
 
     missions_per_task = MISSIONS_PER_TASK.check_optional(missions_per_task)
-    veh = vehicle.to_dict() if isinstance(vehicle, Vehicle) else vehicle
+    batch = _Batch(
+        defaults, vehicle.to_dict() if isinstance(vehicle, Vehicle) else vehicle, quicklooks
+    )
     out: list[Trajectory | None] = [None] * len(items)
     if len(todo) > 1:
         _prepare_coarse(m, [items[i] for i in todo], defaults)
@@ -206,7 +209,7 @@ def plan_missions(
     for i, message in invalid.items():
         done(i, failed_trajectory(items[i], message))
     if run_on not in IN_PROCESS and len(todo) > 1:
-        _on_cluster(run_on, m, items, defaults, veh, quicklooks, done, missions_per_task, todo)
+        _on_cluster(run_on, m, items, batch, done, missions_per_task, todo)
         return out  # type: ignore[return-value]
     workers = max(1, min(int(max_concurrent), len(todo)))
     if run_on == "threads" and workers >= cores():
@@ -215,10 +218,7 @@ def plan_missions(
         # missions/s shared against 156-165 in turn)
         run_on = "synchronous"
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mission") as pool:
-        futures = {
-            pool.submit(_plan_one, m, items[i], defaults, veh, run_on, i, quicklooks): i
-            for i in todo
-        }
+        futures = {pool.submit(_plan_one, m, items[i], batch, run_on, i): i for i in todo}
         for fut in as_completed(futures):
             i = futures[fut]
             try:
@@ -251,14 +251,23 @@ def _prepare_coarse(m, items, defaults) -> None:
             log.debug("coarse level rho=%r not prepared: %s", rho, exc)
 
 
-def _plan_one(
-    m, mission: dict, defaults: dict, vehicle, run_on, i: int = 0, quicklook: bool = False
-) -> Trajectory:
+@dataclass(frozen=True)
+class _Batch:
+    """What every mission of one :func:`plan_missions` call shares, as its tasks take it: the
+    planning defaults, the vehicle (a dict of its keys, or None: no flight) and whether to
+    draw each mission's quick-look."""
+
+    defaults: dict
+    vehicle: dict | None
+    quicklooks: bool
+
+
+def _plan_one(m, mission: dict, batch: _Batch, run_on, i: int = 0) -> Trajectory:
     """One mission of :func:`plan_missions`: planned (its sections on ``run_on``), then flown
-    when a vehicle is given, then drawn (``quicklook``); a mission that cannot be planned or
-    flown comes back failed with the reason."""
-    t = _plan_and_fly(m, mission, defaults, vehicle, run_on, i)
-    if quicklook and len(t.cells) > 1:
+    when a vehicle is given, then drawn (``batch.quicklooks``); a mission that cannot be
+    planned or flown comes back failed with the reason."""
+    t = _plan_and_fly(m, mission, batch, run_on, i)
+    if batch.quicklooks and len(t.cells) > 1:
         try:
             t.extra["quicklook_png"] = _quicklook_png(m, t, mission.get("name", f"mission {i}"))
         except Exception as exc:  # noqa: BLE001 - the mission stands; its writer draws it again
@@ -280,8 +289,9 @@ def _quicklook_png(m, t: Trajectory, name) -> bytes:
         return mission_quicklook(m, t, io.BytesIO(), title=name, crs_wkt=m.crs_wkt).getvalue()
 
 
-def _plan_and_fly(m, mission: dict, defaults: dict, vehicle, run_on, i: int) -> Trajectory:
-    opts = {**defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
+def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory:
+    opts = {**batch.defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
+    vehicle = batch.vehicle
     try:
         t = plan(m, mission["start"], mission["goal"], client=run_on, **opts)
     except PipelineError as exc:
@@ -304,9 +314,7 @@ def _plan_and_fly(m, mission: dict, defaults: dict, vehicle, run_on, i: int) -> 
         return t
 
 
-def _mission_task(
-    path: str, mission: dict, defaults: dict, vehicle, i: int, quicklook: bool = False
-) -> Trajectory:
+def _mission_task(path: str, mission: dict, batch: _Batch, i: int) -> Trajectory:
     """A whole mission as one task on a worker, its sections in turn in this process.
 
     Any dask computation inside it (a coarse level not in the store yet) runs here too: in a
@@ -316,16 +324,16 @@ def _mission_task(
     import dask
 
     with dask.config.set(scheduler="synchronous"):
-        return _plan_one(open_store(path), mission, defaults, vehicle, "synchronous", i, quicklook)
+        return _plan_one(open_store(path), mission, batch, "synchronous", i)
 
 
-def _missions_task(path: str, group: list, defaults: dict, vehicle, quicklook: bool) -> list:
+def _missions_task(path: str, group: list, batch: _Batch) -> list:
     """Several missions (``(index, mission)`` pairs) as one task, in turn, each as
     :func:`_mission_task`; a mission that raises (a bug) fails alone, with the reason."""
     out = []
     for i, mission in group:
         try:
-            out.append(_mission_task(path, mission, defaults, vehicle, i, quicklook))
+            out.append(_mission_task(path, mission, batch, i))
         except Exception as exc:  # noqa: BLE001 - a crash in one mission must not stop the group
             log.exception("mission %d crashed", i)
             out.append(failed_trajectory(mission, f"{type(exc).__name__}: {exc}"))
@@ -346,9 +354,7 @@ def mission_groups(n: int, threads: int, per_task: int | None) -> list[list[int]
     ]
 
 
-def _on_cluster(
-    client, m, items, defaults, vehicle, quicklooks, done, per_task=None, todo=None
-) -> None:
+def _on_cluster(client, m, items, batch: _Batch, done, per_task=None, todo=None) -> None:
     """Every mission of ``todo`` (indices into ``items``; default: all) in a task (alone, or in
     a group of ``per_task``, see :func:`mission_groups`); ``done(i, trajectory)`` for each as
     its task finishes. A task that raises (a bug) or whose workers keep dying fails its
@@ -371,9 +377,7 @@ def _on_cluster(
             _missions_task,
             [m.path] * len(multi),
             [[(i, items[i]) for i in g] for g in multi],
-            [defaults] * len(multi),
-            [vehicle] * len(multi),
-            [quicklooks] * len(multi),
+            [batch] * len(multi),
             pure=False,
             key=[f"missions-{g[0]}-{g[-1]}-{token}" for g in multi],
         )
@@ -384,10 +388,8 @@ def _on_cluster(
             _mission_task,
             [m.path] * len(single),
             [items[i] for i in single],
-            [defaults] * len(single),
-            [vehicle] * len(single),
+            [batch] * len(single),
             single,
-            [quicklooks] * len(single),
             pure=False,
             key=[f"mission-{i}-{token}" for i in single],
         )
