@@ -19,6 +19,7 @@ from numbers import Integral, Real
 from typing import Any
 
 from .exceptions import InvalidParameterError
+from .methods import METHODS as SAFETY_METHODS
 
 DEFAULT_CHUNK = 1024
 
@@ -164,7 +165,7 @@ class Schema:
         return out
 
 
-METHODS = ("vertical", "horizontal", "spherical")
+METHODS = tuple(SAFETY_METHODS)  # the safety methods' names (pipeline.methods)
 
 CELL_SIZE = Param("cell_size", "float", None, "cell side", "metres", above=0)
 LONGITUDE = Param("longitude", "float", None, "", "degrees", minimum=-180.0, maximum=360.0)

@@ -285,3 +285,20 @@ def test_passable_checks_shapes():
         pipeline.passable(d, pipeline.safety_map(_dem(np.zeros((4, 5)) - 500), clearance=20.0))
     with pytest.raises(InvalidParameterError, match="sea_level"):
         pipeline.passable(d, pipeline.safety_map(d, clearance=20.0), sea_level=float("inf"))
+
+
+def test_each_safety_method_is_known_once():
+    """The safety methods' names, kernel numbers and sideways reach come from one registry
+    (pipeline.methods): the parameter schema offers exactly its names, each has its own
+    kernel number, and the reach is R (3-D), the horizontal radius (disc) or nothing (a line
+    straight down), as the stored parameters give it."""
+    from pipeline.methods import METHODS
+    from pipeline.params import MAPS
+    from pipeline.store.schema import MapsParameters
+
+    assert set(MAPS.method.choices) == set(METHODS) == {"vertical", "horizontal", "spherical"}
+    assert len({m.code for m in METHODS.values()}) == len(METHODS)
+    reach = {
+        name: MapsParameters(name, 300.0, horizontal_clearance_m=120.0).reach_m for name in METHODS
+    }
+    assert reach == {"spherical": 300.0, "horizontal": 120.0, "vertical": 0.0}

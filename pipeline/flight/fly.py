@@ -48,6 +48,7 @@ from .._types import Maps, VehicleLike
 if TYPE_CHECKING:
     from ..trajectory import Trajectory
 from ..exceptions import InvalidParameterError
+from ..methods import METHODS
 from ..trajectory import Status
 from .geometry import (
     _LEVELS,
@@ -65,7 +66,6 @@ from .geometry import (
     widen_turns,
 )
 from .profile import (
-    _METHOD,
     CHECK_LATTICE,
     CLEARANCE_SLACK,
     LEG_MARGIN,
@@ -399,7 +399,7 @@ def _least_clearance(ctx: _Context, grid, lines) -> float:
         least = min(
             least,
             seabed_clearance(
-                *grid, r_[k], c_[k], z_[k], ctx.a, p.reach_m, _METHOD[p.method], lattice
+                *grid, r_[k], c_[k], z_[k], ctx.a, p.reach_m, METHODS[p.method].code, lattice
             ),
         )
     return least
@@ -429,11 +429,11 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     k = subdivisions(a, clearance)
     if method == "spherical":
         r = math.sqrt((clearance + sag) ** 2 + 0.25 * (chord * grade) ** 2)
-        terrain = (a, r, _METHOD[method], clearance, 0.0, k)
+        terrain = (a, r, METHODS[method].code, clearance, 0.0, k)
         top_ok = top + (r - clearance) + 1e-6  # the surface limit is R's, not R''s
     else:
-        r = radius if method == "horizontal" else 0.0
-        terrain = (a, r, _METHOD[method], clearance, chord + sag, k)
+        r = METHODS[method].reach_m(clearance, radius)
+        terrain = (a, r, METHODS[method].code, clearance, chord + sag, k)
         top_ok = top + 1e-6
     return step, terrain, top_ok
 

@@ -28,7 +28,6 @@ LEG_MARGIN = 0.01
 
 
 # the maps' clearance methods, as the kernels know them
-_METHOD = {"vertical": 0, "horizontal": 1, "spherical": 2}
 
 
 @njit(inline="always", cache=True)

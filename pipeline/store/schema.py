@@ -191,9 +191,9 @@ class MapsParameters:
     def reach_m(self) -> float:
         """How far the clearance reaches sideways from a point: R for the spherical method,
         the horizontal radius for the horizontal one, none for the vertical one."""
-        if self.method == "spherical":
-            return self.clearance_m
-        return self.radius_m if self.method == "horizontal" else 0.0
+        from ..methods import METHODS
+
+        return METHODS[self.method].reach_m(self.clearance_m, self.radius_m)
 
     @property
     def top_m(self) -> float:
