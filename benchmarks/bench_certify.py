@@ -617,7 +617,7 @@ def main() -> None:
           neighbouring cell: its own fixed cost, the cost and parent arrays of the whole grid
           it allocates and fills at every call. The sweeps and A* return the same optimal
           length on every mission (checked here to 1e-9; against scipy's Dijkstra in
-          tests/test_sweep.py). The landmark heuristic of the certified-bound work cut A*'s
+          tests/planners/test_sweep.py). The landmark heuristic of the certified-bound work cut A*'s
           expansions by 0-27 % on these maps (the previous revision of this table): every
           cell of the parallelogram a mission spans lies within the terrain's 0.1-3 % of the
           optimum, which no lower bound separates; the sweeps visit those cells in memory

@@ -9,7 +9,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from test_certify import missions
+from references import missions
 
 import pipeline
 

@@ -78,7 +78,7 @@ def _write_points(path: Path, columns: dict, x, y, lonlat, crs_wkt) -> None:
     longitude and latitude (``lonlat``), else in the maps' CRS (``x``, ``y``; ``crs`` null
     without one), with its CRS (PROJJSON), geometry type and bounding box in the file's
     ``geo`` metadata. The points are laid out as WKB by numpy and the table written by pyarrow:
-    geoarrow-pyarrow's writer, which makes the same file (tests/test_flight.py), spends 3 ms
+    geoarrow-pyarrow's writer, which makes the same file (tests/flight/test_flight.py), spends 3 ms
     a file on its type bookkeeping, three times pyarrow's write of a 10000^2 mission's track."""
     import json
 
@@ -405,7 +405,7 @@ def ned_offsets(lat0, lon0, lat, lon):
     the geocentric vertical, above the ellipsoid, and reads as the latitude and longitude of
     that ECEF point. The offsets are where the ellipsoid normal of each point meets that
     plane (its geodetic latitude and longitude are the point's), in the plane's north and east
-    directions: DUNE reads them back within millimetres (tests/test_flight.py re-implements
+    directions: DUNE reads them back within millimetres (tests/flight/test_flight.py re-implements
     its formulas). Rotating the ECEF difference into the reference's geodetic north-east frame
     instead put points 1-2 km off on 500 km missions."""
     p0 = _ecef(math.radians(lat0), math.radians(lon0))

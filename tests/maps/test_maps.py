@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import zarr
 from click.testing import CliRunner
-from test_safety import scipy_reference
+from references import scipy_reference
 
 import pipeline
 from pipeline.cli import main
@@ -105,7 +105,7 @@ def test_other_safety_methods_build_the_brute_force_layers_across_tiles(tmp_path
     from its neighbours' scratch tiles, a last chunk of one row and of 3 columns, no-data
     cells next to tile borders) against the brute-force transcription of the method, and the
     passable layer against its definition."""
-    from test_safety import assert_correctly_rounded, brute_force
+    from references import assert_correctly_rounded, brute_force
 
     dem = pipeline.synthetic_dem((49, 35), cell_size=30.0, seed=5, chunks=16)
     z = dem.values.copy()

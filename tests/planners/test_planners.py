@@ -13,6 +13,13 @@ import pytest
 from conftest import random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from references import (
+    check_path,
+    independent_metrics,
+    reference_distances,
+    reference_graph,
+    reference_length,
+)
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
@@ -21,75 +28,6 @@ from pipeline.exceptions import InvalidEndpointError, InvalidParameterError, Unr
 
 # the planners on float64 heights: the test kernels of the warm-up (conftest)
 pytestmark = pytest.mark.usefixtures("test_kernels_compiled")
-
-MOVES = [(0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1)]
-
-
-def reference_length(surface, passable, a, start, goal):
-    """The graph of docs/method.md section 4 built edge by edge, solved by
-    scipy.sparse.csgraph.dijkstra."""
-    d = reference_distances(surface, passable, a, start)
-    return float(d[goal[0] * surface.shape[1] + goal[1]])
-
-
-def reference_graph(surface, passable, a):
-    """The graph of docs/method.md section 4 built edge by edge (8 moves, no corner cutting,
-    3-D lengths) as a scipy sparse matrix over row-major cell indices."""
-    rows, cols = surface.shape
-    src, dst, w = [], [], []
-    for r in range(rows):
-        for c in range(cols):
-            if not passable[r, c]:
-                continue
-            for dr, dc in MOVES:
-                nr, nc = r + dr, c + dc
-                if not (0 <= nr < rows and 0 <= nc < cols and passable[nr, nc]):
-                    continue
-                if dr and dc and not (passable[r, nc] and passable[nr, c]):
-                    continue  # no corner cutting
-                src.append(r * cols + c)
-                dst.append(nr * cols + nc)
-                dz = float(surface[nr, nc]) - float(surface[r, c])
-                w.append(math.sqrt(a * a * (dr * dr + dc * dc) + dz * dz))
-    return coo_matrix((w, (src, dst)), shape=(rows * cols, rows * cols)).tocsr()
-
-
-def reference_distances(surface, passable, a, start):
-    g = reference_graph(surface, passable, a)
-    return dijkstra(g, indices=start[0] * surface.shape[1] + start[1])
-
-
-def check_path(t, passable, start, goal):
-    check_cells(t.cells, passable, start, goal)
-
-
-def check_cells(cells, passable, start, goal):
-    """Start to goal in 8-neighbour moves over passable cells, no corner cut, no cell twice."""
-    assert tuple(cells[0]) == tuple(start) and tuple(cells[-1]) == tuple(goal)
-    assert passable[cells[:, 0], cells[:, 1]].all()
-    steps = np.diff(cells, axis=0)
-    assert np.all(np.abs(steps).max(axis=1) == 1)  # 8-neighbour moves, no jumps, no stays
-    for (r, c), (dr, dc) in zip(cells[:-1], steps, strict=True):
-        if dr and dc:
-            assert passable[r, c + dc] and passable[r + dr, c]  # no corner cutting
-    assert len({tuple(x) for x in cells}) == len(cells)  # simple
-
-
-def independent_metrics(t, surface, ridge, a):
-    return cell_metrics(t.cells, surface, ridge, a)
-
-
-def cell_metrics(cells, surface, ridge, a):
-    """A path's length and ridge length, step by step in Python."""
-    length = ridge_len = 0.0
-    for (r0, c0), (r1, c1) in zip(cells[:-1], cells[1:], strict=True):
-        step = math.sqrt(
-            a * a * ((r1 - r0) ** 2 + (c1 - c0) ** 2)
-            + (float(surface[r1, c1]) - float(surface[r0, c0])) ** 2
-        )
-        length += step
-        ridge_len += step if ridge[r1, c1] else 0.0
-    return length, ridge_len
 
 
 def obstacle_map(shape, seed, density=0.25):

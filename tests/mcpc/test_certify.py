@@ -17,9 +17,8 @@ import pytest
 from conftest import assert_lower_layer, metric_dataarray, quantisation_error_bound, random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from references import A, missions, optimum, reference_graph, wall_with_gap_dem
 from scipy.sparse.csgraph import dijkstra as scipy_dijkstra
-from test_components import A, wall_with_gap_dem
-from test_planners import reference_graph
 
 import pipeline
 from pipeline.maps import landmarks as lm
@@ -561,37 +560,6 @@ def wall(tmp_path_factory):
     ds = pipeline.open_maps(path)
     surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
     return path, surface, ok, reference_graph(surface, ok, A)
-
-
-def optimum(graph, shape, s, g):
-    return scipy_dijkstra(graph, directed=False, indices=s[0] * shape[1] + s[1])[
-        g[0] * shape[1] + g[1]
-    ]
-
-
-def missions(ok, k, seed, min_cells=1):
-    """k random missions within one component, at least ``min_cells`` apart."""
-    comp, _ = label_components(ok)
-    rng = np.random.default_rng(seed)
-    cells = np.argwhere(ok)
-    out = []
-    if min_cells > 1:  # far apart: draw candidate pairs in batches
-        while len(out) < k:
-            i = rng.integers(len(cells), size=(4096, 2))
-            a, b = cells[i[:, 0]], cells[i[:, 1]]
-            keep = (comp[a[:, 0], a[:, 1]] == comp[b[:, 0], b[:, 1]]) & (
-                np.hypot(*(a - b).T) >= min_cells
-            )
-            out += [
-                (tuple(map(int, x)), tuple(map(int, y)))
-                for x, y in zip(a[keep], b[keep], strict=True)
-            ]
-        return out[:k]
-    while len(out) < k:
-        s, g = (tuple(int(v) for v in cells[i]) for i in rng.integers(len(cells), size=2))
-        if comp[s] == comp[g] and math.dist(s, g) >= min_cells:
-            out.append((s, g))
-    return out
 
 
 @pytest.mark.parametrize("omega", [1.0, 1.01, 1.2, 2.0])

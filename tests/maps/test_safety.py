@@ -15,7 +15,7 @@ from conftest import CHUNKINGS, metric_dataarray, random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from scipy import ndimage
+from references import assert_correctly_rounded, brute_force, scipy_reference
 
 import pipeline
 from pipeline.exceptions import InvalidDEMError, InvalidParameterError
@@ -25,58 +25,6 @@ def _dem(z, a=30.0, chunks=None):
     d = metric_dataarray(np.asarray(z, np.float32), a=a)
     d.attrs["cell_size"] = a
     return d if chunks is None else d.chunk(dict(zip(("y", "x"), chunks, strict=True)))
-
-
-def assert_correctly_rounded(got, ref64):
-    """``got`` (float32) is the float64 reference rounded once: exact, and so within half a
-    float32 ulp (<= 2.4e-4 m at depths of 4-8 km; the stored maps are float32)."""
-    np.testing.assert_array_equal(got, ref64.astype(np.float32))
-
-
-def brute_force(z, a, method, R, Rh=None):
-    """Direct transcription of docs/method.md section 2, in float64, NaN if the disc holds
-    no-data."""
-    Rh = R if Rh is None else Rh
-    rows, cols = z.shape
-    radius = R if method == "spherical" else Rh
-    r = int(math.floor(radius / a)) + 1
-    out = np.empty((rows, cols))
-    for i in range(rows):
-        for j in range(cols):
-            if method == "vertical":
-                out[i, j] = float(z[i, j]) + R
-                continue
-            best, nodata = -np.inf, False
-            for di in range(-r, r + 1):
-                for dj in range(-r, r + 1):
-                    ii, jj = i + di, j + dj
-                    d2 = a * a * (di * di + dj * dj)
-                    if not (0 <= ii < rows and 0 <= jj < cols) or d2 > radius * radius:
-                        continue
-                    v = float(z[ii, jj])
-                    if np.isnan(v):
-                        nodata = True
-                        continue
-                    c = v + math.sqrt(R * R - d2) if method == "spherical" else v
-                    best = max(best, c)
-            out[i, j] = np.nan if nodata else (best if method == "spherical" else best + R)
-    return out
-
-
-def scipy_reference(z, a, R):
-    """grey_dilation with the spherical non-flat element, clipped at the edge (cval -inf)."""
-    r = int(math.floor(R / a))
-    off = np.arange(-r, r + 1)
-    d2 = a * a * (off[:, None] ** 2 + off[None, :] ** 2)
-    footprint = d2 <= R * R
-    structure = np.where(footprint, np.sqrt(np.maximum(R * R - d2, 0.0)), 0.0)
-    return ndimage.grey_dilation(
-        np.asarray(z, np.float64),
-        footprint=footprint,
-        structure=structure,
-        mode="constant",
-        cval=-np.inf,
-    )
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,12 @@ import math
 import dask.array as da
 import numpy as np
 import pytest
-from conftest import CHUNKINGS, metric_dataarray, random_surface
+from conftest import CHUNKINGS
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from references import check_path, reference_graph, reference_length, wall_with_gap_dem
 from scipy.sparse.csgraph import connected_components
-from test_planners import check_path, reference_graph, reference_length
 
 import pipeline
 from pipeline.maps.components import components_staged, label_components
@@ -65,16 +65,6 @@ def test_chunked_equals_in_memory_for_any_chunking(tmp_path, shape, chunks):
 # ------------------------------------------------------------------ what plan makes of it
 
 A = 30.0
-
-
-def wall_with_gap_dem(n=200, gap=(12, 20)):
-    """Flat deep seabed, a land wall across row n / 2 with one gap far from the straight line
-    between the test's start and goal, and a closed land ring (an unreachable lagoon)."""
-    z = random_surface((n, n), seed=7) * 0.05 - 2500.0
-    z[n // 2 - 1 : n // 2 + 2, :] = 20.0
-    z[n // 2 - 1 : n // 2 + 2, gap[0] : gap[1]] = -2500.0
-    z[20:60, 40:43] = z[20:60, 77:80] = z[20:23, 40:80] = z[57:60, 40:80] = 20.0
-    return metric_dataarray(z.astype(np.float32), a=A).chunk(64)
 
 
 @pytest.fixture(scope="module")

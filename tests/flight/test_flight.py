@@ -18,9 +18,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from references import missions, optimum, reference_graph
 from scipy.spatial import cKDTree
-from test_certify import missions, optimum
-from test_planners import reference_graph
 
 import pipeline
 from pipeline.flight.fly import with_flight

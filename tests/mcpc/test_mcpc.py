@@ -11,7 +11,17 @@ import sys
 import numpy as np
 import pytest
 from conftest import metric_dataarray, random_surface
-from test_planners import check_path, independent_metrics, reference_length
+from references import (
+    MISSION,
+    RING,
+    SMALL,
+    WALL_END,
+    WALL_ROW,
+    check_path,
+    independent_metrics,
+    reference_length,
+    wall_dem,
+)
 
 import pipeline
 from pipeline.exceptions import InvalidParameterError
@@ -19,17 +29,6 @@ from pipeline.mcpc.algorithm import remove_loops, restore, segment
 from pipeline.mcpc.runners import Section, plan_sections
 
 A = 30.0
-WALL_ROW, WALL_END = 120, 200  # land wall on row 120 from col 0 to col 199
-RING = (175, 232, 150, 232)  # a closed land ring (rows, cols), interior unreachable
-
-
-def wall_dem():
-    z = random_surface((240, 240), seed=3) * 0.1 - 2500.0  # gentle relief
-    z[WALL_ROW - 1 : WALL_ROW + 2, :WALL_END] = 20.0
-    r0, r1, c0, c1 = RING
-    z[r0:r1, c0 : c0 + 2] = z[r0:r1, c1 - 2 : c1] = 20.0
-    z[r0 : r0 + 2, c0:c1] = z[r1 - 2 : r1, c0:c1] = 20.0
-    return metric_dataarray(z.astype(np.float32), a=A).chunk(64)
 
 
 @pytest.fixture(scope="module")
@@ -46,10 +45,6 @@ def store(tmp_path_factory):
 def arrays(store):
     ds = pipeline.open_maps(store)
     return {k: ds[k].values for k in ("safety", "ridge", "passable")}
-
-
-MISSION = dict(start=(20, 20), goal=(225, 30))
-SMALL = dict(rho=4, section_size=24, margin=6)
 
 
 # ------------------------------------------------------------------ Algorithm 3 by hand

@@ -11,15 +11,15 @@ import math
 import numpy as np
 import pytest
 from conftest import assert_lower_layer, quantisation_error_bound, random_surface
-from scipy import ndimage
-from test_planners import (
+from references import (
     cell_metrics,
     check_cells,
     check_path,
     independent_metrics,
-    obstacle_map,
     reference_distances,
 )
+from scipy import ndimage
+from test_planners import obstacle_map
 
 import pipeline
 from pipeline.planners import astar, sweep

@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
-from test_mcpc import MISSION, SMALL, wall_dem
-from test_planners import check_path
+from references import MISSION, SMALL, check_path, wall_dem
 
 import pipeline
 import pipeline.runtime.cluster
