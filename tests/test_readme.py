@@ -13,6 +13,7 @@ from pathlib import Path
 
 import geopandas
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 import rioxarray  # noqa: F401 - registers .rio
 
@@ -58,6 +59,12 @@ def test_the_readme_job_file_and_python_example_run_as_written(tmp_path):
     for name in table.index:
         files = {p.name for p in (missions / name).iterdir()}
         assert {"mission.waypoints", "mission.kml", "mission.imc", "waypoints.csv"} <= files
+    # every GeoParquet file of the catalog declares one version (pyarrow reads the metadata)
+    versions = {
+        json.loads(pq.read_schema(f).metadata[b"geo"])["version"]
+        for f in [missions / "missions.parquet", *missions.glob("*/*.parquet")]
+    }
+    assert versions == {"1.1.0"}
 
     (tmp_path / "example.py").write_text(readme_block("example.py"))
     proc = subprocess.run(

@@ -74,12 +74,13 @@ _WKB_POINT = np.dtype([("order", "u1"), ("type", "<u4"), ("x", "<f8"), ("y", "<f
 
 
 def _write_points(path: Path, columns: dict, x, y, lonlat, crs_wkt) -> None:
-    """A GeoParquet 1.0 file of point rows: ``columns`` and a WKB point geometry in WGS84
-    longitude and latitude (``lonlat``), else in the maps' CRS (``x``, ``y``; ``crs`` null
-    without one), with its CRS (PROJJSON), geometry type and bounding box in the file's
-    ``geo`` metadata. The points are laid out as WKB by numpy and the table written by pyarrow:
-    geoarrow-pyarrow's writer, which makes the same file (tests/flight/test_flight.py), spends 3 ms
-    a file on its type bookkeeping, three times pyarrow's write of a 10000^2 mission's track."""
+    """A GeoParquet 1.1 file (the version geopandas writes the catalog's missions table in)
+    of point rows: ``columns`` and a WKB point geometry in WGS84 longitude and latitude
+    (``lonlat``), else in the maps' CRS (``x``, ``y``; ``crs`` null without one), with its CRS
+    (PROJJSON), geometry type and bounding box in the file's ``geo`` metadata. The points are
+    laid out as WKB by numpy and the table written by pyarrow (geoarrow-pyarrow's writer makes
+    the same file, tests/flight/test_flight.py, at several times the cost of a track's
+    write)."""
     import json
 
     import pyarrow as pa
@@ -98,7 +99,7 @@ def _write_points(path: Path, columns: dict, x, y, lonlat, crs_wkt) -> None:
     crs = "EPSG:4326" if lonlat is not None else crs_wkt
     bbox = [float(gx.min()), float(gy.min()), float(gx.max()), float(gy.max())] if n else []
     geo = {
-        "version": "1.0.0",
+        "version": "1.1.0",
         "primary_column": "geometry",
         "columns": {
             "geometry": {
