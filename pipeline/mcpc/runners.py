@@ -71,8 +71,8 @@ def read_section(store: MapsStore, section: Section) -> tuple:
     (:func:`~pipeline.planners.endpoints.check_arrays`), with the seconds that took: ``((safety,
     ridge, passable, the landmark layers or None), seconds)``, or ``(the error, seconds)``
     when the layers fail the check. Checked here, where they are read: in one process that is
-    the helper thread of :func:`_section_batch`, on the core whose cache holds them (the check
-    took 30 us a section on the searching core)."""
+    the helper thread of :func:`_section_batch`, on the core whose cache holds them, not on
+    the searching core."""
     r0, r1, c0, c1 = (int(v) for v in section.window)
     t0 = time.perf_counter()
     surface = store.window("safety", r0, r1, c0, c1)
@@ -104,7 +104,7 @@ def plan_section(
 
 def _checked(store: MapsStore, planner: str, omega: float) -> tuple:
     """``(planner, omega, cell size, None)`` checked, or ``(..., the error's message)``: once
-    for a run of sections (7-13 us a section checked each time)."""
+    for a run of sections, not for each of them."""
     try:
         planner, omega = check_planner(planner, omega)
         return planner, omega, CELL_SIZE.check(store.cell_size), None
@@ -149,9 +149,9 @@ def _section_batch(
     """Several consecutive sections in one task (they share chunks; one task's overhead). Out
     of a dask worker, the next windows (:data:`READ_AHEAD`) are read and checked by a helper
     thread while this one is searched (the searches and the reads release the GIL): on the
-    spare core of a process that plans alone, ``client="synchronous"``, a 10000^2 mission's
-    fixed cost (its time less its sections' searches) went from 20 ms to 10
-    (benchmarks/RESULTS.md, "One mission"). A worker's threads are the cluster's parallelism,
+    spare core of a process that plans alone, ``client="synchronous"``, that halved a 10000^2
+    mission's fixed cost (its time less its sections' searches; CHANGELOG.md,
+    "Measurements"). A worker's threads are the cluster's parallelism,
     so a task plans its sections with its own thread only; so does a batch that finds the
     helper busy with another (``plan_missions`` in client threads). ``reads``: the reads of
     the first windows submitted already, by a caller that holds the helper (``_READER``,
@@ -177,7 +177,7 @@ def _section_batch(
 
 
 # windows read ahead of the section being searched: with one, a search shorter than the next
-# read waited for it (3.8 ms a 10000^2 mission)
+# read waited for it
 READ_AHEAD = 2
 
 
@@ -187,12 +187,10 @@ class _Reader:
     While it is held, the interpreter hands the GIL between threads every
     :data:`READ_SWITCH_S` at most (Python's default: 5 ms): the helper's reads and this thread's
     work between searches (snapping the joints, a section's bookkeeping) are both Python, and a
-    thread that wants the GIL waited up to the default interval for the other. At 10000^2 the
-    helper's first window was not ready 2.4 ms after the sections began, though its reads
-    started before the snapping (1.2 ms), and its 65 windows took 17 ms against 6.4 ms alone.
-    Measured there (30 missions, in this process, the three intervals in turn, twice): median
-    28.9 ms a mission at 5 ms, 26.2-26.6 ms at 0.5 ms, 26.3-28.7 ms at 0.1 ms; the interval is
-    set back when the claim ends (a value set meanwhile elsewhere is then overwritten)."""
+    thread that wants the GIL waited up to the default interval for the other, and the
+    helper's reads took several times as long as alone (CHANGELOG.md, "Measurements"). The
+    interval is set back when the claim ends (a value set meanwhile elsewhere is then
+    overwritten)."""
 
     def __init__(self):
         self.lock = threading.Lock()
@@ -270,9 +268,9 @@ class _ReadAhead:
     the helper thread of :func:`_section_batch` from the moment segmentation has cut them,
     all of them in turn, while this thread snaps the joints (the windows do not depend on the
     joints). A mission's first run of sections takes the reads (:meth:`run`); the retries read
-    their own. :meth:`close` drops what was not taken (a mission that failed first). At
-    10000^2 the snapping takes this thread 2.3 ms a mission, and the reads, the longer of the
-    two threads' work, started only after it."""
+    their own. :meth:`close` drops what was not taken (a mission that failed first). The
+    reads, the longer of the two threads' work, would otherwise start only after the
+    snapping."""
 
     def __init__(self, store: MapsStore, futures: list):
         self.store = store
@@ -286,8 +284,8 @@ class _ReadAhead:
             return None
         if not _READER.acquire(blocking=False):
             return None
-        # one job reads every window in turn, each into a future of its own: 65 submissions
-        # at 10000^2 held this thread 0.7-1.0 ms, the futures alone take 0.1 ms
+        # one job reads every window in turn, each into a future of its own: a submission a
+        # window held this thread several times as long as the futures alone
         futures = [Future() for _ in windows]
         try:
             shared_pool("section-reads", 1).submit(_read_windows, store, windows, futures)
@@ -364,9 +362,9 @@ def _threaded(store: MapsStore, sections: list, planner: str, omega: float) -> l
 def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -> list:
     """Plan ``sections``; on a cluster as one task per worker thread, each a run of
     consecutive sections (they share chunks, which the worker then decodes once) that, once
-    done, takes sections left in the other runs (:mod:`pipeline.runtime.share`). Measured on 2
-    workers (benchmarks/RESULTS.md, "One mission"): two tasks per thread cost 30-40 % more
-    than one per thread (more round trips, and chunks decoded by both workers). The tasks'
+    done, takes sections left in the other runs (:mod:`pipeline.runtime.share`). Two tasks per
+    thread cost more than one per thread (more round trips, and chunks decoded by both
+    workers; CHANGELOG.md, "Measurements"). The tasks'
     results come through a queue on the scheduler (:mod:`pipeline.runtime.inbox`), sooner than
     through their futures, which are gathered when the queue cannot serve. In one process a
     :class:`_ReadAhead` of the mission plans its first run with the windows it read."""
@@ -419,17 +417,16 @@ def _run(client, store: MapsStore, sections: list, planner: str, omega: float) -
 
 
 # The worker threads of a client's cluster, asked of the scheduler at most once a second per
-# client: asking is a round trip before the mission's tasks can go (0.85 ms of a 23 ms mission
-# at 2000^2). A count that is a second old is harmless: with fewer threads than tasks the
-# tasks run in turn, each its own run (pipeline.runtime.share); with more, some stay idle.
+# client: asking is a round trip before the mission's tasks can go. A count that is a second
+# old is harmless: with fewer threads than tasks the tasks run in turn, each its own run
+# (pipeline.runtime.share); with more, some stay idle.
 _SLOTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 # The section tasks of the last call of ``_run`` per client, released by the next call after it
 # submits its own tasks. A client sends at most one batch of messages every 10 ms: releasing a
 # mission's futures as it returns sends one, and the next mission's tasks, submitted right
-# after, waited for the next batch (a task's round trip 10.4 ms back to back on 2 local workers,
-# 4.2 ms when the stream is idle). Holding one mission's small results a little longer costs
-# nothing.
+# after, waited for the next batch (a task's round trip then more than doubled). Holding one
+# mission's small results a little longer costs nothing.
 _HELD: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 SLOTS_SECONDS = 1.0

@@ -43,20 +43,19 @@ def off_ridge_to_goal(ridge, passable, a, gr, gc, sr, sc):
     cells (just under sqrt 2; ``inf`` where the goal is out of reach). A move's 3-D length is
     at least that, so this bounds the Lagrangian cost's off-ridge term, consistently (it is a
     shortest distance). The lengths are whole units (a / ``OFF_UNITS``), so the search backwards
-    from the goal is Dial's algorithm (:func:`_dial_to_goal`; 2.1 -> 1.0 ms on the benchmark's
-    windows of 22000 cells, against a binary heap of exact lengths: its time is the moves it
-    scans).
+    from the goal is Dial's algorithm (:func:`_dial_to_goal`: its time is the moves it scans,
+    about half a binary heap's of exact lengths; CHANGELOG.md, "Measurements").
 
     With a start (sr, sc) in the window (``-1, -1``: none) the search stops once it has settled
     the start, and every cell's bound is the smaller of its distance and the start's: a cell not
     settled then is at least as far as the start, and the smaller of two consistent bounds is
-    consistent. A search from the start needs no more; on the 2000^2 benchmark's Lagrangian
-    sections the backward search took 330 instead of 475 us a window and its searches expanded
-    1 % more cells; the same paths on 50 missions at 2000^2, 4000^2 and 10000^2.
+    consistent. A search from the start needs no more: the backward search is shorter, its
+    searches expand hardly more cells, and the paths are the same (CHANGELOG.md,
+    "Measurements").
 
     Its lengths are integers, turned into metres in place at the end, in the same buffer (the
-    frame dropped). 0.77 -> 0.48 ms a window of the 2000^2 benchmark's Lagrangian sections,
-    the same bounds bit for bit, in the same memory (9 bytes a cell)."""
+    frame dropped): faster, the same bounds bit for bit, in the same memory (9 bytes a
+    cell)."""
     rows, cols = passable.shape
     w = cols + 2  # the framed grid's row
     stop = (sr + 1) * w + sc + 1 if 0 <= sr < rows and 0 <= sc < cols else -1
@@ -74,11 +73,10 @@ def off_ridge_to_goal(ridge, passable, a, gr, gc, sr, sc):
 
 
 # :func:`lagrangian_bound` counts in whole units, each move's cost rounded down, the longest
-# move BOUND_SPAN units: few buckets whatever the weight (the searches' weights went up to 4e5
-# on the 10000^2 benchmark missions, median 12), a bound under the horizontal one by less than
-# one unit a move. A straight move on the ridge network kept at least 64 units instead (1.6 %
-# at most) cut the expansions of the weighted searches there from 604 to 437 a search, and
-# made the bound's search 8x slower.
+# move BOUND_SPAN units: few buckets whatever the weight (weights span orders of magnitude on
+# the benchmark missions), a bound under the horizontal one by less than one unit a move. A
+# floor on a straight move on the ridge network cut the weighted searches' expansions by a
+# quarter but made the bound's search many times slower (CHANGELOG.md, "Measurements").
 BOUND_SPAN = 400
 
 
@@ -107,14 +105,10 @@ def lagrangian_bound(ridge, passable, a, sr, sc, gr, gc, off_weight, hoff):
     ``B1`` the first bound above: a mean of two consistent bounds on ``length + w off_ridge``
     (``B1`` bounds ``length + off_weight off_ridge``, the octile distance bounds ``length``).
 
-    On the weighted searches of 20
-    Lagrangian missions (omega 2) across the benchmarks' 10000^2 map, in one process, A*
-    expanded 604 cells a search instead of 6173, and took with this search 1.04 ms instead of
-    1.31 (2000^2: 1422 instead of 5997 cells, 1.21 ms instead of 1.38); the same paths, lengths
-    and bounds on all 40 missions. Served to the searches of smaller weights too, it ran 65
-    times a mission instead of 97 there, for 1293 expansions a search instead of 604: the
-    bounds and searches 84.9-87.8 ms a mission instead of 99.0-99.5. The planner takes it only
-    on gentle ground (``lagrangian.BOUND_SLACK``)."""
+    On the benchmark missions' weighted searches it cuts A*'s expansions about tenfold and,
+    served to the searches of smaller weights too, the time of the bounds and searches by a
+    sixth, with the same paths, lengths and bounds (CHANGELOG.md, "Measurements"). The planner
+    takes it only on gentle ground (``lagrangian.BOUND_SLACK``)."""
     rows, cols = passable.shape
     q = BOUND_SPAN / (OFF_DIAGONAL * (1.0 + off_weight))  # units a 1/OFF_UNITS cell
     s_on = np.int64(math.floor(OFF_UNITS * q))
@@ -161,9 +155,9 @@ def raised_bound(bound, hoff, w0, off_weight, rows, cols, gr, gc, a):
       the sum of their bounds bounds it, consistently (each is consistent on its own term);
     - the octile distance plus ``off_weight`` times ``hoff``, as in :func:`lagrangian_bound`.
 
-    A pass over the window (19 us on the 2000^2 benchmark's windows of 15625 cells) instead of
-    a search (440 us): the planner computes one bound a window, at twice its first weighted
-    search's weight, and raises it for the larger weights that follow (``lagrangian.JOINT``)."""
+    A pass over the window instead of a search (over twenty times faster): the planner computes
+    one bound a window, at twice its first weighted search's weight, and raises it for the
+    larger weights that follow (``lagrangian.JOINT``)."""
     out = np.empty(rows * cols)
     rise = off_weight - w0
     v = 0

@@ -32,8 +32,8 @@ _OFF_FIRST = 1e7
 @njit(nogil=True, cache=True)
 def _horizontal(cells, a):
     """The horizontal length of a path: its straight and diagonal moves counted, the sum as
-    numpy's diff, abs, sum and masks formed it (equal to the last bit on 900 random paths;
-    15.6 -> 0.55 us a path of 150 cells, once a section)."""
+    numpy's diff, abs, sum and masks formed it (equal to the last bit on 900 random paths, and
+    many times faster, once a section)."""
     straight = 0
     diagonal = 0
     for i in range(cells.shape[0] - 1):
@@ -49,10 +49,8 @@ def _horizontal(cells, a):
 def _measure(cells, surface, ridge, a):
     """(length, off-ridge length) of a path: its steps' costs (``edge_cost``, the planners' own
     3-D length of a move) summed in one pass, a step off the ridge network where it ends off
-    it. numpy's version (gather the heights, the steps, the mask, two sums) took 24 us a path
-    of 160 cells, this 2.5 us; the planner measures 3.5 paths a section of the 10000^2
-    benchmark's missions, 61 sections a mission (about 4.7 ms of its 200 ms saved, the same
-    paths on 20 missions at 2000^2 and 10000^2)."""
+    it, several paths a section: numpy's version (gather the heights, the steps, the mask, two
+    sums) took about ten times as long (CHANGELOG.md, "Measurements")."""
     length = 0.0
     off = 0.0
     for i in range(cells.shape[0] - 1):
@@ -66,15 +64,10 @@ def _measure(cells, surface, ridge, a):
 
 # A weighted search whose off-ridge weight is below this (length counts more than off-ridge
 # length) bounds the length term by the exact length to the goal (:func:`goal_layer`), from
-# then on in the mission's window. Measured on the Pareto benchmark's 50 missions on 400^2
-# (benchmarks/bench_planners.py; per mission the best of 3, both ways in turn): such a search
-# expanded 4200 cells instead of 36000 below 0.1, 45000 instead of 60000 between 1 and 3, for
-# a backward search costing about two of the first kind; the Lagrangian planner's time at
-# omega 1.0 106-107 -> 78-84 ms (two runs; it runs 7.7 such searches a mission there), the same
-# at omega 1.1-3.0 (with the layer from the first search on: +44 % at omega 2, +83 % at 3), and
-# the same on the sections of a 10000^2 mission at omega 2 (223 against 232 ms, the same
-# paths). Memory: 4 bytes a cell of the window kept, 13 while the backward search runs (each
-# weighted search keeps 9 of its own).
+# then on in the mission's window: such a search expands far fewer cells, for a backward
+# search costing about two of them, which pays at omega 1 and costs nothing at larger omegas
+# only below this weight (CHANGELOG.md, "Measurements"). Memory: 4 bytes a cell of the window
+# kept, 13 while the backward search runs (each weighted search keeps 9 of its own).
 EXACT_BELOW = 1.0
 
 
@@ -82,24 +75,18 @@ EXACT_BELOW = 1.0
 # path's 3-D length exceeds its horizontal length by at most this fraction: the bound is one on
 # the horizontal plane, and its search settles most of the window at about a quarter of an
 # expansion's cost a cell, so it pays only where the ground's rise and fall leaves little
-# slack. On the sections of the 10000^2 benchmark missions (30 m cells) the slack was 0.25 %
-# (median; 0.8 % at p90), and a search the bound guided expanded 4 % of the window instead of
-# 40 %. On the Pareto benchmark's whole 400^2 windows of steep ground (30 m cells too) it was
-# 31 % (18 % at p10), a search it guided expanded 29 % of the window instead of 36 %, and the
-# planner took 110-160 ms a mission at omega 1.5 instead of 95-102 ms.
+# slack: on the benchmark missions' sections the slack is small and the bound cuts a search
+# tenfold; on whole windows of steep ground it is large and the bound cost more than it saved
+# (CHANGELOG.md, "Measurements").
 BOUND_SLACK = 0.05
 
 
 # The weighted searches of a window take one lagrangian_bound, of this many times the first
 # weighted search's weight: it serves the smaller weights as it is, the larger raised
-# (:func:`raised_bound`, a pass over the window instead of a search). Before, each weight above
-# the largest so far took a bound of its own (3.1 searches of 500 us a window that iterates):
-# on the Lagrangian sections of the latency benchmark's missions (omega 2, in one process, each
-# window the best of 5 runs, both ways in turn) 433 -> 375 ms at 2000^2 (269 windows), 524 ->
-# 446 ms at 4000^2 (269), 736 -> 584 ms at 10000^2 (419), the weighted searches expanding 1.5x
-# the cells; the same lengths and off-ridge lengths on every window (97 % the same cells, the
-# rest ties). At once the first weight: 388, 464, 620 ms; at 4x: 380, 455, 588 ms; at half
-# of it: 435 ms at 2000^2.
+# (:func:`raised_bound`, a pass over the window instead of a search), rather than one bound per
+# weight above the largest so far: faster, with the same lengths and off-ridge lengths on every
+# window; twice the first weight was the best of the factors tried (CHANGELOG.md,
+# "Measurements").
 JOINT = 2.0
 
 
@@ -177,9 +164,8 @@ def larac(surface, ridge, passable, a, s, t, omega, max_iter: int = 30, landmark
     # the least off-ridge path first: where its length is within omega times the octile
     # distance (a lower bound on L*) it is the answer, and the shortest path is not searched;
     # the same answer as with L* (such a path is feasible for any L* at least the octile
-    # distance). On the latency benchmark's Lagrangian sections (omega 2) that was 194, 162 and
-    # 271 of the 198, 166 and 271 windows whose answer it was, of 269, 269 and 419 windows at
-    # 2000^2, 4000^2 and 10000^2: a search of 137 us a window saved at 2000^2
+    # distance). On the benchmark missions' sections that is most windows whose answer it is,
+    # a search saved each time (CHANGELOG.md, "Measurements")
     off_first = search(_OFF_FIRST)
     if off_first is None:
         return None, expansions, False, {}

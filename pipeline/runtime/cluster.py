@@ -40,10 +40,9 @@ QUIET_TASK_ERRORS = False
 # so they also hold after a nanny restarts a worker). dask sets MALLOC_TRIM_THRESHOLD_ to 64 KiB,
 # which also freezes glibc's mmap threshold at 128 KiB: every array above it (a section's window,
 # its search state, a decoded chunk) is then a fresh mmap whose pages fault in on first touch, and
-# a page fault costs 1-2 us on a VM. Allocations up to 64 MiB from the heap and 256 MiB of free
-# heap kept, measured on 2 workers: build_maps 10000^2 22.1 -> 18.2 s (worker peaks 0.45 -> 0.55
-# GiB), one mission across 4000^2 42 -> 39 ms, plan_missions 51 -> 60 missions/s
-# (benchmarks/RESULTS.md). A variable already in the environment wins.
+# a page fault is slow on a VM. Allocations up to 64 MiB from the heap and 256 MiB of free heap
+# kept made the maps build, a mission and a batch of missions faster for slightly higher worker
+# peaks (CHANGELOG.md, "Measurements"). A variable already in the environment wins.
 WORKER_ENV = {
     "MALLOC_MMAP_THRESHOLD_": str(64 * 2**20),
     "MALLOC_TRIM_THRESHOLD_": str(256 * 2**20),
@@ -52,9 +51,9 @@ WORKER_ENV = {
 
 # How often the scheduler, nannies and workers of a LocalCluster of this module wake for their
 # housekeeping (dask's defaults: 20 ms, 500 ms, 100 ms, 10 ms). The scheduler and the nannies
-# live in the client's process; with dask's defaults an idle cluster kept 6.7 % of a core busy
-# there and 4.2 % in each worker, now 1.9 % and 0.8 % (on the 2-core machine, 5 s idle). These
-# are the event loops' responsiveness check, the dashboard's system plots, the memory limits'
+# live in the client's process; with dask's defaults an idle cluster kept several times more
+# of a core busy there and in each worker (CHANGELOG.md, "Measurements"). These are the event
+# loops' responsiveness check, the dashboard's system plots, the memory limits'
 # check and the profile the dashboard shows (sampled 10 times a second instead of 100). A value
 # the user set in dask's configuration (anything but dask's default) wins.
 HOUSEKEEPING = {  # key: (ours, dask's default)
@@ -101,8 +100,8 @@ def local_cluster(dashboard_address: str = ":0", workers: int | None = None):
 # this module starts, the scheduler's to each worker (every 5 ms). A mission that takes about
 # 10 ms met the batches of the one before: its tasks waited behind the release of the previous
 # mission's futures, sent a moment before, for up to 10 ms, then up to 5 ms more on the way to a
-# worker. 1 ms on both, measured on the 2-core machine (ra_star, 20 missions across 2000^2,
-# each planned three times, back to back): median 13.3-13.6 -> 9.3-9.9 ms, p90 21-22 -> 14 ms.
+# worker. 1 ms on both cut a short mission's time by about a third (CHANGELOG.md,
+# "Measurements").
 STREAM_INTERVAL_S = 0.001
 
 

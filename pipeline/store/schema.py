@@ -50,11 +50,9 @@ COARSE_RIDGE_FRACTION = 0.5  # a coarse cell is a ridge cell when half its fine 
 def layer_codec():
     """The codec of every Zarr layer the pipeline keeps (DEM stores, maps layers, landmark
     distances): blosc LZ4 with byte shuffle. Builds read the DEM several times and missions
-    read windows of the maps layers and the landmark chunks at both ends. Measured on 1024^2
-    float32 blocks of the benchmark maps: synthetic elevation decodes 3.3x faster than with
-    zarr's default (zstd level 0: 0.87 ms against 2.88), encodes 4.5x faster and compresses
-    more (1.74:1 against 1.24:1); landmark distances decode 5.2x faster than with blosc zstd
-    and bit shuffle (0.68 ms against 3.53) at the same ratio (2.88:1)."""
+    read windows of the maps layers and the landmark chunks at both ends: it decodes and
+    encodes several times faster than zarr's default (zstd) and than blosc zstd with bit
+    shuffle, at the same or a better ratio (CHANGELOG.md, "Measurements")."""
     from zarr.codecs import BloscCodec
 
     return (BloscCodec(cname="lz4", clevel=5, shuffle="shuffle"),)
@@ -74,11 +72,10 @@ def inner_chunks(chunks, largest: int = INNER_CHUNK) -> tuple[int, ...]:
 
 # The layers a mission's sections read window by window. In a local store they are kept
 # uncompressed: a window is then copied straight out of the shard files, memory-mapped
-# (pipeline.store.cache.ChunkCache.window), with no decoding and no decoded chunk held. At 10000^2
-# the decoding (blosc LZ4: 66-99 us a 256^2 float32 inner chunk, 53 us a bool one) and the
-# fresh memory of the decoded chunks made a mission's reads 34 ms, longer than its searches
-# (21 ms); mapped, 13-16 ms (benchmarks/RESULTS.md, "One mission against pyastar2d"). The cost
-# is disk: 4 + 1 + 1 bytes a cell (a 10000^2 store's three layers 600 MB, against 245 MB
+# (pipeline.store.cache.ChunkCache.window), with no decoding and no decoded chunk held: the
+# decoding and the fresh memory of decoded chunks made a mission's reads longer than its
+# searches, mapped they take less than half that (CHANGELOG.md, "Measurements"). The cost is
+# disk: 4 + 1 + 1 bytes a cell (a 10000^2 store's three layers 600 MB, against 245 MB
 # compressed). On object storage, where bytes travel, they stay compressed.
 WINDOW_LAYERS = ("safety", "ridge", "passable")
 
@@ -131,12 +128,10 @@ def grid_mapping(crs_wkt: str | None) -> tuple | None:
 
 
 # the layers are sharded as the maps' other layers are, with inner chunks of at most this side:
-# a mission reads one value per landmark at each end, which decodes one inner chunk each.
-# Measured on a 4000^2 layer (chunks of 1024^2 inner 128^2 against 256^2 chunks unsharded):
-# the 16 chunks of a mission's bound decode in 1.0 ms against 3.1 ms (4 ms on the client, more
-# while the workers run its sections), writing a layer takes 0.29 s against 0.16 s and reading
-# it whole 0.27 s against 0.11 s; inner chunks of 64^2 saved 0.6 ms more a mission for 3.3x
-# the write time
+# a mission reads one value per landmark at each end, which decodes one inner chunk each: a
+# mission's bound decodes three times faster than from unsharded chunks, for slower writes and
+# whole reads of a layer; smaller inner chunks saved little for much longer writes
+# (CHANGELOG.md, "Measurements")
 LANDMARK_CHUNK = 128
 
 
