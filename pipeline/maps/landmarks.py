@@ -193,7 +193,7 @@ def place_landmarks(surface, passable, a: float, k: int = DEFAULT_LANDMARKS, com
 def distances_from(surface, passable, a: float, cell) -> np.ndarray:
     """The exact shortest distances (float64, ``inf`` where unreached) from the passable
     ``cell`` to every cell: by the row sweeps of :func:`pipeline.planners.sweep.distances`
-    (the same values as :func:`dijkstra`, bit for bit, 12-20x faster at 10000^2), by
+    (the same values as :func:`dijkstra`, bit for bit, an order of magnitude faster), by
     :func:`dijkstra` where they give up (a maze that turns back on itself many times)."""
     from ..planners import sweep
 
@@ -424,7 +424,7 @@ def memory_per_landmark(shape) -> int:
 def _layers_task(store: str, items: list, a: float) -> None:
     """The layers of the landmarks ``items`` (``(index, cell)`` pairs) computed in turn, each
     written shard by shard (:func:`~.store.block_writer`: on a local store the shards' bytes
-    written directly, 1.2 s for a 10000^2 layer where zarr's own write of it took 6.4 s) and
+    written directly, five times faster than zarr's own write) and
     converted to float32 metres shard by shard as it is written (:func:`layer_values`; no
     float32 copy of the map). The safety and passable layers are read once for all of them,
     as a quantised surface (:func:`quantised_surface`, 2 bytes a cell)."""
@@ -491,8 +491,8 @@ def component_sizes(parts) -> np.ndarray:
 def whole_layer(store: str, group, var: str, rows=None) -> np.ndarray:
     """Layer ``var`` of the maps store ``store`` (its zarr ``group``) in memory, or its rows
     ``rows`` (``(r0, r1)``): copied from its memory-mapped shards where it is local, sharded
-    and uncompressed (:class:`~.store.MappedLayer`; a 10000^2 safety layer in 0.99 s against
-    1.71 s through zarr, the passable mask 0.10 s against 0.64 s), else through zarr. One row
+    and uncompressed (:class:`~.store.MappedLayer`, faster than through zarr), else through
+    zarr. One row
     of shards is mapped at a time (the mapped pages count in the process's memory: the whole
     layer mapped at once made its copy's peak twice the layer)."""
     from ..store.zarr_direct import MappedLayer
@@ -582,10 +582,9 @@ def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tup
     Placement reads the store in two passes of tasks over parts of about a storage chunk, in
     whole blocks of its coarse grid (:func:`placement_regions`): the components' sizes (unless
     given), then the block sums of the coarse grid of at most ``PLACEMENT_SIDE`` cells a side
-    (:func:`block_sums`, as :func:`coarse_grid` computes them in memory). On the 10000^2
-    benchmark map (2 workers) the two passes took 5.3-5.6 s (the sums 3.3-3.7 s; the maps
-    build counts the sizes in its component pass) where dask's ``bincount`` of the raveled
-    layer and xarray's ``coarsen`` (which rechunked it to the blocks) took 10.2 s. The
+    (:func:`block_sums`, as :func:`coarse_grid` computes them in memory), in about half the
+    time of dask's ``bincount`` of the raveled layer and xarray's ``coarsen`` (which rechunked
+    it to the blocks; the maps build counts the sizes in its component pass). The
     layers are computed by one task per search slot (:func:`search_slots`), each holding the
     whole map (:func:`memory_per_landmark`), which reads the map once and computes its share
     of the landmarks in turn (every slot-th one). Returns the landmark cells."""

@@ -80,13 +80,13 @@ def sphere_heights(radius_m: float, a: float, widths: np.ndarray) -> np.ndarray:
 def _maximum(typingctx, x, y):
     """The larger of two floats (LLVM's ``llvm.maximum`` with the flags ``nnan nsz``: a NaN or
     a zero's sign may give either operand; without them x86 has no such instruction, and a
-    maximum took 3 blends and a compare besides its ``vmaxpd``: 0.107 -> 0.092 s for 2000^2).
+    maximum took 3 blends and a compare besides its ``vmaxpd``).
 
     Why not ``if v > dst[j]: dst[j] = v``: the compiler vectorised that (and the equivalent
     ``max`` or select, whose result is the value already stored when the sum is NaN) as a
-    store through a mask, ``vmaskmovpd``, one instruction on the Intel VM and microcoded on
-    AMD Zen 3: the spherical map of 2000^2 took 0.44 s on this project's AMD VM against
-    0.084 s on the Intel one. ``maximum`` stores every element (a plain store), 0.14 s. A NaN
+    store through a mask, ``vmaskmovpd``, one instruction on Intel and microcoded on AMD Zen 3,
+    where the spherical map took five times as long; ``maximum`` stores every element (a plain
+    store) (CHANGELOG.md, "Measurements"). A NaN
     comes only from a no-data cell and whatever it gives reaches only the cells whose disc
     holds it, which are NaN in the map anyway (``_nodata_near``); every sum ``z + b`` has
     ``b >= +0.0``, so a -0.0 of the DEM is +0.0 by then (see ``_row_dilation``): the map is the
@@ -112,7 +112,7 @@ def _max_into(dst, src, add):
 def _nodata_near(z, widths):
     """True where the disc given by ``widths`` around a cell holds a NaN cell; an empty array
     when ``z`` holds no NaN (the usual case: one pass, no memory; the per-row counts of the
-    general case are 4 bytes a cell, 5-13 ms of fresh memory for 2000^2)."""
+    general case are 4 bytes a cell of fresh memory)."""
     rows, cols = z.shape
     r = widths.size - 1
     anynan = False
@@ -202,8 +202,8 @@ def _dilate(z, widths, b):
 
     ``S(i, j) = max_d T_|d|(i + d, j)`` with ``T_e(row, j) = max_k z(row, j + k) + b(e, k)``.
     Each input row's ``T_e`` (e = 0..r) is computed once, from the row's pair maxima (one
-    maximum per column offset and its mirror, :func:`_row_dilation`: 2000^2 at r = 10 in 0.11 s
-    against 0.16 s with two; 0.078 s with the flags of :func:`_maximum` and one pass each), and
+    maximum per column offset and its mirror, :func:`_row_dilation`, faster than two passes,
+    and faster still with the flags of :func:`_maximum`), and
     kept in a ring buffer of 2r + 1 rows. Candidates are summed in float64; storing ``T`` as
     float32 rounds each maximum once (rounding is monotone, so the max of rounded values is the
     rounded max).
@@ -234,7 +234,7 @@ def _dilate(z, widths, b):
         if i < 0:
             continue
         # element loops, not slice copies: a slice copy compiles numba's text for a shape
-        # mismatch (3.5 s of a new machine's first compile in each process)
+        # mismatch (seconds of a new machine's first compile in each process)
         first = tbuf[i % ring, 0]
         for j in range(cols):
             acc[j] = first[j]

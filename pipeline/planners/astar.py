@@ -10,15 +10,11 @@ from .search import NO_GOAL, TIE, landmark_rows, search_arrays, search_kernel
 
 # A* (weight 1) over windows of at least this many cells (a whole map, ``mcpc=False``, and the
 # exact coarse search of astar and dijkstra missions) runs as row sweeps over a bounded region
-# (:mod:`.sweep`): the same optimal length, 5.8-49x faster than the two-level A* on the 16
-# missions of the 4000^2 and 10000^2 benchmark maps and 1.2-6.1x faster than pyastar2d there
-# (benchmarks/RESULTS.md, "The exact search over the whole map"). On random missions in square
-# windows of the 2000^2 map the median sweep took 0.30 / 0.22 / 0.64 ms at 181^2 / 256^2 /
-# 362^2 cells, A* 0.31 / 0.33 / 1.60 ms: from 2^16 cells on the sweeps; below, A* (an MCPC
-# section's window: 125^2 cells at 30 m). Not on flat ground between the two ends
-# (:func:`.sweep.flat_between`), where A* follows the straight line: on the planners'
-# benchmark obstacle map (4000^2, flat, 5 missions) A* took 5-150 ms a mission where the sweeps
-# took 43-246 ms
+# (:mod:`.sweep`): the same optimal length, faster than the two-level A* and than pyastar2d
+# on the large benchmark maps (benchmarks/RESULTS.md, "The exact search over the whole map").
+# From 2^16 cells on the sweeps are the faster, below A* (an MCPC section's window: 125^2 cells
+# at 30 m). Not on flat ground between the two ends (:func:`.sweep.flat_between`), where A*
+# follows the straight line and is the faster (CHANGELOG.md, "Measurements")
 SWEEP_CELLS = 2**16
 
 
