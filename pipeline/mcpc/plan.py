@@ -209,12 +209,11 @@ def plan(
     coarse_weight : float
         For the bounded planners (wastar, ra_star, lagrangian) the coarse A* is weighted A* of
         weight ``min(coarse_weight, omega)`` (1: exact A*, as in the paper): the coarse path
-        only guides the sections, and at 1.1 it expands 1/90-1/40 of the cells of the exact
-        search (median 0.2-0.4 ms instead of 8-13 ms on the coarse grids of 1000^2 of the
-        benchmark maps) for a path at most 10 % longer than the coarse optimum (0.07-1.2 %,
-        at most 3.6 %, measured). At 1.05 the search on the 2000^2 map's coarse grid, of 60 m
-        cells, whose 3-D lengths exceed the horizontal ones by more than 5 %, took 5x as long
-        (median 2.0 ms), with the same ridge and length after the sections. The optimal
+        only guides the sections, and at 1.1 it expands a small fraction of the exact search's
+        cells for a path at most 10 % longer than the coarse optimum (a few tenths of a
+        percent longer on the benchmark maps); at 1.05, on coarse grids whose 3-D lengths
+        exceed the horizontal ones by more than 5 %, it took several times as long, with the
+        same ridge and length after the sections (CHANGELOG.md, "Measurements"). The optimal
         planners (astar, dijkstra) keep the exact coarse A*: their stitched paths follow the
         coarse route, and a 5 % detour there is 5 % on the result. Other coarse planners run
         with the mission's omega.
@@ -322,10 +321,9 @@ def plan(
 
 
 # landmark layers the whole-map search reads for its heuristic (those that bound the mission
-# best). None by default: measured on the benchmark maps (benchmarks/bench_certify.py), reading
-# one layer of 10000^2 takes about 3.7 s, more than the landmark heuristic saves A* there
-# (6.3 s -> 4.7 s with two layers); on maze-like maps it saves far more. plan_window takes
-# layers directly (``landmarks=``).
+# best). None by default: on the benchmark maps reading a whole-map layer takes longer than the
+# landmark heuristic saves A* there (CHANGELOG.md, "Measurements"); on maze-like maps it saves
+# far more. plan_window takes layers directly (``landmarks=``).
 ACTIVE_LANDMARKS = 0
 
 

@@ -2,16 +2,15 @@
 
 A dask future's result reaches its client in several steps: the worker tells the scheduler
 that the task is done (on its batched stream, at most every 2 ms), the scheduler tells the
-client (the same), then the client asks a worker for the data and waits for it. On the default
-LocalCluster of the 2-core benchmark machine, a task's result reached the client 4.4 ms after
-the task ended (median of 40 runs of two tasks doing nothing; a round trip of 6.8 ms).
+client (the same), then the client asks a worker for the data and waits for it: several
+milliseconds after the task ended, on a LocalCluster.
 
 So each section task also posts its result, pickled, to a queue on the scheduler: the queue
 routes of ``distributed.Queue`` (``queue_put``, ``queue_get``), one request from the worker
 that the scheduler answers at once to the client waiting on that queue, which asks for all the
-posts it still lacks in one request. The result then reached the client 1.0 ms after the task
-ended, a round trip of 3.5 ms (``benchmarks/bench_latency.py``, in benchmarks/RESULTS.md). The
-futures stay the ground truth:
+posts it still lacks in one request: about a quarter of the time (CHANGELOG.md,
+"Measurements"; ``benchmarks/bench_latency.py`` measures a mission's latency). The futures stay
+the ground truth:
 
 - a task that fails posts a note saying so, and the client gathers the futures, which raise
   the task's error as before;
