@@ -43,8 +43,8 @@ def trace_path(state: np.ndarray, cols: int, goal) -> np.ndarray:
 def path_steps(cells: np.ndarray, z: np.ndarray, a: float) -> np.ndarray:
     """The 3-D length of every step of a path (step i ends at ``cells[i + 1]``), from its cells
     and the heights ``z`` of the surface along it: the one place path lengths are computed,
-    ``sqrt(a^2 (dr^2 + dc^2) + dz^2)`` in float64 (in one kernel pass: numpy's seven array
-    operations took 25 us a section)."""
+    ``sqrt(a^2 (dr^2 + dc^2) + dz^2)`` in float64 (in one kernel pass, not numpy's seven
+    array operations)."""
     cells = np.asarray(cells, dtype=np.int64)
     return _steps(cells.reshape(-1, 2), np.asarray(z, dtype=np.float64).ravel(), float(a))
 
@@ -67,10 +67,9 @@ def _trace_measured(state, cols, gr, gc, surface, ridge, a, r0, c0):
     """:func:`_trace` and the path's heights (float64), ridge flags and steps (:func:`_steps`),
     and the steps that end on the ridge network, in one pass; the cells offset by (r0, c0).
 
-    It keeps the GIL (a section's path: 5-30 us): in one process a helper thread reads the
-    next windows meanwhile, and a kernel that lets the GIL go waits for it to come back, up to
-    the switch interval (in turn, mission by mission, 30 missions at 10000^2 three and four
-    times: the missions' fixed cost 0.4 and 0.8 ms lower)."""
+    It keeps the GIL (a section's path takes microseconds): in one process a helper thread
+    reads the next windows meanwhile, and a kernel that lets the GIL go waits for it to come
+    back, up to the switch interval, which cost the missions more than it saved."""
     return _measured(_trace(state, cols, gr, gc), surface, ridge, a, r0, c0)
 
 
@@ -106,9 +105,9 @@ def traced_path(state, cols: int, goal, surface, ridge, a: float, offset=(0, 0))
     it: ``(cells + offset, heights as float64, ridge flags, length, ridge length, ridge
     ratio)``, the metrics as :func:`path_metrics` computes them (the steps' sums by numpy, bit
     for bit the same). One kernel pass instead of the trace, two gathers, path_metrics' numpy
-    calls, and a section's copy of its cells and heights: 21 -> 13 us a section of the
-    10000^2 benchmark's missions (62 a mission), the same results on 80 missions (2000^2 and
-    10000^2, ra_star and lagrangian: cells, points, lengths, bounds, bit for bit)."""
+    calls, and a section's copy of its cells and heights: faster, with the same results on 80
+    missions (2000^2 and 10000^2, ra_star and lagrangian: cells, points, lengths, bounds, bit
+    for bit; CHANGELOG.md, "Measurements")."""
     cells, z, on, steps, on_steps = _trace_measured(
         state, cols, int(goal[0]), int(goal[1]), surface, ridge, float(a), *offset
     )

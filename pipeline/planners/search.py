@@ -162,8 +162,8 @@ def relax_successors(
 
     Compiled on its own without numba's reference counting (``_nrt=False``: it allocates
     nothing), not inlined: inlined into A*'s loop, the arrays it takes cost reference-count
-    updates on every expansion, and A* took 1.27x the time (the Lagrangian planner's searches
-    of the 4000^2 benchmark, the same paths and expansions)."""
+    updates on every expansion, and A* took a quarter longer (CHANGELOG.md,
+    "Measurements")."""
     rows, cols = surface.shape
     r = u // cols
     c = u - r * cols
@@ -254,7 +254,7 @@ def astar_search(
     terms of a cost is a consistent bound on the cost.
     Every argument is given by the callers (``NO_LANDMARKS``, ``NO_GOAL`` for none): an
     omitted array argument types as its default object, which numba cannot key its on-disk
-    cache by, so every new process compiled the search again (1-3 s).
+    cache by, so every new process compiled the search again (seconds).
     ``g``, ``state`` (float64 and int8, at least a cell each, ``state`` zero on its first
     cells) and the heap's first arrays ``hk``, ``hi`` (float64 and int64, of one size, grown
     here when short) are the search's own, written here (:func:`search_arrays`).
@@ -377,10 +377,9 @@ def astar_search_bucketed(
     linked lists in a pool, pushed and emptied in O(1); entries further ahead wait in a second
     heap. The heap's top is the smallest key of all (every other entry lies in a later
     bucket), so the pops are A*'s: the same optimal length (ties may go another way). A whole
-    map's open list holds 0.2-1 M entries, a heap of them misses the caches at every level:
-    exact A* over the benchmark's 10000^2 map 1.17-1.32x faster (3 missions, the best of two
-    runs each, in one process), over 4000^2 0.94-1.10x (5 missions): hence only from
-    :data:`BUCKET_CELLS`; with the successors pushed inline instead of through
+    map's open list holds a million entries, a heap of them misses the caches at every level:
+    faster on whole 10000^2 maps, no faster at 4000^2 (CHANGELOG.md, "Measurements"): hence
+    only from :data:`BUCKET_CELLS`; with the successors pushed inline instead of through
     :func:`relax_successors`, 1.2-1.5x at 4000^2 too, for a second copy of the relaxation."""
     g, state, s, t, weight, lg, shrink, hw, base = _search_start(
         surface, a, sr, sc, gr, gc, weight, off_weight, octile, lm, hoff, g, state
@@ -509,8 +508,7 @@ def search_arrays(n: int, reuse: bool = False) -> tuple:
     new ones, or with ``reuse`` (a caller done with the search's state before its thread's
     next search) the ones this thread keeps, grown as needed, for up to :data:`REUSED_CELLS`
     cells (a heap of :data:`REUSED_HEAP` entries). A new array's pages fault in as the search
-    first touches them: 100-1200 faults, 0.1-1 ms, in each mission's coarse search on the
-    1000^2 coarse level of a 2000^2 map (the search itself 0.1-4 ms)."""
+    first touches them, which took as long as a small coarse search itself."""
     if not reuse or n > REUSED_CELLS:  # zeros: pages the search does not touch stay unmapped
         return np.empty(n), np.zeros(n, dtype=np.int8), np.empty(1024), np.empty(1024, np.int64)
     got = getattr(_ARRAYS, "arrays", None)

@@ -584,7 +584,7 @@ def _sweeps(surface, ok, a, u, sr, sc, lo, hi, off, d, budget, max_sweeps):
     from_above = np.zeros(rows, dtype=np.int64)
     from_below = np.zeros(rows, dtype=np.int64)
     # the first row has no row to pull from: -1 as an int64, not the literal -1, whose own
-    # compiled copies of _relax_row and _relax_span cost 8-9 s of compilation per surface type
+    # compiled copies of _relax_row and _relax_span cost seconds of compilation per surface type
     relaxed, _ = _relax_row(surface, ok, a, u, sr, np.int64(-1), lo, hi, off, d, scratch)
     changed[sr] = stamp
     sweeps = 0
@@ -673,8 +673,7 @@ def flat_between(surface, passable, a: float, s, t):
     cell of the parallelogram a mission spans ties on ``f`` with the optimum, and A*, its ties
     broken towards the goal, walks the straight line, expanding a few cells a step of the path.
     What decides between A* and the sweeps for a mission; it stops at the first cell that
-    differs (at once on real relief). On the planners' benchmark obstacle map (flat, 4000^2)
-    2.9 ms a mission where checking the whole window took 11."""
+    differs (at once on real relief), a fraction of a check of the whole window."""
     rows, cols = surface.shape
     bound = heuristic(a, s[0], s[1], t[0], t[1], True) * (1.0 + SLACK) * (1.0 + 1e-9)
     lo, hi = region_rows(rows, cols, a, s[0], s[1], t[0], t[1], bound)
@@ -736,9 +735,9 @@ def distances(surface, passable, a: float, source):
     (float64, rows x cols, inf where it does not reach): step 2 of the module's method with the
     whole map as the region, so no bound is needed. The same values, bit for bit, as Dijkstra's
     algorithm computes with the same edge lengths (both are the one solution of ``d(v) = min_u
-    d(u) + c(u, v)``, ``d(source) = 0``, in the same floating point), 12-20x faster on the
-    10000^2 benchmark map (2.3-3.4 s against 40-47 s). None when the relaxations passed
-    :data:`BUDGET` times the map's cells (the caller then runs Dijkstra)."""
+    d(u) + c(u, v)``, ``d(source) = 0``, in the same floating point), an order of magnitude
+    faster on the large benchmark maps (CHANGELOG.md, "Measurements"). None when the
+    relaxations passed :data:`BUDGET` times the map's cells (the caller then runs Dijkstra)."""
     rows, cols = surface.shape
     lo = np.zeros(rows, dtype=np.int64)
     hi = np.full(rows, cols - 1, dtype=np.int64)

@@ -153,8 +153,8 @@ def _index_table(index) -> array.array:
     """A shard's index (offset, size of each inner chunk, little-endian uint64) as one flat
     ``array.array``: its items read as Python ints, and it is a single object. As a list of
     pairs (``tolist``), the 257 objects of each shard set off the garbage collector, whose
-    full passes over a process that has imported dask and xarray made mapping a 10000^2
-    store's 300 shards 0.5-0.8 ms a shard instead of 0.13."""
+    full passes over a process that has imported dask and xarray made mapping a store's shards
+    several times slower."""
     table = array.array("Q")
     table.frombytes(bytes(index))
     if sys.byteorder != "little":
@@ -169,9 +169,9 @@ def direct_reader(arr, store: str, var: str):
     (None for a chunk that is not there), or None when the array is not laid out the way the
     maps stores are (Zarr 3 on a local directory or object storage, the ``bytes`` codec then
     one blosc or zstd compressor, either as the array's codecs or inside a sharding codec with
-    its index at the end of each shard). zarr-python's own read costs about 1.5-2 ms a chunk
-    more than the decode itself (benchmarks/RESULTS.md, "one mission"): a mission reads 16
-    landmark chunks for its bound and a few per section.
+    its index at the end of each shard). zarr-python's own read costs several times the decode
+    itself (CHANGELOG.md, "Measurements"): a mission reads 16 landmark chunks for its bound and
+    a few per section.
 
     In a sharded array ``index`` is an inner chunk's: the reader reads the shard's index (the
     offset and size of each inner chunk, checked against its CRC32C) once, then each inner
@@ -442,9 +442,9 @@ class ShardWriter:
     writes the shard's file, the same bytes zarr writes. Pickles as its few fields: a build
     sends it with each write task.
 
-    zarr's own write of a shard took 15-26 ms a 1024^2 float32 shard of the 10000^2 benchmark
-    map (its codec pipeline, the region's indexing, a task per inner chunk), against 2.4 ms for
-    the 16 encodings themselves: the maps build's layers pass wrote 5 layers of 100 shards.
+    zarr's own write of a shard took many times the encodings themselves (its codec pipeline,
+    the region's indexing, a task per inner chunk; CHANGELOG.md, "Measurements"), and the maps
+    build's layers pass writes 5 layers of a shard a tile.
     Inner chunks wholly outside the layer (at its right and bottom edges) are left out, and
     parts of one are filled with the layer's fill value, as zarr does."""
 
