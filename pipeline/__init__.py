@@ -28,7 +28,7 @@ from .exceptions import (
 )
 
 # The rest of the API is imported on first use (PEP 562): ``import pipeline`` itself then costs
-# milliseconds, not the 2.8 s of dask.array, xarray, zarr and numba that its stages need, so the
+# milliseconds, not the seconds of dask.array, xarray, zarr and numba that its stages need, so the
 # command line answers ``--help`` and a wrong job file at once. ``pipeline.plan`` and
 # ``from pipeline import plan`` work as before; so does a submodule reached as an attribute
 # (``pipeline.jobs``).

@@ -28,8 +28,8 @@ A job file::
     vehicle = { max_pitch_deg = 15 }   # any [vehicle] key, for this mission
     [output]
     catalog = "catalogs/demo"
-    quicklooks = true           # a plan view and depth profile PNG per mission (~0.4 s each)
-    performance_report = true   # dask's performance report of each run (~1 s, a few MB)
+    quicklooks = true           # a plan view and depth profile PNG per mission
+    performance_report = true   # dask's performance report of each run (a few MB)
 """
 
 from __future__ import annotations

@@ -152,8 +152,8 @@ def plan_missions(
         trajectories should take them out in ``on_done``).
     missions_per_task : int, optional
         On a cluster, how many missions one task plans, in turn. dask costs the scheduler and
-        this client about 2 ms of CPU a task, which at 50 missions/s on 2 cores takes a sixth
-        of the machine from the workers; grouping pays it once for several missions. Default:
+        this client some CPU a task, a sizeable share of a small machine at many missions a
+        second; grouping pays it once for several missions. Default:
         1 up to 8 missions per cluster thread, then one eighth of a thread's missions, up to 8
         (100 missions on 2 threads: groups of 6, which planned 85.7 missions/s against 78.0
         in groups of 3, the default before, medians of 8 runs each in turn on the 2-core
@@ -233,8 +233,8 @@ def plan_missions(
 def _prepare_coarse(m, items, defaults) -> None:
     """Write the coarse levels the MCPC missions use into the store once, here, before the
     missions start: otherwise every mission of the first wave finds none and computes the same
-    one at once (on a fresh 2000^2 store: 2-3 s added to each of them, and to their recorded
-    runtimes). A level that cannot be made is left to the missions, which report why."""
+    one at once (seconds added to each of them, and to their recorded runtimes). A level that
+    cannot be made is left to the missions, which report why."""
     rhos = set()
     for mission in items:
         opts = {**defaults, **mission}

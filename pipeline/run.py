@@ -233,7 +233,7 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         and maps_store.exists()
         and all(done is not None for _, done, _ in missions)
     ):
-        # no cluster of its own to start (its 2 worker processes took 2-3 s to start and stop)
+        # no cluster of its own to start (its worker processes take seconds to start and stop)
         # when the run computes nothing; a scheduler given is still reached (its address checked)
         log.info("job %s: nothing to compute: no cluster started", job.name)
         reused = _dem_store(job, dem_store, overwrite)

@@ -18,7 +18,7 @@ planner's search on in-memory arrays, the synthetic DEM), then plans on the stor
 planner once it exists. The flight, the longest part after the store, thus follows it at
 once, and no process waits idle for the store (the halves were the store and the planners
 against the safety kernels, the DEM and the flight, which waited a third of its time for the
-store: 80-84 s on this project's 2-core VM). Each kernel is compiled with the argument types
+store). Each kernel is compiled with the argument types
 the pipeline uses, so later calls load it from the cache.
 """
 

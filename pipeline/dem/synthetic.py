@@ -63,8 +63,8 @@ def _noise(x, y, salt):
     """2-D gradient (Perlin) noise, roughly in [-1, 1].
 
     Compiled on its own, not inlined (numba types an inlined body again at every call: 13 of
-    them in the scene): the synthetic DEM's kernels compile in 6.1 s instead of 13.3 s on a new
-    machine, and give the same map, bit for bit, in the same time (2000^2: 2.3-2.8 s)."""
+    them in the scene): the synthetic DEM's kernels compile in half the time on a new machine,
+    and give the same map, bit for bit, in the same time."""
     xf = math.floor(x)
     yf = math.floor(y)
     ix = np.int64(xf)

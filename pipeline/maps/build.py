@@ -333,7 +333,7 @@ def check_build_arguments(dem, store, **kwargs) -> None:
     """Raise what :func:`build_maps` would raise for its arguments before it computes anything
     (a store that exists, cells that are not square, a clearance, sea level, threshold or
     landmark count out of range), without a cluster: the command line checks them before it
-    starts one (the workers took 3-5 s to start before a mistyped clearance was reported).
+    starts one (the workers took seconds to start before a mistyped clearance was reported).
     The landmark layers' memory is checked by :func:`build_maps` only, against the workers'
     memory limits."""
     import inspect

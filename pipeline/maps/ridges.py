@@ -350,7 +350,7 @@ def _halo(bi, bj, nbr, nbc, depth):
 def _perimeter_glabels(r0, c0, rows, cols, ncols):
     """Global labels (cell indices) of a tile's perimeter cells, in row-major order: the first
     row, then each middle row's first and last cell, then the last row (built from the
-    perimeter alone: a mask of the tile cost the maps build's client 0.45 s at 10000^2)."""
+    perimeter alone: a mask of the tile cost the maps build's client noticeable time)."""
     rows, cols = int(rows), int(cols)
     if rows <= 2 or cols <= 2:  # every cell is on the perimeter
         pi, pj = np.divmod(np.arange(rows * cols, dtype=np.int64), cols)
@@ -489,7 +489,7 @@ def _solve_fill(*summaries):
         ab[count + k : count + k + m] = sm[1]
         k += m
     ab[-1] = OUTLET
-    ab.sort()  # then the distinct values: np.unique took 0.47 s here at 10000^2, this 0.06 s
+    ab.sort()  # then the distinct values: several times faster than np.unique here
     keep = np.empty(ab.size, dtype=bool)
     keep[0] = True
     np.not_equal(ab[1:], ab[:-1], out=keep[1:])
@@ -900,7 +900,7 @@ def _flow_finish_dirs(dirs, nodata, solution, block_info):
 def _accumulate_codes(dirs, r, c, amount):
     """:func:`_flow_finish_dirs` on stored codes (``NO_DATA_DIR`` where no-data) as int32, in
     one kernel: the weights (1 a valid cell, plus the inflow) built and walked in place, no
-    mask, weight copy or conversion pass (30.6 -> 18.8 ms a 1024^2 block of the 10000^2 map)."""
+    mask, weight copy or conversion pass."""
     rows, cols = dirs.shape
     acc = np.empty((rows, cols), dtype=np.int64)
     for i in range(rows):
@@ -1207,7 +1207,8 @@ def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
     ``scratch`` is a directory (a path or a URL) for the scratch tiles."""
     t0 = time.perf_counter()
     # the two solves run here, in the caller's process: their compiled code is loaded from
-    # numba's cache meanwhile (0.3-0.8 s in a new process, once the tiles are done otherwise)
+    # numba's cache meanwhile (a fraction of a second in a new process, after the tiles
+    # otherwise)
     solves = shared_pool("solver-load", 1).submit(_load_solvers)
     # regular tiles (only the last may be larger, when a thin last chunk is merged into it)
     z = z.astype(np.float32).rechunk((z.chunks[0][0], z.chunks[1][0]))

@@ -17,8 +17,9 @@ from ..trajectory import Status, Trajectory
 
 class _Reach:
     """Whether a mission's start and goal lie in one passable region of the store's components
-    layer, looked up in a thread from the start of the mission (on a first read of their chunks,
-    0.9 ms at 10000^2) while the coarse path is searched; :meth:`check` waits for it."""
+    layer, looked up in a thread from the start of the mission (a first read of their chunks
+    takes about a millisecond) while the coarse path is searched; :meth:`check` waits for
+    it."""
 
     def __init__(self, m: MapsStore, start, goal):
         self.start, self.goal = start, goal

@@ -277,8 +277,8 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
 
 @functools.lru_cache(maxsize=8)
 def _epsg_or_wkt2(crs_wkt: str) -> tuple:
-    """(EPSG code or None, WKT2) of a CRS: pyproj's EPSG lookup takes about 3 ms, once per
-    job's maps rather than once per mission."""
+    """(EPSG code or None, WKT2) of a CRS: pyproj's EPSG lookup is slow, so once per job's
+    maps rather than once per mission."""
     from pyproj import CRS
 
     crs = CRS.from_wkt(crs_wkt)
@@ -382,8 +382,8 @@ _GEOMETRY_TOKEN = "\x00geometry\x00"
 
 def _item_text(item: dict) -> str:
     """An Item's JSON indented as ``json.dumps(item, indent=1)`` but its geometry on one line:
-    indenting runs json's Python encoder, and the geometry's thousands of numbers took 2.5 ms
-    a mission of 4000 cells that way; on one line the C encoder writes them."""
+    indenting runs json's Python encoder, slow on the geometry's thousands of numbers; on one
+    line the C encoder writes them."""
     if not item.get("geometry"):
         return json.dumps(item, indent=1)
     text = json.dumps({**item, "geometry": _GEOMETRY_TOKEN}, indent=1)

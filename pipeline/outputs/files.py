@@ -35,7 +35,7 @@ PARQUET = "application/vnd.apache.parquet"
 LONLAT_FILES = ("waypoints.geojson", "mission.waypoints", "mission.kml", "mission.imc")
 KML_TRACK_POINTS = 4000
 # the tracks' columns are floats that hardly repeat: pyarrow's default dictionary encoding is
-# tried on each, abandoned, and made a track's write 3-4x slower and its file 20 % larger
+# tried on each, abandoned, and made a track's write several times slower and its file larger
 PARQUET_OPTIONS = {"use_dictionary": False}
 
 
@@ -187,8 +187,8 @@ def write_waypoints_csv(path: Path, table: dict) -> None:
 
 # one waypoint of the GeoJSON file, and one position of its route, from its values formatted
 # as JSON numbers (:func:`_json_numbers`): the JSON ``json.dumps`` writes for the same values
-# rounded (``round(x, 8)`` and ``"{:.8f}"`` round alike), formatted in one go (7 -> 2 ms a
-# 700-waypoint file)
+# rounded (``round(x, 8)`` and ``"{:.8f}"`` round alike), formatted in one go (faster than
+# json's encoder of the same document; CHANGELOG.md, "Measurements")
 _GEOJSON_POSITION = "[{}, {}, {}]"
 _GEOJSON_POINT = (
     '{{"type": "Feature", "geometry": {{"type": "Point", "coordinates": '
@@ -369,8 +369,7 @@ def _crc16_bytes(data, table):
 
 def crc16(data: bytes) -> int:
     """CRC-16/IBM (polynomial 0x8005 reflected, initial value 0): IMC's packet checksum, a
-    byte at a time from a table, compiled (a 1000-waypoint plan: 16 ms bit by bit in Python,
-    1.1 ms a byte at a time in Python, 0.02 ms compiled)."""
+    byte at a time from a table, compiled (orders of magnitude faster than in Python)."""
     return int(_crc16_bytes(np.frombuffer(data, dtype=np.uint8), _CRC16))
 
 

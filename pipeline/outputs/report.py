@@ -86,7 +86,7 @@ def hillshade(root, maps) -> dict | None:
     colour scale). Drawn once per maps store: ``report/hillshade.json`` notes the store it was
     drawn from (its path, shape, coordinates and signature, which covers the DEM's hash), and a
     later run on the same store reuses both files (drawing it imports matplotlib and shades up
-    to ``HILLSHADE_SIDE``^2 pixels: 1.1-1.4 s in a new process). A store without a signature
+    to ``HILLSHADE_SIDE``^2 pixels: over a second in a new process). A store without a signature
     (built before it had one) is drawn every time."""
     if maps is None:
         return None
@@ -136,7 +136,7 @@ def _hillshade(maps, png: Path) -> dict:
 
     pixels = (np.clip(rgb[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)
     image = Image.fromarray(pixels, "RGB")
-    # compression level 6 took 3x the time of level 3
+    # compression level 6 took several times as long as level 3
     write_atomically(png, write=lambda tmp: image.save(tmp, compress_level=3), suffix=".png")
     a = maps.cell_size
     cmap = plt.get_cmap(RELIEF_CMAP)

@@ -63,7 +63,7 @@ def grown(arr, n, size):
     """A new array of ``size`` entries (arr's dtype) holding ``arr``'s first ``n``.
 
     An element loop, not a slice copy (``new[:n] = arr[:n]``): numba compiles a slice copy
-    with the text of its shape-mismatch error (string formatting: 3.5 s of the first kernel
+    with the text of its shape-mismatch error (string formatting: seconds of the first kernel
     compiled in each process on a new machine; the warm-up, the workers)."""
     new = np.empty(size, dtype=arr.dtype)
     for j in range(n):
@@ -77,7 +77,8 @@ def heap_reserve(keys, items, n, extra):
     more, when short; lazy deletion can hold a node several times).
 
     Call it outside a search's inner loop, never inside: an array variable that the loop may
-    reassign costs numba a reference-count update on every pass (1.6x the time of RA*)."""
+    reassign costs numba a reference-count update on every pass (RA* took half as long
+    again)."""
     if n + extra <= keys.size:
         return keys, items
     size = max(2 * keys.size, n + extra)

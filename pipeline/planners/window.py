@@ -49,8 +49,8 @@ def search_path(
     bound: bool = True,
 ) -> PathSearch:
     """The search of :func:`search_window` and the path's metrics, without the path's
-    coordinates: an MCPC section needs the heights only (the coordinates took 15 us of the
-    80 us a section spent outside its search, 61 sections a mission at 10000^2). The cells
+    coordinates: an MCPC section needs the heights only (the coordinates were a fifth of a
+    section's time outside its search). The cells
     come offset by ``offset`` (a section's window's first row and column: the map's cells),
     the heights as float64. Without ``bound`` (an MCPC section, whose mission has a bound of
     its own) ``lower_bound_m`` is the octile distance: the planner's own bound may cost a
@@ -97,7 +97,7 @@ def search_window(
     """:func:`plan_window` on arrays :func:`check_arrays` returned (2-D, of one shape, bool
     masks, the surface finite where passable) with a checked cell size, planner and omega:
     for arrays checked once and searched many times (a maps store's coarse level, which
-    every mission searches: the check costs 0.8 ms on its 1000^2 cells)."""
+    every mission searches: the check of its million cells is not free)."""
     p = search_path(surface, ridge, passable, start, goal, a, planner, omega, landmarks)
     cells = p.cells
     xs = np.asarray(x, dtype=np.float64) if x is not None else np.arange(surface.shape[1]) * a

@@ -1,9 +1,10 @@
 """Worker processes of the clusters the pipeline starts end at once when they are closed.
 
-A worker process that closed normally then spent 0.4-0.7 s in Python's own shutdown (freeing
-every module and object it loaded: numba's compiled kernels, xarray, dask.array) while its
-nanny, and the job behind it, waited: the LocalCluster of a job took about 1 s to close after
-the missions, 0.27 s idle. Once the worker has closed (its tasks done, its results sent, its
+A worker process that closed normally then spent a large part of a second in Python's own
+shutdown (freeing every module and object it loaded: numba's compiled kernels, xarray,
+dask.array) while its nanny, and the job behind it, waited; the LocalCluster of a job took
+several times as long to close after the missions as idle (CHANGELOG.md, "Measurements").
+Once the worker has closed (its tasks done, its results sent, its
 scratch directory removed: distributed's own close), this plugin's exit handler flushes the
 logs and standard streams and ends the process with ``os._exit(0)``. A process that did not
 close normally (an error, a signal) ends as Python ends it."""

@@ -3,10 +3,9 @@
 A mission's sections are planned as one task per worker thread, each a run of consecutive
 sections (neighbours share chunks, which a worker then decodes once). Split by count, the runs
 rarely cost the same: a Lagrangian section takes one search or five, so the mission waited
-for the slower run. Over the 20 missions of ``benchmarks/bench_latency.py`` at 4000^2 (median
-section times in one process) the slower half took 75 ms against 58 for an even split, and
-at 10000^2 184 against 146. dask balances tasks, not the items inside one, and a task per
-section costs a scheduler round trip of 1-10 ms each, more than most sections.
+for the slower run, about a quarter longer than an even split on the latency benchmark's
+missions (CHANGELOG.md, "Measurements"). dask balances tasks, not the items inside one, and a
+task per section costs a scheduler round trip each, more than most sections.
 
 So the runs share their work through a small file that every task of the mission opens (in
 ``/dev/shm`` where there is one, else the temporary directory): per run the next section from

@@ -167,8 +167,7 @@ class ChunkCache:
         past the cache: each chunk that holds the cell is decoded into this thread's scratch
         buffer and only the cell's values are kept. A mission's landmark bound needs 8 values
         at each end, and a new mission's ends lie in chunks not read before: keeping those
-        chunks cost fresh memory, whose page faults took longer than the decoding (a new
-        mission's bound: 1.2 -> 0.8 ms at 2000^2, 2.0 -> 1.5 ms at 10000^2)."""
+        chunks cost fresh memory, whose page faults took longer than the decoding."""
         arr = self.array(store, var)
         kc, ch, cw = arr.chunks
         read = self.readers.get((store, var))

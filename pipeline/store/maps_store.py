@@ -231,8 +231,7 @@ class MapsStore:
         none), ``ridge`` true where a block holds a ridge cell. Blocks at the right and bottom
         edges may be partial. Written once into the store (group ``overview-f{factor}``) and
         read from there afterwards: a mission's quick-look draws its plan view from it instead
-        of reading every chunk of the elevation under the mission's extent (at 10000^2, 0.2 s
-        of each quick-look)."""
+        of reading every chunk of the elevation under the mission's extent."""
         factor = int(factor)
         if factor < 2:
             raise InvalidParameterError(f"an overview factor must be 2 or more, got {factor}")
@@ -264,7 +263,7 @@ class MapsStore:
         caller's thread (a mission task's), after writing it there once from ``build()`` when
         it is not there yet (so that many missions and processes share it). ``finish`` gets the
         group's arrays by name, read through zarr: a mission's task then needs neither xarray
-        nor dask.array, whose imports took a worker 0.6 s at its first mission (the arrays are
+        nor dask.array, whose imports slowed a worker's first mission (the arrays are
         float32 with NaN as the fill value, and bool: nothing for xarray to decode)."""
         import zarr
 
