@@ -15,6 +15,7 @@ import os
 # is kept, and worker processes inherit it.
 os.environ.setdefault("GDAL_CACHEMAX", "64")
 
+from ._lazy import submodules
 from .exceptions import (
     InvalidDEMError,
     InvalidEndpointError,
@@ -62,19 +63,15 @@ _LAZY = {
 }
 
 
+_submodule = submodules(__name__)
+
+
 def __getattr__(name: str):
     import importlib
 
     module = _LAZY.get(name)
-    if module is None:
-        if name.startswith("__"):
-            raise AttributeError(name)
-        try:  # a submodule, as the eager imports of the API used to bind them
-            return importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{__name__}.{name}":
-                raise
-            raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    if module is None:  # a submodule, as the eager imports of the API used to bind them
+        return _submodule(name)
     value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
     globals()[name] = value
     return value

@@ -385,3 +385,29 @@ def test_write_mission_writes_a_folder_of_its_own_and_replaces_only_that(store, 
     with pytest.raises(pipeline.InvalidParameterError, match="local folder"):
         pipeline.write_mission(path, t, f, "s3://bucket/m3")
     assert not (tmp_path / "m2").exists()
+
+
+def test_a_submodule_is_reached_as_an_attribute():
+    """``pipeline.maps.build`` and the like after a bare ``import pipeline`` (in a new process,
+    where nothing imported them yet), as ``pipeline.jobs`` always was; a name that is no
+    submodule is an AttributeError."""
+    script = textwrap.dedent(
+        """
+        import pipeline
+        print(pipeline.maps.build.build_maps.__name__, pipeline.store.maps_store.MapsStore.__name__,
+              pipeline.runtime.cluster.local_cluster.__name__, pipeline.jobs.load_job.__name__)
+        try:
+            pipeline.flight.nothing
+        except AttributeError as e:
+            print("AttributeError")
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == [
+        "build_maps",
+        "MapsStore",
+        "local_cluster",
+        "load_job",
+        "AttributeError",
+    ]

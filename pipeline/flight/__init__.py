@@ -3,3 +3,7 @@
 profile clear of the continuous seabed (:mod:`.profile`), and :func:`~.fly.fly`, which makes a
 flight of a planned trajectory (:mod:`.fly`).
 """
+
+from .._lazy import submodules
+
+__getattr__ = submodules(__name__)

@@ -2,3 +2,7 @@
 on cells (:mod:`.algorithm`), where its sections run (:mod:`.runners`), and the certificate of
 its length bound (:mod:`.certify`).
 """
+
+from .._lazy import submodules
+
+__getattr__ = submodules(__name__)

@@ -347,49 +347,35 @@ class _Request:
     bound: _Bound
     reach: _Reach  # the components layer's proof of reachability
 
+    @property
+    def ends(self) -> tuple:
+        """``(start, goal)``."""
+        return self.start, self.goal
+
 
 def _plan_whole(req: _Request, extra: dict | None = None) -> Trajectory:
     """One search over the whole map (its planner proves its own bound); ``extra`` (default
     the request's) is kept with the trajectory."""
-    m, run_on, planner, omega, start, goal = (
-        req.m,
-        req.run_on,
-        req.planner,
-        req.omega,
-        req.start,
-        req.goal,
-    )
+    m, planner = req.m, req.planner
     extra = req.extra if extra is None else extra
-    t0, bound = req.t0, req.bound
     k = min(ACTIVE_LANDMARKS, len(m.landmarks)) if PLANNERS[planner].uses_landmarks else 0
-    whole = Section((0, m.shape[0], 0, m.shape[1]), start, goal, landmarks=k)
-    res = _run(run_on, m, [whole], planner, omega)[0]
+    whole = Section((0, m.shape[0], 0, m.shape[1]), req.start, req.goal, landmarks=k)
+    res = _run(req.run_on, m, [whole], planner, req.omega)[0]
     if not res.ok:
         raise UnreachableGoalError(f"no path on the whole map: {res.message}")
     extra["sections"] = [_section_summary(res, whole)]
     # a search of the whole map proves its own bound on L*
-    lower = max(bound.value(), res.lower_bound_m)
-    return _finish(m, [res], planner, omega, start, goal, res.expansions, t0, extra, lower)
+    lower = max(req.bound.value(), res.lower_bound_m)
+    return _finish(
+        m, [res], planner, req.omega, req.start, req.goal, res.expansions, req.t0, extra, lower
+    )
 
 
 def _plan_mcpc(req: _Request) -> Trajectory:
     """Algorithm 3 for one mission: the coarse path, its sections planned where ``req.run_on``
     runs them, the stitched path measured and bounded."""
-    m, run_on, planner, omega, start, goal = (
-        req.m,
-        req.run_on,
-        req.planner,
-        req.omega,
-        req.start,
-        req.goal,
-    )
-    t0, extra, rho, section_size, margin = (
-        req.t0,
-        req.extra,
-        req.rho,
-        req.section_size,
-        req.margin,
-    )
+    m, run_on, planner, omega, start, goal = req.m, req.run_on, req.planner, req.omega, *req.ends
+    t0, extra, rho, section_size, margin = req.t0, req.extra, req.rho, req.section_size, req.margin
     coarse_planner, coarse_weight, bound = req.coarse_planner, req.coarse_weight, req.bound
     reach = req.reach
     # 1-2: compression (cached) and the coarse path

@@ -2,3 +2,7 @@
 (:mod:`.files`), the results catalog (STAC + GeoParquet, :mod:`.catalog`), the plots
 (:mod:`.plots`) and the job's self-contained HTML report (:mod:`.report`, its page in
 ``static/``)."""
+
+from .._lazy import submodules
+
+__getattr__ = submodules(__name__)

@@ -8,3 +8,7 @@ large windows and the landmark layers'; :mod:`.window`: any of them on one windo
 ``dijkstra`` and ``astar`` are optimal; ``wastar``, ``ra_star`` and ``lagrangian`` keep
 ``length <= omega * L*``.
 """
+
+from .._lazy import submodules
+
+__getattr__ = submodules(__name__)

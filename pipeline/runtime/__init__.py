@@ -3,3 +3,7 @@ kernels' cache (:mod:`.jit`) and their warm-up (:mod:`.warmup`), the process's t
 (:mod:`.threads`) and shared claims (:mod:`.share`), a worker's inbox for notes from the
 client (:mod:`.inbox`), distributed's quiet task errors (:mod:`.quiet`) and exit handling
 (:mod:`.exit`)."""
+
+from .._lazy import submodules
+
+__getattr__ = submodules(__name__)

@@ -4,3 +4,7 @@ the process's chunk cache (:mod:`.cache`), direct shard reads and writes (:mod:`
 where stores live and how they are written atomically (:mod:`.paths`), and dask arrays written
 to a store in bands (:mod:`.bands`).
 """
+
+from .._lazy import submodules
+
+__getattr__ = submodules(__name__)
