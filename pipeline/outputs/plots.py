@@ -246,17 +246,37 @@ def mission_quicklook(
 
     ``path``: a file path (returned as a string) or a binary file object (returned as is),
     written as PNG. The figure is made outside pyplot (no figure manager, nothing to close)."""
-    from matplotlib.colors import ListedColormap
-    from matplotlib.figure import Figure
-    from matplotlib.lines import Line2D
+    box = _mission_box(maps, traj)
+    sub, rdg = plan_layers(maps, *box, max(box[1] - box[0], box[3] - box[2]) / max_side)
+    fig, gs = _quicklook_figure(box, maps.cell_size)
+    ax = fig.add_subplot(gs[0, :])
+    host = fig.add_subplot(gs[1, 2])
+    host.axis("off")
+    hillshade_axes(ax, sub, colorbar=host.inset_axes([0.05, 0.7, 0.9, 0.12]))
+    handles = _plan_view(ax, sub, rdg, traj, crs_wkt)
+    leg = fig.add_subplot(gs[1, 0])
+    leg.axis("off")
+    leg.legend(handles=handles, loc="upper left", fontsize=8, frameon=False, ncols=2)
+    side = fig.add_subplot(gs[1, 1])
+    side.axis("off")
+    text = "\n".join(_summary_lines(traj))
+    side.text(0.05, 1.0, text, transform=side.transAxes, fontsize=8, va="top")
+    # a mission's name as its title; a character that cannot be printed shows as "?"
+    # y given: the title sits where matplotlib would put it over axes with no ticks on top,
+    # without its search of every tick label's extent (a noticeable share of each quick-look)
+    ax.set_title("".join(c if c.isprintable() else "?" for c in str(title)), fontsize=11, y=1.0)
+    _depth_profile(fig.add_subplot(gs[2, :]), maps.parameters, traj)
+    fig.savefig(path, format="png", pil_kwargs=FAST_PNG)
+    return str(path) if isinstance(path, str | os.PathLike) else path
 
+
+def _mission_box(maps, traj) -> tuple:
+    """``(r0, r1, c0, c1)``: the cells the plan view shows, the mission's track and grid path
+    with a margin around them, within the map."""
     f = traj.flight
-    a = maps.cell_size
     xs_all, ys_all = (f.x, f.y) if f is not None else (traj.points[:, 0], traj.points[:, 1])
-    dx = maps.x[1] - maps.x[0]
-    dy = maps.y[1] - maps.y[0]
-    cols_f = (xs_all - maps.x[0]) / dx
-    rows_f = (ys_all - maps.y[0]) / dy
+    cols_f = (xs_all - maps.x[0]) / (maps.x[1] - maps.x[0])
+    rows_f = (ys_all - maps.y[0]) / (maps.y[1] - maps.y[0])
     rows, cols = maps.shape
     span = max(rows_f.max() - rows_f.min(), cols_f.max() - cols_f.min())
     pad = max(20, int(0.08 * span))
@@ -264,8 +284,15 @@ def mission_quicklook(
     c0 = max(int(np.floor(min(cols_f.min(), traj.cells[:, 1].min()))) - pad, 0)
     r1 = min(int(np.ceil(max(rows_f.max(), traj.cells[:, 0].max()))) + pad + 1, rows)
     c1 = min(int(np.ceil(max(cols_f.max(), traj.cells[:, 1].max()))) + pad + 1, cols)
-    sub, rdg = plan_layers(maps, r0, r1, c0, c1, max(r1 - r0, c1 - c0) / max_side)
-    # figure shape: the plan view follows the track's extent, the profile below it
+    return r0, r1, c0, c1
+
+
+def _quicklook_figure(box: tuple, a: float) -> tuple:
+    """``(figure, gridspec)``: the plan view following the box's extent (rows of ``a``
+    metres), the legend, the summary and the colour bar below it, the profile at the bottom."""
+    from matplotlib.figure import Figure
+
+    r0, r1, c0, c1 = box
     w_km, h_km = (c1 - c0) * a, (r1 - r0) * a
     plan_w = 9.0
     plan_h = float(np.clip(plan_w * h_km / w_km, 2.5, 9.0))
@@ -283,10 +310,16 @@ def mission_quicklook(
         top=1 - 0.35 / fig_h,
         bottom=0.95 / fig_h,
     )
-    ax = fig.add_subplot(gs[0, :])
-    host = fig.add_subplot(gs[1, 2])
-    host.axis("off")
-    hillshade_axes(ax, sub, colorbar=host.inset_axes([0.05, 0.7, 0.9, 0.12]))
+    return fig, gs
+
+
+def _plan_view(ax, sub, rdg, traj, crs_wkt) -> list:
+    """The ridge cells, the graticule, the grid path, the flown track, the waypoints, start
+    and goal over the hillshade on ``ax``; returns the legend's handles."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.lines import Line2D
+
+    f = traj.flight
     ext = _extent_km(sub)
     ridge_cmap = ListedColormap([(0, 0, 0, 0), RIDGE_RGBA])
     rdg = rdg[: sub.shape[0], : sub.shape[1]]
@@ -354,11 +387,13 @@ def mission_quicklook(
     if _land(sub.values).any():  # the coastline hillshade_axes draws
         handles.append(Line2D([], [], color="k", lw=0.6, label="coastline"))
     ax.set_aspect("equal")
-    leg = fig.add_subplot(gs[1, 0])
-    leg.axis("off")
-    leg.legend(handles=handles, loc="upper left", fontsize=8, frameon=False, ncols=2)
-    side = fig.add_subplot(gs[1, 1])
-    side.axis("off")
+    return handles
+
+
+def _summary_lines(traj) -> list[str]:
+    """The mission's figures beside the legend: planner and bound, status, lengths and ridge
+    shares, and the flight's duration, pitch, tightest turn and energy."""
+    f = traj.flight
     lines = [
         f"planner {traj.planner}, omega {traj.omega:g}",
         f"status: {traj.status}",
@@ -376,14 +411,15 @@ def mission_quicklook(
         ]
         if f.energy_wh is not None:
             lines.append(f"energy {f.energy_wh:.0f} Wh")
-    side.text(0.05, 1.0, "\n".join(lines), transform=side.transAxes, fontsize=8, va="top")
-    # a mission's name as its title; a character that cannot be printed shows as "?"
-    # y given: the title sits where matplotlib would put it over axes with no ticks on top,
-    # without its search of every tick label's extent (a noticeable share of each quick-look)
-    ax.set_title("".join(c if c.isprintable() else "?" for c in str(title)), fontsize=11, y=1.0)
+    return lines
 
-    pr = fig.add_subplot(gs[2, :])
-    method, clearance = maps.parameters.method, maps.parameters.clearance_m
+
+def _depth_profile(pr, params, traj) -> None:
+    """The depth profile along the flown track on ``pr``: the seabed under it, the lowest safe
+    height, the flown height, the waypoint legs and the waypoints (the grid path's heights
+    when the mission was not flown)."""
+    f = traj.flight
+    method, clearance = params.method, params.clearance_m
     if f is not None:
         s = f.s / 1e3
         floor = float(np.nanmin(f.seabed_m)) - 100
@@ -419,8 +455,8 @@ def mission_quicklook(
         top = max(float(np.nanmax(f.z)), float(np.nanmax(f.route[:, 2])))
         pr.set_ylim(floor, max(top, float(np.nanmax(f.seabed_m))) + 150)
         pr.set_title(
-            f"depth profile: clearance {clearance:g} m from every DEM grid point; pitch "
-            f"<= {f.vehicle.max_pitch_deg:g} deg; turns >= {f.turn_radius_m:g} m",
+            f"depth profile: clearance {clearance:g} m from the seabed, at and between grid "
+            f"points; pitch <= {f.vehicle.max_pitch_deg:g} deg; turns >= {f.turn_radius_m:g} m",
             fontsize=9,
             y=1.0,
         )
@@ -431,5 +467,3 @@ def mission_quicklook(
     pr.set_ylabel("height (m)")
     pr.grid(alpha=0.3)
     pr.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), fontsize=7, frameon=False, ncols=4)
-    fig.savefig(path, format="png", pil_kwargs=FAST_PNG)
-    return str(path) if isinstance(path, str | os.PathLike) else path
