@@ -8,11 +8,10 @@ from __future__ import annotations
 import logging
 import os
 
-# GDAL's block cache (5 % of the RAM by default) keeps every tile a DEM import streams through
-# (1.2 GiB of a 24 GiB machine: a 20000^2 lon/lat import peaked at 2.35 GiB with it, 1.29 GiB
-# with 256 MB; at 10000^2 0.92 GiB, 0.64 GiB with 64 MB and no slower): the import reads each
-# tile about once, so a small cache loses nothing. Set before GDAL starts; a value the user set
-# is kept, and worker processes inherit it.
+# GDAL's block cache (5 % of the RAM by default) keeps every tile a DEM import streams through,
+# which nearly doubled a large import's peak memory (CHANGELOG.md, "Measurements"): the import
+# reads each tile about once, so a small cache loses nothing. Set before GDAL starts; a value
+# the user set is kept, and worker processes inherit it.
 os.environ.setdefault("GDAL_CACHEMAX", "64")
 
 from ._lazy import submodules

@@ -155,9 +155,8 @@ def plan_missions(
         this client some CPU a task, a sizeable share of a small machine at many missions a
         second; grouping pays it once for several missions. Default:
         1 up to 8 missions per cluster thread, then one eighth of a thread's missions, up to 8
-        (100 missions on 2 threads: groups of 6, which planned 85.7 missions/s against 78.0
-        in groups of 3, the default before, medians of 8 runs each in turn on the 2-core
-        machine, the client's CPU 17 against 23 % of a core); the last ``2 x threads``
+        (faster, for less of the client's CPU, than the smaller groups tried; CHANGELOG.md,
+        "Measurements"); the last ``2 x threads``
         missions run one per task either way, so that no worker waits for another's group at
         the end. 1: every mission its own task.
 
@@ -178,13 +177,7 @@ def plan_missions(
     """
     m = open_store(maps)
     run_on = get_client(client)
-    items, invalid = [], {}
-    for i, x in enumerate(missions):
-        try:
-            items.append(endpoint_cells(m, _normalise(x)))
-        except InvalidParameterError as exc:  # this mission fails with the reason, not the batch
-            items.append(dict(x) if isinstance(x, dict) else {"mission": x})
-            invalid[i] = str(exc)
+    items, invalid = _read_missions(m, missions)
     todo = [i for i in range(len(items)) if i not in invalid]
     defaults = dict(defaults or {})
     unknown = set(defaults) - _PLAN_KEYS
@@ -211,11 +204,31 @@ def plan_missions(
     if run_on not in IN_PROCESS and len(todo) > 1:
         _on_cluster(run_on, m, items, batch, done, missions_per_task, todo)
         return out  # type: ignore[return-value]
+    _in_threads(m, items, todo, batch, run_on, max_concurrent, done)
+    return out  # type: ignore[return-value]
+
+
+def _read_missions(m, missions) -> tuple[list, dict]:
+    """``(items, invalid)``: each mission as a dict with its ends as cells of ``m``, and the
+    reason of each that cannot be read (by index): it fails alone, the batch goes on."""
+    items, invalid = [], {}
+    for i, x in enumerate(missions):
+        try:
+            items.append(endpoint_cells(m, _normalise(x)))
+        except InvalidParameterError as exc:
+            items.append(dict(x) if isinstance(x, dict) else {"mission": x})
+            invalid[i] = str(exc)
+    return items, invalid
+
+
+def _in_threads(m, items, todo, batch: _Batch, run_on, max_concurrent: int, done) -> None:
+    """The missions ``todo`` in this process, up to ``max_concurrent`` at once in threads,
+    ``done(i, trajectory)`` for each as it finishes; a mission that raises (a bug) fails
+    alone."""
     workers = max(1, min(int(max_concurrent), len(todo)))
     if run_on == "threads" and workers >= cores():
         # the missions' threads keep every core busy: a mission's sections in turn, as
-        # sharing them between threads too cost time (100 missions on 4000^2, 2 cores: 146-148
-        # missions/s shared against 156-165 in turn)
+        # sharing them between threads too cost time (CHANGELOG.md, "Measurements")
         run_on = "synchronous"
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mission") as pool:
         futures = {pool.submit(_plan_one, m, items[i], batch, run_on, i): i for i in todo}
@@ -227,7 +240,6 @@ def plan_missions(
                 log.exception("mission %d crashed", i)
                 t = failed_trajectory(items[i], f"{type(exc).__name__}: {exc}")
             done(i, t)
-    return out  # type: ignore[return-value]
 
 
 def _prepare_coarse(m, items, defaults) -> None:

@@ -492,9 +492,8 @@ class Corridor:
 
     The passable and ridge tiles are read here; the elevation tiles, which only the heights
     need, are decoded by the pool's threads meanwhile and waited for by :meth:`grid`: the
-    shortcuts and the route, which need the others only, are computed in the meantime (a
-    10000^2 mission's corridor decodes 37 tiles of each layer; its elevation is 80 % of the
-    bytes)."""
+    shortcuts and the route, which need the others only, are computed in the meantime (the
+    elevation is most of a corridor's bytes)."""
 
     def __init__(self, m, cells: np.ndarray, pad: int):
         from ..store.cache import CACHE

@@ -412,10 +412,7 @@ def memory_per_landmark(shape) -> int:
     sweeps keep a few values a row; the surface is quantised a row of shards at a time, the
     float32 layer converted shard by shard as it is written). Only a relief of 2^30 cells'
     lengths (float32 heights, a mask and float64 distances: 13 bytes a cell) would need more.
-    Measured on 2 workers, 10000^2 (6.2 bytes a cell: 0.58 GiB): 0.83 GiB a worker at the
-    peak for the landmark pass on its own, 0.90-0.92 GiB in a whole build (the worker holds
-    0.31-0.34 GiB when the pass starts); with the float32 surface these were 0.98 and
-    1.09-1.10 GiB."""
+    The workers' measured peaks against this estimate: CHANGELOG.md, "Measurements"."""
     side = 1 << QUANT_SHIFT
     blocks = -(-int(shape[0]) // side) * -(-int(shape[1]) // side)
     return 7 * int(shape[0]) * int(shape[1]) + 12 * blocks

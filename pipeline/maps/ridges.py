@@ -1090,7 +1090,7 @@ def _haloed_from_scratch(scratch, name, bi, bj, geometry):
     on each side that has a neighbour: the tile read from its own file, the halo from the
     neighbours' stored sides (``fside``, ``pside``: a few KiB each), so that a flow task needs
     no other tile (dask's overlap of the scratch layers moved the neighbours' chunks between
-    the workers and left them idle 35 % of that pass at 10000^2)."""
+    the workers and left them idle for much of that pass)."""
     _, _, r_off, c_off, nbr, nbc, _ = geometry
     top, left, bottom, right = _halo(bi, bj, nbr, nbc, 1)
     own = load_tile(scratch, name, (bi, bj))

@@ -160,8 +160,8 @@ def waypoint_table(flight, sea_level: float, lonlat) -> dict:
 
 
 def _lists(table: dict, *keys) -> list:
-    """Columns of a table as lists of Python floats, which format one by one in about 60 % of
-    the time numpy scalars take (the files' text is written value by value)."""
+    """Columns of a table as lists of Python floats, which format one by one faster than numpy
+    scalars (the files' text is written value by value)."""
     return [np.asarray(table[k], dtype=np.float64).tolist() for k in keys]
 
 

@@ -50,10 +50,9 @@ from ..runtime.jit import njit
 from .grid import DC, DR
 from .search import edge_cost, heuristic
 
-# the first bound is (1 + SLACK) times the octile distance: the benchmark maps' optima lie
-# 0.1-1.3 % above it (benchmarks/bench_certify.py); a larger slack widens the region (at
-# 10000^2 1.5 % took 10-25 % more cells than 0.5 %), a smaller one asks more missions for a
-# second round
+# the first bound is (1 + SLACK) times the octile distance, which the benchmark maps' optima
+# lie just above (benchmarks/bench_certify.py); a larger slack widens the region, a smaller one
+# asks more missions for a second round (CHANGELOG.md, "Measurements")
 SLACK = 0.015
 BUDGET = 8.0  # cell relaxations per region cell before a round gives up (A* then)
 MAX_SWEEPS = 64  # and sweeps
