@@ -23,10 +23,10 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
     source chunks it overlaps) they read far ahead of the warps, and a large GeoTIFF import
     held gigabytes (benchmarks/bench_dem.py measures the peak). A band's graph holds only what
     that band needs. What the next band needs too (the source chunks astride the boundary) is
-    computed once, kept, and handed to the next band's graph as a value: the file is read once and the chunks
-    written are those of one graph. On a distributed client what is kept stays on the workers
-    (futures) and two bands are in flight, so that the next band's reads overlap this one's
-    warps."""
+    computed once, kept, and handed to the next band's graph as a value: the file is read once
+    and the chunks written are those of one graph. On a distributed client what is kept stays
+    on the workers (futures) and two bands are in flight, so that the next band's reads
+    overlap this one's warps."""
     import functools
 
     import dask
