@@ -43,7 +43,7 @@ from ..dem.canonical import as_dem, cell_size, require_valid_cells
 from ..exceptions import InvalidParameterError
 from ..params import DEFAULT_CHUNK, MAPS, chunks2d
 from ..planners.endpoints import NO_PASSABLE
-from ..runtime.cluster import compute_told, computing_client
+from ..runtime.cluster import compute_told, computing_client, prefixed
 from ..runtime.jit import njit
 from ..store.maps_store import open_maps
 from ..store.paths import check_replaceable, is_url, location, remove_settled, remove_tree, target
@@ -283,7 +283,7 @@ def _tile_passes(dem, S, ok, tmp: str, scratch: str, labels: str, ch, params: di
         tmp,
         ch,
     )
-    parts = tiles.run(_layers_tile, st.solution, writers, lambda m, *a: say("layers: " + m, *a))
+    parts = tiles.run(_layers_tile, st.solution, writers, prefixed(say, "layers: "))
     say("layers written (elevation, safety, passable, accumulation, ridge)")
     # pass 4: the labels that touch across tiles joined, the component layer written
     table, offsets = join_tiles(
@@ -302,7 +302,7 @@ def _tile_passes(dem, S, ok, tmp: str, scratch: str, labels: str, ch, params: di
         ch,
         mode="a",
     )
-    sizes = tiles.run(_component_tile, joined, writers, lambda m, *a: say("components: " + m, *a))
+    sizes = tiles.run(_component_tile, joined, writers, prefixed(say, "components: "))
     say("components labelled")
     return [p[0] for p in parts], sizes
 

@@ -74,7 +74,7 @@ from ..planners.sweep import (
     IMPASSABLE,
     Quantised,
 )
-from ..runtime.cluster import compute_told
+from ..runtime.cluster import compute_told, prefixed
 from ..runtime.jit import njit
 from ..store.schema import LANDMARK_CHUNK, VARIABLE, inner_chunks, layer_codec, storage_chunks
 
@@ -604,7 +604,7 @@ def landmarks_staged(store, k: int, a: float, log=None, counts=None) -> list[tup
     task = dask.delayed(_region_sums, pure=False)
     parts = compute_told(
         [task(store, r, f, big) for r in regions],
-        None if log is None else (lambda m, *a: log("placing: " + m, *a)),
+        prefixed(log, "placing: "),
         "regions summed",
     )
     mean, ok = coarse_mean(*assembled(shape, f, parts), f)

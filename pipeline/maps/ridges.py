@@ -52,7 +52,7 @@ from ..dem.canonical import check_dem, require_valid_cells
 from ..params import MAPS
 from ..planners.grid import DC, DIST, DR, flat_offsets, inside
 from ..planners.heap import grown
-from ..runtime.cluster import compute_told
+from ..runtime.cluster import compute_told, prefixed
 from ..runtime.jit import njit
 from ..runtime.threads import shared_pool
 from .scratch import load_tile, load_window, save_tile, tile_array
@@ -1195,11 +1195,6 @@ def _offsets(chunks) -> tuple:
     return tuple(np.concatenate([[0], np.cumsum(c)]).astype(np.int64) for c in chunks)
 
 
-def _prefixed(log, prefix: str):
-    """``log`` with ``prefix`` before each message, or None without a log."""
-    return None if log is None else (lambda msg, *a: log(prefix + msg, *a))
-
-
 def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
     """Passes 1 and 2 of the staged build of the DEM ``z`` (see the section comment): every
     tile flooded once, the fill's spill edges solved, every tile's D8 codes and flow summary,
@@ -1233,7 +1228,7 @@ def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
             for bi in range(nbr)
             for bj in range(nbc)
         ],
-        _prefixed(log, "fill: "),
+        prefixed(log, "fill: "),
         "tiles flooded",
     )
     solves.result()
@@ -1254,7 +1249,7 @@ def flood_and_solve(z: da.Array, scratch, log=None) -> Staged:
             for bi in range(nbr)
             for bj in range(nbc)
         ],
-        _prefixed(log, "flow: "),
+        prefixed(log, "flow: "),
         "tiles summarised",
     )
     (solution,) = dask.persist(dask.delayed(_solve_flow(*flow), pure=True))

@@ -163,7 +163,7 @@ def write_mission(
         }
         props.update(
             {
-                f"auv:{k}": _num(v)
+                f"auv:{k}": json_value(v)
                 for k, v in (
                     ("length_m", traj.length_m),
                     ("ridge_length_m", traj.ridge_length_m),
@@ -185,9 +185,11 @@ def write_mission(
                 "auv:message": traj.message,
                 "auv:run_id": run_id,
                 "auv:start": [
-                    _num(v) for v in mission.get("start_input", mission.get("start", []))
+                    json_value(v) for v in mission.get("start_input", mission.get("start", []))
                 ],
-                "auv:goal": [_num(v) for v in mission.get("goal_input", mission.get("goal", []))],
+                "auv:goal": [
+                    json_value(v) for v in mission.get("goal_input", mission.get("goal", []))
+                ],
                 "auv:sections": len(traj.extra.get("sections", [])) if ok else 0,
                 "auv:expansions": int(traj.expansions),
             }
@@ -212,7 +214,9 @@ def write_mission(
         raise
 
 
-def _num(v):
+def json_value(v):
+    """``v`` as JSON holds it: a numpy scalar as its Python value, a float that is not finite
+    as None (JSON has no NaN)."""
     if isinstance(v, np.generic):
         v = v.item()
     if isinstance(v, float) and not math.isfinite(v):
@@ -238,7 +242,7 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
         skipped = files.pop("skipped", None)
         xy = f.waypoints[:, :2]
         props = {
-            f"auv:{k}": _num(v)
+            f"auv:{k}": json_value(v)
             for k, v in (
                 ("flown_length_m", f.flown_length_m),
                 ("route_length_m", f.route_length_m),

@@ -568,7 +568,8 @@ def write_mission(
     """Write a mission's files for people and vehicles into the new folder ``folder``, as a
     job writes them into its catalog: the flown track and the grid path (GeoParquet), the
     waypoints (CSV, GeoJSON), a QGroundControl / ArduSub mission, a KML file and an IMC plan
-    (docs/file-formats.md), and ``mission.json`` (the trajectory's and the flight's figures).
+    (docs/flyable-missions.md, "Files"), and ``mission.json`` (the trajectory's and the
+    flight's figures).
 
     Parameters
     ----------
@@ -602,6 +603,7 @@ def write_mission(
     from ..exceptions import InvalidParameterError
     from ..store.maps_store import open_store
     from ..store.paths import STORE_MARKS, atomic_path, has_scheme
+    from .catalog import json_value
 
     if has_scheme(str(folder)):
         raise InvalidParameterError(f"{folder}: mission files are written to a local folder")
@@ -634,10 +636,7 @@ def write_mission(
             "files": sorted(f for f, *_ in files.values()),
             "skipped": skipped,
         }
-        figures = {
-            k: None if isinstance(v, float) and not math.isfinite(v) else v
-            for k, v in figures.items()
-        }
+        figures = {k: json_value(v) for k, v in figures.items()}
         meta = {"attributes": {STORE_MARKS["mission"]: MISSION_FOLDER_VERSION}, **figures}
         (tmp / "mission.json").write_text(json.dumps(meta, indent=1, allow_nan=False))
     return {key: folder / f for key, (f, *_) in files.items()}

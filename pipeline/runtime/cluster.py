@@ -167,6 +167,12 @@ def computing_client():
 TELL_S = 2.0
 
 
+def prefixed(tell, prefix: str):
+    """``tell(msg, *args)`` with ``prefix`` before each message (a pass's name before the
+    progress :func:`compute_told` tells), or None without a ``tell``."""
+    return None if tell is None else (lambda msg, *args: tell(prefix + msg, *args))
+
+
 def compute_told(tasks, tell=None, what: str = "tasks") -> tuple:
     """``dask.compute(*tasks)`` (delayed objects) with, from 10 tasks up, ``tell(msg, *args)``
     called as a tenth of them is finished ("3 of 30 tasks") if :data:`TELL_S` seconds have gone

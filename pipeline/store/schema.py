@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..exceptions import PipelineError
+from ..methods import METHODS
 
 MAPS_VERSION = 1
 
@@ -186,8 +187,6 @@ class MapsParameters:
     def reach_m(self) -> float:
         """How far the clearance reaches sideways from a point: R for the spherical method,
         the horizontal radius for the horizontal one, none for the vertical one."""
-        from ..methods import METHODS
-
         return METHODS[self.method].reach_m(self.clearance_m, self.radius_m)
 
     @property
