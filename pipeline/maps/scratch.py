@@ -6,8 +6,15 @@ back with the halo each needs.
 from __future__ import annotations
 
 import os
+import threading
 
 from ..store.paths import filesystem, is_url, join
+
+# np.load parses a .npy file's header with ast.literal_eval, and CPython 3.11's AST
+# constructor is not safe in several threads at once (python/cpython#106905): tiles read in
+# dask's threads raised "SystemError: AST constructor recursion depth mismatch" at random.
+# Their headers are parsed one at a time; the data is read outside the lock.
+_HEADERS = threading.Lock()
 
 
 def save_tile(scratch, name: str, tile: tuple, array) -> None:
@@ -45,10 +52,12 @@ def load_tile(scratch, name: str, tile: tuple, mapped: bool = False):
     key = f"{tile[0]}.{tile[1]}.npy"
     if is_url(scratch):
         fs, path = filesystem(join(str(scratch), name, key))
-        return np.load(io.BytesIO(fs.cat_file(path)), allow_pickle=False)
-    return np.load(
-        os.path.join(scratch, name, key), mmap_mode="r" if mapped else None, allow_pickle=False
-    )
+        data = fs.cat_file(path)
+        with _HEADERS:  # the bytes are in memory: the header and a copy
+            return np.load(io.BytesIO(data), allow_pickle=False)
+    with _HEADERS:
+        tile_map = np.load(os.path.join(scratch, name, key), mmap_mode="r", allow_pickle=False)
+    return tile_map if mapped else np.array(tile_map)
 
 
 def load_window(scratch, name: str, r_off, c_off, r0: int, r1: int, c0: int, c1: int, dtype):
