@@ -214,6 +214,21 @@ def write_mission(
         raise
 
 
+PREFIX = "auv:"  # the catalog's own Item properties
+_BOOKKEEPING = ("asset_bytes",)  # the files' sizes, for the re-run's check; not a result
+
+
+def properties(item: dict) -> dict:
+    """A mission Item's own results (its ``auv:`` properties) by their names without the
+    prefix, as the missions GeoParquet's columns and the report's page hold them."""
+    n = len(PREFIX)
+    return {
+        k[n:]: v
+        for k, v in item.get("properties", {}).items()
+        if k.startswith(PREFIX) and k[n:] not in _BOOKKEEPING
+    }
+
+
 def json_value(v):
     """``v`` as JSON holds it: a numpy scalar as its Python value, a float that is not finite
     as None (JSON has no NaN)."""
@@ -319,11 +334,7 @@ def write_catalog(
     for it in items:
         row = {"id": it["id"], "datetime": it["properties"]["datetime"]}
         row.update(
-            {
-                k.split(":", 1)[1]: (json.dumps(v) if isinstance(v, list) else v)
-                for k, v in it["properties"].items()
-                if k.startswith("auv:") and k != "auv:asset_bytes"  # (the files' bookkeeping)
-            }
+            {k: (json.dumps(v) if isinstance(v, list) else v) for k, v in properties(it).items()}
         )
         rows.append(row)
         geoms.append(shape(it["geometry"]) if it.get("geometry") else None)

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..store.paths import write_atomically
-from .catalog import COLLECTION, finished
+from .catalog import COLLECTION, finished, properties
 
 log = logging.getLogger(__name__)
 
@@ -158,38 +158,45 @@ def _hillshade(maps, png: Path) -> dict:
     }
 
 
+# the results the page shows (:func:`catalog.properties`' names); a mission that failed or was
+# not flown lacks some, shown blank
+_SHOWN = (
+    "status",
+    "planner",
+    "omega",
+    "length_m",
+    "lower_bound_m",
+    "certified_ratio",
+    "flown_length_m",
+    "ridge_ratio",
+    "flown_ridge_ratio",
+    "duration_s",
+    "waypoints",
+    "min_clearance_m",
+    "altitude_median_m",
+    "altitude_p90_m",
+    "vertical_reversals_per_km",
+    "max_pitch_deg",
+    "energy_wh",
+    "runtime_s",
+)
+
+
 def _mission(root: Path, item: dict, k: int, crs_wkt: str | None) -> dict:
-    p = item["properties"]
     mid = item["id"]
     folder = root / COLLECTION / mid
     m = {
+        **dict.fromkeys(_SHOWN),  # what a failed mission's Item lacks, as null
+        **properties(item),
         "id": mid,
-        "name": p.get("auv:name", mid),
         "colour": PALETTE[k % len(PALETTE)],
-        "status": p.get("auv:status"),
-        "message": p.get("auv:message") or "",
-        "planner": p.get("auv:planner"),
-        "omega": p.get("auv:omega"),
-        "length_m": p.get("auv:length_m"),
-        "flown_length_m": p.get("auv:flown_length_m"),
-        "lower_bound_m": p.get("auv:lower_bound_m"),
-        "certified_ratio": p.get("auv:certified_ratio"),
-        "ridge_ratio": p.get("auv:ridge_ratio"),
-        "flown_ridge_ratio": p.get("auv:flown_ridge_ratio"),
-        "duration_s": p.get("auv:duration_s"),
-        "waypoint_count": p.get("auv:waypoints"),
-        "min_clearance_m": p.get("auv:min_clearance_m"),
-        "altitude_median_m": p.get("auv:altitude_median_m"),
-        "altitude_p90_m": p.get("auv:altitude_p90_m"),
-        "reversals_per_km": p.get("auv:vertical_reversals_per_km"),
-        "max_pitch_deg": p.get("auv:max_pitch_deg"),
-        "energy_wh": p.get("auv:energy_wh"),
-        "runtime_s": p.get("auv:runtime_s"),
         "files": [{"href": f"{COLLECTION}/{mid}/{mid}.json", "title": "STAC Item (JSON)"}],
         "track": None,
         "profile": None,
-        "waypoints": [],
+        "waypoint_xy": [],
     }
+    m["name"] = m.get("name") or mid
+    m["message"] = m.get("message") or ""
     for key, asset in sorted(item.get("assets", {}).items()):
         href = asset["href"][2:] if asset["href"].startswith("./") else asset["href"]
         m["files"].append(
@@ -202,7 +209,7 @@ def _mission(root: Path, item: dict, k: int, crs_wkt: str | None) -> dict:
         # mission whose files changed again)
         what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         log.warning("report: mission %s: a file cannot be read (%s)", m["name"], what)
-        m["track"], m["profile"], m["waypoints"] = None, None, []
+        m["track"], m["profile"], m["waypoint_xy"] = None, None, []
         m["message"] = (m["message"] + "; " if m["message"] else "") + (
             f"its files cannot be read ({type(exc).__name__}: {what}); plan it again (remove "
             "its folder, or run the job with --overwrite)"
@@ -227,7 +234,7 @@ def _drawn(m: dict, folder: Path, item: dict, crs_wkt: str | None) -> None:
         m["profile"] = _profile(s, None, t["z"], None)
     wpt = folder / "waypoints.csv"
     if wpt.name in listed:
-        m["waypoints"] = _waypoints(wpt, crs_wkt)
+        m["waypoint_xy"] = _waypoints(wpt, crs_wkt)
 
 
 def _columns(path: Path, names) -> dict:

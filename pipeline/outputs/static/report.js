@@ -64,7 +64,7 @@
     line.on("click", () => select(m.id, false));
     line.addTo(map);
     lines[m.id] = line;
-    m.waypoints.forEach((w) => L.circleMarker(ll(w), { radius: 2, color: "#222", weight: 0.6,
+    m.waypoint_xy.forEach((w) => L.circleMarker(ll(w), { radius: 2, color: "#222", weight: 0.6,
       fillColor: "#fff", fillOpacity: 1, className: "waypoint" }).addTo(map));
     L.circleMarker(ll(m.track[0]), { radius: 6, color: "#000", weight: 1, fillColor: "#3c3",
       fillOpacity: 1, className: "start" }).bindTooltip(m.name + ": start").addTo(map);
@@ -113,11 +113,11 @@
       ["ridge share", pct(m.ridge_ratio) + " % of the grid path" +
         (m.flown_ridge_ratio === null ? "" : ", " + pct(m.flown_ridge_ratio) + " % flown")],
       ["duration", m.duration_s === null ? "" : hours(m.duration_s) + " h"],
-      ["waypoints", m.waypoint_count === null ? "" : String(m.waypoint_count)],
+      ["waypoints", m.waypoints === null ? "" : String(m.waypoints)],
       ["min clearance", m.min_clearance_m === null ? "" : fmt(m.min_clearance_m, 1) + " m"],
       ["altitude", m.altitude_median_m == null ? "" :
         fmt(m.altitude_median_m, 0) + " m median, " + fmt(m.altitude_p90_m, 0) + " m 90th percentile"],
-      ["vertical reversals", m.reversals_per_km == null ? "" : fmt(m.reversals_per_km, 2) + " per km"],
+      ["vertical reversals", m.vertical_reversals_per_km == null ? "" : fmt(m.vertical_reversals_per_km, 2) + " per km"],
       ["max pitch", m.max_pitch_deg === null ? "" : fmt(m.max_pitch_deg, 1) + " deg"],
       ["energy", m.energy_wh === null ? "" : fmt(m.energy_wh, 0) + " Wh"],
       ["planning time", m.runtime_s === null ? "" : fmt(m.runtime_s, 2) + " s"],
@@ -241,7 +241,7 @@
     ["certified ratio", (m) => m.certified_ratio, true, 4],
     ["ridge %", (m) => (m.ridge_ratio === null ? null : 100 * m.ridge_ratio), true, 0],
     ["duration h", (m) => (m.duration_s === null ? null : m.duration_s / 3600), true, 1],
-    ["waypoints", (m) => m.waypoint_count, true, 0],
+    ["waypoints", (m) => m.waypoints, true, 0],
     ["reason / message", (m) => m.message, false],
   ];
   const table = document.getElementById("missions");
