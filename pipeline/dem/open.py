@@ -16,7 +16,7 @@ from ..params import DEFAULT_CHUNK, DEM, check_region, chunks2d
 from ..store.paths import has_scheme
 from .canonical import _canonicalise, _crop, _crs_of, _shoal_surface, require_valid_cells
 from .dem_store import CANONICAL_ATTR, CANONICAL_VERSION, _no_valid_cells, _write_dem
-from .readers import _UNCERTAINTY_NAMES, _kind_of, _read, file_chunks, reading
+from .readers import _UNCERTAINTY_NAMES, file_chunks, read, reader_of, reading
 
 log = logging.getLogger(__name__)
 
@@ -107,16 +107,16 @@ def open_dem(
         uncertainty_k = DEM.uncertainty_k.check(uncertainty_k)
     if uncertainty is not None:
         uncertainty = DEM.uncertainty.check(uncertainty)
-    kind = _kind_of(path)
+    reader = reader_of(path)
     read_chunks = chunks
-    if region is not None and chunks is not None and kind == "tiff":
+    if region is not None and chunks is not None and reader.tiled:
         # a region is read in the file's own tiles (rechunked to ``chunks`` afterwards): a
         # dask chunk is read whole, so chunks of 1024^2 would read up to four times the tiles
         # a small region touches
         tile = file_chunks(path)
         if tile is not None and max(tile) < max(chunks2d(chunks, (2**31, 2**31))):
             read_chunks = max(tile)
-    raw, sigma = _read(path, kind, read_chunks, variable, uncertainty)
+    raw, sigma = read(path, reader, read_chunks, variable, uncertainty)
     canonical = raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION
     if canonical and uncertainty_k is not None:
         raise InvalidParameterError(

@@ -6,8 +6,9 @@ file's chunks, and the readers' errors turned into one line naming the file.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,15 +40,6 @@ _ELEVATION_NAMES = (
 # names of a survey's vertical uncertainty (one standard deviation, metres), matched
 # case-insensitively: a BAG's second band is "uncertainty"
 _UNCERTAINTY_NAMES = ("uncertainty", "sigma", "stdev", "std", "tvu", "elevation_uncertainty")
-
-
-_NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".grd", ".netcdf")
-
-
-# GDAL reads these through rasterio: GeoTIFF, BAG (the Bathymetric Attributed Grid, HDF5: an
-# elevation band and an uncertainty band) and the ESRI ASCII grid (EMODnet's and many survey
-# offices' exchange format; its CRS from the .prj beside it)
-_TIFF_SUFFIXES = (".tif", ".tiff", ".gtiff", ".geotiff", ".bag", ".asc")
 
 
 @contextmanager
@@ -82,63 +74,129 @@ def reader_message(exc: BaseException) -> str:
     return ": ".join(kept) or "unreadable"
 
 
-def _kind_of(path: Path) -> str:
+@dataclass(frozen=True)
+class Reader:
+    """One family of DEM files: how a file of it is recognised and read.
+
+    ``read(path, chunks, variable, uncertainty)`` returns the elevation and the uncertainty
+    (or None) as lazy DataArrays in the file's own coordinates; ``chunks(path)`` the sides of
+    the file's own chunks or tiles (None when it has none). A file is recognised by its suffix,
+    else by its first bytes (``magic``); a directory by a file inside it (``inside``).
+    """
+
+    name: str
+    formats: str  # as the message for an unknown file lists them
+    read: Callable[..., tuple[xr.DataArray, xr.DataArray | None]]
+    chunks: Callable[[Path], tuple[int, int] | None]
+    suffixes: tuple[str, ...] = ()
+    magic: tuple[bytes, ...] = ()
+    inside: tuple[str, ...] = ()
+    tiled: bool = False  # a region is best read in the file's own tiles
+
+
+def reader_of(path: Path) -> Reader:
+    """The reader of the DEM file or directory ``path``; an :class:`InvalidDEMError` naming
+    the formats read when it is none of them."""
     suffix = path.suffix.lower()
     if path.is_dir():
-        if (path / "zarr.json").exists() or (path / ".zgroup").exists() or suffix == ".zarr":
-            return "zarr"
+        for reader in READERS.values():
+            if reader.inside and (
+                suffix in reader.suffixes or any((path / f).exists() for f in reader.inside)
+            ):
+                return reader
         raise InvalidDEMError(
             f"DEM path {path} is a directory but not a Zarr store (no zarr.json or .zgroup inside)"
         )
-    if suffix in _TIFF_SUFFIXES:
-        return "tiff"
-    if suffix in _NETCDF_SUFFIXES:
-        return "netcdf"
+    files = [r for r in READERS.values() if not r.inside]
+    for reader in files:
+        if suffix in reader.suffixes:
+            return reader
     with open(path, "rb") as fh:
-        magic = fh.read(4)
-    if magic[:2] in (b"II", b"MM"):
-        return "tiff"
-    if magic[:3] == b"CDF" or magic == b"\x89HDF":
-        return "netcdf"
-    raise InvalidDEMError(
-        f"DEM file {path}: unknown format (suffix {suffix!r}); use a GeoTIFF (.tif), a BAG "
-        "(.bag), an ESRI ASCII grid (.asc), a NetCDF or GMT grid (.nc, .grd) or a Zarr store"
-    )
+        opening = fh.read(8)
+    for reader in files:
+        if any(opening.startswith(m) for m in reader.magic):
+            return reader
+    *most, last = (r.formats for r in READERS.values())
+    known = f"{', '.join(most)} or {last}"
+    raise InvalidDEMError(f"DEM file {path}: unknown format (suffix {suffix!r}); use {known}")
 
 
-def _read(
-    path: Path, kind: str, chunks, variable: str | None, uncertainty: str | None = None
+def read(
+    path: Path, reader: Reader, chunks, variable: str | None, uncertainty: str | None = None
 ) -> tuple[xr.DataArray, xr.DataArray | None]:
-    """The elevation of the file, and its uncertainty band or variable when it has one."""
-    # read in chunks, never a whole large file at once: a GeoTIFF in chunks of the requested
-    # side, a NetCDF file in dask's automatic chunks (about 128 MiB), a Zarr store in its own
-    dask_chunks = None if chunks is None else {}
-    unstored = None
+    """The elevation of the file, and its uncertainty band or variable when it has one; what
+    the reader cannot open is one :class:`InvalidDEMError` naming the file. Read in chunks,
+    never a whole large file at once (``chunks`` None: in memory)."""
     try:
-        if kind == "tiff":
-            import rioxarray
-
-            side = chunks if isinstance(chunks, int) else DEFAULT_CHUNK
-            tif_chunks = None if chunks is None else {"band": 1, "y": side, "x": side}
-            arr = rioxarray.open_rasterio(path, masked=True, chunks=tif_chunks)
-            if isinstance(arr, list | xr.Dataset):
-                raise InvalidDEMError(
-                    f"DEM file {path} holds several subdatasets; "
-                    "export the elevation band to its own GeoTIFF"
-                )
-            _north_up(arr, path)
-            return _split_bands(arr, path, variable, uncertainty)
-        if kind == "netcdf":
-            ds = xr.open_dataset(path, chunks=None if chunks is None else "auto")
-        else:
-            from .dem_store import EMPTY_CHUNKS_ATTR
-
-            ds = xr.open_zarr(path, chunks=dask_chunks, consolidated=False)
-            unstored = ds.attrs.get(EMPTY_CHUNKS_ATTR)
+        return reader.read(path, chunks, variable, uncertainty)
     except InvalidDEMError:
         raise
     except Exception as exc:  # the readers raise many types; one clear message for all
         raise InvalidDEMError(f"cannot read DEM file {path}: {reader_message(exc)}") from exc
+
+
+def _read_gdal(path: Path, chunks, variable, uncertainty):
+    """GeoTIFF, BAG and ESRI ASCII through rasterio, in chunks of the requested side."""
+    import rioxarray
+
+    side = chunks if isinstance(chunks, int) else DEFAULT_CHUNK
+    tif_chunks = None if chunks is None else {"band": 1, "y": side, "x": side}
+    arr = rioxarray.open_rasterio(path, masked=True, chunks=tif_chunks)
+    if isinstance(arr, list | xr.Dataset):
+        raise InvalidDEMError(
+            f"DEM file {path} holds several subdatasets; "
+            "export the elevation band to its own GeoTIFF"
+        )
+    _north_up(arr, path)
+    return _split_bands(arr, path, variable, uncertainty)
+
+
+def _gdal_chunks(path: Path):
+    import rasterio
+
+    with rasterio.open(path) as src:
+        return tuple(int(v) for v in src.block_shapes[0])
+
+
+def _read_netcdf(path: Path, chunks, variable, uncertainty):
+    """NetCDF and GMT grids through xarray, in dask's automatic chunks (about 128 MiB)."""
+    ds = xr.open_dataset(path, chunks=None if chunks is None else "auto")
+    return _from_dataset(ds, path, variable, uncertainty)
+
+
+def _netcdf_chunks(path: Path):
+    import netCDF4
+
+    with netCDF4.Dataset(path) as nc:
+        for var in nc.variables.values():
+            if var.ndim >= 2:
+                ch = var.chunking()
+                return None if ch == "contiguous" else tuple(int(v) for v in ch[-2:])
+    return None
+
+
+def _read_zarr(path: Path, chunks, variable, uncertainty):
+    """A Zarr store in its own chunks; a DEM store this tool wrote keeps its record of the
+    chunks it left unwritten (all no-data), older ones are read as they are."""
+    from .dem_store import EMPTY_CHUNKS_ATTR, _guarded
+
+    ds = xr.open_zarr(path, chunks=None if chunks is None else {}, consolidated=False)
+    elev, sigma = _from_dataset(ds, path, variable, uncertainty)
+    unstored = ds.attrs.get(EMPTY_CHUNKS_ATTR)
+    if unstored is not None and elev.name == "elevation":
+        elev = _guarded(path, elev, unstored)
+    return elev, sigma
+
+
+def _zarr_chunks(path: Path):
+    import zarr
+
+    group = zarr.open_group(path, mode="r")
+    name = "elevation" if "elevation" in group else next(iter(group.array_keys()))
+    return tuple(int(v) for v in group[name].chunks[-2:])
+
+
+def _from_dataset(ds: xr.Dataset, path: Path, variable, uncertainty):
     if _is_old_gmt(ds):
         if uncertainty is not None:
             raise InvalidDEMError(f"DEM file {path} (a 1-D GMT grid) has no {uncertainty!r}")
@@ -146,11 +204,40 @@ def _read(
     gridded = [str(k) for k, v in ds.data_vars.items() if v.ndim >= 2]
     name = _uncertainty_name(gridded, uncertainty, path, "variable")
     elev = _pick_variable(ds, path, variable, exclude=name)
-    if kind == "zarr" and unstored is not None and elev.name == "elevation":
-        from .dem_store import _guarded
-
-        elev = _guarded(path, elev, unstored)  # a store this tool wrote (older ones: as read)
     return elev, (None if name is None else ds[name])
+
+
+# the DEM formats read, by name; a new format is a reader function and one line here
+READERS = {
+    # GDAL reads these through rasterio: GeoTIFF, BAG (the Bathymetric Attributed Grid, HDF5:
+    # an elevation band and an uncertainty band) and the ESRI ASCII grid (EMODnet's and many
+    # survey offices' exchange format; its CRS from the .prj beside it)
+    "gdal": Reader(
+        "gdal",
+        "a GeoTIFF (.tif), a BAG (.bag), an ESRI ASCII grid (.asc)",
+        _read_gdal,
+        _gdal_chunks,
+        suffixes=(".tif", ".tiff", ".gtiff", ".geotiff", ".bag", ".asc"),
+        magic=(b"II", b"MM"),
+        tiled=True,
+    ),
+    "netcdf": Reader(
+        "netcdf",
+        "a NetCDF or GMT grid (.nc, .grd)",
+        _read_netcdf,
+        _netcdf_chunks,
+        suffixes=(".nc", ".nc4", ".cdf", ".grd", ".netcdf"),
+        magic=(b"CDF", b"\x89HDF"),
+    ),
+    "zarr": Reader(
+        "zarr",
+        "a Zarr store",
+        _read_zarr,
+        _zarr_chunks,
+        suffixes=(".zarr",),
+        inside=("zarr.json", ".zgroup"),
+    ),
+}
 
 
 def _north_up(arr: xr.DataArray, path: Path) -> None:
@@ -227,28 +314,9 @@ def file_chunks(path: str | os.PathLike) -> tuple[int, int] | None:
     """The chunk (or tile) sides a DEM file is stored in, or None when it has none."""
     path = Path(path)
     try:
-        kind = _kind_of(path)
-        if kind == "tiff":
-            import rasterio
-
-            with rasterio.open(path) as src:
-                return tuple(int(v) for v in src.block_shapes[0])
-        if kind == "zarr":
-            import zarr
-
-            group = zarr.open_group(path, mode="r")
-            name = "elevation" if "elevation" in group else next(iter(group.array_keys()))
-            return tuple(int(v) for v in group[name].chunks[-2:])
-        import netCDF4
-
-        with netCDF4.Dataset(path) as nc:
-            for var in nc.variables.values():
-                if var.ndim >= 2:
-                    ch = var.chunking()
-                    return None if ch == "contiguous" else tuple(int(v) for v in ch[-2:])
+        return reader_of(path).chunks(path)
     except Exception:  # noqa: BLE001 - only for the description; open_dem says what is wrong
         return None
-    return None
 
 
 def _pick_variable(

@@ -467,6 +467,33 @@ def test_a_geotiff_is_read_in_chunks_not_whole(tmp_path):
     assert pipeline.dem.readers.file_chunks(tmp_path / "big.tif") == (64, 64)
 
 
+def test_a_new_dem_format_is_one_reader_and_one_registry_line(tmp_path, monkeypatch):
+    """The READERS registry is the one place formats are known: a reader of .npz grids (its
+    own x, y and z arrays) registered there is recognised by suffix, opened by open_dem as
+    any DEM (the canonical grid, chunked, cell size from the coordinates) and listed in the
+    message for a file of no known format."""
+    from pipeline.dem.readers import READERS, Reader
+
+    z = random_surface((40, 30))
+    x, y = 100.0 + 25.0 * np.arange(30), 5000.0 - 25.0 * np.arange(40)
+    np.savez(tmp_path / "grid.npz", x=x, y=y, z=z)
+
+    def read_npz(path, chunks, variable, uncertainty):
+        with np.load(path) as f:
+            arr = xr.DataArray(f["z"], dims=("y", "x"), coords={"y": f["y"], "x": f["x"]})
+        return (arr if chunks is None else arr.chunk(chunks)), None
+
+    fmt = Reader("npz", "a NumPy grid (.npz)", read_npz, lambda p: None, suffixes=(".npz",))
+    monkeypatch.setitem(READERS, "npz", fmt)
+    dem = pipeline.open_dem(tmp_path / "grid.npz", chunks=16)
+    assert dem.dims == ("y", "x") and dem.data.chunksize == (16, 16)
+    assert dem.attrs["cell_size"] == 25.0
+    np.testing.assert_array_equal(dem.values, z.astype(dem.dtype))
+    (tmp_path / "grid.xyz").write_text("1 2 3\n")
+    with pytest.raises(InvalidDEMError, match=r"a Zarr store or a NumPy grid \(\.npz\)"):
+        pipeline.open_dem(tmp_path / "grid.xyz")
+
+
 # ------------------------------------------------------------------ a region of a file (bbox)
 
 
