@@ -4,6 +4,7 @@ stage takes, and importing it into a DEM store (:func:`import_dem`).
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 from pathlib import Path
@@ -160,33 +161,23 @@ def open_dem(
 
 
 def import_dem(
-    source: str | os.PathLike,
-    store: str | os.PathLike,
-    *,
-    chunks: Chunks = DEFAULT_CHUNK,
-    variable: str | None = None,
-    cell_size: float | None = None,
-    resolution: float | None = None,
-    overwrite: bool = False,
-    bbox: Box | None = None,
-    bbox_xy: Box | None = None,
-    uncertainty_k: float | None = None,
-    uncertainty: str | None = None,
+    source: str | os.PathLike, store: str | os.PathLike, *, overwrite: bool = False, **options
 ) -> Path:
-    """Open ``source`` with :func:`open_dem` (``bbox`` or ``bbox_xy``: only that region;
-    ``uncertainty_k``: the shoal side of its uncertainty band) and write it as the canonical
-    Zarr store, in one pass over the file (the check that it holds a valid cell is made on the
-    chunks as they are written)."""
-    dem = open_dem(
-        source,
-        chunks=chunks,
-        variable=variable,
-        cell_size=cell_size,
-        resolution=resolution,
-        bbox=bbox,
-        bbox_xy=bbox_xy,
-        uncertainty_k=uncertainty_k,
-        uncertainty=uncertainty,
-        validate=False,
-    )
+    """Open ``source`` with :func:`open_dem` and write it as the canonical Zarr store, in one
+    pass over the file (the check that it holds a valid cell is made on the chunks as they are
+    written).
+
+    ``options`` are :func:`open_dem`'s keywords (``chunks``, ``bbox`` or ``bbox_xy``: only
+    that region, ``uncertainty_k``: the shoal side of its uncertainty band, ...); the store is
+    written in ``chunks``. ``overwrite`` replaces a DEM store this tool wrote, never another
+    path."""
+    known = [p for p in inspect.signature(open_dem).parameters if p not in ("path", "validate")]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise InvalidParameterError(
+            f"import_dem has no option {', '.join(map(repr, unknown))}; "
+            f"it takes overwrite and open_dem's {', '.join(known)}"
+        )
+    dem = open_dem(source, **options, validate=False)
+    chunks = options.get("chunks", DEFAULT_CHUNK)
     return _write_dem(dem, store, chunks, overwrite, _no_valid_cells(source))

@@ -980,3 +980,23 @@ def test_a_lon_lat_grid_without_a_crs_is_read_as_lon_lat(tmp_path, caplog):
     np.testing.assert_array_equal(got.values, ref.values)
     np.testing.assert_array_equal(got.x.values, ref.x.values)
     assert CRS.from_wkt(got.attrs["crs_wkt"]) == CRS.from_wkt(ref.attrs["crs_wkt"])
+
+
+def test_import_dem_takes_open_dems_keywords_and_names_an_unknown_one(tmp_path):
+    """import_dem forwards open_dem's keywords (a bbox_xy region, chunks) and refuses one it
+    does not know with the list it takes, before reading anything."""
+    import rioxarray  # noqa: F401
+
+    arr = metric_dataarray(random_surface((60, 50)), a=40.0).rio.write_crs("EPSG:32610")
+    arr.rio.to_raster(tmp_path / "in.tif")
+    x, y = arr.x.values, arr.y.values
+    box = (x[10], y[40], x[29], y[20])  # x_min, y_min, x_max, y_max: centres of cells
+    store = pipeline.import_dem(tmp_path / "in.tif", tmp_path / "dem.zarr", chunks=8, bbox_xy=box)
+    dem = pipeline.open_dem(store, chunks=8)
+    want = arr.sel(x=slice(x[9], x[30]), y=slice(y[19], y[41]))  # and one cell more each side
+    np.testing.assert_array_equal(dem.x.values, want.x.values)
+    np.testing.assert_array_equal(dem.values, want.values.astype(dem.dtype))
+    assert dem.data.chunksize == (8, 8)
+    with pytest.raises(pipeline.PipelineError, match=r"no option 'chunk'; .* chunks, variable"):
+        pipeline.import_dem(tmp_path / "in.tif", tmp_path / "other.zarr", chunk=8)
+    assert not (tmp_path / "other.zarr").exists()
