@@ -523,6 +523,20 @@ def test_tampered_stores_are_refused(tmp_path, built_store, tamper, match):
         pipeline.plan(store, (5, 5), (50, 50), planner="astar", mcpc=False, client="synchronous")
 
 
+OPENED = [(t, m) for t, m in TAMPER if "chunk" not in m]  # (a chunk is met when it is read)
+
+
+@pytest.mark.parametrize("tamper, match", OPENED, ids=[m for _, m in OPENED])
+def test_open_maps_refuses_what_planning_refuses(tmp_path, built_store, tamper, match):
+    """The Dataset view checks the store as the planners' handle does (one owner of what a
+    valid maps store is): a store changed after its build is refused when it is opened."""
+    store = tmp_path / "maps.zarr"
+    shutil.copytree(built_store, store)
+    tamper(store)
+    with pytest.raises(pipeline.PipelineError, match=match):
+        pipeline.open_maps(store)
+
+
 def test_a_dem_store_given_as_maps_says_so(tmp_path):
     """A DEM store (write_dem, `pipeline dem import`) given where a maps store goes: it says
     which it is and what to do (it said "not a maps store of this version ... rebuild it")."""

@@ -431,12 +431,15 @@ def open_store(maps: Maps) -> MapsStore:
 def open_maps(store: str | os.PathLike, chunks: Chunks = "store") -> xr.Dataset:
     """Open a maps store lazily as an ``xarray.Dataset``; ``chunks="store"`` keeps the blocks
     the store was written in (its shards: a dask chunk per shard, not per inner chunk).
-    ``attrs["store"]`` holds its path, so :func:`pipeline.plan` accepts the Dataset too."""
+
+    The Dataset is a view of the store's :class:`MapsStore` (:func:`open_store`, which checks
+    the store's version, layers and attributes; its ``dataset`` is this view):
+    ``attrs["store"]`` holds the path, so every function that takes a maps store takes the
+    Dataset too."""
     import xarray as xr
     import zarr
 
-    store = location(store)
-    _require_store(store)
+    store = open_store(store).path  # a store that is missing, outdated or damaged says so
     try:
         opts = dict(consolidated=False, zarr_format=3)
         shards = None
@@ -456,7 +459,6 @@ def open_maps(store: str | os.PathLike, chunks: Chunks = "store") -> xr.Dataset:
         if not is_url(store):
             raise
         raise unreachable(store, exc) from None
-    _require_version(store, ds.attrs)
     ds.attrs["store"] = store
     ds.attrs["parameters"] = (
         json.loads(ds.attrs["parameters"])
