@@ -31,6 +31,14 @@ Priority-Flood, 2016; parallel flow accumulation, 2017), reimplemented from the 
 Only perimeter data crosses between tiles, and the results equal the single-array ones cell
 for cell (integer accumulation, fill values copied from the input).
 
+One algorithm, driven three ways over the same kernels (the tile fill, D8, the accumulation
+walk and the two global solves): in memory (``fill_single``, ``accumulation_single``: a numpy
+array, no dask), as a lazy dask graph (``fill_depressions`` and ``flow_accumulation`` of a
+chunked DEM: the tiles' summaries are tasks of the graph, so nothing is written to disk and
+the caller owns no scratch), and staged (``flood_and_solve``: the maps build, each tile
+flooded once and kept in scratch tiles, which the build's per-tile pass reads beside the
+other layers). All three equal the in-memory result cell for cell for any tiling.
+
 Fills, whole-array and per tile, use descent basins and a minimax over the basins that touch
 (no priority queue over cells, ``_basin_fill``); accumulations walk each flow chain once from
 its sources (``_accumulate_single`` for a whole array in memory, ``_accumulate`` per tile).

@@ -290,9 +290,9 @@ def test_not_a_dataarray():
 
 
 @pytest.mark.parametrize("chunks", [(7, 5), (64, 64), (100, 37), (90, 70), (89, 23)])
-def test_staged_build_path_equals_single_array(tmp_path, chunks):
-    """The path build_maps takes (each tile flooded once, a scratch Zarr store, elementwise
-    finish with halos) equals the single array too."""
+def test_staged_ridge_layers_equal_single_array(tmp_path, chunks):
+    """The staged passes (each tile flooded once, scratch tiles, elementwise finish with
+    halos), composed as ridge_layers_staged does, equal the single array too."""
     import dask
     import dask.array as da
 
@@ -306,3 +306,19 @@ def test_staged_build_path_equals_single_array(tmp_path, chunks):
     np.testing.assert_array_equal(fv, F)
     np.testing.assert_array_equal(av, A)
     np.testing.assert_array_equal(rv, A >= 20)
+
+
+@pytest.mark.parametrize("chunks", [(7, 5), (89, 23), (90, 69), (64, 64)])
+def test_build_maps_ridge_layers_equal_single_array(tmp_path, chunks):
+    """The ridge layers build_maps writes (its own pass 3: a tile's accumulation beside its
+    other layers) equal the single-array fill and accumulation (checked against pysheds
+    above) for awkward tilings: tiles of 7 x 5, a last row of tiles one cell high, a last
+    column one cell wide, no-data holes and flats."""
+    z = random_surface((90, 70), seed=21, flats=True, holes=True) - 3000.0
+    dem = metric_dataarray(z, a=30.0).chunk(dict(zip(("y", "x"), chunks, strict=True)))
+    maps = pipeline.build_maps(
+        dem, tmp_path / "m.zarr", clearance=30.0, min_accumulation=20, landmarks=0
+    )
+    A = accumulation_single(fill_single(z))
+    np.testing.assert_array_equal(maps["accumulation"].values, A)
+    np.testing.assert_array_equal(maps["ridge"].values, A >= 20)
