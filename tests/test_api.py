@@ -3,6 +3,7 @@ behind one ``plan()``, the local cluster's size, real processes and a real Local
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -385,6 +386,29 @@ def test_write_mission_writes_a_folder_of_its_own_and_replaces_only_that(store, 
     with pytest.raises(pipeline.InvalidParameterError, match="local folder"):
         pipeline.write_mission(path, t, f, "s3://bucket/m3")
     assert not (tmp_path / "m2").exists()
+
+
+def test_a_new_output_format_is_one_writer_and_one_registry_line(store, tmp_path, monkeypatch):
+    """The FORMATS registry is the one place a mission folder's files are listed: a format
+    registered there (a plain-text list of the waypoints in longitude and latitude) is
+    written by ``write_mission`` beside the others, from the same waypoint table (its
+    positions are the GeoJSON file's)."""
+    from pipeline.outputs.files import FORMATS, Format
+
+    def listing(m, path):
+        rows = zip(m.table["lon"], m.table["lat"], m.table["depth_m"], strict=True)
+        path.write_text("".join(f"{lon:.8f} {lat:.8f} {d:.2f}\n" for lon, lat, d in rows))
+
+    fmt = Format("waypoints.txt", "waypoints (text)", "text/plain", ("data",), listing, True)
+    monkeypatch.setitem(FORMATS, "text", fmt)
+    path, s, g = store
+    t = pipeline.plan(path, tuple(s), tuple(g))
+    f = pipeline.fly(path, t)
+    files = pipeline.write_mission(path, t, f, tmp_path / "m1")
+    rows = np.loadtxt(files["text"], ndmin=2)
+    assert files["text"].name == "waypoints.txt" and len(rows) == len(f.waypoints)
+    geo = json.loads(files["waypoints"].read_text())["features"][:-1]
+    np.testing.assert_allclose(rows[:, :2], [p["geometry"]["coordinates"][:2] for p in geo])
 
 
 def test_a_submodule_is_reached_as_an_attribute():

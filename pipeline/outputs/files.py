@@ -17,6 +17,8 @@ import math
 import re
 import struct
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 from xml.sax.saxutils import escape
@@ -31,8 +33,6 @@ if TYPE_CHECKING:
     from ..trajectory import Trajectory
 
 PARQUET = "application/vnd.apache.parquet"
-# the files that need latitudes and longitudes: not written for a DEM without a CRS
-LONLAT_FILES = ("waypoints.geojson", "mission.waypoints", "mission.kml", "mission.imc")
 KML_TRACK_POINTS = 4000
 # the tracks' columns are floats that hardly repeat: pyarrow's default dictionary encoding is
 # tried on each, abandoned, and made a track's write several times slower and its file larger
@@ -491,64 +491,129 @@ def imc_plan(plan_id: str, description: str, table: dict, *, timestamp=None) -> 
     return body + struct.pack("<H", crc16(body))
 
 
+@dataclass(frozen=True)
+class Mission:
+    """What a mission's files are written from: its name and plan id, the trajectory and its
+    flight, the maps' CRS (WKT or None), the flown track in longitude and latitude (or None
+    without a CRS) and the waypoint table (:func:`waypoint_table`)."""
+
+    name: str
+    plan_id: str
+    traj: object
+    flight: object
+    crs_wkt: str | None
+    lonlat: tuple | None
+    table: dict
+
+
+@dataclass(frozen=True)
+class Format:
+    """One file of a mission folder: its name, the catalog asset's title, media type and
+    roles, and ``write(mission, path)``. A format with ``lonlat`` needs the track in
+    longitude and latitude (a DEM with a CRS); ``write`` may raise :class:`PlanTooLargeError`
+    to skip its file with the reason."""
+
+    file: str
+    title: str
+    media_type: str
+    roles: tuple[str, ...]
+    write: Callable[[Mission, Path], None]
+    lonlat: bool = False
+
+
+def _bytes(make: Callable[[Mission], bytes | str]) -> Callable[[Mission, Path], None]:
+    """A writer of the file's content ``make(mission)`` (text as UTF-8)."""
+
+    def write(m: Mission, path: Path) -> None:
+        data = make(m)
+        path.write_bytes(data.encode() if isinstance(data, str) else data)
+
+    return write
+
+
+# a mission folder's files, in the order they are written; a new output format is a writer
+# and one line here
+FORMATS = {
+    "track": Format(
+        "track.parquet",
+        "flown track (x, y, z, altitude, time)",
+        PARQUET,
+        ("data",),
+        lambda m, path: write_track(path, m.flight, m.crs_wkt, m.lonlat),
+    ),
+    "grid-path": Format(
+        "grid-path.parquet",
+        "planned grid path (cells)",
+        PARQUET,
+        ("data",),
+        lambda m, path: write_grid_path(path, m.traj, m.crs_wkt),
+    ),
+    "waypoints-csv": Format(
+        "waypoints.csv",
+        "waypoints (CSV)",
+        "text/csv",
+        ("data",),
+        lambda m, path: write_waypoints_csv(path, m.table),
+    ),
+    "waypoints": Format(
+        "waypoints.geojson",
+        "waypoints (GeoJSON, WGS84)",
+        "application/geo+json",
+        ("data",),
+        _bytes(lambda m: waypoints_geojson(m.table)),
+        lonlat=True,
+    ),
+    "qgc": Format(
+        "mission.waypoints",
+        "QGroundControl / ArduSub mission (QGC WPL 110)",
+        "text/plain",
+        ("data",),
+        _bytes(lambda m: qgc_wpl(m.table, acceptance_radii(m.table, m.flight.turn_radius_m))),
+        lonlat=True,
+    ),
+    "kml": Format(
+        "mission.kml",
+        "Google Earth (KML)",
+        "application/vnd.google-earth.kml+xml",
+        ("visual",),
+        _bytes(lambda m: kml(m.name, m.flight, m.table, m.lonlat)),
+        lonlat=True,
+    ),
+    "imc": Format(
+        "mission.imc",
+        "LSTS IMC PlanSpecification with a FollowPath (Neptus, DUNE)",
+        "application/octet-stream",
+        ("data",),
+        _bytes(lambda m: imc_plan(m.plan_id, m.name[:200], m.table)),
+        lonlat=True,
+    ),
+}
+# the files in longitude and latitude, not written without a CRS
+LONLAT_FILES = tuple(f.file for f in FORMATS.values() if f.lonlat)
+
+
 def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, sea_level) -> dict:
-    """Every file of a mission with a flight into ``folder``; returns ``{asset key: (file,
-    title, media type, roles)}``, and under ``"skipped"`` why a file was not written (an IMC
-    plan too large for one message). Without a CRS the ``LONLAT_FILES`` are not written."""
+    """Every file of :data:`FORMATS` of a mission with a flight into ``folder``; returns
+    ``{asset key: (file, title, media type, roles)}``, and under ``"skipped"`` why a file was
+    not written (an IMC plan too large for one message). Without a CRS the ``LONLAT_FILES``
+    are not written."""
     f = traj.flight
     folder = Path(folder)
-    lonlat = to_lonlat(crs_wkt, f.x, f.y)
-    out = {}
-    write_track(folder / "track.parquet", f, crs_wkt, lonlat)
-    out["track"] = ("track.parquet", "flown track (x, y, z, altitude, time)", PARQUET, ["data"])
-    write_grid_path(folder / "grid-path.parquet", traj, crs_wkt)
-    out["grid-path"] = ("grid-path.parquet", "planned grid path (cells)", PARQUET, ["data"])
     wll = to_lonlat(crs_wkt, f.waypoints[:, 0], f.waypoints[:, 1])
     table = waypoint_table(f, sea_level, wll)
-    write_waypoints_csv(folder / "waypoints.csv", table)
-    out["waypoints-csv"] = ("waypoints.csv", "waypoints (CSV)", "text/csv", ["data"])
-    if wll is None:
-        return out
-    geojson_file, qgc_file, kml_file, imc_file = LONLAT_FILES
-    try:
-        imc = imc_plan(plan_id, name[:200], table)
-    except PlanTooLargeError as e:
-        imc, out["skipped"] = None, f"{imc_file}: {e}"
-    lonlat_files = {  # asset key: (file, content, title, media type, roles)
-        "waypoints": (
-            geojson_file,
-            waypoints_geojson(table).encode(),
-            "waypoints (GeoJSON, WGS84)",
-            "application/geo+json",
-            ["data"],
-        ),
-        "qgc": (
-            qgc_file,
-            qgc_wpl(table, acceptance_radii(table, f.turn_radius_m)).encode(),
-            "QGroundControl / ArduSub mission (QGC WPL 110)",
-            "text/plain",
-            ["data"],
-        ),
-        "kml": (
-            kml_file,
-            kml(name, f, table, lonlat),
-            "Google Earth (KML)",
-            "application/vnd.google-earth.kml+xml",
-            ["visual"],
-        ),
-        "imc": (
-            imc_file,
-            imc,
-            "LSTS IMC PlanSpecification with a FollowPath (Neptus, DUNE)",
-            "application/octet-stream",
-            ["data"],
-        ),
-    }
-    for key, (file, content, *meta) in lonlat_files.items():
-        if content is None:
+    m = Mission(name, plan_id, traj, f, crs_wkt, to_lonlat(crs_wkt, f.x, f.y), table)
+    out, skipped = {}, []
+    for key, fmt in FORMATS.items():
+        if fmt.lonlat and wll is None:
             continue
-        (folder / file).write_bytes(content)
-        out[key] = (file, *meta)
+        try:
+            fmt.write(m, folder / fmt.file)
+        except PlanTooLargeError as e:
+            skipped.append(f"{fmt.file}: {e}")
+            continue
+        out[key] = (fmt.file, fmt.title, fmt.media_type, list(fmt.roles))
+    if skipped:
+        out["skipped"] = "; ".join(skipped)
     return out
 
 
