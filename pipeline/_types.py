@@ -7,11 +7,14 @@ import os
 from typing import TYPE_CHECKING, Union
 
 if TYPE_CHECKING:
+    import geopandas as gpd
     import xarray as xr
     from distributed import Client
+    from shapely.geometry.base import BaseGeometry
 
     from .flight.vehicle import Vehicle
     from .store.maps_store import MapsStore
+    from .zones import KeepOut
 
 # a file or store: a path, or for stores a URL (s3://...)
 PathLike = str | os.PathLike
@@ -31,3 +34,5 @@ ClientLike = Union[None, str, "Client"]
 DEMLike = Union[str, os.PathLike, "xr.DataArray", "xr.Dataset"]
 # a vehicle: a Vehicle, a dict of its keys, or None (the defaults)
 VehicleLike = Union["Vehicle", dict, None]
+# keep-out zones: vector files, a GeoDataFrame, shapely polygons (map coordinates) or KeepOut
+ZonesLike = Union[str, os.PathLike, list, "gpd.GeoDataFrame", "BaseGeometry", "KeepOut", None]

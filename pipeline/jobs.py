@@ -18,6 +18,8 @@ A job file::
     planner = "ra_star"         # section_size, margin, coarse_planner, coarse_weight,
                                 # repair_max_cells
     omega = 2.0
+    keep_out = ["zones.geojson"]   # areas never entered (vector files, relative to the
+    keep_out_margin_m = 100.0      # job file; any CRS), kept at this distance
     [vehicle]                   # speed_m_s, max_pitch_deg, min_turn_radius_m, waypoint_band_m,
     speed_m_s = 1.5             # hotel_power_w, propulsion_power_w, battery_wh
     [[missions]]
@@ -42,6 +44,7 @@ import os
 import shutil
 import tomllib
 from dataclasses import dataclass, field
+from glob import escape as glob_escape
 from pathlib import Path
 
 from .exceptions import (
@@ -149,6 +152,8 @@ class Job:
             "maps": self.maps_fingerprint(),
             "revision": RESULTS_REVISION,
         }
+        if plan.get("keep_out"):
+            what["zones"] = [_file_stamp(f) for f in plan["keep_out"]]
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
     def vehicle_of(self, mission: dict) -> dict:
@@ -178,6 +183,15 @@ class Job:
             what = {"synthetic": self.synthetic, "version": GENERATOR_VERSION}
         what["chunks"] = self.chunks
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _file_stamp(path: str) -> list:
+    """The size and modification time of a file and of those beside it that share its stem
+    (a Shapefile's .dbf and .prj): a mission planned with zones is planned again when they
+    change."""
+    p = Path(path)
+    files = sorted(p.parent.glob(glob_escape(p.stem) + ".*")) if p.is_file() else [p]
+    return [[f.name, *(lambda st: (st.st_size, st.st_mtime_ns))(f.stat())] for f in files]
 
 
 def _fail(path: Path, msg: str):
@@ -420,6 +434,24 @@ def _load_planning(path, doc, job):
         _fail(path, "[planning] must be a table")
     _check_keys(path, t, PLANNING.names(), "planning.")
     job.planning = _checked(path, PLANNING, t, "planning.")
+    _zone_files(path, job.planning, "planning.")
+
+
+def _zone_files(path: Path, table: dict, where: str) -> None:
+    """``table``'s keep_out files as absolute paths (relative to the job file), each read and
+    checked as a run reads it: a missing or unreadable file, a geometry that is not a
+    polygon, a file without a CRS is one :class:`JobFileError` (``--dry-run`` included)."""
+    from .zones import read_zone_file
+
+    if table.get("keep_out") is None:
+        return
+    files = [str((path.parent / p).resolve()) for p in table["keep_out"]]
+    for f in files:
+        try:
+            read_zone_file(f)
+        except InvalidParameterError as exc:
+            _fail(path, f"{where}keep_out: {exc}")
+    table["keep_out"] = files
 
 
 def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:
@@ -500,6 +532,7 @@ def _load_missions(path, doc, job):
             mission[f"{end}_input"] = list(v)
         plan = {k: m[k] for k in PLANNING.names() if k in m}
         mission.update(_checked(path, PLANNING, plan, where))
+        _zone_files(path, mission, where)
         if "vehicle" in m:
             mission["vehicle"] = _load_vehicle(path, m["vehicle"], f"{where}vehicle.", job.vehicle)
         job.missions.append(mission)

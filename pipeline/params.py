@@ -51,6 +51,8 @@ class Param:
             return f"four finite numbers {self.unit}, each minimum below its maximum"
         if self.kind == "str":
             return "a string"
+        if self.kind == "paths":
+            return "a file path or a list of file paths"
         if self.kind == "choice":
             names = [repr(c) for c in self.options()]
             return (", ".join(names[:-1]) + " or " + names[-1]) if len(names) > 1 else names[0]
@@ -85,6 +87,11 @@ class Param:
             if not isinstance(value, str) or not value:
                 raise bad()
             return value
+        if self.kind == "paths":
+            paths = [value] if isinstance(value, str) else value
+            if not isinstance(paths, list) or not all(isinstance(p, str) and p for p in paths):
+                raise bad()
+            return paths
         if self.kind == "choice":
             if not isinstance(value, str) or value not in self.options():
                 raise bad()
@@ -346,6 +353,21 @@ PLANNING = Schema(
         "a path MCPC cannot certify is planned again on the whole map when the map has at "
         "most this many cells (0: never)",
         "cells",
+        minimum=0,
+    ),
+    Param(
+        "keep_out",
+        "paths",
+        None,
+        "keep-out zones the route and the flown track never enter: vector files (GeoJSON, "
+        "GeoPackage, Shapefile; polygons in any CRS), relative to the job file",
+    ),
+    Param(
+        "keep_out_margin_m",
+        "float",
+        None,
+        "distance kept from every keep-out zone; default 0",
+        "metres",
         minimum=0,
     ),
 )

@@ -500,6 +500,7 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
     if res.skipped:
         log.info("%d missions finished before: skipped (--overwrite plans them again)", res.skipped)
     ready, bad = [], []
+    zones = _Zones(job, maps)
     for m in todo:
         try:
             ready.append(
@@ -507,6 +508,7 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
                     **m,
                     "start": maps.cell_of("start", m["start_form"], m["start_input"]),
                     "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"]),
+                    **zones.of(m),
                 }
             )
         except Exception as exc:  # noqa: BLE001 - one mission's failure, not the batch's
@@ -515,15 +517,41 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
     for m, msg in bad:
         record(m, failed_trajectory({**job.planning, **m}, msg))
     if ready:
+        defaults = {k: v for k, v in job.planning.items() if k != "keep_out"}
         plan_missions(
             maps,
             ready,
             client=client,
-            defaults=job.planning,
+            defaults=defaults,
             vehicle=job.vehicle,
             quicklooks=job.quicklooks,  # drawn on the workers, side by side
-            on_done=lambda i, mission, traj: record(mission, traj),
+            # recorded as the job gives it (the zones' files, not their geometry)
+            on_done=lambda i, mission, traj: record(
+                {k: v for k, v in mission.items() if k != "keep_out"}, traj
+            ),
         )
+
+
+class _Zones:
+    """The keep-out zones of a job's missions, read once in this process (each distinct set
+    of files and margin) and sent to the workers as geometry: a cluster's workers need not
+    see the job's files."""
+
+    def __init__(self, job: Job, maps):
+        self.job, self.crs, self.read = job, maps.crs_wkt, {}
+
+    def of(self, mission: dict) -> dict:
+        """The mission's ``keep_out`` as :class:`pipeline.zones.KeepOut` (none: ``{}``)."""
+        from .zones import read_zones
+
+        files = mission.get("keep_out", self.job.planning.get("keep_out"))
+        if not files:
+            return {}
+        margin = mission.get("keep_out_margin_m", self.job.planning.get("keep_out_margin_m"))
+        key = (tuple(files), margin)
+        if key not in self.read:
+            self.read[key] = read_zones(files, self.crs, margin)
+        return {"keep_out": self.read[key]}
 
 
 class _Recorder:

@@ -40,6 +40,7 @@ class Trajectory:
     message: str = ""
     extra: dict = field(default_factory=dict)
     flight: object = None  # the flown track (pipeline.flight.vehicle.Flight), when computed
+    keep_out: object = None  # the keep-out zones it avoids (pipeline.zones.KeepOut), if any
 
     @property
     def certified_ratio(self) -> float:

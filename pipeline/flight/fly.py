@@ -102,9 +102,10 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     (True, 41)
     """
     from ..store.maps_store import open_store
+    from ..zones import zoned
 
     t0 = time.perf_counter()
-    m = open_store(maps)
+    m = zoned(open_store(maps), traj.keep_out)  # the zones it was planned to avoid
     veh = Vehicle.of(vehicle)
     if not traj.planned or len(traj.cells) < 2:
         raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
@@ -258,7 +259,13 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
     }
     track["known"] = not (np.isnan(h_track).any() or np.isnan(hq).any())
+    from ..zones import entered
+
     problems = []
+    keep_out = getattr(ctx.m, "keep_out", None)
+    zones = entered(keep_out, _map_xy(ctx.m, pr, pc), _map_xy(ctx.m, qr, qc))
+    if zones:
+        problems.append(f"the flown route enters keep-out zone {', '.join(map(repr, zones))}")
     if not track["known"]:
         problems.append("the terrain near the track is unknown (no-data) at some samples")
     elif max(z_t.max(), zq.max()) > ctx.top_ok:
@@ -303,6 +310,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         route_length=route_length,
         problems=problems,
         over=over,
+        zones=zones,
         unsure=unsure,
         grid=grid,
     )
@@ -311,7 +319,10 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
 def _pick(results: list) -> dict:
     """The first smoothing that keeps every limit; else the first whose only fault is a
     length above the proven bound (the mission is then "uncertified", as a planned path would
-    be); else the first with the fewest faults."""
+    be); else the first with the fewest faults, of those that enter no keep-out zone when
+    there are such."""
+    clear = [r for r in results if not r["zones"]]
+    results = clear or results
     pick = next((r for r in results if not r["problems"]), None)
     pick = pick or next((r for r in results if r["problems"] == [r["over"]]), None)
     return pick or min(results, key=lambda r: len(r["problems"]))

@@ -77,6 +77,7 @@ def _done(m, t: Trajectory, repair: str | None = None) -> Trajectory:
     :meth:`Trajectory.to_geodataframe` gives its points in it)."""
     if m.crs_wkt:
         t.extra["crs_wkt"] = m.crs_wkt
+    t.keep_out = getattr(m, "keep_out", None)  # the zones it avoids, for its flight
     return _certify(t, repair)
 
 

@@ -33,7 +33,7 @@ from numbers import Integral
 
 import numpy as np
 
-from .._types import Cell, ClientLike, Maps, Pair
+from .._types import Cell, ClientLike, Maps, Pair, ZonesLike
 from ..exceptions import InvalidParameterError, UnreachableGoalError
 from ..params import PLANNING, check_planner
 from ..planners.endpoints import (
@@ -169,6 +169,8 @@ def plan(
     coarse_planner: str = PLANNING.coarse_planner.default,
     coarse_weight: float = PLANNING.coarse_weight.default,
     repair_max_cells: int = PLANNING.repair_max_cells.default,
+    keep_out: ZonesLike = None,
+    keep_out_margin_m: float | None = None,
     client: ClientLike = None,
 ) -> Trajectory:
     """Plan a mission on a maps store, coarse to fine (MCPC) or in one window, and certify it.
@@ -220,6 +222,12 @@ def plan(
     repair_max_cells : int
         The largest map (rows x cols) on which an uncertified MCPC path is planned again on
         the whole map; 0 never does.
+    keep_out : path, list of paths, GeoDataFrame, shapely polygons or KeepOut, optional
+        Keep-out zones the path never enters (:mod:`pipeline.zones`): vector files geopandas
+        reads (GeoJSON, GeoPackage, Shapefile; any CRS), a GeoDataFrame, or polygons in map
+        coordinates. The trajectory keeps them (``keep_out``) for :func:`pipeline.fly`.
+    keep_out_margin_m : float, optional
+        The distance kept from every zone (default 0).
     client : None, "synchronous", "threads", scheduler address or distributed.Client
         Where the sections run (see :func:`pipeline.runtime.cluster.get_client`). None: the dask
         client this process made current, if there is one, else this process's threads (no
@@ -259,8 +267,12 @@ def plan(
         if v is not None
     }
     from ..params import endpoint_cells
+    from ..zones import check_outside, zoned
 
+    m = zoned(m, keep_out, PLANNING.keep_out_margin_m.check_optional(keep_out_margin_m))
     ends = endpoint_cells(m, given)  # as a job file gives them
+    for end in ("start", "goal"):
+        check_outside(m, end, _cell(end, ends[end]))
     start, goal = _check_endpoints(m, ends["start"], ends["goal"])
     # the components layer proves reachability at once, either way (_Reach)
     reach = _Reach(m, start, goal)

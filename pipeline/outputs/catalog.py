@@ -194,6 +194,9 @@ def write_mission(
                 "auv:expansions": int(traj.expansions),
             }
         )
+        if traj.keep_out is not None:  # the keep-out zones it avoids, and their margin
+            props["auv:keep_out"] = list(traj.keep_out.names)
+            props["auv:keep_out_margin_m"] = traj.keep_out.margin_m
         item = pystac.Item(mid, geom, bbox, _dt.datetime.now(_dt.UTC), props, assets=assets)
         if ok and crs_wkt:
             _projection(item, crs_wkt, traj)

@@ -1,0 +1,328 @@
+"""Keep-out zones (pipeline.zones): the cells they remove against shapely's brute force, the
+route, the waypoint legs and the flown track against the zones themselves (shapely, not the
+cells), the certificate against scipy's Dijkstra on the graph without the removed cells, zones
+in longitude and latitude on a UTM map, ends in a zone, goals cut off, bad zone files, and
+job files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import shapely
+from conftest import metric_dataarray, random_surface
+from pyproj import Transformer
+from references import optimum, reference_graph
+
+import pipeline
+from pipeline.exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
+from pipeline.zones import KeepOut
+
+A = 30.0
+CRS = "EPSG:32629"  # the test maps' x0 = 500 km, y0 = 5000 km: UTM zone 29 north, 9 W
+N = 120
+
+
+@pytest.fixture(scope="module")
+def zone_store(tmp_path_factory):
+    """A gently rolling deep seabed, N x N cells of 30 m, with a CRS; (path, maps)."""
+    import rioxarray  # noqa: F401
+
+    z = random_surface((N, N), seed=5) * 0.3 - 2000.0
+    dem = metric_dataarray(z.astype(np.float32), a=A).rio.write_crs(CRS).chunk(40)
+    path = tmp_path_factory.mktemp("zones") / "maps.zarr"
+    maps = pipeline.build_maps(dem, path, clearance=60.0, landmarks=4)
+    return path, maps
+
+
+def _xy(maps, cell):
+    return float(maps.x[cell[1]]), float(maps.y[cell[0]])
+
+
+def _boxes(maps):
+    """Two zones across the straight line from cell (10, 10) to (110, 110)."""
+    x0, y0 = _xy(maps, (40, 25))
+    x1, y1 = _xy(maps, (55, 70))
+    x2, y2 = _xy(maps, (70, 60))
+    x3, y3 = _xy(maps, (85, 100))
+    return {
+        "cable": shapely.box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1)),
+        "wreck": shapely.box(min(x2, x3), min(y2, y3), max(x2, x3), max(y2, y3)),
+    }
+
+
+def _removed_reference(maps, zones: dict, margin: float):
+    """The cells whose closed square comes within margin + a / 4 of a zone, by shapely."""
+    X, Y = np.meshgrid(maps.x.values, maps.y.values)
+    h = A / 2
+    boxes = shapely.box(X - h, Y - h, X + h, Y + h)
+    grown = shapely.union_all([g.buffer(margin + A / 4) for g in zones.values()])
+    return shapely.intersects(grown, boxes)
+
+
+# ------------------------------------------------------------------ the cells removed
+
+
+@pytest.mark.parametrize("margin, ascending", [(0.0, False), (10.0, True), (95.0, False)])
+def test_removed_cells_are_those_whose_square_comes_within_the_margin(margin, ascending):
+    """KeepOut.blocked against every cell's square tested by shapely: random concave
+    polygons, margins below a cell and of several, windows of odd origins and sizes, rows
+    ascending or descending."""
+    rng = np.random.default_rng(4)
+    xs = 300_000.0 + (np.arange(97) + 0.5) * A
+    ys = 6_000_000.0 - (np.arange(83) + 0.5) * A
+    if ascending:
+        ys = ys[::-1]
+    zones = []
+    for k in range(6):
+        cx, cy = rng.uniform(xs[0], xs[-1]), rng.uniform(ys.min(), ys.max())
+        t = np.sort(rng.uniform(0, 2 * np.pi, 9))
+        r = rng.uniform(10.0, 500.0, 9)  # spikes thinner than a cell too
+        zones.append((f"z{k}", shapely.Polygon(np.c_[cx + r * np.cos(t), cy + r * np.sin(t)])))
+    ko = KeepOut(tuple(zones), margin)
+    grown = shapely.union_all([g.buffer(margin + A / 4) for _, g in zones])
+    for r0, r1, c0, c1 in [(0, 83, 0, 97), (7, 8, 3, 97), (11, 60, 29, 30), (40, 83, 51, 96)]:
+        X, Y = np.meshgrid(xs[c0:c1], ys[r0:r1])
+        want = shapely.intersects(grown, shapely.box(X - A / 2, Y - A / 2, X + A / 2, Y + A / 2))
+        got = ko.blocked(xs[c0:c1], ys[r0:r1], A)
+        assert np.array_equal(got, want), (r0, r1, c0, c1)
+        assert want.any() or (r1 - r0) * (c1 - c0) < 100
+
+
+# ------------------------------------------------------------------ routes and certificates
+
+
+@pytest.mark.parametrize("planner, mcpc", [("ra_star", True), ("astar", False)])
+def test_a_route_round_the_zones_keeps_the_margin_and_its_certificate(zone_store, planner, mcpc):
+    """The grid path, the waypoint legs and the flown track keep the margin from both zones
+    (shapely on the continuous lines), the path detours (without zones it crosses them), and
+    the certificate holds against scipy's Dijkstra on the graph without the removed cells."""
+    path, maps = zone_store
+    zones, margin = _boxes(maps), 40.0
+    s, g = (10, 10), (110, 110)
+    opts = dict(planner=planner, mcpc=mcpc, omega=1.5, rho=4, section_size=24, margin=6)
+    free = pipeline.plan(path, s, g, **opts)
+    kept = shapely.union_all([z.buffer(margin) for z in zones.values()])
+    assert shapely.LineString(free.points[:, :2]).intersects(kept)  # the zones are in the way
+    t = pipeline.plan(path, s, g, keep_out=list(zones.values()), keep_out_margin_m=margin, **opts)
+    assert t.status == "ok" and t.keep_out is not None
+    for name, z in zones.items():
+        assert shapely.LineString(t.points[:, :2]).distance(z) >= margin, name
+    passable = maps["passable"].values & ~_removed_reference(maps, zones, margin)
+    best = optimum(reference_graph(maps["safety"].values, passable, A), passable.shape, s, g)
+    assert t.lower_bound_m <= best * (1 + 1e-9)
+    assert t.length_m <= 1.5 * best * (1 + 1e-9)
+    assert t.length_m > free.length_m
+    f = pipeline.fly(path, t, {"min_turn_radius_m": 45.0})
+    # the shortcuts were taken round the zones (the flight's corridor lacks their cells), not
+    # given up for the path's own corners once they entered one
+    assert not f.problems and f.smoothing == "shortcuts"
+    track = shapely.LineString(np.c_[f.x, f.y])
+    legs = shapely.LineString(f.waypoints[:, :2])
+    for name, z in zones.items():
+        assert track.distance(z) >= margin and legs.distance(z) >= margin, name
+
+
+def test_zones_in_lonlat_on_a_utm_map(zone_store, tmp_path):
+    """A GeoJSON file in WGS84 (its own CRS) on a UTM map: the route keeps out of the zone
+    taken back to UTM by pyproj, and the Item records the zone's name."""
+    path, maps = zone_store
+    box = _boxes(maps)["cable"]
+    to_ll = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True)
+    ring = np.array(box.exterior.coords)
+    dense = np.vstack([np.linspace(p, q, 20) for p, q in zip(ring[:-1], ring[1:], strict=True)])
+    lon, lat = to_ll.transform(dense[:, 0], dense[:, 1])
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {"name": "cable corridor"},
+                "geometry": {"type": "Polygon", "coordinates": [np.c_[lon, lat].tolist()]},
+            }
+        ],
+    }
+    (tmp_path / "zones.geojson").write_text(json.dumps(doc))
+    t = pipeline.plan(path, (10, 10), (110, 110), keep_out=tmp_path / "zones.geojson")
+    back = Transformer.from_crs("EPSG:4326", CRS, always_xy=True).transform(lon, lat)
+    zone = shapely.Polygon(np.c_[back])
+    assert t.status == "ok" and t.keep_out.names == ["cable corridor"]
+    assert not shapely.LineString(t.points[:, :2]).intersects(zone)
+
+
+# ------------------------------------------------------------------ ends and cut-off goals
+
+
+def test_an_end_in_a_zone_or_its_margin_names_the_zone(zone_store):
+    path, maps = zone_store
+    import geopandas as gpd
+
+    zones = _boxes(maps)
+    frame = gpd.GeoDataFrame({"name": list(zones)}, geometry=list(zones.values()))
+    inside = (47, 50)
+    with pytest.raises(
+        InvalidEndpointError, match=r"start \(47, 50\) lies in keep-out zone 'cable'"
+    ):
+        pipeline.plan(path, inside, (110, 110), keep_out=frame)
+    x, y = _xy(maps, (110, 110))
+    near = {"buoy": shapely.Point(x + 100.0, y).buffer(20.0)}  # the goal 80 m from it
+    with pytest.raises(InvalidEndpointError, match=r"goal .* 'keep_out\[0\].* margin of 90 m"):
+        pipeline.plan(
+            path, (10, 10), (110, 110), keep_out=list(near.values()), keep_out_margin_m=90
+        )
+
+
+def test_a_goal_cut_off_by_zones_is_unreachable_at_once_and_the_batch_goes_on(zone_store):
+    """A ring of zones round the goal: proven unreachable within a second (the closed region
+    round it), named; in plan_missions that mission fails with the reason and the other is
+    planned."""
+    path, maps = zone_store
+    x, y = _xy(maps, (100, 100))
+    ring = shapely.Point(x, y).buffer(300.0).difference(shapely.Point(x, y).buffer(200.0))
+    t0 = time.perf_counter()
+    with pytest.raises(UnreachableGoalError, match="keep-out zones .* close off"):
+        pipeline.plan(path, (10, 10), (100, 100), keep_out=[ring])
+    assert time.perf_counter() - t0 < 5.0
+    ts = pipeline.plan_missions(
+        path,
+        [
+            {"start": (10, 10), "goal": (100, 100), "keep_out": [ring]},
+            {"start": (10, 10), "goal": (30, 100), "keep_out": [ring]},
+        ],
+        client="threads",
+    )
+    assert ts[0].status == "failed" and "close off" in ts[0].message
+    assert ts[1].status == "ok"
+
+
+# ------------------------------------------------------------------ bad zone files
+
+
+def _gpkg_without_crs(path):
+    import warnings
+
+    import geopandas as gpd
+
+    with warnings.catch_warnings():  # pyogrio: "'crs' was not provided"
+        warnings.simplefilter("ignore", UserWarning)
+        gpd.GeoDataFrame({"name": ["a"]}, geometry=[shapely.box(0, 0, 1, 1)]).to_file(path)
+    return path
+
+
+def _points(path):
+    import geopandas as gpd
+
+    gpd.GeoDataFrame(
+        {"name": ["mooring"]}, geometry=[shapely.Point(-9.0, 45.0)], crs="EPSG:4326"
+    ).to_file(path)
+    return path
+
+
+BAD = [
+    ("missing.geojson", lambda p: p, "does not exist"),
+    ("garbage.geojson", lambda p: (p.write_text("{not json"), p)[1], "cannot be read"),
+    ("points.geojson", _points, "'mooring' .* is a Point, not a polygon"),
+    ("nocrs.gpkg", _gpkg_without_crs, "has no coordinate reference system"),
+]
+
+
+@pytest.mark.parametrize("name, make, match", BAD, ids=[b[0] for b in BAD])
+def test_bad_zone_files_are_one_line_in_the_api_and_the_job(
+    zone_store, tmp_path, name, make, match
+):
+    path, _ = zone_store
+    zf = make(tmp_path / name)
+    with pytest.raises(InvalidParameterError, match=match):
+        pipeline.plan(path, (10, 10), (110, 110), keep_out=zf)
+    job = tmp_path / "job.toml"
+    job.write_text(
+        f'name = "z"\n[dem.synthetic]\nshape = [64, 64]\n[planning]\nkeep_out = ["{name}"]\n'
+        '[[missions]]\nstart = [1, 1]\ngoal = [60, 60]\n[output]\ncatalog = "out"\n'
+    )
+    got = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(job), "--dry-run"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert got.returncode == 2, got.stderr
+    lines = got.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and "planning.keep_out" in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_zones_with_a_crs_on_a_map_without_one_say_so(tmp_path):
+    dem = pipeline.synthetic_dem((64, 64), cell_size=30.0, seed=1, chunks=None, georeferenced=False)
+    pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=0)
+    import geopandas as gpd
+
+    zone = gpd.GeoDataFrame(geometry=[shapely.box(-9, 45, -8.9, 45.1)], crs="EPSG:4326")
+    with pytest.raises(InvalidParameterError, match="the maps have none"):
+        pipeline.plan(tmp_path / "m.zarr", (1, 1), (60, 60), keep_out=zone)
+
+
+def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local_client):
+    """[planning] keep_out (a file relative to the job, in WGS84) and a mission's own
+    keep_out: the job's missions keep out of the zones on a real cluster (the zones read
+    once in the client and sent as geometry), each Item names its zones and margin, a
+    mission whose goal lies in its own zone fails with the zone's name, the other completes;
+    a re-run skips the finished one, and plans it again once its zone file changed."""
+    import geopandas as gpd
+
+    from pipeline.outputs.catalog import finished
+    from pipeline.run import run_job
+
+    dem = pipeline.synthetic_dem((160, 160), cell_size=30.0, seed=2, chunks=None)
+    ll = Transformer.from_crs(dem.attrs["crs_wkt"], "EPSG:4326", always_xy=True)
+    x, y = float(dem.x[80]), float(dem.y[80])
+    square = shapely.box(x - 450, y - 450, x + 450, y + 450)
+    zone = shapely.Polygon(np.c_[ll.transform(*np.array(square.exterior.coords).T)])
+    (tmp_path / "z").mkdir()
+    gpd.GeoDataFrame({"name": ["exercise area"]}, geometry=[zone], crs="EPSG:4326").to_file(
+        tmp_path / "z" / "zones.geojson"
+    )
+    near = shapely.Polygon(
+        np.c_[
+            ll.transform(
+                *np.array(shapely.box(x - 100, y - 2000, x + 100, y + 2000).exterior.coords).T
+            )
+        ]
+    )
+    gpd.GeoDataFrame({"name": ["cable"]}, geometry=[near], crs="EPSG:4326").to_file(
+        tmp_path / "z" / "cable.geojson"
+    )
+    job = tmp_path / "job.toml"
+    job.write_text(
+        'name = "zones"\n[dem]\nchunks = 80\n[dem.synthetic]\nshape = [160, 160]\nseed = 2\n'
+        "[maps]\nclearance = 60.0\nlandmarks = 2\n"
+        '[planning]\nkeep_out = ["z/zones.geojson"]\nkeep_out_margin_m = 60.0\n'
+        "rho = 4\nsection_size = 24\n"
+        '[[missions]]\nname = "across"\nstart = [20, 20]\ngoal = [140, 140]\n'
+        '[[missions]]\nname = "on the cable"\nstart = [20, 20]\ngoal = [80, 80]\n'
+        'keep_out = ["z/cable.geojson"]\n'
+        '[output]\ncatalog = "out"\nquicklooks = false\nperformance_report = false\n'
+    )
+    res = run_job(job, scheduler=local_client)
+    across = finished(tmp_path / "out", "across")
+    cable = finished(tmp_path / "out", "on the cable")
+    p = across["properties"]
+    assert p["auv:status"] == "ok", p["auv:message"]
+    assert p["auv:keep_out"] == ["exercise area"] and p["auv:keep_out_margin_m"] == 60.0
+    track = gpd.read_parquet(tmp_path / "out" / "missions" / "across" / "track.parquet")
+    utm = track.to_crs(dem.attrs["crs_wkt"]) if track.crs is not None else track
+    assert shapely.LineString(utm.geometry.get_coordinates().values).distance(square) >= 60.0
+    q = cable["properties"]
+    assert q["auv:status"] == "failed" and "keep-out zone 'cable'" in q["auv:message"]
+    assert res.failed == ["on the cable"]
+    again = run_job(job, scheduler=local_client)
+    assert again.skipped == 1  # the finished one (a failed mission is tried again)
+    (tmp_path / "z" / "zones.geojson").write_text(
+        (tmp_path / "z" / "zones.geojson").read_text().replace("exercise area", "range")
+    )
+    third = run_job(job, scheduler=local_client)
+    assert third.skipped == 0  # the mission of the changed file planned again
+    assert finished(tmp_path / "out", "across")["properties"]["auv:keep_out"] == ["range"]
