@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,6 +132,7 @@ class KeepOut:
 
 def _rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
     """``geom`` burnt into the grid of cell centres ``xs``, ``ys`` (either direction)."""
+    from rasterio.errors import NotGeoreferencedWarning
     from rasterio.features import rasterize
     from rasterio.transform import Affine
 
@@ -139,13 +141,15 @@ def _rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
         return np.zeros(shape, dtype=bool)
     flip_y, flip_x = len(ys) > 1 and ys[1] > ys[0], len(xs) > 1 and xs[1] < xs[0]
     west, north = xs.min() - 0.5 * a, ys.max() + 0.5 * a
-    burnt = rasterize(
-        [(geom, 1)],
-        out_shape=shape,
-        transform=Affine(a, 0.0, west, 0.0, -a, north),
-        all_touched=all_touched,
-        dtype="uint8",
-    ).astype(bool)
+    with warnings.catch_warnings():  # (rasterio takes a window of one row for no transform)
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        burnt = rasterize(
+            [(geom, 1)],
+            out_shape=shape,
+            transform=Affine(a, 0.0, west, 0.0, -a, north),
+            all_touched=all_touched,
+            dtype="uint8",
+        ).astype(bool)
     if flip_y:
         burnt = burnt[::-1]
     if flip_x:

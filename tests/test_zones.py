@@ -315,6 +315,18 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
     track = gpd.read_parquet(tmp_path / "out" / "missions" / "across" / "track.parquet")
     utm = track.to_crs(dem.attrs["crs_wkt"]) if track.crs is not None else track
     assert shapely.LineString(utm.geometry.get_coordinates().values).distance(square) >= 60.0
+    # the zones' file, as GeoJSON readers take it: the zone where it was, in longitude and
+    # latitude; the report draws it in Chromium
+    got = gpd.read_file(tmp_path / "out" / "missions" / "across" / "keep-out.geojson")
+    assert list(got["name"]) == ["exercise area"] and list(got["margin_m"]) == [60.0]
+    back = got.to_crs(dem.attrs["crs_wkt"]).geometry[0]
+    assert back.hausdorff_distance(square) < 0.01 and "keep-out" in across["assets"]
+    from _browser import offline_page
+
+    with offline_page(tmp_path / "out" / "index.html") as (page, problems):
+        assert page.locator("path.zone").count() == 1
+        assert page.locator("path.track").count() == 1
+    assert not any(problems.values()), problems
     q = cable["properties"]
     assert q["auv:status"] == "failed" and "keep-out zone 'cable'" in q["auv:message"]
     assert res.failed == ["on the cable"]

@@ -241,6 +241,30 @@ def waypoints_geojson(table: dict) -> str:
     return '{"type": "FeatureCollection", "features": [' + ", ".join(feats) + "]}"
 
 
+def keep_out_geojson(keep_out, crs_wkt: str) -> str:
+    """RFC 7946: one Feature per keep-out zone (its ``name`` and the ``margin_m`` kept from
+    it), the polygon in WGS84 longitude and latitude, its edges divided every 50 m first so
+    that the reprojected shape follows the zone."""
+    import json
+
+    import shapely
+
+    tr = _to_wgs84(crs_wkt)
+    feats = []
+    for name, g in keep_out.zones:
+        g = shapely.segmentize(g, 50.0)
+        if tr is not None:
+            g = shapely.transform(g, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
+        feats.append(
+            {
+                "type": "Feature",
+                "geometry": shapely.geometry.mapping(g),
+                "properties": {"name": name, "margin_m": keep_out.margin_m},
+            }
+        )
+    return json.dumps({"type": "FeatureCollection", "features": feats})
+
+
 # MAVLink: MAV_CMD_NAV_WAYPOINT, MAV_FRAME_GLOBAL, MAV_FRAME_GLOBAL_RELATIVE_ALT
 _NAV_WAYPOINT, _FRAME_GLOBAL, _FRAME_RELATIVE_ALT = 16, 0, 3
 
@@ -519,6 +543,7 @@ class Format:
     roles: tuple[str, ...]
     write: Callable[[Mission, Path], None]
     lonlat: bool = False
+    wanted: Callable[[Mission], bool] | None = None  # None: every mission has this file
 
 
 def _bytes(make: Callable[[Mission], bytes | str]) -> Callable[[Mission, Path], None]:
@@ -587,6 +612,15 @@ FORMATS = {
         _bytes(lambda m: imc_plan(m.plan_id, m.name[:200], m.table)),
         lonlat=True,
     ),
+    "keep-out": Format(
+        "keep-out.geojson",
+        "keep-out zones avoided (GeoJSON, WGS84)",
+        "application/geo+json",
+        ("data",),
+        _bytes(lambda m: keep_out_geojson(m.traj.keep_out, m.crs_wkt)),
+        lonlat=True,
+        wanted=lambda m: m.traj.keep_out is not None,
+    ),
 }
 # the files in longitude and latitude, not written without a CRS
 LONLAT_FILES = tuple(f.file for f in FORMATS.values() if f.lonlat)
@@ -604,7 +638,7 @@ def write_mission_files(folder: Path, name: str, plan_id: str, traj, crs_wkt, se
     m = Mission(name, plan_id, traj, f, crs_wkt, to_lonlat(crs_wkt, f.x, f.y), table)
     out, skipped = {}, []
     for key, fmt in FORMATS.items():
-        if fmt.lonlat and wll is None:
+        if (fmt.lonlat and wll is None) or (fmt.wanted is not None and not fmt.wanted(m)):
             continue
         try:
             fmt.write(m, folder / fmt.file)

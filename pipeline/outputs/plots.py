@@ -337,6 +337,7 @@ def _plan_view(ax, sub, rdg, traj, crs_wkt) -> list:
     )
     if crs_wkt:
         graticule(ax, crs_wkt, ext)
+    zones = _keep_out(ax, traj.keep_out, ext)
     gx, gy = traj.points[:, 0] / 1e3, traj.points[:, 1] / 1e3
     ax.plot(gx, gy, color="0.25", lw=0.8, alpha=0.6, zorder=3)
     handles = [
@@ -387,6 +388,49 @@ def _plan_view(ax, sub, rdg, traj, crs_wkt) -> list:
     if _land(sub.values).any():  # the coastline hillshade_axes draws
         handles.append(Line2D([], [], color="k", lw=0.6, label="coastline"))
     ax.set_aspect("equal")
+    return handles + zones
+
+
+ZONE_COLOUR = "#7b3294"  # keep-out zones: purple, apart from the track's red and the ridges
+
+
+def _keep_out(ax, keep_out, ext) -> list:
+    """The keep-out zones within the view (hatched) and their margins (dashed) on ``ax``, the
+    view's limits kept; their legend handles."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    if keep_out is None:
+        return []
+    import shapely
+
+    view = shapely.box(ext[0] * 1e3, ext[2] * 1e3, ext[1] * 1e3, ext[3] * 1e3)
+    shown = False
+    for _, g in keep_out.zones:
+        for part, style in ((g, "zone"), (g.buffer(keep_out.margin_m), "margin")):
+            if style == "margin" and not keep_out.margin_m:
+                continue
+            part = part.intersection(view.buffer(0.05 * view.length))
+            for poly in getattr(part, "geoms", [part]):
+                if poly.is_empty or poly.geom_type != "Polygon":
+                    continue
+                shown = True
+                x, y = np.asarray(poly.exterior.coords).T / 1e3
+                if style == "zone":
+                    ax.fill(x, y, fc=(0.48, 0.2, 0.58, 0.25), ec=ZONE_COLOUR, lw=1.0,
+                            hatch="//", zorder=2)  # fmt: skip
+                else:
+                    ax.plot(x, y, color=ZONE_COLOUR, lw=0.8, ls="--", zorder=2)
+    ax.set_xlim(ext[0], ext[1])
+    ax.set_ylim(ext[2], ext[3])
+    if not shown:
+        return []
+    handles = [Patch(fc=(0.48, 0.2, 0.58, 0.25), ec=ZONE_COLOUR, hatch="//", label="keep-out zone")]
+    if keep_out.margin_m:
+        handles.append(
+            Line2D([], [], color=ZONE_COLOUR, lw=0.8, ls="--",
+                   label=f"its margin ({keep_out.margin_m:g} m)")
+        )  # fmt: skip
     return handles
 
 

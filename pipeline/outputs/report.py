@@ -194,6 +194,7 @@ def _mission(root: Path, item: dict, k: int, crs_wkt: str | None) -> dict:
         "track": None,
         "profile": None,
         "waypoint_xy": [],
+        "zones": [],
     }
     m["name"] = m.get("name") or mid
     m["message"] = m.get("message") or ""
@@ -235,6 +236,28 @@ def _drawn(m: dict, folder: Path, item: dict, crs_wkt: str | None) -> None:
     wpt = folder / "waypoints.csv"
     if wpt.name in listed:
         m["waypoint_xy"] = _waypoints(wpt, crs_wkt)
+    zones = folder / "keep-out.geojson"
+    if zones.name in listed and crs_wkt:
+        m["zones"] = _zones(zones, crs_wkt)
+
+
+def _zones(path: Path, crs_wkt: str) -> list:
+    """The keep-out zones' outer rings in map coordinates, from the mission's GeoJSON file
+    (longitude and latitude projected back to the maps' coordinate system)."""
+    from pyproj import CRS, Transformer
+
+    tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(crs_wkt), always_xy=True)
+    rings = []
+    for feat in json.loads(path.read_text())["features"]:
+        geom = feat["geometry"]
+        polys = [geom["coordinates"]] if geom["type"] == "Polygon" else geom["coordinates"]
+        for poly in polys:
+            lon, lat = np.asarray(poly[0], dtype=np.float64).T[:2]
+            x, y = tr.transform(lon, lat)
+            rings.append(
+                {"name": feat["properties"].get("name"), "ring": np.c_[x, y].round(1).tolist()}
+            )
+    return rings
 
 
 def _columns(path: Path, names) -> dict:

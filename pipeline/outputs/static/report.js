@@ -53,6 +53,14 @@
     grow(b);
   }
   const lines = {};
+  let zoned = false;
+  D.missions.forEach((m) => {
+    (m.zones || []).forEach((z) => {
+      zoned = true;
+      L.polygon(z.ring.map(ll), { color: "#7b3294", weight: 1, fillOpacity: 0.2,
+                                  className: "zone" }).bindTooltip("keep-out zone: " + z.name).addTo(map);
+    });
+  });
   D.missions.forEach((m) => {
     if (!m.track || m.track.length < 2) return;
     // a white casing under each track keeps it visible over any colour of the hillshade
@@ -87,6 +95,7 @@
     [["#3c3", "start"], ["#fc0", "goal"], ["#fff", "waypoint"]].forEach(([c, t]) => {
       box.appendChild(entry("div", c, t, "sym"));
     });
+    if (zoned) box.appendChild(entry("div", "#7b3294", "keep-out zone", "sym"));
     if (H) {
       box.appendChild(el("div", "seabed elevation (m)"));
       const bar = el("div", undefined, "bar");
