@@ -342,6 +342,7 @@ def load_job(path: str | os.PathLike) -> Job:
     _load_planning(path, doc, job)
     job.vehicle = _load_vehicle(path, doc.get("vehicle", {}), "vehicle.")
     _load_missions(path, doc, job)
+    _check_ratings(path, job)
     out = doc.get("output", {})
     if not isinstance(out, dict):
         _fail(path, "[output] must be a table")
@@ -452,6 +453,26 @@ def _zone_files(path: Path, table: dict, where: str) -> None:
         except InvalidParameterError as exc:
             _fail(path, f"{where}keep_out: {exc}")
     table["keep_out"] = files
+
+
+def _check_ratings(path: Path, job: Job) -> None:
+    """Each vehicle's rated depth against the maps' surface limit (the sea level less the
+    surface clearance, R by default): a rating shallower leaves no height to fly at."""
+    sea = float(job.maps.get("sea_level") or MAPS.sea_level.default)
+    surface = job.maps.get("surface_clearance")
+    top = sea - float(job.maps["clearance"] if surface is None else surface)
+    for where, vehicle in [("vehicle.", job.vehicle)] + [
+        (f"missions[{i}].vehicle.", {**job.vehicle, **m.get("vehicle", {})})
+        for i, m in enumerate(job.missions)
+    ]:
+        depth = vehicle.get("max_depth_m")
+        if depth is not None and -depth > top:
+            _fail(
+                path,
+                f"{where}max_depth_m: the rated depth {depth:g} m is shallower than the "
+                f"surface limit ({-top:g} m: sea_level less surface_clearance), so no height "
+                "keeps both; give the vehicle's real rating, or a smaller maps.surface_clearance",
+            )
 
 
 def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:

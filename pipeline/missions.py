@@ -304,6 +304,9 @@ def _quicklook_png(m, t: Trajectory, name) -> bytes:
 def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory:
     opts = {**batch.defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
     vehicle = batch.vehicle
+    depth = {**(vehicle or {}), **mission.get("vehicle", {})}.get("max_depth_m")
+    if depth is not None:  # the vehicle's rating: its path is planned for it too
+        opts["max_depth_m"] = depth
     try:
         t = plan(m, mission["start"], mission["goal"], client=run_on, **opts)
     except PipelineError as exc:

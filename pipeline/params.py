@@ -402,6 +402,15 @@ VEHICLE = Schema(
         "metres",
         minimum=0,
     ),
+    Param(
+        "max_depth_m",
+        "float",
+        None,
+        "the vehicle's rated depth: no point of the route deeper; where the lowest safe "
+        "height lies deeper the vehicle flies at it",
+        "metres",
+        above=0,
+    ),
     Param("hotel_power_w", "float", None, "power of everything but propulsion", "W", minimum=0),
     Param("propulsion_power_w", "float", None, "propulsion power at cruise speed", "W", minimum=0),
     Param(

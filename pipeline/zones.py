@@ -3,9 +3,10 @@ wrecks, protected areas, another vehicle's box), each kept at a margin.
 
 Zones come from vector files geopandas reads (GeoJSON, GeoPackage, Shapefile; polygons in any
 CRS, reprojected to the maps'), from a GeoDataFrame, or as shapely polygons in the maps'
-coordinates. :class:`KeepOut` holds them in the maps' CRS; :class:`ZonedStore` is a maps store
-whose passable layer has the cells near a zone removed, which every stage reads as it reads a
-store: the planners' windows, the coarse level, the endpoints' checks, the flight's corridor.
+coordinates. :class:`KeepOut` holds them in the maps' CRS; a
+:class:`pipeline.constraints.ConstrainedStore` is a maps store whose passable layer has the
+cells near a zone removed, which every stage reads as it reads a store: the planners'
+windows, the coarse level, the endpoints' checks, the flight's corridor.
 
 The cells removed are those whose closed square comes within ``margin + a / 4`` of a zone
 (``a`` the cell side): the grid path, a polyline through the centres of cells each a step from
@@ -18,9 +19,9 @@ shortens no path: the store's landmark bound stays a lower bound on the shortest
 avoids the zones, so the certificate holds as it is (docs/certified-bound.md).
 
 A goal that zones cut off is proven unreachable at once when the region round it (or round the
-start) closes within :data:`POCKET_SIDES` cells: the regions are labelled as the store's
-components are (4-connectivity, docs/method.md section 9). Otherwise an exhaustive search of
-the whole map proves it.
+start) closes within :data:`pipeline.constraints.POCKET_SIDES` cells: the regions are labelled
+as the store's components are (4-connectivity, docs/method.md section 9). Otherwise an
+exhaustive search of the whole map proves it.
 """
 
 from __future__ import annotations
@@ -34,13 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
-from .store.maps_store import MapsStore
+from .exceptions import InvalidParameterError
 
 # the cells removed reach this share of a cell beyond the margin (the module's description)
 SLACK = 0.25
-# the half-sides of the windows a closed region round an endpoint is looked for in
-POCKET_SIDES = (64, 256, 1024)
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,8 +116,8 @@ class KeepOut:
             return out
         c0, c1, r0, r1 = cols[0], cols[-1] + 1, rows[0], rows[-1] + 1
         sx, sy = xs[c0:c1], ys[r0:r1]
-        near = _rasterised(outer, sx, sy, a, all_touched=True)
-        inside = _rasterised(inner, sx, sy, a, all_touched=False)
+        near = rasterised(outer, sx, sy, a, all_touched=True)
+        inside = rasterised(inner, sx, sy, a, all_touched=False)
         edge = np.argwhere(near & ~inside)
         sub = inside.copy()
         if len(edge):
@@ -130,7 +128,7 @@ class KeepOut:
         return out
 
 
-def _rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
+def rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
     """``geom`` burnt into the grid of cell centres ``xs``, ``ys`` (either direction)."""
     from rasterio.errors import NotGeoreferencedWarning
     from rasterio.features import rasterize
@@ -283,146 +281,6 @@ def _in_maps_crs(frame, crs_wkt: str | None, source: str) -> list:
             geom = shapely.make_valid(geom)
         out.append((str(name), geom))
     return out
-
-
-# ------------------------------------------------------------------ a maps store with zones
-
-
-class ZonedStore(MapsStore):
-    """The maps store ``base`` with the cells near the zones of ``keep_out`` removed from its
-    passable layer (the module's description); everything else is the store's."""
-
-    def __init__(self, base: MapsStore, keep_out: KeepOut):
-        import threading
-
-        self.__dict__.update(base.__dict__)
-        self.base = base
-        self.keep_out = keep_out
-        self._coarse = {}
-        self._lock = threading.Lock()
-
-    def __reduce__(self):
-        return ZonedStore, (self.base, self.keep_out)
-
-    def __repr__(self) -> str:
-        return f"ZonedStore({self.base!r}, {self.keep_out!r})"
-
-    def removed(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-        """Which cells of rows ``r0:r1`` and columns ``c0:c1`` the zones remove."""
-        return self.keep_out.blocked(self.x[c0:c1], self.y[r0:r1], self.cell_size)
-
-    def window(self, var: str, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-        out = self.base.window(var, r0, r1, c0, c1)
-        if var != "passable":
-            return out
-        return out & ~self.removed(r0, r1, c0, c1)
-
-    def values(self, var: str, cells) -> np.ndarray:
-        out = self.base.values(var, cells)
-        if var != "passable" or not len(out):
-            return out
-        cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
-        x, y = self.x[cells[:, 1]], self.y[cells[:, 0]]
-        return out & ~self.keep_out.blocked_at(x, y, self.cell_size)
-
-    def zone_of(self, cell) -> str | None:
-        """The zone whose kept area removes ``cell``, or None."""
-        r, c = int(cell[0]), int(cell[1])
-        if not self.keep_out.blocked_at(self.x[c], self.y[r], self.cell_size):
-            return None
-        name = self.keep_out.zone_at(self.x[c], self.y[r])
-        if name is None:  # within the slack of a quarter cell: the nearest zone
-            import shapely
-
-            p = shapely.Point(self.x[c], self.y[r])
-            name = min(self.keep_out.zones, key=lambda z: z[1].distance(p))[0]
-        return name
-
-    def coarse(self, rho: int) -> dict:
-        """The store's coarse level with the coarse cells whose centre lies in a zone grown by
-        its margin removed (as a coarse cell is passable when most of its cells are)."""
-        with self._lock:
-            got = self._coarse.get(rho)
-        if got is not None:
-            return got
-        base = self.base.coarse(rho)
-        rows, cols = base["passable"].shape
-        a = self.cell_size
-        sx = np.sign(self.x[1] - self.x[0]) if len(self.x) > 1 else 1.0
-        sy = np.sign(self.y[1] - self.y[0]) if len(self.y) > 1 else -1.0
-        xs = self.x[0] - sx * a / 2 + sx * (np.arange(cols) + 0.5) * rho * a
-        ys = self.y[0] - sy * a / 2 + sy * (np.arange(rows) + 0.5) * rho * a
-        inside = _rasterised(self.keep_out.kept, xs, ys, rho * a, all_touched=False)
-        got = {**base, "passable": base["passable"] & ~inside}
-        with self._lock:
-            self._coarse[rho] = got
-        return got
-
-    def components(self, *cells) -> list:
-        """The store's components of ``cells``; for a start and a goal in one component, an
-        :class:`UnreachableGoalError` when the zones close a region round either that does not
-        hold the other (found in windows of :data:`POCKET_SIDES`)."""
-        got = self.base.components(*cells)
-        if len(cells) == 2 and got[0] is not None and got[0] == got[1]:
-            for end, other in (cells, cells[::-1]):
-                if self._closed_apart(end, other):
-                    raise UnreachableGoalError(
-                        f"the goal is unreachable: the keep-out zones "
-                        f"({', '.join(self.keep_out.names)}) close off the region of "
-                        f"{'start' if end == cells[0] else 'goal'} {tuple(end)} from "
-                        f"{'goal' if end == cells[0] else 'start'} {tuple(other)}"
-                    )
-        return got
-
-    def _closed_apart(self, end, other) -> bool:
-        from scipy import ndimage
-
-        rows, cols = self.shape
-        r, c = int(end[0]), int(end[1])
-        cross = ndimage.generate_binary_structure(2, 1)
-        for h in POCKET_SIDES:
-            r0, r1 = max(r - h, 0), min(r + h + 1, rows)
-            c0, c1 = max(c - h, 0), min(c + h + 1, cols)
-            ok = self.window("passable", r0, r1, c0, c1)
-            if not ok[r - r0, c - c0]:
-                return False  # the endpoints' own checks say what is wrong
-            labels, _ = ndimage.label(ok, structure=cross)
-            region = labels == labels[r - r0, c - c0]
-            open_ = (
-                (r0 > 0 and region[0].any())
-                or (r1 < rows and region[-1].any())
-                or (c0 > 0 and region[:, 0].any())
-                or (c1 < cols and region[:, -1].any())
-            )
-            if not open_:
-                orr, oc = int(other[0]) - r0, int(other[1]) - c0
-                held = 0 <= orr < r1 - r0 and 0 <= oc < c1 - c0 and region[orr, oc]
-                return not held
-            if r0 == 0 and c0 == 0 and r1 == rows and c1 == cols:
-                return False
-        return False
-
-
-def zoned(m: MapsStore, keep_out, margin_m=None) -> MapsStore:
-    """``m`` with the zones of ``keep_out`` (:func:`read_zones`), or ``m`` without any."""
-    if isinstance(m, ZonedStore):
-        m = m.base
-    zones = read_zones(keep_out, m.crs_wkt, margin_m)
-    return m if zones is None else ZonedStore(m, zones)
-
-
-def check_outside(m: MapsStore, name: str, cell) -> None:
-    """An :class:`InvalidEndpointError` naming the zone when ``cell`` (``name``: start, goal)
-    is removed by a keep-out zone of ``m``."""
-    zone_of = getattr(m, "zone_of", None)
-    zone = zone_of(cell) if zone_of is not None else None
-    if zone is not None:
-        margin = m.keep_out.margin_m
-        raise InvalidEndpointError(
-            f"{name} {tuple(int(v) for v in cell)} lies in keep-out zone {zone!r}"
-            + (f" or within its margin of {margin:g} m" if margin else "")
-            + "; move it out of the zone"
-        )
 
 
 def entered(keep_out: KeepOut | None, *lines) -> list[str]:

@@ -101,12 +101,14 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
     (True, 41)
     """
+    from ..constraints import constrained
     from ..store.maps_store import open_store
-    from ..zones import zoned
 
     t0 = time.perf_counter()
-    m = zoned(open_store(maps), traj.keep_out)  # the zones it was planned to avoid
     veh = Vehicle.of(vehicle)
+    # the zones it was planned to avoid; the rating it was planned for, or the vehicle's
+    depth = veh.max_depth_m if veh.max_depth_m is not None else traj.max_depth_m
+    m = constrained(open_store(maps), traj.keep_out, None, depth)
     if not traj.planned or len(traj.cells) < 2:
         raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
     ctx = _context(m, traj, veh)
@@ -243,6 +245,9 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     new = shared < 0
     hq[~new] = h_track[shared[~new]]
     hq[new], unsure_q = _required_threaded(grid, ctx.terrain, qr[new], qc[new])
+    depth = getattr(ctx.m, "max_depth_m", None)
+    if depth is not None:  # no deeper than the rating: there the vehicle flies at it
+        h_track, hq = np.maximum(h_track, -depth), np.maximum(hq, -depth)
     unsure = int(unsure.sum() + unsure_q.sum())
     prof = vertical_profile(
         wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, ctx.slope, ctx.bands,
@@ -277,6 +282,9 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         low = min(float(np.min(z_t - h_track)), float(np.min(zq - hq)))
         if low < -1e-6:  # never by construction: a check of what is written
             problems.append(f"the route passes {-low:.2f} m below its required height")
+        deepest = -min(float(z_t.min()), float(zq.min()))
+        if depth is not None and deepest > depth + 1e-6:  # never by construction, as above
+            problems.append(f"the route reaches {deepest:.1f} m, below the rated {depth:g} m")
     route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
     longest = max(track["length"], route_length)
     over = ""
@@ -392,9 +400,22 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         route_seabed_m=_bilinear(*grid, qr, qc),
         unknown_seabed_samples=pick["unsure"],
         min_clearance_m=float(least),
+        max_depth_m=getattr(m, "max_depth_m", None),
+        at_rated_depth_m=_at_rated_depth(getattr(m, "max_depth_m", None), s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
         **profile_figures(s, z, seabed),
     )
+
+
+def _at_rated_depth(depth: float | None, s: np.ndarray, h: np.ndarray) -> float:
+    """The horizontal length of the track where the rated depth ``depth`` binds: its lowest
+    allowed height ``h`` is the rating (within 1 cm), as the lowest safe height lies deeper;
+    each step counted by halves at its two samples."""
+    if depth is None or len(s) < 2:
+        return 0.0
+    at = h <= -depth + 0.01
+    step = np.diff(s)
+    return float(0.5 * (step * at[:-1]).sum() + 0.5 * (step * at[1:]).sum())
 
 
 def _least_clearance(ctx: _Context, grid, lines) -> float:

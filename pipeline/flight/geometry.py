@@ -538,12 +538,11 @@ class Corridor:
         try:
             for f in first:
                 f.result()
-            removed = getattr(m, "removed", None)  # keep-out zones (pipeline.zones)
-            if removed is not None:
+            if getattr(m, "keep_out", None) is not None:  # (pipeline.constraints)
                 for k, (i, j) in enumerate(zip(ti.tolist(), tj.tolist(), strict=True)):
                     r0, c0 = i * tr, j * tc
                     r1, c1 = min(r0 + tr, rows), min(c0 + tc, cols)
-                    self.pas[k, : r1 - r0, : c1 - c0] &= ~removed(r0, r1, c0, c1)
+                    self.pas[k, : r1 - r0, : c1 - c0] &= ~m.removed(r0, r1, c0, c1)
         except BaseException:
             for f in first + self._elevation:
                 f.cancel()

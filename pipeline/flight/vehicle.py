@@ -27,6 +27,7 @@ class Vehicle:
     hotel_power_w: float | None = None
     propulsion_power_w: float | None = None
     battery_wh: float | None = None
+    max_depth_m: float | None = None  # the rated depth (metres, positive down)
 
     def __post_init__(self):
         for p in VEHICLE:
@@ -122,6 +123,10 @@ class Flight:
     # the least clearance of the route and the track from the continuous seabed, measured on
     # a lattice of each grid square (:func:`seabed_clearance`)
     min_clearance_m: float = math.nan
+    # the rated depth kept (metres, positive down; None: no rating), and the horizontal length
+    # where it binds (the lowest safe height lies deeper: the vehicle flies no deeper than it)
+    max_depth_m: float | None = None
+    at_rated_depth_m: float = 0.0
 
     @property
     def altitude_m(self) -> np.ndarray:

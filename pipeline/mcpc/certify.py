@@ -78,6 +78,7 @@ def _done(m, t: Trajectory, repair: str | None = None) -> Trajectory:
     if m.crs_wkt:
         t.extra["crs_wkt"] = m.crs_wkt
     t.keep_out = getattr(m, "keep_out", None)  # the zones it avoids, for its flight
+    t.max_depth_m = getattr(m, "max_depth_m", None)  # the rated depth it was planned for
     return _certify(t, repair)
 
 

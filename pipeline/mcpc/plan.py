@@ -171,6 +171,7 @@ def plan(
     repair_max_cells: int = PLANNING.repair_max_cells.default,
     keep_out: ZonesLike = None,
     keep_out_margin_m: float | None = None,
+    max_depth_m: float | None = None,
     client: ClientLike = None,
 ) -> Trajectory:
     """Plan a mission on a maps store, coarse to fine (MCPC) or in one window, and certify it.
@@ -228,6 +229,11 @@ def plan(
         coordinates. The trajectory keeps them (``keep_out``) for :func:`pipeline.fly`.
     keep_out_margin_m : float, optional
         The distance kept from every zone (default 0).
+    max_depth_m : float, optional
+        The vehicle's rated depth (metres, positive down): the path is planned and measured on
+        the safety surface raised to ``-max_depth_m`` where it lies deeper, and certified
+        against the octile distance (:mod:`pipeline.constraints`). :func:`pipeline.fly` keeps
+        the rating the trajectory records (``max_depth_m``).
     client : None, "synchronous", "threads", scheduler address or distributed.Client
         Where the sections run (see :func:`pipeline.runtime.cluster.get_client`). None: the dask
         client this process made current, if there is one, else this process's threads (no
@@ -266,10 +272,11 @@ def plan(
         ).items()
         if v is not None
     }
+    from ..constraints import check_outside, constrained
     from ..params import endpoint_cells
-    from ..zones import check_outside, zoned
 
-    m = zoned(m, keep_out, PLANNING.keep_out_margin_m.check_optional(keep_out_margin_m))
+    margin_m = PLANNING.keep_out_margin_m.check_optional(keep_out_margin_m)
+    m = constrained(m, keep_out, margin_m, max_depth_m)
     ends = endpoint_cells(m, given)  # as a job file gives them
     for end in ("start", "goal"):
         check_outside(m, end, _cell(end, ends[end]))

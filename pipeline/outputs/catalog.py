@@ -278,6 +278,9 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
                 ("legs_shorter_than_turn_radius", f.short_legs),
             )
         }
+        if f.max_depth_m is not None:  # the rating kept, and how far it was flown at
+            props["auv:max_depth_m"] = f.max_depth_m
+            props["auv:at_rated_depth_m"] = json_value(f.at_rated_depth_m)
         props["auv:smoothing"] = f.smoothing
         props["auv:vehicle"] = {**f.vehicle.to_dict(), "min_turn_radius_m": f.turn_radius_m}
         if f.problems:

@@ -497,6 +497,16 @@ def _depth_profile(pr, params, traj) -> None:
             label="waypoints",
         )
         top = max(float(np.nanmax(f.z)), float(np.nanmax(f.route[:, 2])))
+        if f.max_depth_m is not None:
+            pr.axhline(
+                -f.max_depth_m,
+                color=ZONE_COLOUR,
+                lw=1.0,
+                ls="-.",
+                label=f"rated depth ({f.max_depth_m:g} m; the limit for "
+                f"{f.at_rated_depth_m / 1e3:.1f} km)",
+            )
+            floor = min(floor, -f.max_depth_m - 100)
         pr.set_ylim(floor, max(top, float(np.nanmax(f.seabed_m))) + 150)
         pr.set_title(
             f"depth profile: clearance {clearance:g} m from the seabed, at and between grid "

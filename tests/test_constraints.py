@@ -1,8 +1,11 @@
-"""Keep-out zones (pipeline.zones): the cells they remove against shapely's brute force, the
-route, the waypoint legs and the flown track against the zones themselves (shapely, not the
-cells), the certificate against scipy's Dijkstra on the graph without the removed cells, zones
-in longitude and latitude on a UTM map, ends in a zone, goals cut off, bad zone files, and
-job files."""
+"""Operational constraints (pipeline.zones, pipeline.constraints).
+
+Keep-out zones: the cells they remove against shapely's brute force, the route, the waypoint
+legs and the flown track against the zones themselves (shapely, not the cells), the
+certificate against scipy's Dijkstra on the graph without the removed cells, zones in
+longitude and latitude on a UTM map, ends in a zone, goals cut off, bad zone files, job files.
+The rated depth: the surface, the lengths and the certificate against numpy and scipy on the
+raised surface, the flight and the vehicle files as their readers see them (pymavlink)."""
 
 from __future__ import annotations
 
@@ -16,7 +19,7 @@ import pytest
 import shapely
 from conftest import metric_dataarray, random_surface
 from pyproj import Transformer
-from references import optimum, reference_graph
+from references import cell_metrics, optimum, reference_graph
 
 import pipeline
 from pipeline.exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
@@ -338,3 +341,71 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
     third = run_job(job, scheduler=local_client)
     assert third.skipped == 0  # the mission of the changed file planned again
     assert finished(tmp_path / "out", "across")["properties"]["auv:keep_out"] == ["range"]
+
+
+# ------------------------------------------------------------------ the rated depth
+
+
+def test_a_rated_depth_raises_the_surface_and_every_file_keeps_it(zone_store, tmp_path):
+    """A rating at the median depth of the lowest safe heights (half of them deeper): the
+    path's heights are max(S, -D) at its cells (numpy), its length the 3-D length over them,
+    its certificate holds against scipy's Dijkstra on the raised surface; the flight never
+    goes deeper than D, which binds for a stretch, keeps the clearance; the QGroundControl
+    file read by pymavlink and the CSV hold no depth beyond D."""
+    import csv
+
+    from pymavlink import mavwp
+
+    path, maps = zone_store
+    safety = maps["safety"].values
+    depth = float(np.round(-np.nanmedian(safety)))
+    assert np.nanmin(safety) < -depth < np.nanmax(safety)  # the rating binds somewhere
+    raised = np.maximum(safety, -depth)
+    s, g = (10, 10), (110, 110)
+    t = pipeline.plan(path, s, g, max_depth_m=depth, omega=1.5, rho=4, section_size=24, margin=6)
+    assert t.status == "ok" and t.max_depth_m == depth
+    np.testing.assert_array_equal(t.points[:, 2], raised[t.cells[:, 0], t.cells[:, 1]])
+    length, _ = cell_metrics(t.cells, raised, maps["ridge"].values, A)
+    assert t.length_m == pytest.approx(length, rel=1e-9)
+    ok = maps["passable"].values
+    best = optimum(reference_graph(raised, ok, A), ok.shape, s, g)
+    assert t.lower_bound_m <= best * (1 + 1e-9) and t.length_m <= 1.5 * best * (1 + 1e-9)
+    f = pipeline.fly(path, t, {"max_depth_m": depth})
+    assert not f.problems and f.max_depth_m == depth
+    assert f.z.min() >= -depth - 1e-6 and f.route[:, 2].min() >= -depth - 1e-6
+    assert f.at_rated_depth_m > 100.0 and f.min_clearance_m >= 60.0 * (1 - 1e-6)
+    files = pipeline.write_mission(path, t, f, tmp_path / "m")
+    loader = mavwp.MAVWPLoader()
+    loader.load(str(files["qgc"]))
+    alts = [loader.wp(k).z for k in range(1, loader.count())]  # -depth (ArduSub)
+    assert min(alts) >= -depth - 0.005 and min(alts) < -depth + 1.0
+    with open(files["waypoints-csv"], newline="") as fh:
+        assert max(float(r["depth_m"]) for r in csv.DictReader(fh)) <= depth + 0.005
+    # a batch's vehicle rating plans its missions for it too (as a job's [vehicle] does)
+    (b,) = pipeline.plan_missions(
+        path, [{"start": s, "goal": g, "omega": 1.5}], vehicle={"max_depth_m": depth}
+    )
+    assert b.max_depth_m == depth and b.flight.z.min() >= -depth - 1e-6
+    assert b.length_m == pytest.approx(cell_metrics(b.cells, raised, maps["ridge"].values, A)[0])
+
+
+def test_a_rating_no_height_can_keep_is_refused(zone_store, tmp_path):
+    """A rated depth shallower than the surface limit (sea level less the surface clearance,
+    60 m here): one error in the API, and in a job file before anything is computed."""
+    path, _ = zone_store
+    with pytest.raises(InvalidParameterError, match=r"rated depth 40 m is shallower than"):
+        pipeline.plan(path, (10, 10), (110, 110), max_depth_m=40.0)
+    job = tmp_path / "job.toml"
+    job.write_text(
+        'name = "d"\n[dem.synthetic]\nshape = [64, 64]\n[maps]\nclearance = 60.0\n'
+        "[vehicle]\nmax_depth_m = 40.0\n"
+        '[[missions]]\nstart = [1, 1]\ngoal = [60, 60]\n[output]\ncatalog = "out"\n'
+    )
+    got = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(job), "--dry-run"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert got.returncode == 2, got.stderr
+    assert got.stderr.count("\n") == 1 and "rated depth 40 m" in got.stderr
