@@ -26,6 +26,7 @@ A job file::
     name = "north-ridge"
     start = [100, 120]          # a cell (row, col); or start_xy = [x, y] in map
     goal = [1800, 1700]         # coordinates, or start_lonlat = [lon, lat]
+    via_lonlat = [[-44.8, 26.1]]   # visited in order (or via = cells, via_xy = [...])
     omega = 1.5                 # any [planning] key, for this mission
     vehicle = { max_pitch_deg = 15 }   # any [vehicle] key, for this mission
     [output]
@@ -63,6 +64,7 @@ from .params import (
     QUICKLOOKS,
     SYNTHETIC,
     VEHICLE,
+    VIA_KEYS,
     Param,
     Schema,
     check_clearance,
@@ -70,6 +72,7 @@ from .params import (
     endpoint_forms,
     endpoint_key,
     shape2d,
+    via_form,
 )
 from .store.paths import has_scheme
 
@@ -82,7 +85,7 @@ _TOP_KEYS = {"name", "dem", "maps", "planning", "vehicle", "missions", "output"}
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
 
 
-_MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS
+_MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS | set(VIA_KEYS)
 
 
 _DEM_KEYS = {"path", "synthetic"} | DEM.names()
@@ -146,7 +149,9 @@ class Job:
             **{k: mission[k] for k in PLANNING.names() if k in mission},
         }
         what = {
-            "ends": {k: mission[k] for k in sorted(mission) if k.startswith(("start", "goal"))},
+            "ends": {
+                k: mission[k] for k in sorted(mission) if k.startswith(("start", "goal", "via"))
+            },
             "planning": plan,
             "vehicle": self.vehicle_of(mission),
             "maps": self.maps_fingerprint(),
@@ -455,6 +460,35 @@ def _zone_files(path: Path, table: dict, where: str) -> None:
     table["keep_out"] = files
 
 
+def _load_via(path: Path, m: dict, mission: dict, where: str) -> None:
+    """A mission's via points, checked as its start and goal are: ``via_form`` and
+    ``via_input`` in ``mission`` (the cells are found once the maps exist)."""
+    try:
+        form, points = via_form(m)
+    except InvalidParameterError as exc:
+        _fail(path, f"{where}{exc}")
+    if form is None:
+        return
+    key = next(k for k in VIA_KEYS if k in m)
+    for p in points:
+        integer = form == "cell"
+        if not all(
+            isinstance(x, int if integer else int | float) and not isinstance(x, bool) for x in p
+        ):
+            what = "[row, col] of integers" if integer else "pairs of numbers"
+            _fail(path, f"{where}{key} must be a list of {what}, got {m[key]!r}")
+        if form != "cell":
+            try:
+                for x, param in zip(
+                    p, (LONGITUDE, LATITUDE) if form == "lonlat" else (_COORD,) * 2, strict=True
+                ):
+                    param.check(x, f"{where}{key}")
+            except InvalidParameterError as exc:
+                _fail(path, str(exc))
+    mission["via_form"] = form
+    mission["via_input"] = [list(p) for p in points]
+
+
 def _check_ratings(path: Path, job: Job) -> None:
     """Each vehicle's rated depth against the maps' surface limit (the sea level less the
     surface clearance, R by default): a rating shallower leaves no height to fly at."""
@@ -551,6 +585,7 @@ def _load_missions(path, doc, job):
                     _fail(path, str(exc))
             mission[f"{end}_form"] = form
             mission[f"{end}_input"] = list(v)
+        _load_via(path, m, mission, where)
         plan = {k: m[k] for k in PLANNING.names() if k in m}
         mission.update(_checked(path, PLANNING, plan, where))
         _zone_files(path, mission, where)

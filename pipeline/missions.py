@@ -35,6 +35,7 @@ from .params import (
     ENDPOINT_FORMS,
     MISSIONS_PER_TASK,
     PLANNING,
+    VIA_KEYS,
     endpoint_cells,
     endpoint_form,
     endpoint_key,
@@ -56,7 +57,7 @@ _PLAN_KEYS = PLANNING.names()
 _ENDPOINT_KEYS = {endpoint_key(end, f) for end in ("start", "goal") for f in ENDPOINT_FORMS}
 
 
-_MISSION_KEYS = sorted(_PLAN_KEYS | _ENDPOINT_KEYS | {"vehicle", "name"})
+_MISSION_KEYS = sorted(_PLAN_KEYS | _ENDPOINT_KEYS | set(VIA_KEYS) | {"vehicle", "name"})
 
 
 def failed_trajectory(mission: dict, message: str) -> Trajectory:
@@ -303,6 +304,7 @@ def _quicklook_png(m, t: Trajectory, name) -> bytes:
 
 def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory:
     opts = {**batch.defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
+    opts.update({k: mission[k] for k in VIA_KEYS if k in mission})
     vehicle = batch.vehicle
     depth = {**(vehicle or {}), **mission.get("vehicle", {})}.get("max_depth_m")
     if depth is not None:  # the vehicle's rating: its path is planned for it too

@@ -549,10 +549,48 @@ def endpoint_form(mission: dict, end: str) -> tuple[str, object]:
 
 def endpoint_cells(m, mission: dict) -> dict:
     """``mission`` with its start and goal as cells of the maps store ``m`` (from any of the
-    forms :func:`endpoint_form` reads; the cells the job file's loader gives)."""
+    forms :func:`endpoint_form` reads; the cells the job file's loader gives), and its via
+    points, if any, as the list ``via`` of cells (:func:`via_form`)."""
     out = dict(mission)
     for end in ("start", "goal"):
         form, value = endpoint_form(mission, end)
         # a cell as given: the planner checks it is one (a row of 1.5 is no cell)
         out[end] = value if form == "cell" else m.cell_of(end, form, value)
+    form, points = via_form(mission)
+    if form is not None:
+        for key in VIA_KEYS:
+            out.pop(key, None)
+        out["via"] = [
+            p if form == "cell" else m.cell_of(f"via {k + 1}", form, p)
+            for k, p in enumerate(points)
+        ]
     return out
+
+
+# a mission's via points, visited in order: cells (``via``), map coordinates (``via_xy``) or
+# longitude and latitude (``via_lonlat``), one form for all of them
+VIA_KEYS = tuple(endpoint_key("via", f) for f in ENDPOINT_FORMS)
+
+
+def via_form(mission: dict) -> tuple[str | None, list]:
+    """``(form, points)`` of a mission's via points, ``(None, [])`` without any; more than
+    one form, or points that are not a list of pairs, is one :class:`InvalidParameterError`."""
+    forms = endpoint_forms(mission, "via")
+    if not forms:
+        return None, []
+    if len(forms) > 1:
+        raise InvalidParameterError(
+            f"a mission's via points take one form: via (cells), via_xy or via_lonlat, got "
+            f"{', '.join(endpoint_key('via', f) for f in forms)}"
+        )
+    key = endpoint_key("via", forms[0])
+    points = mission[key]
+    try:
+        points = [tuple(p) for p in points]
+        if not points or not all(len(p) == 2 for p in points):
+            raise TypeError
+    except TypeError:
+        raise InvalidParameterError(
+            f"{key} must be a list of pairs ([[a, b], ...]) visited in order, got {points!r}"
+        ) from None
+    return forms[0], points

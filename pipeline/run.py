@@ -508,6 +508,7 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
                     **m,
                     "start": maps.cell_of("start", m["start_form"], m["start_input"]),
                     "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"]),
+                    **_via_cells(maps, m),
                     **zones.of(m),
                 }
             )
@@ -530,6 +531,16 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
                 {k: v for k, v in mission.items() if k != "keep_out"}, traj
             ),
         )
+
+
+def _via_cells(maps, mission: dict) -> dict:
+    """A job mission's via points as cells (``via``), or ``{}`` without any."""
+    if "via_form" not in mission:
+        return {}
+    form = mission["via_form"]
+    return {
+        "via": [maps.cell_of(f"via {k + 1}", form, p) for k, p in enumerate(mission["via_input"])]
+    }
 
 
 class _Zones:

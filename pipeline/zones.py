@@ -255,7 +255,7 @@ def read_zones(keep_out, crs_wkt: str | None, margin_m: float = 0.0) -> KeepOut 
         elif isinstance(item, gpd.GeoDataFrame):
             zones += _in_maps_crs(_named(item, "GeoDataFrame"), crs_wkt, "GeoDataFrame")
         elif isinstance(item, BaseGeometry):
-            frame = gpd.GeoDataFrame(geometry=[item])
+            frame = gpd.GeoDataFrame({"name": [f"keep_out[{k}]"]}, geometry=[item])
             zones += _in_maps_crs(_named(frame, f"keep_out[{k}]"), crs_wkt, "shapely")
         else:
             raise InvalidParameterError(

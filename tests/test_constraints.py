@@ -5,7 +5,8 @@ legs and the flown track against the zones themselves (shapely, not the cells), 
 certificate against scipy's Dijkstra on the graph without the removed cells, zones in
 longitude and latitude on a UTM map, ends in a zone, goals cut off, bad zone files, job files.
 The rated depth: the surface, the lengths and the certificate against numpy and scipy on the
-raised surface, the flight and the vehicle files as their readers see them (pymavlink)."""
+raised surface, the flight and the vehicle files as their readers see them (pymavlink). Via
+points: the order, the legs and the bound against scipy's Dijkstra per leg, the waypoints."""
 
 from __future__ import annotations
 
@@ -173,7 +174,9 @@ def test_an_end_in_a_zone_or_its_margin_names_the_zone(zone_store):
         pipeline.plan(path, inside, (110, 110), keep_out=frame)
     x, y = _xy(maps, (110, 110))
     near = {"buoy": shapely.Point(x + 100.0, y).buffer(20.0)}  # the goal 80 m from it
-    with pytest.raises(InvalidEndpointError, match=r"goal .* 'keep_out\[0\].* margin of 90 m"):
+    with pytest.raises(
+        InvalidEndpointError, match=r"goal .* 'keep_out\[0\]' or within its margin of 90 m"
+    ):
         pipeline.plan(
             path, (10, 10), (110, 110), keep_out=list(near.values()), keep_out_margin_m=90
         )
@@ -271,7 +274,8 @@ def test_zones_with_a_crs_on_a_map_without_one_say_so(tmp_path):
 def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local_client):
     """[planning] keep_out (a file relative to the job, in WGS84) and a mission's own
     keep_out: the job's missions keep out of the zones on a real cluster (the zones read
-    once in the client and sent as geometry), each Item names its zones and margin, a
+    once in the client and sent as geometry), each Item names its zones and margin (and a
+    via point given in longitude and latitude, its cell and legs; the report draws it), a
     mission whose goal lies in its own zone fails with the zone's name, the other completes;
     a re-run skips the finished one, and plans it again once its zone file changed."""
     import geopandas as gpd
@@ -298,6 +302,7 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
     gpd.GeoDataFrame({"name": ["cable"]}, geometry=[near], crs="EPSG:4326").to_file(
         tmp_path / "z" / "cable.geojson"
     )
+    via_ll = ll.transform(float(dem.x[130]), float(dem.y[30]))  # a via point, cell (30, 130)
     job = tmp_path / "job.toml"
     job.write_text(
         'name = "zones"\n[dem]\nchunks = 80\n[dem.synthetic]\nshape = [160, 160]\nseed = 2\n'
@@ -305,6 +310,7 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
         '[planning]\nkeep_out = ["z/zones.geojson"]\nkeep_out_margin_m = 60.0\n'
         "rho = 4\nsection_size = 24\n"
         '[[missions]]\nname = "across"\nstart = [20, 20]\ngoal = [140, 140]\n'
+        f"via_lonlat = [[{via_ll[0]!r}, {via_ll[1]!r}]]\n"
         '[[missions]]\nname = "on the cable"\nstart = [20, 20]\ngoal = [80, 80]\n'
         'keep_out = ["z/cable.geojson"]\n'
         '[output]\ncatalog = "out"\nquicklooks = false\nperformance_report = false\n'
@@ -315,6 +321,11 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
     p = across["properties"]
     assert p["auv:status"] == "ok", p["auv:message"]
     assert p["auv:keep_out"] == ["exercise area"] and p["auv:keep_out_margin_m"] == 60.0
+    assert p["auv:via_cells"] == [[30, 130]] and [x["to"] for x in p["auv:legs"]] == [
+        "via 1",
+        "goal",
+    ]
+    assert p["auv:via_xy"] == [[round(float(dem.x[130]), 2), round(float(dem.y[30]), 2)]]
     track = gpd.read_parquet(tmp_path / "out" / "missions" / "across" / "track.parquet")
     utm = track.to_crs(dem.attrs["crs_wkt"]) if track.crs is not None else track
     assert shapely.LineString(utm.geometry.get_coordinates().values).distance(square) >= 60.0
@@ -328,7 +339,7 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
 
     with offline_page(tmp_path / "out" / "index.html") as (page, problems):
         assert page.locator("path.zone").count() == 1
-        assert page.locator("path.track").count() == 1
+        assert page.locator("path.track").count() == page.locator("path.via").count() == 1
     assert not any(problems.values()), problems
     q = cable["properties"]
     assert q["auv:status"] == "failed" and "keep-out zone 'cable'" in q["auv:message"]
@@ -409,3 +420,68 @@ def test_a_rating_no_height_can_keep_is_refused(zone_store, tmp_path):
     )
     assert got.returncode == 2, got.stderr
     assert got.stderr.count("\n") == 1 and "rated depth 40 m" in got.stderr
+
+
+# ------------------------------------------------------------------ via points
+
+
+def test_via_points_are_visited_in_order_and_bounded_by_the_legs_optima(zone_store):
+    """Through two via points round a zone: the path passes each via cell in order, its
+    length is the legs' 3-D lengths (numpy), its bound at most the sum of the legs' optima and
+    its length within omega of it (scipy's Dijkstra per leg, the zone's cells removed); the
+    flight's waypoints hold each via cell's centre, in order, and its closest approach is the
+    track's own."""
+    path, maps = zone_store
+    zones, margin = _boxes(maps), 40.0
+    s, g, via = (10, 10), (110, 110), [(100, 20), (20, 100)]
+    t = pipeline.plan(
+        path, s, g, via=via, keep_out=list(zones.values()), keep_out_margin_m=margin,
+        omega=1.5, rho=4, section_size=24, margin=6,
+    )  # fmt: skip
+    assert t.status == "ok"
+    idx = np.asarray(t.extra["via_index"])
+    assert [tuple(c) for c in t.cells[idx]] == via and np.all(np.diff(idx) > 0)
+    assert [leg["to"] for leg in t.extra["legs"]] == ["via 1", "via 2", "goal"]
+    surface, ridge = maps["safety"].values, maps["ridge"].values
+    assert t.length_m == pytest.approx(cell_metrics(t.cells, surface, ridge, A)[0], rel=1e-9)
+    ok = maps["passable"].values & ~_removed_reference(maps, zones, margin)
+    graph = reference_graph(surface, ok, A)
+    ends = [s, *via, g]
+    best = sum(optimum(graph, ok.shape, a, b) for a, b in zip(ends[:-1], ends[1:], strict=True))
+    assert t.lower_bound_m <= best * (1 + 1e-9) and t.length_m <= 1.5 * best * (1 + 1e-9)
+    f = pipeline.fly(path, t, {"min_turn_radius_m": 30.0})
+    assert not f.problems
+    centres = [_xy(maps, v) for v in via]
+    hit = [int(np.flatnonzero(np.hypot(*(f.waypoints[:, :2] - c).T) < 1e-6)[0]) for c in centres]
+    assert hit == sorted(hit)
+    near = [float(np.hypot(f.x - cx, f.y - cy).min()) for cx, cy in centres]
+    np.testing.assert_allclose(f.via_miss_m, near)
+    for name, z in zones.items():
+        assert shapely.LineString(np.c_[f.x, f.y]).distance(z) >= margin, name
+
+
+def test_via_points_in_map_coordinates_and_lonlat_are_their_cells(zone_store):
+    """via_xy a third of a cell off a cell's centre, via_lonlat of that point (pyproj): the
+    same cells as via given as cells, and the same path."""
+    path, maps = zone_store
+    cells = [(100, 20), (20, 100)]
+    xy = [(_xy(maps, c)[0] + A / 3, _xy(maps, c)[1] - A / 3) for c in cells]
+    ll = [Transformer.from_crs(CRS, "EPSG:4326", always_xy=True).transform(*p) for p in xy]
+    opts = dict(omega=1.5, rho=4, section_size=24, margin=6)
+    by_cell = pipeline.plan(path, (10, 10), (110, 110), via=cells, **opts)
+    for kw in (dict(via_xy=xy), dict(via_lonlat=ll)):
+        t = pipeline.plan(path, (10, 10), (110, 110), **kw, **opts)
+        assert np.array_equal(t.cells, by_cell.cells), kw
+
+
+def test_bad_via_points_name_the_point(zone_store):
+    path, maps = zone_store
+    zones = _boxes(maps)
+    with pytest.raises(InvalidEndpointError, match=r"via 2 \(47, 50\) lies in keep-out zone"):
+        pipeline.plan(path, (10, 10), (110, 110), via=[(5, 5), (47, 50)], keep_out=[zones["cable"]])
+    with pytest.raises(InvalidEndpointError, match="via 1"):
+        pipeline.plan(path, (10, 10), (110, 110), via=[(500, 5)])
+    with pytest.raises(InvalidParameterError, match="one form"):
+        pipeline.plan(path, (10, 10), (110, 110), via=[(5, 5)], via_xy=[(1.0, 2.0)])
+    with pytest.raises(InvalidParameterError, match="list of pairs"):
+        pipeline.plan(path, (10, 10), (110, 110), via=[5, 5])

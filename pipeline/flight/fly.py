@@ -139,7 +139,8 @@ class _Context:
     cor: Corridor
     usable: tuple
     cells: np.ndarray
-    verts: np.ndarray  # the path's corners (indices into cells)
+    verts: np.ndarray  # the path's corners and via points (indices into cells)
+    fixed: np.ndarray  # which of ``verts`` are via points (every smoothing keeps them)
     limit: float  # the flown length allowed: omega x the proven lower bound
     bands: tuple
     want: int  # waypoints wanted at most
@@ -157,6 +158,8 @@ def _context(m, traj: Trajectory, veh: Vehicle) -> _Context:
     elem = int(math.ceil((terrain[1] + terrain[4]) / a + math.sqrt(2.0))) + 1
     pad = elem + int(math.ceil(turn_m / a)) + 2
     cells = np.asarray(traj.cells, dtype=np.int64)
+    via = np.asarray(traj.extra.get("via_index", []), dtype=np.int64)
+    verts = np.union1d(_corner_vertices(cells), via)
     cor = Corridor(m, cells, pad)
     limit = traj.omega * traj.lower_bound_m if traj.lower_bound_m > 0 else traj.length_m
     if traj.status != Status.OK:
@@ -180,7 +183,8 @@ def _context(m, traj: Trajectory, veh: Vehicle) -> _Context:
         cor=cor,
         usable=(cor.pas, cor.slot, cor.tr, cor.tc, rows, cols, elem),
         cells=cells,
-        verts=_corner_vertices(cells),
+        verts=verts,
+        fixed=np.isin(verts, via),
         limit=limit,
         bands=bands,
         want=max(2, int(WAYPOINT_SHARE * len(cells))),
@@ -192,51 +196,85 @@ def _smoothings(ctx: _Context) -> tuple:
     gives its corners. When the flight along shortcuts that keep the ridge cover is longer
     than the bound allows, shortcuts free of that rule (the shortest), then the path's own
     corners (each made only when needed)."""
-    cor, usable, cells, verts = ctx.cor, ctx.usable, ctx.cells, ctx.verts
+    cor, usable, cells, verts, fixed = ctx.cor, ctx.usable, ctx.cells, ctx.verts, ctx.fixed
     rows, cols = ctx.m.shape
     vr = cells[verts, 0].astype(np.float64)
     vc = cells[verts, 1].astype(np.float64)
     off, along = _path_off_ridge(cells, cor)
+    off, along = off[verts], along[verts]
     r_turn = ctx.turn_m / ctx.a
+    most = 4 * max(rows, cols)
 
-    def kept():
-        keep = _shortcuts(
-            vr, vc, off[verts], along[verts], cor.pas, cor.rdg, *usable[1:], 4 * max(rows, cols)
-        )
-        return widen_turns(vr[keep], vc[keep], r_turn, usable)
+    def shortcuts(offs):
+        def pulled(a, b):
+            return _shortcuts(
+                vr[a:b], vc[a:b], offs[a:b], along[a:b], cor.pas, cor.rdg, *usable[1:], most
+            )
 
-    def free():
-        kf = _shortcuts(
-            vr, vc, along[verts] * 2.0, along[verts], cor.pas, cor.rdg, *usable[1:],
-            4 * max(rows, cols),
-        )  # fmt: skip
-        return widen_turns(vr[kf], vc[kf], r_turn, usable)
+        return _widened(*_by_leg(vr, vc, fixed, pulled), r_turn, usable)
 
     return (
-        ("shortcuts", kept, r_turn),
-        ("straight shortcuts", free, r_turn),
-        ("path vertices", lambda: widen_turns(vr, vc, r_turn, usable), r_turn),
-        ("grid path", lambda: (vr, vc), 0.0),
+        ("shortcuts", lambda: shortcuts(off), r_turn),
+        ("straight shortcuts", lambda: shortcuts(along * 2.0), r_turn),
+        ("path vertices", lambda: _widened(vr, vc, fixed, r_turn, usable), r_turn),
+        ("grid path", lambda: (vr, vc, fixed), 0.0),
     )
+
+
+def _by_leg(wr, wc, fixed, kept) -> tuple:
+    """The polyline ``w`` with, between each two of its ``fixed`` corners (the via points,
+    and the ends), the corners ``kept(a, b)`` keeps of ``w[a:b]`` (indices from ``a``, its
+    first and last among them): a smoothing that never skips a via point."""
+    ends = np.flatnonzero(fixed[1:-1]) + 1
+    bounds = [0, *ends.tolist(), len(wr) - 1]
+    idx = []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        k = np.asarray(kept(a, b + 1), dtype=np.int64) + a
+        idx.append(k if not idx else k[1:])
+    idx = np.concatenate(idx)
+    return wr[idx], wc[idx], fixed[idx]
+
+
+def _widened(wr, wc, fixed, radius, usable) -> tuple:
+    """:func:`widen_turns` between each two fixed corners (via points kept)."""
+    ends = np.flatnonzero(fixed[1:-1]) + 1
+    bounds = [0, *ends.tolist(), len(wr) - 1]
+    pr, pc, pf = [], [], []
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        r, c = widen_turns(wr[a : b + 1], wc[a : b + 1], radius, usable)
+        f = np.zeros(len(r), dtype=bool)
+        f[-1] = b != len(wr) - 1
+        first = 0 if not pr else 1
+        pr.append(r[first:])
+        pc.append(c[first:])
+        pf.append(f[first:])
+    return np.concatenate(pr), np.concatenate(pc), np.concatenate(pf)
 
 
 def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     """One smoothing flown: its route, turns, required heights and depth profile, and the
     limits it breaks (``problems``; ``over``: the flown length above the bound, if so)."""
     a, cor, usable = ctx.a, ctx.cor, ctx.usable
-    wr, wc = corners
+    wr, wc, fixed = corners
     # the waypoint route: the corners, a leg skipping those it passes within a tolerance
-    # of; the flown track: the route with its turns rounded
+    # of; the flown track: the route with its turns rounded (via points kept: ``fixed``)
     if rad > 0:
         keep_ridge = name != "straight shortcuts"
         woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
         # the closest route with few corners
-        rk = _route_vertices(wr, wc, woff, walong, _LEVELS, 0.75 * ctx.want, cor.rdg, *usable)
-        sr, sc = widen_turns(wr[rk], wc[rk], rad, usable)
+        enough = 0.75 * ctx.want
+
+        def route(i, j):  # (a leg between via points: its share of the waypoints)
+            most = max(2.0, enough * (j - i) / len(wr))
+            return _route_vertices(
+                wr[i:j], wc[i:j], woff[i:j], walong[i:j], _LEVELS, most, cor.rdg, *usable
+            )
+
+        sr, sc, sf = _widened(*_by_leg(wr, wc, fixed, route), rad, usable)
         # a simplified route whose corners come too close together where no straight leg
         # can part them: every corner of the smoothing kept instead (more waypoints)
         if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
-            wr, wc = sr, sc
+            wr, wc, fixed = sr, sc, sf
     pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, ctx.step)
     grid = cor.grid()  # the elevation decoded meanwhile
     qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, ctx.step)
@@ -305,6 +343,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         )
     return dict(
         name=name,
+        via=(wr[fixed], wc[fixed]),
         pr=pr,
         pc=pc,
         radii=radii,
@@ -400,11 +439,20 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         route_seabed_m=_bilinear(*grid, qr, qc),
         unknown_seabed_samples=pick["unsure"],
         min_clearance_m=float(least),
+        via_miss_m=_via_miss(m, pick["via"], x, y),
+        grid_cell_m=a,
         max_depth_m=getattr(m, "max_depth_m", None),
         at_rated_depth_m=_at_rated_depth(getattr(m, "max_depth_m", None), s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
         **profile_figures(s, z, seabed),
     )
+
+
+def _via_miss(m, via, x, y) -> list:
+    """For each via point (grid units), how close the flown track comes to its cell's centre
+    (metres): the waypoint route turns at it."""
+    vx, vy = _map_xy(m, *via)
+    return [float(np.hypot(x - px, y - py).min()) for px, py in zip(vx, vy, strict=True)]
 
 
 def _at_rated_depth(depth: float | None, s: np.ndarray, h: np.ndarray) -> float:
@@ -497,6 +545,14 @@ def with_flight(maps, traj, vehicle=None):
             f"{veh.speed_m_s:g} m/s and {veh.power_w:g} W), more than the battery's "
             f"{veh.battery_wh:g} Wh: raise battery_wh or lower the powers, or split the mission"
         )
+    far = [(k + 1, d) for k, d in enumerate(f.via_miss_m) if d > 0.5 * f.grid_cell_m]
+    if far:
+        note = "; ".join(
+            f"the flown track passes via {k} at {d:.0f} m (its turn is sharper than the turn "
+            "radius rounds within half a cell; the waypoint route turns at it)"
+            for k, d in far
+        )
+        traj.message = f"{traj.message}; {note}" if traj.message else note
     if f.unknown_seabed_samples:
         note = (
             f"the seabed is unknown (a no-data grid point's squares) within the clearance of "

@@ -93,10 +93,12 @@ def _cell(name, value) -> tuple[int, int]:
     return int(r), int(c)
 
 
-def _check_endpoints(m: MapsStore, start, goal):
+def _check_endpoints(m: MapsStore, cells, names=("start", "goal")):
+    """``cells`` (a start, via points, a goal: ``names``) checked: on the map and passable,
+    else one error naming the first that is not and the nearest passable cell."""
     rows, cols = m.shape
     out = []
-    for name, cell in (("start", start), ("goal", goal)):
+    for name, cell in zip(names, cells, strict=True):
         r, c = _cell(name, cell)
         if not (0 <= r < rows and 0 <= c < cols):
             raise off_map_error(name, r, c, m.shape)
@@ -104,7 +106,7 @@ def _check_endpoints(m: MapsStore, start, goal):
     passable = m.values("passable", out)
     if passable.all():  # one lookup; a window only to name the nearest cell
         return out
-    for name, (r, c), here in zip(("start", "goal"), out, passable, strict=True):
+    for name, (r, c), here in zip(names, out, passable, strict=True):
         if here:
             continue  # passable: no window read for it
         h = 64
@@ -169,6 +171,9 @@ def plan(
     coarse_planner: str = PLANNING.coarse_planner.default,
     coarse_weight: float = PLANNING.coarse_weight.default,
     repair_max_cells: int = PLANNING.repair_max_cells.default,
+    via: list[Cell] | None = None,
+    via_xy: list[Pair] | None = None,
+    via_lonlat: list[Pair] | None = None,
     keep_out: ZonesLike = None,
     keep_out_margin_m: float | None = None,
     max_depth_m: float | None = None,
@@ -223,6 +228,12 @@ def plan(
     repair_max_cells : int
         The largest map (rows x cols) on which an uncertified MCPC path is planned again on
         the whole map; 0 never does.
+    via, via_xy, via_lonlat : list of pairs, optional
+        Points the mission visits in order between start and goal, in one form (cells, map
+        coordinates, longitude and latitude). Each leg is planned as a mission of its own with
+        these options; the trajectory joins them, its bound is the sum of the legs' bounds
+        (a lower bound on the sum of their optima, the shortest path through the points in
+        order), and ``extra["legs"]`` records each leg.
     keep_out : path, list of paths, GeoDataFrame, shapely polygons or KeepOut, optional
         Keep-out zones the path never enters (:mod:`pipeline.zones`): vector files geopandas
         reads (GeoJSON, GeoPackage, Shapefile; any CRS), a GeoDataFrame, or polygons in map
@@ -269,6 +280,9 @@ def plan(
             goal_xy=goal_xy,
             start_lonlat=start_lonlat,
             goal_lonlat=goal_lonlat,
+            via=via,
+            via_xy=via_xy,
+            via_lonlat=via_lonlat,
         ).items()
         if v is not None
     }
@@ -278,9 +292,20 @@ def plan(
     margin_m = PLANNING.keep_out_margin_m.check_optional(keep_out_margin_m)
     m = constrained(m, keep_out, margin_m, max_depth_m)
     ends = endpoint_cells(m, given)  # as a job file gives them
-    for end in ("start", "goal"):
-        check_outside(m, end, _cell(end, ends[end]))
-    start, goal = _check_endpoints(m, ends["start"], ends["goal"])
+    vias = [_cell(f"via {k + 1}", v) for k, v in enumerate(ends.get("via", []))]
+    names = ["start", *(f"via {k + 1}" for k in range(len(vias))), "goal"]
+    points = [_cell("start", ends["start"]), *vias, _cell("goal", ends["goal"])]
+    for name, cell in zip(names, points, strict=True):
+        check_outside(m, name, cell)
+    if vias:
+        _check_endpoints(m, points, names)
+        legs = dict(
+            planner=planner, omega=omega, mcpc=mcpc, rho=rho, section_size=section_size,
+            margin=margin, coarse_planner=coarse_planner, coarse_weight=coarse_weight,
+            repair_max_cells=repair_max_cells, client=client,
+        )  # fmt: skip
+        return _plan_legs(m, points, names, legs, t0)
+    start, goal = _check_endpoints(m, points, names)
     # the components layer proves reachability at once, either way (_Reach)
     reach = _Reach(m, start, goal)
     run_on = get_client(client, own="threads")  # no cluster of its own for one mission
@@ -337,6 +362,68 @@ def plan(
     whole = _plan_whole(req, {**t.extra, "repair": repair})
     repair["seconds"] = time.perf_counter() - tr
     return _done(m, whole)
+
+
+def _plan_legs(m, points: list, names: list, options: dict, t0: float) -> Trajectory:
+    """A mission through via points: each leg planned in turn as a mission of its own on the
+    constrained store ``m``, the legs joined (the joints once), its length and ridge the legs'
+    sums, its lower bound the sum of theirs, certified as one mission (docs/certified-bound.md,
+    "Via points")."""
+    from .certify import _certify
+
+    legs = []
+    # each leg under the mission's constraints (plan() takes the store's own, unconstrained)
+    options = {**options, "keep_out": getattr(m, "keep_out", None)}
+    options["max_depth_m"] = getattr(m, "max_depth_m", None)
+    for k in range(len(points) - 1):
+        try:
+            leg = plan(m, points[k], points[k + 1], **options)
+        except UnreachableGoalError as exc:
+            raise UnreachableGoalError(
+                f"leg {k + 1} ({names[k]} to {names[k + 1]}): {exc}"
+            ) from None
+        legs.append(leg)
+    first = [leg.cells if k == 0 else leg.cells[1:] for k, leg in enumerate(legs)]
+    cells = np.vstack(first)
+    points_xyz = np.vstack([leg.points if k == 0 else leg.points[1:] for k, leg in enumerate(legs)])
+    length = float(sum(leg.length_m for leg in legs))
+    ridge = float(sum(leg.ridge_length_m for leg in legs))
+    joints = np.cumsum([0] + [len(c) for c in first])[1:-1] - 1  # via points' indices in cells
+    extra = {
+        "via_index": joints.astype(np.int64),
+        "legs": [
+            {
+                "from": names[k],
+                "to": names[k + 1],
+                "status": str(leg.status),
+                "length_m": leg.length_m,
+                "lower_bound_m": leg.lower_bound_m,
+                "ridge_ratio": leg.ridge_ratio,
+                "cells": len(leg.cells),
+                "message": leg.message,
+            }
+            for k, leg in enumerate(legs)
+        ],
+        "sections": [s for leg in legs for s in leg.extra.get("sections", [])],
+    }
+    if m.crs_wkt:
+        extra["crs_wkt"] = m.crs_wkt
+    t = Trajectory(
+        cells=cells,
+        points=points_xyz,
+        length_m=length,
+        ridge_length_m=ridge,
+        ridge_ratio=ridge / length if length > 0 else 0.0,
+        lower_bound_m=float(sum(leg.lower_bound_m for leg in legs)),
+        expansions=int(sum(leg.expansions for leg in legs)),
+        runtime_s=time.perf_counter() - t0,
+        planner=legs[0].planner,
+        omega=legs[0].omega,
+        extra=extra,
+    )
+    t.keep_out = getattr(m, "keep_out", None)
+    t.max_depth_m = getattr(m, "max_depth_m", None)
+    return _certify(t)
 
 
 # landmark layers the whole-map search reads for its heuristic (those that bound the mission

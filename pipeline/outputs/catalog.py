@@ -194,6 +194,16 @@ def write_mission(
                 "auv:expansions": int(traj.expansions),
             }
         )
+        if traj.extra.get("legs"):  # via points: as given, and each leg's figures
+            props["auv:via"] = [
+                [json_value(v) for v in p] for p in mission.get("via_input", mission.get("via"))
+            ]
+            props["auv:legs"] = [
+                {k: json_value(v) for k, v in leg.items()} for leg in traj.extra["legs"]
+            ]
+            cells = traj.cells[np.asarray(traj.extra["via_index"], dtype=np.int64)]
+            props["auv:via_xy"] = traj.points[traj.extra["via_index"], :2].round(2).tolist()
+            props["auv:via_cells"] = cells.tolist()
         if traj.keep_out is not None:  # the keep-out zones it avoids, and their margin
             props["auv:keep_out"] = list(traj.keep_out.names)
             props["auv:keep_out_margin_m"] = traj.keep_out.margin_m
@@ -278,6 +288,8 @@ def _mission_files(folder: Path, name: str, mid: str, traj, maps, crs_wkt):
                 ("legs_shorter_than_turn_radius", f.short_legs),
             )
         }
+        if f.via_miss_m:  # how close the flown track comes to each via point
+            props["auv:via_miss_m"] = [round(v, 2) for v in f.via_miss_m]
         if f.max_depth_m is not None:  # the rating kept, and how far it was flown at
             props["auv:max_depth_m"] = f.max_depth_m
             props["auv:at_rated_depth_m"] = json_value(f.at_rated_depth_m)

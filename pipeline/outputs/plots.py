@@ -379,6 +379,17 @@ def _plan_view(ax, sub, rdg, traj, crs_wkt) -> list:
         sx, sy, ex_, ey_ = f.x[0], f.y[0], f.x[-1], f.y[-1]
     else:
         sx, sy, ex_, ey_ = gx[0] * 1e3, gy[0] * 1e3, gx[-1] * 1e3, gy[-1] * 1e3
+    via = np.asarray(traj.extra.get("via_index", []), dtype=np.int64)
+    if via.size:
+        vx, vy = traj.points[via, 0] / 1e3, traj.points[via, 1] / 1e3
+        ax.plot(vx, vy, "D", color="#00bcd4", ms=8, mec="k", zorder=6)
+        for k, (px, py) in enumerate(zip(vx, vy, strict=True)):
+            ax.annotate(str(k + 1), (px, py), xytext=(5, 5), textcoords="offset points",
+                        fontsize=8, zorder=7)  # fmt: skip
+        handles.append(
+            Line2D([], [], ls="", marker="D", color="#00bcd4", mec="k", ms=7,
+                   label=f"via points ({via.size}, in order)")
+        )  # fmt: skip
     ax.plot(sx / 1e3, sy / 1e3, "o", color="lime", ms=9, mec="k", zorder=6)
     ax.plot(ex_ / 1e3, ey_ / 1e3, "*", color="gold", ms=14, mec="k", zorder=6)
     handles += [

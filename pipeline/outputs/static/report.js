@@ -74,6 +74,8 @@
     lines[m.id] = line;
     m.waypoint_xy.forEach((w) => L.circleMarker(ll(w), { radius: 2, color: "#222", weight: 0.6,
       fillColor: "#fff", fillOpacity: 1, className: "waypoint" }).addTo(map));
+    (m.via_xy || []).forEach((v, k) => L.circleMarker(ll(v), { radius: 5, color: "#000", weight: 1,
+      fillColor: "#00bcd4", fillOpacity: 1, className: "via" }).bindTooltip(m.name + ": via " + (k + 1)).addTo(map));
     L.circleMarker(ll(m.track[0]), { radius: 6, color: "#000", weight: 1, fillColor: "#3c3",
       fillOpacity: 1, className: "start" }).bindTooltip(m.name + ": start").addTo(map);
     L.circleMarker(ll(m.track[m.track.length - 1]), { radius: 6, color: "#000", weight: 1,
@@ -96,6 +98,7 @@
       box.appendChild(entry("div", c, t, "sym"));
     });
     if (zoned) box.appendChild(entry("div", "#7b3294", "keep-out zone", "sym"));
+    if (D.missions.some((m) => (m.via_xy || []).length)) box.appendChild(entry("div", "#00bcd4", "via point", "sym"));
     if (H) {
       box.appendChild(el("div", "seabed elevation (m)"));
       const bar = el("div", undefined, "bar");
