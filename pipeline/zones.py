@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,10 @@ from .exceptions import InvalidParameterError
 
 # the cells removed reach this share of a cell beyond the margin (the module's description)
 SLACK = 0.25
+# GEOS's prepared geometries are not thread-safe (libgeos/geos#825): the sections' threads
+# test cells against one at a time (a segfault otherwise, seen with the sections of a mission
+# on threads)
+_PREPARED = threading.Lock()
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,7 +100,9 @@ class KeepOut:
         import shapely
 
         x, y, h = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), 0.5 * a
-        return shapely.intersects(self._grown(a), shapely.box(x - h, y - h, x + h, y + h))
+        boxes = shapely.box(x - h, y - h, x + h, y + h)
+        with _PREPARED:
+            return shapely.intersects(self._grown(a), boxes)
 
     def blocked(self, xs: np.ndarray, ys: np.ndarray, a: float) -> np.ndarray:
         """Which cells of the window whose column centres are ``xs`` and row centres ``ys``
@@ -123,9 +130,20 @@ class KeepOut:
         if len(edge):
             cx, cy = sx[edge[:, 1]], sy[edge[:, 0]]
             boxes = shapely.box(cx - h, cy - h, cx + h, cy + h)
-            sub[edge[:, 0], edge[:, 1]] = shapely.intersects(g, boxes)
+            with _PREPARED:
+                sub[edge[:, 0], edge[:, 1]] = shapely.intersects(g, boxes)
         out[r0:r1, c0:c1] = sub
         return out
+
+
+@functools.cache
+def _quiet_rasterize(category) -> None:
+    """rasterio's in-memory raster behind ``rasterize`` warns that it has no geotransform
+    before it is given ours: that warning, from there only, is ignored (once for the process;
+    ``warnings.catch_warnings`` is not safe in the sections' threads)."""
+    warnings.filterwarnings(
+        "ignore", "Dataset has no geotransform", category, module=r"rasterio\.features"
+    )
 
 
 def rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
@@ -139,15 +157,14 @@ def rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
         return np.zeros(shape, dtype=bool)
     flip_y, flip_x = len(ys) > 1 and ys[1] > ys[0], len(xs) > 1 and xs[1] < xs[0]
     west, north = xs.min() - 0.5 * a, ys.max() + 0.5 * a
-    with warnings.catch_warnings():  # (rasterio takes a window of one row for no transform)
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        burnt = rasterize(
-            [(geom, 1)],
-            out_shape=shape,
-            transform=Affine(a, 0.0, west, 0.0, -a, north),
-            all_touched=all_touched,
-            dtype="uint8",
-        ).astype(bool)
+    _quiet_rasterize(NotGeoreferencedWarning)
+    burnt = rasterize(
+        [(geom, 1)],
+        out_shape=shape,
+        transform=Affine(a, 0.0, west, 0.0, -a, north),
+        all_touched=all_touched,
+        dtype="uint8",
+    ).astype(bool)
     if flip_y:
         burnt = burnt[::-1]
     if flip_x:

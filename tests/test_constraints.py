@@ -97,6 +97,39 @@ def test_removed_cells_are_those_whose_square_comes_within_the_margin(margin, as
         assert want.any() or (r1 - r0) * (c1 - c0) < 100
 
 
+_RACE = """
+import numpy as np, shapely
+from concurrent.futures import ThreadPoolExecutor
+from pipeline.zones import KeepOut
+rng = np.random.default_rng(0)
+a = 30.0
+xs = 500000 + (np.arange(400) + 0.5) * a
+ys = 5000000 - (np.arange(400) + 0.5) * a
+zones = []
+for k in range(20):
+    cx, cy = rng.uniform(xs[0], xs[-1]), rng.uniform(ys[-1], ys[0])
+    t = np.sort(rng.uniform(0, 2 * np.pi, 7)); r = rng.uniform(100, 900, 7)
+    zones.append((f"z{k}", shapely.Polygon(np.c_[cx + r * np.cos(t), cy + r * np.sin(t)])))
+ko = KeepOut(tuple(zones), 100.0)
+ref = ko.blocked(xs, ys, a)
+def job(i):
+    r0, c0 = (i * 37) % 300, (i * 53) % 300
+    got = ko.blocked(xs[c0:c0 + 100], ys[r0:r0 + 100], a)
+    return np.array_equal(got, ref[r0:r0 + 100, c0:c0 + 100])
+with ThreadPoolExecutor(8) as ex:
+    print("same", all(ex.map(job, range(200))))
+"""
+
+
+def test_cells_are_removed_from_many_threads_at_once():
+    """The sections of a mission on threads ask for their windows' removed cells at once:
+    GEOS's prepared geometries are not thread-safe (without the lock this process crashed in
+    each of three runs), and every window equals the whole map's answer."""
+    got = subprocess.run([sys.executable, "-c", _RACE], capture_output=True, text=True)
+    assert got.returncode == 0 and "same True" in got.stdout, got.stderr[-2000:]
+    assert "Warning" not in got.stderr
+
+
 # ------------------------------------------------------------------ routes and certificates
 
 

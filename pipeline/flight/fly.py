@@ -54,6 +54,7 @@ from .geometry import (
     _LEVELS,
     Corridor,
     _corner_vertices,
+    _line_usable,
     _lookup,
     _path_off_ridge,
     _polyline_off_ridge,
@@ -275,6 +276,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         # can part them: every corner of the smoothing kept instead (more waypoints)
         if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
             wr, wc, fixed = sr, sc, sf
+    wr, wc, fixed = _fly_over(wr, wc, fixed, rad, usable)
     pr, pc, leg, radii, tan_d = arcs(wr, wc, rad, ctx.step)
     grid = cor.grid()  # the elevation decoded meanwhile
     qr, qc, shared, vi = _route_samples(wr, wc, pr, pc, leg, tan_d, ctx.step)
@@ -446,6 +448,42 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
         **profile_figures(s, z, seabed),
     )
+
+
+def _fly_over(wr, wc, fixed, rad: float, usable) -> tuple:
+    """The polyline ``w`` with a turn flown over each via point (``fixed``) whose rounded
+    corner would pass it further than half a cell: the route goes straight on through the via
+    point for ``1.05 rad``, turns square to the side of the next leg for ``2.1 rad`` and then
+    heads for the next corner, so that the track crosses the via point itself (the two square
+    turns need legs of ``rad`` on each side). Kept only where the new legs are usable (the
+    other side tried too); else the corner stays as it was. Grid units."""
+    if rad <= 0 or not fixed[1:-1].any():
+        return wr, wc, fixed
+    out = [(wr[0], wc[0], fixed[0])]
+    for k in range(1, len(wr) - 1):
+        v = np.array([wr[k], wc[k]])
+        out.append((wr[k], wc[k], fixed[k]))
+        if not fixed[k]:
+            continue
+        d1 = v - np.array(out[-2][:2])
+        d2 = np.array([wr[k + 1], wc[k + 1]]) - v
+        n1, n2 = np.hypot(*d1), np.hypot(*d2)
+        if n1 == 0 or n2 == 0:
+            continue
+        d1, d2 = d1 / n1, d2 / n2
+        half = 0.5 * math.acos(float(np.clip(d1 @ d2, -1.0, 1.0)))
+        if half < math.pi / 2 - 1e-9 and rad * (1 / math.cos(half) - 1) <= 0.5:
+            continue  # the rounded corner passes within half a cell
+        turn = 1.0 if d1[0] * d2[1] - d1[1] * d2[0] >= 0 else -1.0
+        for side in (turn, -turn):
+            p1 = v + 1.05 * rad * d1
+            p2 = p1 + 2.1 * rad * side * np.array([-d1[1], d1[0]])
+            legs = ((v, p1), (p1, p2), (p2, np.array([wr[k + 1], wc[k + 1]])))
+            if all(_line_usable(*usable, *a, *b) for a, b in legs):
+                out += [(p1[0], p1[1], False), (p2[0], p2[1], False)]
+                break
+    r, c, f = zip(*[*out, (wr[-1], wc[-1], fixed[-1])], strict=True)
+    return np.array(r, dtype=np.float64), np.array(c, dtype=np.float64), np.array(f, dtype=bool)
 
 
 def _via_miss(m, via, x, y) -> list:
