@@ -30,8 +30,9 @@ import numpy as np
 from .exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
 from .store.maps_store import MapsStore
 
-# the half-sides of the windows a closed region round an endpoint is looked for in
-POCKET_SIDES = (64, 256, 1024)
+# the half-sides of the windows a closed region round an endpoint is looked for in (a larger
+# region is proven apart by the exhaustive search; CHANGELOG.md, "Measurements")
+POCKET_SIDES = (64, 256)
 
 
 class ConstrainedStore(MapsStore):
@@ -165,6 +166,9 @@ class ConstrainedStore(MapsStore):
         for h in POCKET_SIDES:
             r0, r1 = max(r - h, 0), min(r + h + 1, rows)
             c0, c1 = max(c - h, 0), min(c + h + 1, cols)
+            if not self.keep_out.near(self.x[c0:c1], self.y[r0:r1], self.cell_size):
+                # no zone there: its region closes only round the other end (one component)
+                continue
             ok = self.window("passable", r0, r1, c0, c1)
             if not ok[r - r0, c - c0]:
                 return False  # the endpoints' own checks say what is wrong

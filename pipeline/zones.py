@@ -75,14 +75,33 @@ class KeepOut:
     @functools.lru_cache(maxsize=4)  # noqa: B019 - one object per mission, a few cell sides
     def _shapes(self, a: float) -> tuple:
         """For cells of side ``a``: the zones grown by the margin and ``SLACK`` cells
-        (prepared), that grown by a twentieth of a cell more (what the cells it may meet
-        touch) and shrunk by three quarters of a cell (a cell whose centre it holds lies
-        inside)."""
+        (prepared), and its separate parts, each as ``(part prepared, its bounds, the part
+        grown by a twentieth of a cell more: what the cells it may meet touch, the part shrunk
+        by three quarters of a cell: a cell whose centre it holds lies inside)``: a window
+        is tested against the parts that come near it only."""
         import shapely
 
         g = self.kept.buffer(SLACK * a)
         shapely.prepare(g)
-        return g, g.buffer(0.05 * a), g.buffer(-0.75 * a)
+        parts = []
+        for part in getattr(g, "geoms", [g]):
+            if part.is_empty:
+                continue
+            part = shapely.Polygon(part.exterior, part.interiors)  # a geometry of its own
+            shapely.prepare(part)
+            parts.append((part, part.bounds, part.buffer(0.05 * a), part.buffer(-0.75 * a)))
+        return g, parts
+
+    def near(self, xs: np.ndarray, ys: np.ndarray, a: float) -> bool:
+        """Whether any zone's removed cells may lie in the window of column centres ``xs``
+        and row centres ``ys`` (their bounds meet)."""
+        h = 0.5 * a
+        wx0, wx1 = float(np.min(xs)) - h, float(np.max(xs)) + h
+        wy0, wy1 = float(np.min(ys)) - h, float(np.max(ys)) + h
+        return any(
+            x0 <= wx1 and wx0 <= x1 and y0 <= wy1 and wy0 <= y1
+            for _, (x0, y0, x1, y1), _, _ in self._shapes(a)[1]
+        )
 
     def zone_at(self, x: float, y: float) -> str | None:
         """The name of a zone whose kept area (the zone and its margin) holds the point."""
@@ -114,25 +133,24 @@ class KeepOut:
         xs = np.asarray(xs, dtype=np.float64)
         ys = np.asarray(ys, dtype=np.float64)
         out = np.zeros((len(ys), len(xs)), dtype=bool)
-        g, outer, inner = self._shapes(a)
-        x0, y0, x1, y1 = g.bounds
         h = 0.5 * a
-        cols = np.flatnonzero((xs + h >= x0) & (xs - h <= x1))
-        rows = np.flatnonzero((ys + h >= y0) & (ys - h <= y1))
-        if not len(cols) or not len(rows) or g.is_empty:
-            return out
-        c0, c1, r0, r1 = cols[0], cols[-1] + 1, rows[0], rows[-1] + 1
-        sx, sy = xs[c0:c1], ys[r0:r1]
-        near = rasterised(outer, sx, sy, a, all_touched=True)
-        inside = rasterised(inner, sx, sy, a, all_touched=False)
-        edge = np.argwhere(near & ~inside)
-        sub = inside.copy()
-        if len(edge):
-            cx, cy = sx[edge[:, 1]], sy[edge[:, 0]]
-            boxes = shapely.box(cx - h, cy - h, cx + h, cy + h)
-            with _PREPARED:
-                sub[edge[:, 0], edge[:, 1]] = shapely.intersects(g, boxes)
-        out[r0:r1, c0:c1] = sub
+        for part, (x0, y0, x1, y1), outer, inner in self._shapes(a)[1]:
+            cols = np.flatnonzero((xs + h >= x0) & (xs - h <= x1))
+            rows = np.flatnonzero((ys + h >= y0) & (ys - h <= y1))
+            if not len(cols) or not len(rows):
+                continue
+            c0, c1, r0, r1 = cols[0], cols[-1] + 1, rows[0], rows[-1] + 1
+            sx, sy = xs[c0:c1], ys[r0:r1]
+            near = rasterised(outer, sx, sy, a, all_touched=True)
+            inside = rasterised(inner, sx, sy, a, all_touched=False)
+            edge = np.argwhere(near & ~inside)
+            sub = inside
+            if len(edge):
+                cx, cy = sx[edge[:, 1]], sy[edge[:, 0]]
+                boxes = shapely.box(cx - h, cy - h, cx + h, cy + h)
+                with _PREPARED:
+                    sub[edge[:, 0], edge[:, 1]] = shapely.intersects(part, boxes)
+            out[r0:r1, c0:c1] |= sub
         return out
 
 
@@ -253,8 +271,10 @@ def read_zones(keep_out, crs_wkt: str | None, margin_m: float = 0.0) -> KeepOut 
     import geopandas as gpd
     from shapely.geometry.base import BaseGeometry
 
-    if isinstance(keep_out, KeepOut):
-        return keep_out if margin_m is None else KeepOut(keep_out.zones, float(margin_m))
+    if isinstance(keep_out, KeepOut):  # the same object while its margin is (its shapes kept)
+        if margin_m is None or float(margin_m) == keep_out.margin_m:
+            return keep_out
+        return KeepOut(keep_out.zones, float(margin_m))
     margin = 0.0 if margin_m is None else float(margin_m)
     if not math.isfinite(margin) or margin < 0:
         raise InvalidParameterError(
@@ -265,20 +285,22 @@ def read_zones(keep_out, crs_wkt: str | None, margin_m: float = 0.0) -> KeepOut 
         if isinstance(keep_out, str | os.PathLike | BaseGeometry | gpd.GeoDataFrame)
         else list(keep_out)
     )
-    zones = []
+    zones, shapes = [], {}
     for k, item in enumerate(items):
         if isinstance(item, str | os.PathLike):
             zones += _in_maps_crs(read_zone_file(item), crs_wkt, str(item))
         elif isinstance(item, gpd.GeoDataFrame):
             zones += _in_maps_crs(_named(item, "GeoDataFrame"), crs_wkt, "GeoDataFrame")
         elif isinstance(item, BaseGeometry):
-            frame = gpd.GeoDataFrame({"name": [f"keep_out[{k}]"]}, geometry=[item])
-            zones += _in_maps_crs(_named(frame, f"keep_out[{k}]"), crs_wkt, "shapely")
+            shapes[f"keep_out[{k}]"] = item  # in the maps' coordinates, checked together
         else:
             raise InvalidParameterError(
                 "`keep_out` takes zone file paths, a GeoDataFrame or shapely polygons, got "
                 f"{type(item).__name__}"
             )
+    if shapes:
+        frame = gpd.GeoDataFrame({"name": list(shapes)}, geometry=list(shapes.values()))
+        zones += _in_maps_crs(_named(frame, "keep_out"), crs_wkt, "shapely")
     return KeepOut(tuple(zones), margin) if zones else None
 
 

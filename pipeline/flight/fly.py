@@ -455,8 +455,9 @@ def _fly_over(wr, wc, fixed, rad: float, usable) -> tuple:
     corner would pass it further than half a cell: the route goes straight on through the via
     point for ``1.05 rad``, turns square to the side of the next leg for ``2.1 rad`` and then
     heads for the next corner, so that the track crosses the via point itself (the two square
-    turns need legs of ``rad`` on each side). Kept only where the new legs are usable (the
-    other side tried too); else the corner stays as it was. Grid units."""
+    turns need legs of ``rad`` on each side). Kept only where the new legs are usable and no
+    turn near it is tighter than before (the other side tried too); else the corner stays as
+    it was. Grid units."""
     if rad <= 0 or not fixed[1:-1].any():
         return wr, wc, fixed
     out = [(wr[0], wc[0], fixed[0])]
@@ -475,10 +476,16 @@ def _fly_over(wr, wc, fixed, rad: float, usable) -> tuple:
         if half < math.pi / 2 - 1e-9 and rad * (1 / math.cos(half) - 1) <= 0.5:
             continue  # the rounded corner passes within half a cell
         turn = 1.0 if d1[0] * d2[1] - d1[1] * d2[0] >= 0 else -1.0
+        prev = np.array(out[-2][:2])
+        after = [np.array([wr[j], wc[j]]) for j in range(k + 1, min(k + 3, len(wr)))]
+        before = _tight_turns(*np.array([prev, v, *after]).T, rad)
         for side in (turn, -turn):
             p1 = v + 1.05 * rad * d1
             p2 = p1 + 2.1 * rad * side * np.array([-d1[1], d1[0]])
-            legs = ((v, p1), (p1, p2), (p2, np.array([wr[k + 1], wc[k + 1]])))
+            legs = ((v, p1), (p1, p2), (p2, after[0]))
+            # no turn there tighter than before (the next corner too close to the loop)
+            if _tight_turns(*np.array([prev, v, p1, p2, *after]).T, rad) > before:
+                continue
             if all(_line_usable(*usable, *a, *b) for a, b in legs):
                 out += [(p1[0], p1[1], False), (p2[0], p2[1], False)]
                 break
