@@ -94,7 +94,7 @@ class ConstrainedStore(MapsStore):
         """The store's coarse level with the coarse cells whose centre lies in a zone grown by
         its margin removed (as a coarse cell is passable when most of its cells are), and the
         surface raised to the rated depth."""
-        from .zones import rasterised
+        from .zones import centres_in
 
         with self._lock:
             got = self._coarse.get(rho)
@@ -109,7 +109,7 @@ class ConstrainedStore(MapsStore):
             sy = np.sign(self.y[1] - self.y[0]) if len(self.y) > 1 else -1.0
             xs = self.x[0] - sx * a / 2 + sx * (np.arange(cols) + 0.5) * rho * a
             ys = self.y[0] - sy * a / 2 + sy * (np.arange(rows) + 0.5) * rho * a
-            inside = rasterised(self.keep_out.kept, xs, ys, rho * a, all_touched=False)
+            inside = centres_in(self.keep_out.kept, xs, ys)
             got["passable"] = base["passable"] & ~inside
         with self._lock:
             self._coarse[rho] = got

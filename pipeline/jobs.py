@@ -460,6 +460,25 @@ def _zone_files(path: Path, table: dict, where: str) -> None:
     table["keep_out"] = files
 
 
+def _check_point(path: Path, key: str, p, form: str, given) -> None:
+    """A point of a mission (an end, a via point) in its ``form``: a cell of integers, map
+    coordinates, or a longitude and latitude in range; ``given`` is shown in the error."""
+    integer = form == "cell"
+    if not all(
+        isinstance(x, int if integer else int | float) and not isinstance(x, bool) for x in p
+    ):
+        what = "[row, col] of integers" if integer else "pairs of numbers"
+        _fail(path, f"{key} must be {'a list of ' if given is not p else ''}{what}, got {given!r}")
+    if form != "cell":
+        try:
+            for x, param in zip(
+                p, (LONGITUDE, LATITUDE) if form == "lonlat" else (_COORD,) * 2, strict=True
+            ):
+                param.check(x, key)
+        except InvalidParameterError as exc:
+            _fail(path, str(exc))
+
+
 def _load_via(path: Path, m: dict, mission: dict, where: str) -> None:
     """A mission's via points, checked as its start and goal are: ``via_form`` and
     ``via_input`` in ``mission`` (the cells are found once the maps exist)."""
@@ -471,20 +490,7 @@ def _load_via(path: Path, m: dict, mission: dict, where: str) -> None:
         return
     key = next(k for k in VIA_KEYS if k in m)
     for p in points:
-        integer = form == "cell"
-        if not all(
-            isinstance(x, int if integer else int | float) and not isinstance(x, bool) for x in p
-        ):
-            what = "[row, col] of integers" if integer else "pairs of numbers"
-            _fail(path, f"{where}{key} must be a list of {what}, got {m[key]!r}")
-        if form != "cell":
-            try:
-                for x, param in zip(
-                    p, (LONGITUDE, LATITUDE) if form == "lonlat" else (_COORD,) * 2, strict=True
-                ):
-                    param.check(x, f"{where}{key}")
-            except InvalidParameterError as exc:
-                _fail(path, str(exc))
+        _check_point(path, f"{where}{key}", p, form, m[key])
     mission["via_form"] = form
     mission["via_input"] = [list(p) for p in points]
 
@@ -563,26 +569,11 @@ def _load_missions(path, doc, job):
                 )
             key = forms[0]
             v = m[key]
-            integer = key == end
-            if (
-                not isinstance(v, list)
-                or len(v) != 2
-                or not all(
-                    isinstance(x, int if integer else int | float) and not isinstance(x, bool)
-                    for x in v
-                )
-            ):
-                what = "[row, col] of integers" if integer else "a pair of numbers"
-                _fail(path, f"{where}{key} must be {what}, got {v!r}")
             form = endpoint_forms(m, end)[0]
-            if form != "cell":
-                try:
-                    for x, param in zip(
-                        v, (LONGITUDE, LATITUDE) if form == "lonlat" else (_COORD,) * 2, strict=True
-                    ):
-                        param.check(x, f"{where}{key}")
-                except InvalidParameterError as exc:
-                    _fail(path, str(exc))
+            if not isinstance(v, list) or len(v) != 2:
+                what = "[row, col] of integers" if form == "cell" else "a pair of numbers"
+                _fail(path, f"{where}{key} must be {what}, got {v!r}")
+            _check_point(path, f"{where}{key}", v, form, v)
             mission[f"{end}_form"] = form
             mission[f"{end}_input"] = list(v)
         _load_via(path, m, mission, where)

@@ -30,7 +30,6 @@ import functools
 import math
 import os
 import threading
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,10 +74,10 @@ class KeepOut:
     @functools.lru_cache(maxsize=4)  # noqa: B019 - one object per mission, a few cell sides
     def _shapes(self, a: float) -> tuple:
         """For cells of side ``a``: the zones grown by the margin and ``SLACK`` cells
-        (prepared), and its separate parts, each as ``(part prepared, its bounds, the part
-        grown by a twentieth of a cell more: what the cells it may meet touch, the part shrunk
-        by three quarters of a cell: a cell whose centre it holds lies inside)``: a window
-        is tested against the parts that come near it only."""
+        (prepared), and its separate parts, each as ``(part, its bounds, the part grown by
+        three quarters of a cell: it holds the centre of every cell the part meets, the part
+        shrunk by as much: a cell whose centre it holds lies inside the part)``, all prepared:
+        a window is tested against the parts that come near it only."""
         import shapely
 
         g = self.kept.buffer(SLACK * a)
@@ -89,7 +88,11 @@ class KeepOut:
                 continue
             part = shapely.Polygon(part.exterior, part.interiors)  # a geometry of its own
             shapely.prepare(part)
-            parts.append((part, part.bounds, part.buffer(0.05 * a), part.buffer(-0.75 * a)))
+            # a cell whose square meets the part has its centre within half a diagonal of it
+            near, inner = part.buffer(0.75 * a), part.buffer(-0.75 * a)
+            shapely.prepare(near)
+            shapely.prepare(inner)
+            parts.append((part, part.bounds, near, inner))
         return g, parts
 
     def near(self, xs: np.ndarray, ys: np.ndarray, a: float) -> bool:
@@ -126,8 +129,8 @@ class KeepOut:
     def blocked(self, xs: np.ndarray, ys: np.ndarray, a: float) -> np.ndarray:
         """Which cells of the window whose column centres are ``xs`` and row centres ``ys``
         (square cells of side ``a``) are removed: their closed square meets a zone grown by
-        the margin and ``SLACK * a``. Exact (shapely) at the zones' edges; the cells deep
-        inside a zone and the candidates are found by rasterising (rasterio)."""
+        the margin and ``SLACK * a``. Exact (shapely): the cells near a zone's edge by their
+        squares, those deep inside or far outside by their centres."""
         import shapely
 
         xs = np.asarray(xs, dtype=np.float64)
@@ -140,54 +143,36 @@ class KeepOut:
             if not len(cols) or not len(rows):
                 continue
             c0, c1, r0, r1 = cols[0], cols[-1] + 1, rows[0], rows[-1] + 1
-            sx, sy = xs[c0:c1], ys[r0:r1]
-            near = rasterised(outer, sx, sy, a, all_touched=True)
-            inside = rasterised(inner, sx, sy, a, all_touched=False)
-            edge = np.argwhere(near & ~inside)
-            sub = inside
-            if len(edge):
-                cx, cy = sx[edge[:, 1]], sy[edge[:, 0]]
-                boxes = shapely.box(cx - h, cy - h, cx + h, cy + h)
-                with _PREPARED:
-                    sub[edge[:, 0], edge[:, 1]] = shapely.intersects(part, boxes)
+            sx, sy = np.meshgrid(xs[c0:c1], ys[r0:r1])
+            with _PREPARED:
+                near = shapely.contains_xy(outer, sx, sy)
+                sub = shapely.contains_xy(inner, sx, sy)
+                edge = np.nonzero(near & ~sub)
+                if len(edge[0]):
+                    cx, cy = sx[edge], sy[edge]
+                    boxes = shapely.box(cx - h, cy - h, cx + h, cy + h)
+                    sub[edge] = shapely.intersects(part, boxes)
             out[r0:r1, c0:c1] |= sub
         return out
 
 
-@functools.cache
-def _quiet_rasterize(category) -> None:
-    """rasterio's in-memory raster behind ``rasterize`` warns that it has no geotransform
-    before it is given ours: that warning, from there only, is ignored (once for the process;
-    ``warnings.catch_warnings`` is not safe in the sections' threads)."""
-    warnings.filterwarnings(
-        "ignore", "Dataset has no geotransform", category, module=r"rasterio\.features"
-    )
+def centres_in(geom, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Which cells of the grid of column centres ``xs`` and row centres ``ys`` have their
+    centre in ``geom`` (shapely; only the cells within its bounds tested)."""
+    import shapely
 
-
-def rasterised(geom, xs, ys, a: float, all_touched: bool) -> np.ndarray:
-    """``geom`` burnt into the grid of cell centres ``xs``, ``ys`` (either direction)."""
-    from rasterio.errors import NotGeoreferencedWarning
-    from rasterio.features import rasterize
-    from rasterio.transform import Affine
-
-    shape = (len(ys), len(xs))
+    out = np.zeros((len(ys), len(xs)), dtype=bool)
     if geom.is_empty:
-        return np.zeros(shape, dtype=bool)
-    flip_y, flip_x = len(ys) > 1 and ys[1] > ys[0], len(xs) > 1 and xs[1] < xs[0]
-    west, north = xs.min() - 0.5 * a, ys.max() + 0.5 * a
-    _quiet_rasterize(NotGeoreferencedWarning)
-    burnt = rasterize(
-        [(geom, 1)],
-        out_shape=shape,
-        transform=Affine(a, 0.0, west, 0.0, -a, north),
-        all_touched=all_touched,
-        dtype="uint8",
-    ).astype(bool)
-    if flip_y:
-        burnt = burnt[::-1]
-    if flip_x:
-        burnt = burnt[:, ::-1]
-    return burnt
+        return out
+    x0, y0, x1, y1 = geom.bounds
+    cols = np.flatnonzero((xs >= x0) & (xs <= x1))
+    rows = np.flatnonzero((ys >= y0) & (ys <= y1))
+    if len(cols) and len(rows):
+        c0, c1, r0, r1 = cols[0], cols[-1] + 1, rows[0], rows[-1] + 1
+        gx, gy = np.meshgrid(xs[c0:c1], ys[r0:r1])
+        with _PREPARED:
+            out[r0:r1, c0:c1] = shapely.contains_xy(geom, gx, gy)
+    return out
 
 
 # ------------------------------------------------------------------ reading zones

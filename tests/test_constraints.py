@@ -241,6 +241,16 @@ def test_a_goal_cut_off_by_zones_is_unreachable_at_once_and_the_batch_goes_on(zo
 # ------------------------------------------------------------------ bad zone files
 
 
+def _dry_run(job):
+    """``pipeline run JOB --dry-run`` in a process of its own, from the job's folder."""
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(job), "--dry-run"],
+        capture_output=True,
+        text=True,
+        cwd=job.parent,
+    )
+
+
 def _gpkg_without_crs(path):
     import warnings
 
@@ -282,12 +292,7 @@ def test_bad_zone_files_are_one_line_in_the_api_and_the_job(
         f'name = "z"\n[dem.synthetic]\nshape = [64, 64]\n[planning]\nkeep_out = ["{name}"]\n'
         '[[missions]]\nstart = [1, 1]\ngoal = [60, 60]\n[output]\ncatalog = "out"\n'
     )
-    got = subprocess.run(
-        [sys.executable, "-m", "pipeline", "run", str(job), "--dry-run"],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-    )
+    got = _dry_run(job)
     assert got.returncode == 2, got.stderr
     lines = got.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and "planning.keep_out" in lines[0]
@@ -445,12 +450,7 @@ def test_a_rating_no_height_can_keep_is_refused(zone_store, tmp_path):
         "[vehicle]\nmax_depth_m = 40.0\n"
         '[[missions]]\nstart = [1, 1]\ngoal = [60, 60]\n[output]\ncatalog = "out"\n'
     )
-    got = subprocess.run(
-        [sys.executable, "-m", "pipeline", "run", str(job), "--dry-run"],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-    )
+    got = _dry_run(job)
     assert got.returncode == 2, got.stderr
     assert got.stderr.count("\n") == 1 and "rated depth 40 m" in got.stderr
 

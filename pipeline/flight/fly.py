@@ -266,7 +266,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         enough = 0.75 * ctx.want
 
         def route(i, j):  # (a leg between via points: its share of the waypoints)
-            most = max(2.0, enough * (j - i) / len(wr))
+            most = enough * (j - i) / len(wr)
             return _route_vertices(
                 wr[i:j], wc[i:j], woff[i:j], walong[i:j], _LEVELS, most, cor.rdg, *usable
             )
