@@ -116,6 +116,7 @@ def run(n: int, count: int) -> list[dict]:
                     certified_ratio=t.certified_ratio,
                     flown_km=f.flown_length_m / 1e3,
                     flight_problems=len(f.problems),
+                    problems=list(f.problems),
                     least_zone_m=_least(
                         zs, t.points[:, :2].T, (f.x, f.y), (f.waypoints[:, 0], f.waypoints[:, 1])
                     ),
@@ -195,6 +196,14 @@ def main() -> None:
         ],
         table,
     )
+    seen = sorted({(r["case"], p) for r in rows for p in r["problems"]})
+    if seen:
+        rep.p(
+            "The flight problems (the mission then fails with the reason, as a job records "
+            "it): " + "; ".join(f"{case}: {p}" for case, p in seen) + ". A via point drawn "
+            "at random may lie where the seabed rises close to the surface limit: the pitch "
+            "limit cannot reach it and stay below the limit, which no smoothing can change."
+        )
     both = table[3]
     rep.headline(
         "constraints",

@@ -49,6 +49,7 @@ SCRIPTS = [
     "realdata",
     "certify",
     "flight",
+    "constraints",
 ]
 
 PAPER_INDEX = [
