@@ -518,3 +518,51 @@ def test_bad_via_points_name_the_point(zone_store):
         pipeline.plan(path, (10, 10), (110, 110), via=[(5, 5)], via_xy=[(1.0, 2.0)])
     with pytest.raises(InvalidParameterError, match="list of pairs"):
         pipeline.plan(path, (10, 10), (110, 110), via=[5, 5])
+
+
+def test_a_via_point_on_land_is_named(tmp_path):
+    """A via point on a cell that is not passable (an island of the generated scene): one
+    error naming it and the nearest passable cell."""
+    dem = pipeline.synthetic_dem((96, 96), cell_size=30.0, seed=1, islands=2, chunks=None)
+    maps = pipeline.build_maps(dem, tmp_path / "m.zarr", clearance=60.0, landmarks=0)
+    ok = maps["passable"].values
+    land = tuple(int(v) for v in np.argwhere(~ok)[0])
+    s, g = (tuple(int(v) for v in c) for c in np.argwhere(ok)[[0, -1]])
+    with pytest.raises(InvalidEndpointError, match=rf"via 1 \({land[0]}, {land[1]}\).*nearest"):
+        pipeline.plan(tmp_path / "m.zarr", s, g, via=[land])
+
+
+def test_the_quicklook_shows_zones_via_points_and_the_rating(zone_store, monkeypatch, tmp_path):
+    """The quick-look of a mission under all three constraints, drawn as a job draws it: its
+    plan view's legend names the zones, their margin and the via points, its profile draws the
+    rated depth at -D and says so in its legend (the figure as matplotlib saves it)."""
+    from matplotlib.figure import Figure
+
+    from pipeline.outputs.plots import mission_quicklook
+
+    path, maps = zone_store
+    ql = tmp_path / "q.png"
+    depth = float(np.round(-np.nanmedian(maps["safety"].values)))
+    zones = list(_boxes(maps).values())
+    t = pipeline.plan(
+        path, (10, 10), (110, 110), via=[(100, 20), (20, 100)], keep_out=zones,
+        keep_out_margin_m=40.0, max_depth_m=depth, omega=1.5, rho=4, section_size=24, margin=6,
+    )  # fmt: skip
+    t = pipeline.missions.with_flight(path, t, {"min_turn_radius_m": 30.0, "max_depth_m": depth})
+    saved = []
+    save = Figure.savefig
+    monkeypatch.setattr(
+        Figure, "savefig", lambda self, *a, **k: (saved.append(self), save(self, *a, **k))[1]
+    )
+    m = pipeline.open_store(path)
+    mission_quicklook(m, t, ql, title="constraints", crs_wkt=m.crs_wkt)
+    (fig,) = saved
+    labels = [
+        t.get_text() for ax in fig.axes for leg in [ax.get_legend()] if leg for t in leg.get_texts()
+    ]
+    assert "keep-out zone" in labels and "its margin (40 m)" in labels
+    assert "via points (2, in order)" in labels
+    assert any(lab.startswith(f"rated depth ({depth:g} m") for lab in labels)
+    profile = fig.axes[-1]
+    assert any(np.allclose(line.get_ydata(), -depth) for line in profile.get_lines())
+    assert ql.stat().st_size > 10_000

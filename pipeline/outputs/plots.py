@@ -384,8 +384,9 @@ def _plan_view(ax, sub, rdg, traj, crs_wkt) -> list:
         vx, vy = traj.points[via, 0] / 1e3, traj.points[via, 1] / 1e3
         ax.plot(vx, vy, "D", color="#00bcd4", ms=8, mec="k", zorder=6)
         for k, (px, py) in enumerate(zip(vx, vy, strict=True)):
-            ax.annotate(str(k + 1), (px, py), xytext=(5, 5), textcoords="offset points",
-                        fontsize=8, zorder=7)  # fmt: skip
+            ax.annotate(str(k + 1), (px, py), xytext=(6, 6), textcoords="offset points",
+                        fontsize=8, zorder=7, bbox=dict(boxstyle="round,pad=0.15", fc="white",
+                        ec="none", alpha=0.85))  # fmt: skip
         handles.append(
             Line2D([], [], ls="", marker="D", color="#00bcd4", mec="k", ms=7,
                    label=f"via points ({via.size}, in order)")
