@@ -79,22 +79,22 @@ from .store.paths import has_scheme
 log = logging.getLogger(__name__)
 
 
-_TOP_KEYS = {"name", "dem", "maps", "planning", "vehicle", "missions", "output"}
+TOP_KEYS = {"name", "dem", "maps", "planning", "vehicle", "missions", "output"}
 
 
 _ENDPOINT_KEYS = {f"{w}{form}" for w in ("start", "goal") for form in ("", "_xy", "_lonlat")}
 
 
-_MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS | set(VIA_KEYS)
+MISSION_KEYS = {"name", "vehicle"} | PLANNING.names() | _ENDPOINT_KEYS | set(VIA_KEYS)
 
 
-_DEM_KEYS = {"path", "synthetic"} | DEM.names()
+DEM_KEYS = {"path", "synthetic"} | DEM.names()
 
 
-_SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
+SYNTH_KEYS = {"shape"} | SYNTHETIC.names()
 
 
-_OUTPUT_KEYS = {"catalog", "quicklooks", "performance_report"}
+OUTPUT_KEYS = {"catalog", "quicklooks", "performance_report"}
 
 
 _COORD = Param("coordinate", "float", None, "")
@@ -259,7 +259,7 @@ def load_job(path: str | os.PathLike) -> Job:
         ) from exc
     except OSError as exc:
         raise JobFileError(f"job file {path} cannot be read: {exc.strerror}") from exc
-    _check_keys(path, doc, _TOP_KEYS, "")
+    _check_keys(path, doc, TOP_KEYS, "")
     name = doc.get("name", path.stem)
     if (
         not isinstance(name, str)
@@ -276,7 +276,7 @@ def load_job(path: str | os.PathLike) -> Job:
     dem = doc.get("dem")
     if not isinstance(dem, dict):
         _fail(path, "a [dem] table is required, with path = '...' or a [dem.synthetic] table")
-    _check_keys(path, dem, _DEM_KEYS, "dem.")
+    _check_keys(path, dem, DEM_KEYS, "dem.")
     if ("path" in dem) == ("synthetic" in dem):
         _fail(path, "[dem] needs exactly one of path = '...' or a [dem.synthetic] table")
     job = Job(path=path, name=name, catalog=path.parent / "catalogs" / name)
@@ -328,7 +328,7 @@ def load_job(path: str | os.PathLike) -> Job:
         syn = dem["synthetic"]
         if not isinstance(syn, dict):
             _fail(path, "dem.synthetic must be a table")
-        _check_keys(path, syn, _SYNTH_KEYS, "dem.synthetic.")
+        _check_keys(path, syn, SYNTH_KEYS, "dem.synthetic.")
         if "shape" not in syn:
             _fail(path, "dem.synthetic.shape is required, e.g. shape = [2000, 2000]")
         try:
@@ -351,7 +351,7 @@ def load_job(path: str | os.PathLike) -> Job:
     out = doc.get("output", {})
     if not isinstance(out, dict):
         _fail(path, "[output] must be a table")
-    _check_keys(path, out, _OUTPUT_KEYS, "output.")
+    _check_keys(path, out, OUTPUT_KEYS, "output.")
     if "catalog" in out:
         p = Path(_typed(path, out, "catalog", str, "output.", "a directory path"))
         job.catalog = p if p.is_absolute() else path.parent / p
@@ -542,7 +542,7 @@ def _load_missions(path, doc, job):
     seen, folders = set(), {}
     for i, m in enumerate(ms):
         where = f"missions[{i}]."
-        _check_keys(path, m, _MISSION_KEYS, where)
+        _check_keys(path, m, MISSION_KEYS, where)
         name = m.get("name", f"mission-{i + 1:03d}")
         if not isinstance(name, str) or not name.strip():
             _fail(path, f"{where}name must be a non-empty string, got {name!r}")
