@@ -106,3 +106,19 @@ def test_the_schema_refuses_what_the_loader_refuses(tmp_path, path, value):
     with pytest.raises(pipeline.JobFileError):
         pipeline.jobs.load_job(bad)
     assert list(validator.iter_errors(doc))
+
+
+def test_the_citation_file_is_valid_cff():
+    """CITATION.cff against the Citation File Format 1.2.0 schema (its published JSON Schema,
+    kept in tests/data as the STAC schemas are): the software and the article it implements."""
+    import yaml
+    from jsonschema import Draft7Validator
+
+    schema = json.loads(
+        (ROOT / "tests" / "data" / "citation-file-format-1.2.0.schema.json").read_text()
+    )
+    cff = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    errors = [e.message for e in Draft7Validator(schema).iter_errors(cff)]
+    assert not errors, errors
+    assert cff["version"] == pipeline.__version__ and cff["license"] == "BSD-3-Clause"
+    assert cff["references"][0]["doi"] == "10.3390/jmse11010007"

@@ -23,13 +23,14 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 EXE = Path(sys.executable).parent / "pipeline"
 
 
-def readme_block(name: str) -> str:
-    """The fenced block after the README's ``<!-- tested: ... as NAME -->`` comment."""
-    text = README.read_text()
+def readme_block(name: str, page: Path = README) -> str:
+    """The fenced block after the README's ``<!-- tested: ... as NAME -->`` comment (or that
+    of another ``page``)."""
+    text = page.read_text()
     m = re.search(
         r"<!-- tested: [^>]*as " + re.escape(name) + r" -->\n```\w+\n(.*?)\n```", text, re.S
     )
-    assert m, f"README has no block tested as {name}"
+    assert m, f"{page.name} has no block tested as {name}"
     return m.group(1) + "\n"
 
 
@@ -79,3 +80,11 @@ def test_the_readme_job_file_and_python_example_run_as_written(tmp_path):
     figures = json.loads((tmp_path / "survey-mission" / "mission.json").read_text())
     assert figures["status"] == "ok" and np.isfinite(figures["lower_bound_m"])
     assert figures["length_m"] == pytest.approx(table.loc["north-east", "length_m"], rel=1e-9)
+
+
+def test_the_documentation_shows_the_same_examples():
+    """The site's getting-started page shows the job file and the script the test above runs,
+    character for character."""
+    page = README.parent / "docs" / "getting-started.md"
+    for name in ("survey.toml", "example.py"):
+        assert readme_block(name, page) == readme_block(name), name
