@@ -202,26 +202,33 @@ def constrained(
         m = m.base
     zones = read_zones(keep_out, m.crs_wkt, margin_m)
     if max_depth_m is not None:
-        from .params import VEHICLE
-
-        max_depth_m = VEHICLE.max_depth_m.check(max_depth_m)
-        top = m.parameters.top_m
-        if -max_depth_m > top:
-            raise InvalidParameterError(
-                f"the rated depth {max_depth_m:g} m is shallower than the surface limit "
-                f"({-top:g} m: the sea level less the surface clearance), so no height keeps "
-                "both; give the vehicle's real rating, or a smaller surface_clearance"
-            )
+        max_depth_m = check_rating(max_depth_m, m.parameters)
     if zones is None and max_depth_m is None:
         return m
     return ConstrainedStore(m, zones, max_depth_m)
 
 
+def check_rating(max_depth_m, parameters) -> float:
+    """The rated depth checked against the maps' surface limit (``parameters.top_m``: the sea
+    level less the surface clearance): a rating shallower leaves no height to fly at, one
+    :class:`InvalidParameterError`."""
+    from .params import VEHICLE
+
+    max_depth_m = VEHICLE.max_depth_m.check(max_depth_m)
+    top = parameters.top_m
+    if -max_depth_m > top:
+        raise InvalidParameterError(
+            f"the rated depth {max_depth_m:g} m is shallower than the surface limit "
+            f"({-top:g} m: the sea level less the surface clearance), so no height keeps "
+            "both; give the vehicle's real rating, or a smaller surface_clearance"
+        )
+    return max_depth_m
+
+
 def check_outside(m: MapsStore, name: str, cell) -> None:
     """An :class:`InvalidEndpointError` naming the zone when ``cell`` (``name``: start, goal)
     is removed by a keep-out zone of ``m``."""
-    zone_of = getattr(m, "zone_of", None)
-    zone = zone_of(cell) if zone_of is not None else None
+    zone = m.zone_of(cell) if m.keep_out is not None else None
     if zone is not None:
         margin = m.keep_out.margin_m
         raise InvalidEndpointError(

@@ -29,6 +29,8 @@ from .params import (
 )
 
 # the keys that are not parameters of a schema, each with its JSON Schema and its line
+# the [output] table's parameters (the catalog's path is the loader's own key)
+_OUTPUT_SCHEMA = Schema("output", QUICKLOOKS, PERFORMANCE_REPORT)
 _PAIR = {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}
 _CELL = {"type": "array", "items": {"type": "integer"}, "minItems": 2, "maxItems": 2}
 _OWN = {
@@ -114,9 +116,7 @@ def json_schema() -> dict:
     ]
     via = {"not": {"anyOf": [{"required": [a, b]} for a in VIA_KEYS for b in VIA_KEYS if a < b]}}
     mission["allOf"] = [*one, via]
-    output = _table(None, OUTPUT_KEYS, "output.")
-    for p in (QUICKLOOKS, PERFORMANCE_REPORT):
-        output["properties"][p.name] = _param_schema(p)
+    output = _table(_OUTPUT_SCHEMA, OUTPUT_KEYS, "output.")
     top = {
         "name": {**_OWN["name"][0], "description": _OWN["name"][1]},
         "dem": dem,
@@ -150,7 +150,7 @@ def _rows(schema: Schema | None, keys: set, prefix: str) -> list[str]:
             )
         elif f"{prefix}{key}" in _OWN:
             js, text = _OWN[f"{prefix}{key}"]
-            rows.append(f"| `{key}` | {_OWN_TYPES[js['type']]} | | | | {text} |")
+            rows.append(f"| `{key}` | {js['type']} | | | | {text} |")
     return rows
 
 
@@ -166,7 +166,6 @@ def _kind(p: Param) -> str:
     }.get(p.kind, p.kind)
 
 
-_OWN_TYPES = {"string": "string", "array": "array"}
 _HEAD = ["| key | type | default | unit | valid values | meaning |", "|---|---|---|---|---|---|"]
 
 
@@ -227,14 +226,10 @@ def markdown() -> str:
         "## `[output]`: the results catalog",
         "",
         *_HEAD,
-        *_rows(None, {"catalog"}, "output."),
-        *_rows(_OUTPUT_SCHEMA, {"quicklooks", "performance_report"}, "output."),
+        *_rows(_OUTPUT_SCHEMA, OUTPUT_KEYS, "output."),
         "",
     ]
     return "\n".join(out)
-
-
-_OUTPUT_SCHEMA = Schema("output", QUICKLOOKS, PERFORMANCE_REPORT)
 
 
 def write(folder: str | Path) -> list[Path]:

@@ -488,7 +488,7 @@ def _load_via(path: Path, m: dict, mission: dict, where: str) -> None:
         _fail(path, f"{where}{exc}")
     if form is None:
         return
-    key = next(k for k in VIA_KEYS if k in m)
+    key = endpoint_key("via", form)
     for p in points:
         _check_point(path, f"{where}{key}", p, form, m[key])
     mission["via_form"] = form
@@ -498,21 +498,28 @@ def _load_via(path: Path, m: dict, mission: dict, where: str) -> None:
 def _check_ratings(path: Path, job: Job) -> None:
     """Each vehicle's rated depth against the maps' surface limit (the sea level less the
     surface clearance, R by default): a rating shallower leaves no height to fly at."""
-    sea = float(job.maps.get("sea_level") or MAPS.sea_level.default)
-    surface = job.maps.get("surface_clearance")
-    top = sea - float(job.maps["clearance"] if surface is None else surface)
-    for where, vehicle in [("vehicle.", job.vehicle)] + [
+    vehicles = [("vehicle.", job.vehicle)] + [
         (f"missions[{i}].vehicle.", {**job.vehicle, **m.get("vehicle", {})})
         for i, m in enumerate(job.missions)
-    ]:
-        depth = vehicle.get("max_depth_m")
-        if depth is not None and -depth > top:
-            _fail(
-                path,
-                f"{where}max_depth_m: the rated depth {depth:g} m is shallower than the "
-                f"surface limit ({-top:g} m: sea_level less surface_clearance), so no height "
-                "keeps both; give the vehicle's real rating, or a smaller maps.surface_clearance",
-            )
+    ]
+    if all(v.get("max_depth_m") is None for _, v in vehicles):
+        return
+    from .constraints import check_rating
+    from .store.schema import MapsParameters
+
+    maps = job.maps
+    parameters = MapsParameters(
+        method=maps["method"],
+        clearance_m=float(maps["clearance"]),
+        sea_level_m=float(maps.get("sea_level", MAPS.sea_level.default)),
+        surface_clearance_m=maps.get("surface_clearance"),
+    )
+    for where, vehicle in vehicles:
+        if vehicle.get("max_depth_m") is not None:
+            try:
+                check_rating(vehicle["max_depth_m"], parameters)
+            except InvalidParameterError as exc:
+                _fail(path, f"{where}max_depth_m: {exc}")
 
 
 def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:

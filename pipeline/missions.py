@@ -305,18 +305,17 @@ def _quicklook_png(m, t: Trajectory, name) -> bytes:
 def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory:
     opts = {**batch.defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
     opts.update({k: mission[k] for k in VIA_KEYS if k in mission})
-    vehicle = batch.vehicle
-    depth = {**(vehicle or {}), **mission.get("vehicle", {})}.get("max_depth_m")
-    if depth is not None:  # the vehicle's rating: its path is planned for it too
-        opts["max_depth_m"] = depth
+    vehicle = {**(batch.vehicle or {}), **mission.get("vehicle", {})}
+    if vehicle.get("max_depth_m") is not None:  # the rating: its path is planned for it too
+        opts["max_depth_m"] = vehicle["max_depth_m"]
     try:
         t = plan(m, mission["start"], mission["goal"], client=run_on, **opts)
     except PipelineError as exc:
         return failed_trajectory({**opts}, str(exc))
-    if vehicle is None and "vehicle" not in mission:
+    if batch.vehicle is None and "vehicle" not in mission:
         return t
     try:
-        return with_flight(m, t, {**(vehicle or {}), **mission.get("vehicle", {})})
+        return with_flight(m, t, vehicle)
     except PipelineError as exc:
         t.status = Status.FAILED
         t.message = f"its flown track could not be made: {exc}"

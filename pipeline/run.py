@@ -27,6 +27,7 @@ from .exceptions import (
     PipelineError,
 )
 from .jobs import Job, load_job
+from .params import endpoint_key
 from .store.paths import TEMPORARY
 from .trajectory import Status
 
@@ -508,7 +509,7 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
                     **m,
                     "start": maps.cell_of("start", m["start_form"], m["start_input"]),
                     "goal": maps.cell_of("goal", m["goal_form"], m["goal_input"]),
-                    **_via_cells(maps, m),
+                    **_via_points(m),
                     **zones.of(m),
                 }
             )
@@ -533,14 +534,12 @@ def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult
         )
 
 
-def _via_cells(maps, mission: dict) -> dict:
-    """A job mission's via points as cells (``via``), or ``{}`` without any."""
+def _via_points(mission: dict) -> dict:
+    """A job mission's via points under their key (``via``, ``via_xy``, ``via_lonlat``), for
+    ``plan`` to find their cells, or ``{}`` without any."""
     if "via_form" not in mission:
         return {}
-    form = mission["via_form"]
-    return {
-        "via": [maps.cell_of(f"via {k + 1}", form, p) for k, p in enumerate(mission["via_input"])]
-    }
+    return {endpoint_key("via", mission["via_form"]): mission["via_input"]}
 
 
 class _Zones:

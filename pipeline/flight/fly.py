@@ -222,14 +222,19 @@ def _smoothings(ctx: _Context) -> tuple:
     )
 
 
+def _legs(fixed) -> list:
+    """``(a, b)``: the first and last corner of each stretch of a polyline between two of its
+    ``fixed`` corners (the via points), or its ends."""
+    bounds = [0, *(np.flatnonzero(fixed[1:-1]) + 1).tolist(), len(fixed) - 1]
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
 def _by_leg(wr, wc, fixed, kept) -> tuple:
     """The polyline ``w`` with, between each two of its ``fixed`` corners (the via points,
     and the ends), the corners ``kept(a, b)`` keeps of ``w[a:b]`` (indices from ``a``, its
     first and last among them): a smoothing that never skips a via point."""
-    ends = np.flatnonzero(fixed[1:-1]) + 1
-    bounds = [0, *ends.tolist(), len(wr) - 1]
     idx = []
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+    for a, b in _legs(fixed):
         k = np.asarray(kept(a, b + 1), dtype=np.int64) + a
         idx.append(k if not idx else k[1:])
     idx = np.concatenate(idx)
@@ -238,10 +243,8 @@ def _by_leg(wr, wc, fixed, kept) -> tuple:
 
 def _widened(wr, wc, fixed, radius, usable) -> tuple:
     """:func:`widen_turns` between each two fixed corners (via points kept)."""
-    ends = np.flatnonzero(fixed[1:-1]) + 1
-    bounds = [0, *ends.tolist(), len(wr) - 1]
     pr, pc, pf = [], [], []
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+    for a, b in _legs(fixed):
         r, c = widen_turns(wr[a : b + 1], wc[a : b + 1], radius, usable)
         f = np.zeros(len(r), dtype=bool)
         f[-1] = b != len(wr) - 1
@@ -285,7 +288,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     new = shared < 0
     hq[~new] = h_track[shared[~new]]
     hq[new], unsure_q = _required_threaded(grid, ctx.terrain, qr[new], qc[new])
-    depth = getattr(ctx.m, "max_depth_m", None)
+    depth = ctx.m.max_depth_m
     if depth is not None:  # no deeper than the rating: there the vehicle flies at it
         h_track, hq = np.maximum(h_track, -depth), np.maximum(hq, -depth)
     unsure = int(unsure.sum() + unsure_q.sum())
@@ -307,8 +310,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     from ..zones import entered
 
     problems = []
-    keep_out = getattr(ctx.m, "keep_out", None)
-    zones = entered(keep_out, _map_xy(ctx.m, pr, pc), _map_xy(ctx.m, qr, qc))
+    zones = entered(ctx.m.keep_out, _map_xy(ctx.m, pr, pc), _map_xy(ctx.m, qr, qc))
     if zones:
         problems.append(f"the flown route enters keep-out zone {', '.join(map(repr, zones))}")
     if not track["known"]:
@@ -442,9 +444,8 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         unknown_seabed_samples=pick["unsure"],
         min_clearance_m=float(least),
         via_miss_m=_via_miss(m, pick["via"], x, y),
-        grid_cell_m=a,
-        max_depth_m=getattr(m, "max_depth_m", None),
-        at_rated_depth_m=_at_rated_depth(getattr(m, "max_depth_m", None), s, h),
+        max_depth_m=m.max_depth_m,
+        at_rated_depth_m=_at_rated_depth(m.max_depth_m, s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
         **profile_figures(s, z, seabed),
     )
@@ -466,7 +467,8 @@ def _fly_over(wr, wc, fixed, rad: float, usable) -> tuple:
         out.append((wr[k], wc[k], fixed[k]))
         if not fixed[k]:
             continue
-        d1 = v - np.array(out[-2][:2])
+        prev = np.array(out[-2][:2])
+        d1 = v - prev
         d2 = np.array([wr[k + 1], wc[k + 1]]) - v
         n1, n2 = np.hypot(*d1), np.hypot(*d2)
         if n1 == 0 or n2 == 0:
@@ -476,7 +478,6 @@ def _fly_over(wr, wc, fixed, rad: float, usable) -> tuple:
         if half < math.pi / 2 - 1e-9 and rad * (1 / math.cos(half) - 1) <= 0.5:
             continue  # the rounded corner passes within half a cell
         turn = 1.0 if d1[0] * d2[1] - d1[1] * d2[0] >= 0 else -1.0
-        prev = np.array(out[-2][:2])
         after = [np.array([wr[j], wc[j]]) for j in range(k + 1, min(k + 3, len(wr)))]
         before = _tight_turns(*np.array([prev, v, *after]).T, rad)
         for side in (turn, -turn):
@@ -577,8 +578,7 @@ def with_flight(maps, traj, vehicle=None):
     if not traj.planned:
         return traj
     if len(traj.cells) < 2:
-        note = "start and goal are the same cell: nothing to fly, no waypoints"
-        traj.message = f"{traj.message}; {note}" if traj.message else note
+        _note(traj, "start and goal are the same cell: nothing to fly, no waypoints")
         return traj
     f = fly(maps, traj, vehicle)
     traj.flight = f
@@ -590,27 +590,33 @@ def with_flight(maps, traj, vehicle=None):
             f"{veh.speed_m_s:g} m/s and {veh.power_w:g} W), more than the battery's "
             f"{veh.battery_wh:g} Wh: raise battery_wh or lower the powers, or split the mission"
         )
-    far = [(k + 1, d) for k, d in enumerate(f.via_miss_m) if d > 0.5 * f.grid_cell_m]
-    if far:
-        note = "; ".join(
-            f"the flown track passes via {k} at {d:.0f} m (its turn is sharper than the turn "
-            "radius rounds within half a cell; the waypoint route turns at it)"
-            for k, d in far
-        )
-        traj.message = f"{traj.message}; {note}" if traj.message else note
+    from ..store.maps_store import open_store
+
+    half = 0.5 * open_store(maps).cell_size
+    for k, d in enumerate(f.via_miss_m):
+        if d > half:
+            _note(
+                traj,
+                f"the flown track passes via {k + 1} at {d:.0f} m (its turn is sharper than the "
+                "turn radius rounds within half a cell; the waypoint route turns at it)",
+            )
     if f.unknown_seabed_samples:
-        note = (
+        _note(
+            traj,
             f"the seabed is unknown (a no-data grid point's squares) within the clearance of "
             f"{f.unknown_seabed_samples} route samples: there the clearance is kept from the "
-            "known seabed only"
+            "known seabed only",
         )
-        traj.message = f"{traj.message}; {note}" if traj.message else note
     if reasons == [f.over_bound]:  # only the bound: not proven, as for a planned path
         if traj.status == Status.OK:
             traj.status = Status.UNCERTIFIED
         traj.message = f"{traj.message}; flight: {f.over_bound}" if traj.message else f.over_bound
     elif reasons:
         traj.status = Status.FAILED
-        msg = "; ".join(reasons)
-        traj.message = f"{traj.message}; flight: {msg}" if traj.message else f"flight: {msg}"
+        _note(traj, "flight: " + "; ".join(reasons))
     return traj
+
+
+def _note(traj, text: str) -> None:
+    """``text`` added to the trajectory's message (after what it says already)."""
+    traj.message = f"{traj.message}; {text}" if traj.message else text

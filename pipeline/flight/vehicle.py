@@ -129,7 +129,6 @@ class Flight:
     at_rated_depth_m: float = 0.0
     # for each via point (its cell's centre a waypoint), the flown track's closest approach
     via_miss_m: list = field(default_factory=list)
-    grid_cell_m: float = math.nan  # the maps' cell side
 
     @property
     def altitude_m(self) -> np.ndarray:

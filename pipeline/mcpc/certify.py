@@ -77,8 +77,8 @@ def _done(m, t: Trajectory, repair: str | None = None) -> Trajectory:
     :meth:`Trajectory.to_geodataframe` gives its points in it)."""
     if m.crs_wkt:
         t.extra["crs_wkt"] = m.crs_wkt
-    t.keep_out = getattr(m, "keep_out", None)  # the zones it avoids, for its flight
-    t.max_depth_m = getattr(m, "max_depth_m", None)  # the rated depth it was planned for
+    t.keep_out = m.keep_out  # the zones it avoids, for its flight
+    t.max_depth_m = m.max_depth_m  # the rated depth it was planned for
     return _certify(t, repair)
 
 

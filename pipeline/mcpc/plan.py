@@ -369,12 +369,9 @@ def _plan_legs(m, points: list, names: list, options: dict, t0: float) -> Trajec
     constrained store ``m``, the legs joined (the joints once), its length and ridge the legs'
     sums, its lower bound the sum of theirs, certified as one mission (docs/certified-bound.md,
     "Via points")."""
-    from .certify import _certify
-
     legs = []
     # each leg under the mission's constraints (plan() takes the store's own, unconstrained)
-    options = {**options, "keep_out": getattr(m, "keep_out", None)}
-    options["max_depth_m"] = getattr(m, "max_depth_m", None)
+    options = {**options, "keep_out": m.keep_out, "max_depth_m": m.max_depth_m}
     for k in range(len(points) - 1):
         try:
             leg = plan(m, points[k], points[k + 1], **options)
@@ -406,8 +403,6 @@ def _plan_legs(m, points: list, names: list, options: dict, t0: float) -> Trajec
         ],
         "sections": [s for leg in legs for s in leg.extra.get("sections", [])],
     }
-    if m.crs_wkt:
-        extra["crs_wkt"] = m.crs_wkt
     t = Trajectory(
         cells=cells,
         points=points_xyz,
@@ -421,9 +416,7 @@ def _plan_legs(m, points: list, names: list, options: dict, t0: float) -> Trajec
         omega=legs[0].omega,
         extra=extra,
     )
-    t.keep_out = getattr(m, "keep_out", None)
-    t.max_depth_m = getattr(m, "max_depth_m", None)
-    return _certify(t)
+    return _done(m, t)
 
 
 # landmark layers the whole-map search reads for its heuristic (those that bound the mission

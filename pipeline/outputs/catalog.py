@@ -201,9 +201,9 @@ def write_mission(
             props["auv:legs"] = [
                 {k: json_value(v) for k, v in leg.items()} for leg in traj.extra["legs"]
             ]
-            cells = traj.cells[np.asarray(traj.extra["via_index"], dtype=np.int64)]
-            props["auv:via_xy"] = traj.points[traj.extra["via_index"], :2].round(2).tolist()
-            props["auv:via_cells"] = cells.tolist()
+            via = np.asarray(traj.extra["via_index"], dtype=np.int64)
+            props["auv:via_xy"] = traj.points[via, :2].round(2).tolist()
+            props["auv:via_cells"] = traj.cells[via].tolist()
         if traj.keep_out is not None:  # the keep-out zones it avoids, and their margin
             props["auv:keep_out"] = list(traj.keep_out.names)
             props["auv:keep_out_margin_m"] = traj.keep_out.margin_m

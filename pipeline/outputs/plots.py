@@ -404,6 +404,7 @@ def _plan_view(ax, sub, rdg, traj, crs_wkt) -> list:
 
 
 ZONE_COLOUR = "#7b3294"  # keep-out zones: purple, apart from the track's red and the ridges
+ZONE_FILL = (0.48, 0.2, 0.58, 0.25)  # the same, translucent
 
 
 def _keep_out(ax, keep_out, ext) -> list:
@@ -429,7 +430,7 @@ def _keep_out(ax, keep_out, ext) -> list:
                 shown = True
                 x, y = np.asarray(poly.exterior.coords).T / 1e3
                 if style == "zone":
-                    ax.fill(x, y, fc=(0.48, 0.2, 0.58, 0.25), ec=ZONE_COLOUR, lw=1.0,
+                    ax.fill(x, y, fc=ZONE_FILL, ec=ZONE_COLOUR, lw=1.0,
                             hatch="//", zorder=2)  # fmt: skip
                 else:
                     ax.plot(x, y, color=ZONE_COLOUR, lw=0.8, ls="--", zorder=2)
@@ -437,7 +438,7 @@ def _keep_out(ax, keep_out, ext) -> list:
     ax.set_ylim(ext[2], ext[3])
     if not shown:
         return []
-    handles = [Patch(fc=(0.48, 0.2, 0.58, 0.25), ec=ZONE_COLOUR, hatch="//", label="keep-out zone")]
+    handles = [Patch(fc=ZONE_FILL, ec=ZONE_COLOUR, hatch="//", label="keep-out zone")]
     if keep_out.margin_m:
         handles.append(
             Line2D([], [], color=ZONE_COLOUR, lw=0.8, ls="--",

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import datetime as _dt
+import functools
 import html
 import json
 import logging
@@ -244,9 +245,7 @@ def _drawn(m: dict, folder: Path, item: dict, crs_wkt: str | None) -> None:
 def _zones(path: Path, crs_wkt: str) -> list:
     """The keep-out zones' outer rings in map coordinates, from the mission's GeoJSON file
     (longitude and latitude projected back to the maps' coordinate system)."""
-    from pyproj import CRS, Transformer
-
-    tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(crs_wkt), always_xy=True)
+    tr = _to_map(crs_wkt)
     rings = []
     for feat in json.loads(path.read_text())["features"]:
         geom = feat["geometry"]
@@ -306,6 +305,15 @@ def _end(values, full):
     return values + [round(last, 2) if math.isfinite(last) else None]
 
 
+@functools.lru_cache(maxsize=8)
+def _to_map(crs_wkt: str):
+    """The transformer from WGS84 longitude and latitude to the maps' coordinates (one for
+    every mission of a report)."""
+    from pyproj import CRS, Transformer
+
+    return Transformer.from_crs("EPSG:4326", CRS.from_wkt(crs_wkt), always_xy=True)
+
+
 def _waypoints(path: Path, crs_wkt: str | None) -> list:
     """The waypoints in map coordinates: the CSV's x_m, y_m, or its lat, lon projected back
     to the maps' coordinate system."""
@@ -317,10 +325,9 @@ def _waypoints(path: Path, crs_wkt: str | None) -> list:
         return [[float(r["x_m"]), float(r["y_m"])] for r in rows]
     if not crs_wkt:
         return []
-    from pyproj import CRS, Transformer
-
-    tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(crs_wkt), always_xy=True)
-    x, y = tr.transform([float(r["lon"]) for r in rows], [float(r["lat"]) for r in rows])
+    x, y = _to_map(crs_wkt).transform(
+        [float(r["lon"]) for r in rows], [float(r["lat"]) for r in rows]
+    )
     return [[round(float(a), 2), round(float(b), 2)] for a, b in zip(x, y, strict=True)]
 
 

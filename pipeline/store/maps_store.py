@@ -39,6 +39,10 @@ class MapsStore:
 
     Open it with :func:`open_store` (one per store and process)."""
 
+    # a mission's constraints (pipeline.constraints.ConstrainedStore): none on the store itself
+    keep_out = None  # keep-out zones (pipeline.zones.KeepOut)
+    max_depth_m = None  # the vehicle's rated depth (metres)
+
     def __init__(self, path: str | os.PathLike):
         import zarr
 
