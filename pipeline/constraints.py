@@ -45,6 +45,10 @@ class ConstrainedStore(MapsStore):
         self.base = base
         self.keep_out = keep_out
         self.max_depth_m = max_depth_m
+        if max_depth_m is not None:
+            # the landmark layers measure distances over S, which the rating shortens: under a
+            # rating they bound nothing, so they are neither a bound nor a heuristic here
+            self.landmarks = []
         self._coarse = {}
         self._lock = threading.Lock()
 
@@ -118,9 +122,13 @@ class ConstrainedStore(MapsStore):
     def lower_bound(self, start, goal) -> float:
         """The store's landmark bound, which holds under zones; under a rated depth none
         (0: the octile distance bounds the mission; the module's description)."""
-        if self.max_depth_m is not None:
+        if not self.landmarks:
             return 0.0
         return self.base.lower_bound(start, goal)
+
+    def active_landmarks(self, start, goal, k: int) -> list[int]:
+        """The store's, under zones; none under a rated depth (the module's description)."""
+        return self.base.active_landmarks(start, goal, k) if self.landmarks else []
 
     # ------------------------------------------------------------------ zones: ends, regions
 

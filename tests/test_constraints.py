@@ -566,3 +566,53 @@ def test_the_quicklook_shows_zones_via_points_and_the_rating(zone_store, monkeyp
     profile = fig.axes[-1]
     assert any(np.allclose(line.get_ydata(), -depth) for line in profile.get_lines())
     assert ql.stat().st_size > 10_000
+
+
+@pytest.fixture(scope="module")
+def basin_store(tmp_path_factory):
+    """A rough basin deeper everywhere than the rating of :data:`BASIN_DEPTH` less the
+    clearance: under the rating its surface is flat, while the landmark layers measure the
+    rough one; (path, maps)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(1)
+    z = ndimage.gaussian_filter(rng.normal(size=(90, 90)), 1.5) * 600.0 - 2500.0
+    dem = metric_dataarray(z.astype(np.float32), a=A).chunk(32)
+    path = tmp_path_factory.mktemp("basin") / "maps.zarr"
+    return path, pipeline.build_maps(dem, path, clearance=100.0, landmarks=6)
+
+
+BASIN_DEPTH = 1000.0
+
+
+@pytest.mark.parametrize("landmarks", [0, 4])
+def test_a_rated_depth_never_certifies_with_the_landmark_layers(
+    basin_store, monkeypatch, landmarks
+):
+    """The landmark layers measure S; the rating shortens every edge it flattens. With the
+    landmark heuristics on (the whole-map search reads them) or off, every planner, with MCPC
+    and without, returns a length within omega of, and a bound under, scipy's Dijkstra on
+    max(S, -D). (With the layers as A*'s heuristic, A* at omega 1 returned "ok" 5 % above the
+    optimum on this map, with that length as its proven bound.)"""
+    import pipeline.mcpc.plan as mcpc_plan
+
+    monkeypatch.setattr(mcpc_plan, "ACTIVE_LANDMARKS", landmarks)
+    path, maps = basin_store
+    safety, ok = maps["safety"].values, maps["passable"].values
+    assert np.nanmax(safety) < -BASIN_DEPTH  # the rating raises every cell
+    raised = np.maximum(safety, np.float32(-BASIN_DEPTH))
+    graph = reference_graph(raised, ok, A)
+    for s, g in (((3, 3), (86, 86)), ((45, 2), (45, 87)), ((5, 80), (80, 8))):
+        best = optimum(graph, ok.shape, s, g)
+        assert 0 < best < np.inf
+        for planner in ("dijkstra", "astar", "wastar", "ra_star", "lagrangian"):
+            omega = 1.0 if planner in ("dijkstra", "astar") else 1.2
+            for mcpc in (False, True):
+                t = pipeline.plan(
+                    path, s, g, planner=planner, omega=omega, max_depth_m=BASIN_DEPTH,
+                    mcpc=mcpc, rho=4, section_size=24, margin=6,
+                )  # fmt: skip
+                where = (planner, mcpc, s, g, t.length_m, t.lower_bound_m, best)
+                assert t.status == "ok", where
+                assert t.lower_bound_m <= best * (1 + 1e-9), where
+                assert t.length_m <= omega * best * (1 + 1e-9), where

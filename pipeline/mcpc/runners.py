@@ -79,13 +79,9 @@ def read_section(store: MapsStore, section: Section) -> tuple:
     ridge = store.window("ridge", r0, r1, c0, c1)
     ok = store.window("passable", r0, r1, c0, c1)
     lm = None
-    if section.landmarks:
-        lm = np.stack(
-            [
-                store.landmark_window(i, r0, r1, c0, c1)
-                for i in store.active_landmarks(section.start, section.goal, section.landmarks)
-            ]
-        )
+    active = store.active_landmarks(section.start, section.goal, section.landmarks)
+    if active:  # (none under a rated depth, whose surface the layers do not measure)
+        lm = np.stack([store.landmark_window(i, r0, r1, c0, c1) for i in active])
     try:
         surface, ridge, ok = check_arrays(surface, ridge, ok)
     except PipelineError as e:

@@ -162,7 +162,9 @@ class MapsStore:
 
     def active_landmarks(self, start, goal, k: int) -> list[int]:
         """The ``k`` landmarks whose bound is largest for this pair of cells (the most useful
-        as an A* heuristic towards ``goal``)."""
+        as an A* heuristic towards ``goal``); none without landmark layers."""
+        if not self.landmarks or k <= 0:
+            return []
         ds, dg = self.landmark_distances(start), self.landmark_distances(goal)
         both = np.isfinite(ds) & np.isfinite(dg)
         gain = np.full(ds.shape, -1.0)
