@@ -74,7 +74,13 @@ class ConstrainedStore(MapsStore):
     def _raised(self, surface: np.ndarray) -> np.ndarray:
         if self.max_depth_m is None:
             return surface
-        return np.maximum(surface, np.asarray(-self.max_depth_m, dtype=surface.dtype))  # NaN kept
+        from .maps.safety import float32_toward
+
+        # the rating rounded up (never deeper than it) as a float32 surface holds it
+        floor = -self.max_depth_m
+        if surface.dtype == np.float32:
+            floor = float32_toward(floor, np.inf)
+        return np.maximum(surface, np.asarray(floor, dtype=surface.dtype))  # NaN kept
 
     def window(self, var: str, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         out = self.base.window(var, r0, r1, c0, c1)

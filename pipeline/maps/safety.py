@@ -29,6 +29,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from llvmlite import ir
+from numba.core import types
 from numba.core.extending import intrinsic
 
 from ..dem.canonical import check_dem
@@ -98,6 +99,40 @@ def _maximum(typingctx, x, y):
         return builder.call(fn, args, fastmath=("nnan", "nsz"))
 
     return x(x, y), codegen
+
+
+@intrinsic
+def _bits(typingctx, x):
+    """A float32's bits as an int32."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(32))
+
+    return types.int32(types.float32), codegen
+
+
+@intrinsic
+def _float(typingctx, x):
+    """An int32's bits as a float32."""
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+
+    return types.float32(types.int32), codegen
+
+
+@njit(inline="always", cache=True)
+def _up32(v):
+    """The least float32 at or above the float64 ``v`` (NaN and infinities as they are): the
+    safety surface is a lowest safe height, so it is rounded up, never below the exact value.
+    Rounding up is monotone, so the maximum of rounded values is the rounded maximum. The next
+    float32 above a rounded-down ``f`` is one step of its bits away from zero when ``f >= +0``
+    and towards zero when ``f < 0`` (``f`` is never -0.0 there: a ``v`` that rounds to -0.0 is
+    at most 0); in integers and selects, so that a loop of it vectorises."""
+    f = np.float32(v)
+    b = _bits(f)
+    step = np.int32(1) if b >= 0 else np.int32(-1)
+    return _float(b + step) if np.float64(f) < v else f
 
 
 @njit(inline="always", cache=True)
@@ -205,8 +240,8 @@ def _dilate(z, widths, b):
     maximum per column offset and its mirror, :func:`_row_dilation`, faster than two passes,
     and faster still with the flags of :func:`_maximum`), and
     kept in a ring buffer of 2r + 1 rows. Candidates are summed in float64; storing ``T`` as
-    float32 rounds each maximum once (rounding is monotone, so the max of rounded values is the
-    rounded max).
+    float32 rounds each maximum up once (:func:`_up32`; rounding is monotone, so the max of
+    rounded values is the rounded max).
     """
     rows, cols = z.shape
     r = widths.size - 1
@@ -228,8 +263,8 @@ def _dilate(z, widths, b):
             for e in range(r + 1):
                 _row_dilation(zr, m, widths, b, e, t)
                 kept = tbuf[slot, e]
-                for j in range(cols):  # rounds each maximum to float32 once
-                    kept[j] = t[j]
+                for j in range(cols):  # rounds each maximum up to float32 once
+                    kept[j] = _up32(t[j])
         i = row - r
         if i < 0:
             continue
@@ -258,7 +293,7 @@ def _horizontal(z, widths, clearance):
     out = _dilate(z, widths, flat)
     for i in range(out.shape[0]):
         for j in range(out.shape[1]):
-            out[i, j] = np.float64(out[i, j]) + clearance
+            out[i, j] = _up32(np.float64(out[i, j]) + clearance)
     return out
 
 
@@ -267,7 +302,7 @@ def _vertical(z, clearance):
     out = np.empty(z.shape, dtype=np.float32)
     for i in range(z.shape[0]):
         for j in range(z.shape[1]):
-            out[i, j] = np.float64(z[i, j]) + clearance
+            out[i, j] = _up32(np.float64(z[i, j]) + clearance)
     return out
 
 
@@ -456,5 +491,16 @@ def passable(
 
 
 def passable_cells(z, s, sea_level: float, surface_clearance: float):
-    """:func:`passable` on the arrays (numpy or dask) of elevation ``z`` and safety ``s``."""
-    return (z == z) & (z < sea_level) & (s == s) & (s <= np.float32(sea_level - surface_clearance))
+    """:func:`passable` on the arrays (numpy or dask) of elevation ``z`` and safety ``s``. The
+    surface limit as the greatest float32 at or below it: ``s <= top`` exactly."""
+    limit = float32_toward(sea_level - surface_clearance, -np.inf)
+    return (z == z) & (z < sea_level) & (s == s) & (s <= limit)
+
+
+def float32_toward(v: float, to: float) -> np.float32:
+    """The float32 nearest ``v`` on the side of ``to`` (``+inf``: the least at or above it,
+    ``-inf``: the greatest at or below it)."""
+    f = np.float32(v)
+    if (to > 0 and np.float64(f) < v) or (to < 0 and np.float64(f) > v):
+        f = np.nextafter(f, np.float32(to))
+    return f

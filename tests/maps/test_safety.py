@@ -15,7 +15,7 @@ from conftest import CHUNKINGS, metric_dataarray, random_surface
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from references import assert_correctly_rounded, brute_force, scipy_reference
+from references import assert_correctly_rounded, brute_force, rounded_up, scipy_reference
 
 import pipeline
 from pipeline.exceptions import InvalidDEMError, InvalidParameterError
@@ -38,6 +38,19 @@ def test_matches_brute_force_random(method, R, a):
     z = random_surface((37, 29), seed=int(R))
     got = pipeline.safety_map(_dem(z, a), method, R).values
     assert_correctly_rounded(got, brute_force(z, a, method, R))
+
+
+@pytest.mark.parametrize("method", ["vertical", "horizontal", "spherical"])
+def test_never_below_the_exact_lowest_safe_height(method):
+    """Stored in float32, the lowest safe height is never below the float64 one (the
+    brute-force maximum): rounded to nearest, a fifth of the cells of this map or more would
+    lie below it; each is the least float32 at or above it."""
+    z = random_surface((60, 60), seed=3)
+    ref = brute_force(z, 30.0, method, 95.2)
+    got = pipeline.safety_map(_dem(z, 30.0), method, 95.2).values
+    assert np.all(got.astype(np.float64) >= ref)
+    assert np.all(np.nextafter(got, np.float32(-np.inf)).astype(np.float64) < ref)
+    assert (ref.astype(np.float32).astype(np.float64) < ref).mean() > 0.2  # the case exists
 
 
 def test_horizontal_clearance_differs_from_vertical_part():
@@ -78,16 +91,16 @@ def test_signed_zeros_and_nodata_bit_for_bit(method):
     z[rng.random(z.shape) < 0.01] = np.nan
     assert np.signbit(z[z == 0]).any() and np.isnan(z).any()
     got = pipeline.safety_map(_dem(z, 30.0), method, 150.0).values
-    ref = brute_force(z, 30.0, method, 150.0).astype(np.float32)
+    ref = rounded_up(brute_force(z, 30.0, method, 150.0))
     assert got.tobytes() == ref.tobytes()  # NaN where the disc holds no-data, the same bits
 
 
 @pytest.mark.parametrize("R, a", [(300.0, 30.0), (200.0, 100.0), (1000.0, 30.0)])
 def test_equals_scipy_grey_dilation(R, a):
-    """Identical to scipy's float64 grey dilation, rounded once to float32."""
+    """Identical to scipy's float64 grey dilation, rounded up once to float32."""
     z = pipeline.synthetic_dem((400, 300), cell_size=a, seed=1, chunks=None).values
     got = pipeline.safety_map(_dem(z, a), "spherical", R).values
-    np.testing.assert_array_equal(got, scipy_reference(z, a, R).astype(np.float32))
+    np.testing.assert_array_equal(got, rounded_up(scipy_reference(z, a, R)))
 
 
 @pytest.mark.parametrize("method", ["vertical", "horizontal", "spherical"])
