@@ -104,8 +104,9 @@ _COORD = Param("coordinate", "float", None, "")
 # planners' paths, the flight), so that a job plans its finished missions again instead of
 # keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h, 3 the
 # default window margin of MCPC's sections halved (section_size // 8), 4 the flight's heights
-# against the continuous seabed and its profile's breaks a turn radius apart.
-RESULTS_REVISION = 4
+# against the continuous seabed and its profile's breaks a turn radius apart, 5 the surface
+# limit kept exactly and the least clearance over every sample of the flight.
+RESULTS_REVISION = 5
 
 
 @dataclass
@@ -135,7 +136,9 @@ class Job:
 
     def maps_fingerprint(self) -> str:
         """A hash of the DEM definition and the maps parameters (reuse the maps store)."""
-        what = {"dem": self.dem_fingerprint(), "maps": self.maps}
+        from .store.schema import MAPS_VERSION
+
+        what = {"dem": self.dem_fingerprint(), "maps": self.maps, "version": MAPS_VERSION}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
 
     def mission_fingerprint(self, mission: dict) -> str:

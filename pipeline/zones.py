@@ -307,20 +307,26 @@ def _in_maps_crs(frame, crs_wkt: str | None, source: str) -> list:
     return out
 
 
-def entered(keep_out: KeepOut | None, *lines) -> list[str]:
+def entered(keep_out: KeepOut | None, *lines, slack=None) -> list[str]:
     """The names of the zones whose kept area (the zone and its margin) one of ``lines``
     (each ``(x, y)``: a polyline in map coordinates) enters, checked on the continuous lines
-    (shapely)."""
+    (shapely). ``slack`` (metres, one a line; default none) is how far the line flown may lie
+    off the polyline (the arcs of a track between their samples): a line is taken to enter
+    where it comes within the margin and its slack."""
     if keep_out is None:
         return []
     import shapely
 
+    slack = [0.0] * len(lines) if slack is None else [float(v) for v in slack]
     polylines = [
         shapely.LineString(np.column_stack([x, y])) if len(x) > 1 else shapely.Point(x[0], y[0])
         for x, y in lines
     ]
     out = []
     for name, g in keep_out.zones:
-        if any(line.distance(g) < keep_out.margin_m or line.intersects(g) for line in polylines):
+        if any(
+            line.distance(g) < keep_out.margin_m + extra or line.intersects(g)
+            for line, extra in zip(polylines, slack, strict=True)
+        ):
             out.append(name)
     return out

@@ -616,3 +616,45 @@ def test_a_rated_depth_never_certifies_with_the_landmark_layers(
                 assert t.status == "ok", where
                 assert t.lower_bound_m <= best * (1 + 1e-9), where
                 assert t.length_m <= omega * best * (1 + 1e-9), where
+
+
+@pytest.mark.parametrize("radius, step", [(3.0, 0.5), (1.5, 0.5), (8.0, 0.05)])
+def test_the_flown_arcs_keep_the_margin_between_their_samples(radius, step):
+    """The flight checks its track against the zones on the polyline through its samples; a
+    turn's arc lies outside those chords by up to a sagitta. The true arc (its centre on the
+    corner's bisector, tangent to both legs, in numpy), densified: it lies within
+    ``arc_sagitta`` of the polyline (shapely), and not far within; a zone placed outside the arc
+    within the margin of it, but beyond the margin from every chord, is found with that slack
+    and missed without it."""
+    from pipeline.flight.geometry import arc_sagitta, arcs
+
+    wr, wc = np.array([0.0, 0.0, 20.0]), np.array([0.0, 20.0, 26.0])  # a turn of 73 degrees
+    pr, pc, _, radii, tan_d = arcs(wr, wc, radius, step)
+    samples = shapely.LineString(np.c_[pc, pr])
+    # the true arc: tangent to both legs at tan_d from the corner, its centre r off each leg
+    u = np.array([wr[1] - wr[0], wc[1] - wc[0]]) / np.hypot(wr[1] - wr[0], wc[1] - wc[0])
+    v = np.array([wr[2] - wr[1], wc[2] - wc[1]]) / np.hypot(wr[2] - wr[1], wc[2] - wc[1])
+    corner = np.array([wr[1], wc[1]])
+    t0, t1 = corner - u * tan_d[1], corner + v * tan_d[1]
+    side = np.sign(u[0] * v[1] - u[1] * v[0])
+    n0 = side * np.array([-u[1], u[0]])
+    centre = t0 + n0 * radii[1]
+    assert np.hypot(*(t1 - centre)) == pytest.approx(radii[1], rel=1e-9)
+    a0, a1 = (np.arctan2(*(p - centre)) for p in (t0, t1))
+    a1 = a0 + (a1 - a0 + np.pi) % (2 * np.pi) - np.pi
+    ang = np.linspace(a0, a1, 20001)
+    arc = centre + radii[1] * np.c_[np.sin(ang), np.cos(ang)]  # (row, col)
+    off = shapely.distance(shapely.points(arc[:, 1], arc[:, 0]), samples)
+    sag = arc_sagitta(radii, step)
+    assert 0.75 * sag <= off.max() <= sag * (1 + 1e-6)
+    # a zone outside the arc where it lies farthest from its chords
+    k = int(np.argmax(off))
+    out = (arc[k] - centre) / radii[1]
+    margin = 2.0
+    near = arc[k] + out * (margin - 0.5 * off[k])
+    zone = shapely.Point(near[1], near[0]).buffer(1e-4 * sag)
+    keep = KeepOut((("rock", zone),), margin)
+    assert shapely.Point(arc[k, 1], arc[k, 0]).distance(zone) < margin  # the arc enters
+    track = (pc, pr)
+    assert pipeline.zones.entered(keep, track) == []  # on the chords alone: missed
+    assert pipeline.zones.entered(keep, track, slack=(sag,)) == ["rock"]

@@ -63,6 +63,7 @@ from .geometry import (
     _shortcuts,
     _tight_turns,
     _too_tight,
+    arc_sagitta,
     arcs,
     widen_turns,
 )
@@ -310,11 +311,23 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     from ..zones import entered
 
     problems = []
-    zones = entered(ctx.m.keep_out, _map_xy(ctx.m, pr, pc), _map_xy(ctx.m, qr, qc))
+    # the track's arcs lie up to a sagitta outside its samples' polyline; the waypoint legs
+    # are straight
+    zones = entered(
+        ctx.m.keep_out,
+        _map_xy(ctx.m, pr, pc),
+        _map_xy(ctx.m, qr, qc),
+        slack=(a * arc_sagitta(radii, ctx.step), 0.0),
+    )
     if zones:
         problems.append(f"the flown route enters keep-out zone {', '.join(map(repr, zones))}")
     if not track["known"]:
         problems.append("the terrain near the track is unknown (no-data) at some samples")
+    elif max(h_track.max(), hq.max()) > ctx.top_ok:
+        problems.append(
+            f"the clearance from the seabed needs {-max(h_track.max(), hq.max()):.0f} m depth "
+            f"on the route, above the surface limit ({-ctx.top:.0f} m)"
+        )
     elif max(z_t.max(), zq.max()) > ctx.top_ok:
         problems.append(
             f"the pitch limit forces the vehicle to {-max(z_t.max(), zq.max()):.0f} m depth, "
@@ -513,22 +526,19 @@ def _at_rated_depth(depth: float | None, s: np.ndarray, h: np.ndarray) -> float:
 
 
 def _least_clearance(ctx: _Context, grid, lines) -> float:
-    """What is flown, measured anew against the continuous seabed where each of ``lines``
-    (``(rows, cols, heights, required heights)``) comes closest to its required heights: never
-    under the clearance by construction, and a mission whose route came under it would fail
-    here."""
+    """What is flown, measured anew against the continuous seabed at every sample of each of
+    ``lines`` (``(rows, cols, heights, required heights)``): the least clearance of the track
+    and of the waypoint legs, never under the clearance by construction (a mission whose route
+    came under it would fail here). The samples nearest their required heights are measured
+    first, so that the others' searches stop early (:func:`seabed_clearance`)."""
     p = ctx.m.parameters
     lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * ctx.a / ctx.clearance))))
-    least = np.inf
-    for r_, c_, z_, h_ in lines:
-        k = _closest(z_ - h_)
-        least = min(
-            least,
-            seabed_clearance(
-                *grid, r_[k], c_[k], z_[k], ctx.a, p.reach_m, METHODS[p.method].code, lattice
-            ),
-        )
-    return least
+    r, c, z, h = (np.concatenate(v) for v in zip(*lines, strict=True))
+    first = _closest(z - h)
+    order = np.concatenate((first, np.setdiff1d(np.arange(len(z)), first)))
+    return seabed_clearance(
+        *grid, r[order], c[order], z[order], ctx.a, p.reach_m, METHODS[p.method].code, lattice
+    )
 
 
 def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
@@ -543,7 +553,9 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     samples, keep every point of the step ``R`` away (samples close enough that the step's
     share of ``R' - R`` is at most ``CLEARANCE_SLACK * R``; the sagitta adds to it);
     horizontal and vertical: a sample's heights cover every point within a step of it (a point
-    of a step is as high as one of its two ends)."""
+    of a step is as high as one of its two ends). The surface limit ``top`` is kept as it is
+    (``R'`` only raises the lowest heights; a sample whose lowest height ``R'`` puts above the
+    limit is a flight problem, however close)."""
     grade = math.sqrt(1.0 + slope * slope)
     step = SAMPLE_STEP
     if method == "spherical":
@@ -556,12 +568,10 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     if method == "spherical":
         r = math.sqrt((clearance + sag) ** 2 + 0.25 * (chord * grade) ** 2)
         terrain = (a, r, METHODS[method].code, clearance, 0.0, k)
-        top_ok = top + (r - clearance) + 1e-6  # the surface limit is R's, not R''s
     else:
         r = METHODS[method].reach_m(clearance, radius)
         terrain = (a, r, METHODS[method].code, clearance, chord + sag, k)
-        top_ok = top + 1e-6
-    return step, terrain, top_ok
+    return step, terrain, top + 1e-6
 
 
 def _map_xy(m, pr, pc):

@@ -273,6 +273,18 @@ def _arcs_radii(wr, wc, radius):
     return tan_d, rad
 
 
+def arc_sagitta(radii: np.ndarray, step: float) -> float:
+    """How far (grid units) the arcs of :func:`arcs` (``radii``: as it returns them) lie at
+    most outside the polyline through their samples: an arc of radius ``r`` is sampled in
+    pieces of at most ``step`` along it, so a piece's angle is at most ``step / r`` (and half
+    a turn) and the arc lies at most ``r (1 - cos(angle / 2))`` from its chord."""
+    r = radii[np.isfinite(radii) & (radii > 0)]
+    if not r.size:
+        return 0.0
+    half = np.minimum(step / (2.0 * r), math.pi / 2.0)
+    return float(np.max(r * (1.0 - np.cos(half))))
+
+
 @njit(cache=True, nogil=True)
 def arcs(wr, wc, radius, step):
     """Dense samples (grid units) of the polyline ``w`` with every corner rounded by an arc of

@@ -451,8 +451,10 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
     the least 3-D distance to the samples within ``1.25 radius`` and to the seabed under the
     point (``1.25 radius``, where none is that near); horizontal: the height above the highest
     sample within ``radius`` horizontally; vertical: the height above the seabed under the
-    point; a point under the seabed: the (negative) height above it. A square is passed over
-    where even its highest corner, at its box distance, is farther than the least found; one
+    point; a point under the seabed: the (negative) height above it. Each point's search
+    starts from the least clearance found so far (a point that cannot come under it is not
+    measured further), so the points are best given nearest the seabed first: a square is
+    passed over where even its highest corner, at its box distance, is farther than that; one
     with a no-data corner is not measured."""
     n = pr.size
     least = np.inf
@@ -480,10 +482,14 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
         if h < under:  # (a no-data corner under it: measured from the squares around only)
             least = min(least, h - under)
             continue
-        # squared distance (at most to the seabed under the point), or the highest seabed
-        best = min(lim, (h - under) * (h - under)) if method == 2 else -np.inf
-        if best != best:
-            best = lim
+        # squared distance (at most to the seabed under the point, or the least clearance
+        # found so far), or the highest seabed (at least the height that would give that)
+        if method == 2:
+            best = min(lim, (h - under) * (h - under), least * least)
+            if best != best:
+                best = min(lim, least * least)
+        else:
+            best = h - least
         i0 = max(0, int(math.floor(p - span)))
         i1 = min(rows - 2, int(math.floor(p + span)))
         j0 = max(0, int(math.floor(q - span)))
@@ -887,8 +893,9 @@ def resolve_short_legs(sig, z, wi, corners, h, slopes, top, min_leg):
     return keep[:n]
 
 
-# the flown route's own check measures the samples nearest their required heights: this share
-# of them, and at least CHECK_LEAST
+# the flown route's own check measures every sample, first the samples nearest their required
+# heights (this share of them, and at least CHECK_LEAST), whose least clearance lets the
+# others' searches stop early
 CHECK_SHARE = 0.01
 
 

@@ -120,8 +120,9 @@ class Flight:
     # samples (of the track and the route) within R of a grid square with a no-data corner
     unknown_seabed_samples: int = 0
     short_legs: int = 0  # waypoint legs shorter than the minimum turn radius
-    # the least clearance of the route and the track from the continuous seabed, measured on
-    # a lattice of each grid square (:func:`seabed_clearance`)
+    # the least clearance of the route and the track from the continuous seabed (the maps'
+    # elevation layer), measured at every sample on a lattice of each grid square
+    # (:func:`seabed_clearance`)
     min_clearance_m: float = math.nan
     # the rated depth kept (metres, positive down; None: no rating), and the horizontal length
     # where it binds (the lowest safe height lies deeper: the vehicle flies no deeper than it)

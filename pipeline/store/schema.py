@@ -20,7 +20,10 @@ import numpy as np
 from ..exceptions import PipelineError
 from ..methods import METHODS
 
-MAPS_VERSION = 1
+# raised whenever the layers of a store built from the same DEM and parameters change (a job's
+# maps store is named by a hash that holds it, so a new version builds a new store): 2 is the
+# safety surface rounded up to float32
+MAPS_VERSION = 2
 
 
 LAYERS = ("elevation", "safety", "passable", "accumulation", "ridge")

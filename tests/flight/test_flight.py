@@ -1200,6 +1200,15 @@ def test_the_route_flown_keeps_r_from_the_continuous_seabed(tmp_path, kind, rati
         least = independent_clearance(path, xyz, method, clearance, fine)
         slack = fine * 0.71 if method != "vertical" else 0.0  # the sampling's own error
         assert least >= clearance * (1 - 1e-6) - 1e-6 - (0 if method == "spherical" else slack)
+    # the figure reported is the least clearance over every sample of the track and of the
+    # route (it was measured at a hundredth of them and could miss it by tens of metres), to
+    # within the reference's sampling and the flight's lattice (parts of at most R / 8, at
+    # least 2 a side, at most 32: docs/flyable-missions.md)
+    pts = np.concatenate([np.column_stack([f.x, f.y, f.z]), f.route])
+    want = independent_clearance(path, pts, method, clearance, fine)
+    part = 100.0 / min(32, max(2, math.ceil(8 * 100.0 / clearance)))
+    tol = 1e-6 if method == "vertical" else 0.71 * max(fine, part) + 1e-6
+    assert abs(f.min_clearance_m - want) <= tol, (f.min_clearance_m, want)
     # the waypoints' legs: pitch within the limit
     w = f.waypoints
     tan = math.tan(math.radians(15.0))
@@ -1386,3 +1395,31 @@ def test_profile_figures_count_reversals_and_altitudes():
     assert f["altitude_median_m"] == pytest.approx(np.median(z + 100.0))
     assert f["altitude_p90_m"] == pytest.approx(np.percentile(z + 100.0, 90))
     assert f["altitude_min_m"] == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("below", [0.0, 2.0])
+def test_the_surface_limit_is_kept_exactly(tmp_path, below):
+    """A flat seabed ``2R + below`` deep, R 300 m over 30 m cells, turn radius 30 m: the
+    lowest safe height lies ``below`` metres under the surface limit (sea level less R). The
+    flight's samples need R' > R (the sampling's allowance, about a metre here), which the
+    vehicle used to take above the limit: with 2 m to spare it flies, never above the limit
+    (the track and the route, numpy); with none it fails, naming the limit."""
+    import dask
+    from conftest import metric_dataarray
+
+    R, a = 300.0, 30.0
+    z = np.full((40, 40), -2 * R - below, np.float32)
+    dem = metric_dataarray(z, a=a).rename("elevation")
+    path = tmp_path / "flat.zarr"
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, path, clearance=R, chunks=16)
+    ok = pipeline.open_maps(path)["passable"].values
+    assert ok[5, 5] and ok[34, 30]  # S <= the limit: passable, planned
+    t = pipeline.plan(path, (5, 5), (34, 30), omega=1.5, client="synchronous")
+    assert t.status == "ok"
+    f = pipeline.fly(path, t, {"min_turn_radius_m": 30.0})
+    if below:
+        assert not f.problems
+        assert max(f.z.max(), f.route[:, 2].max(), f.waypoints[:, 2].max()) <= -R + 1e-6
+    else:
+        assert f.problems and "above the surface limit (300 m)" in f.problems[0]
