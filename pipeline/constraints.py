@@ -47,7 +47,9 @@ class ConstrainedStore(MapsStore):
         self.max_depth_m = max_depth_m
         if max_depth_m is not None:
             # the landmark layers measure distances over S, which the rating shortens: under a
-            # rating they bound nothing, so they are neither a bound nor a heuristic here
+            # rating they bound nothing, so the store has none (MapsStore.lower_bound is then
+            # 0, the octile distance bounding the mission, and active_landmarks none); under
+            # zones alone they still bound (the module's description)
             self.landmarks = []
         self._coarse = {}
         self._lock = threading.Lock()
@@ -124,17 +126,6 @@ class ConstrainedStore(MapsStore):
         with self._lock:
             self._coarse[rho] = got
         return got
-
-    def lower_bound(self, start, goal) -> float:
-        """The store's landmark bound, which holds under zones; under a rated depth none
-        (0: the octile distance bounds the mission; the module's description)."""
-        if not self.landmarks:
-            return 0.0
-        return self.base.lower_bound(start, goal)
-
-    def active_landmarks(self, start, goal, k: int) -> list[int]:
-        """The store's, under zones; none under a rated depth (the module's description)."""
-        return self.base.active_landmarks(start, goal, k) if self.landmarks else []
 
     # ------------------------------------------------------------------ zones: ends, regions
 

@@ -323,10 +323,10 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         problems.append(f"the flown route enters keep-out zone {', '.join(map(repr, zones))}")
     if not track["known"]:
         problems.append("the terrain near the track is unknown (no-data) at some samples")
-    elif max(h_track.max(), hq.max()) > ctx.top_ok:
+    elif (need := max(h_track.max(), hq.max())) > ctx.top_ok:
         problems.append(
-            f"the clearance from the seabed needs {-max(h_track.max(), hq.max()):.0f} m depth "
-            f"on the route, above the surface limit ({-ctx.top:.0f} m)"
+            f"the clearance from the seabed needs {-need:.0f} m depth on the route, above the "
+            f"surface limit ({-ctx.top:.0f} m)"
         )
     elif max(z_t.max(), zq.max()) > ctx.top_ok:
         problems.append(
