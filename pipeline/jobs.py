@@ -105,8 +105,15 @@ _COORD = Param("coordinate", "float", None, "")
 # keeping results the code would no longer give: 2 is RA*'s ties of Nor by g_incons + h, 3 the
 # default window margin of MCPC's sections halved (section_size // 8), 4 the flight's heights
 # against the continuous seabed and its profile's breaks a turn radius apart, 5 the surface
-# limit kept exactly and the least clearance over every sample of the flight.
-RESULTS_REVISION = 5
+# limit kept exactly and the least clearance over every sample of the flight, 6 the clearance
+# measured from the DEM file itself (and the clearance, method and sea level in each Item).
+RESULTS_REVISION = 6
+
+
+# How a DEM file becomes the DEM store (a resample of it): 2 is the upper envelope of the file's
+# bilinear surface and the region read with a margin (docs/method.md section 1). A job's DEM
+# store made otherwise is made again.
+DEM_CONSTRUCTION = 2
 
 
 @dataclass
@@ -178,6 +185,7 @@ class Job:
                 "mtime_ns": st.st_mtime_ns,
                 "variable": self.variable,
                 "cell_size": self.cell_size,
+                "construction": DEM_CONSTRUCTION,
             }
             if self.resolution is not None:
                 what["resolution"] = self.resolution

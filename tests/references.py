@@ -211,3 +211,64 @@ def scipy_reference(z, a, R):
         mode="constant",
         cval=-np.inf,
     )
+
+
+def assert_upper_envelope(dem, z, x, y, crs=None, *, points=20000):
+    """The planning seabed against the source grid ``z`` on axes ``x`` (lon or x) by ``y``
+    (``crs``: the source's; None, the DEM's own): independently of the warp, by pyproj and
+    scipy. (1) No node lies below the source's bilinear value there. (2) The DEM's own
+    bilinear surface lies on or above the source's at random points between its nodes (the
+    promise). (3) No node is higher than the highest source point within the square of
+    half-side one cell around it, one source cell grown (it is no coarser than it must be).
+    (4) The raise recorded (mean, greatest) is the one measured. Returns the raise."""
+    import pytest
+    from pyproj import CRS, Transformer
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.spatial import cKDTree
+
+    a = float(dem.attrs["cell_size"])
+    v = dem.values.astype(np.float64)
+    dx, dy = dem.x.values, dem.y.values
+    to_src = None
+    if crs is not None:
+        to_src = Transformer.from_crs(CRS.from_wkt(dem.attrs["crs_wkt"]), crs, always_xy=True)
+    order = np.argsort(y)
+    src = RegularGridInterpolator((y[order], x), z[order].astype(np.float64))
+
+    def source_at(px, py):
+        sx, sy = to_src.transform(px, py) if to_src is not None else (px, py)
+        sx, sy = np.asarray(sx), np.asarray(sy)
+        inside = (sx >= x.min()) & (sx <= x.max()) & (sy >= y.min()) & (sy <= y.max())
+        out = np.full(sx.shape, np.nan)
+        out[inside] = src(np.stack([sy[inside], sx[inside]], axis=-1))
+        return out
+
+    xx, yy = np.meshgrid(dx, dy)
+    ref = source_at(xx, yy)
+    ok = np.isfinite(ref) & np.isfinite(v)
+    assert ok.mean() > 0.5
+    assert np.all(v[ok] >= ref[ok] - 1e-3), (v[ok] - ref[ok]).min()  # (1)
+    rng = np.random.default_rng(0)
+    px = rng.uniform(dx.min(), dx.max(), points)
+    py = rng.uniform(dy.min(), dy.max(), points)
+    mine = RegularGridInterpolator((dy[::-1], dx), v[::-1])(np.stack([py, px], axis=-1))
+    theirs = source_at(px, py)
+    both = np.isfinite(mine) & np.isfinite(theirs)
+    assert both.mean() > 0.5
+    assert np.all(mine[both] >= theirs[both] - 1e-3), (mine[both] - theirs[both]).min()  # (2)
+    # (3): the source points in map coordinates, the highest within the grown square
+    gx, gy = np.meshgrid(x, y)
+    if to_src is not None:
+        back = Transformer.from_crs(crs, CRS.from_wkt(dem.attrs["crs_wkt"]), always_xy=True)
+        gx, gy = back.transform(gx, gy)
+    cell = 1.01 * np.hypot(*(np.ptp(np.asarray(g)[:2, :2]) for g in (gx, gy)))
+    tree = cKDTree(np.column_stack([np.ravel(gx), np.ravel(gy)]))
+    near = tree.query_ball_point(np.column_stack([xx[ok], yy[ok]]), a * np.sqrt(2) + cell)
+    zs = z.astype(np.float64).ravel()
+    top = np.array([zs[i].max() for i in near])
+    assert np.all(v[ok] <= top + 0.05), (v[ok] - top).max()  # (a file's float32 grid)
+    raised = v[ok] - ref[ok]
+    if "seabed_raise_mean_m" in dem.attrs:  # (4), where the bilinear value is defined
+        assert dem.attrs["seabed_raise_max_m"] >= raised.max() - 1e-2
+        assert dem.attrs["seabed_raise_mean_m"] == pytest.approx(raised.mean(), rel=0.05, abs=0.05)
+    return raised

@@ -24,7 +24,7 @@ from ..exceptions import InvalidDEMError, InvalidParameterError, notice
 from ..params import CELL_SIZE, DEFAULT_CHUNK, chunks2d
 from ..store.schema import GRID_MAPPING
 from .readers import _X_NAMES, _Y_NAMES, _pick_variable
-from .reproject import _reproject_geographic, _resample_square, _spacing, _step
+from .reproject import _reproject_geographic, _resample_square, _spacing, _step, combine_stats
 
 log = logging.getLogger(__name__)
 
@@ -146,15 +146,9 @@ def _nonnegative_sigma(block: np.ndarray, path: str, name: str) -> np.ndarray:
     return block
 
 
-def _canonicalise(
-    arr: xr.DataArray,
-    path: Path,
-    *,
-    chunks,
-    cell_size: float | None,
-    resolution: float | None = None,
-    region: tuple | None = None,
-) -> xr.DataArray:
+def _located(arr: xr.DataArray, path: Path, cell_size: float | None = None) -> tuple:
+    """A file's grid with dims ``(y, x)`` and 1-D coordinates, its CRS (or None) and
+    whether it is a lon/lat grid; nothing read yet."""
     if arr.dtype.kind not in "iuf":
         raise InvalidDEMError(f"DEM file {path}: values are of type {arr.dtype}, not numbers")
     arr = _squeeze_to_2d(arr, path)
@@ -182,7 +176,39 @@ def _canonicalise(
         geographic = True
     if geographic:
         arr = _unwrapped(arr)
-    arr = _crop(arr, path, crs, geographic, region)  # before anything reads a value
+    return arr, crs, geographic
+
+
+def source_grid(arr: xr.DataArray, path: Path) -> tuple:
+    """A file's grid as it is (no resample): float64 metres positive up, NaN no-data, dims
+    ``(y, x)`` in its own coordinates, lazily; and its CRS (pyproj; a lon/lat grid without
+    one is WGS84; None for a projected grid without one)."""
+    from pyproj import CRS
+
+    arr, crs, geographic = _located(arr, path)
+    if geographic and crs is None:
+        crs = CRS.from_epsg(4326)
+    for dim in ("y", "x"):
+        _step(arr, dim, path)  # (a repeated or unordered axis is refused, named)
+    sign = _depth_sign(arr, path)
+    values = arr.astype(np.float64) * sign
+    return values.where(np.isfinite(values)), crs
+
+
+def _canonicalise(
+    arr: xr.DataArray,
+    path: Path,
+    *,
+    chunks,
+    cell_size: float | None,
+    resolution: float | None = None,
+    region: tuple | None = None,
+) -> xr.DataArray:
+    arr, crs, geographic = _located(arr, path, cell_size)
+    # a region is read with a margin of source cells beyond it: the target nodes at its edges
+    # take the highest of the source over a target cell around them (docs/method.md section 1)
+    margin = _resample_margin(arr, path, geographic, resolution)
+    arr, bounds = _crop(arr, path, crs, geographic, region, margin)  # before a value is read
     if geographic:
         lat, lon = np.asarray(arr["y"].values, float), np.asarray(arr["x"].values, float)
         if np.abs(lat).max() > 90 or lon.min() < -360 or lon.max() > 360:
@@ -195,17 +221,16 @@ def _canonicalise(
     sign = _depth_sign(arr, path)
     attrs = {k: v for k, v in arr.attrs.items() if k in ("long_name", "standard_name", "title")}
     values = arr.astype(np.float32) * np.float32(sign) if sign != 1 else arr.astype(np.float32)
-    values = _regularise(values.where(np.isfinite(values)), path)
+    values = values.where(np.isfinite(values))
+    stats = None
     if geographic:
-        values, crs = _reproject_geographic(values, path, crs, resolution, chunks)
-    else:
-        dx, dy = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
-        if not math.isclose(dx, dy, rel_tol=1e-4) or (
-            resolution is not None and not math.isclose(dx, resolution, rel_tol=1e-4)
-        ):
-            values = _resample_square(values, path, dx, dy, crs, resolution)
+        values, crs, stats = _reproject_geographic(values, path, crs, resolution, chunks, bounds)
+    elif margin > 1:
+        dx, dy = _mean_spacing(values, "x"), _mean_spacing(values, "y")
+        values, stats = _resample_square(values, path, dx, dy, resolution, chunks, bounds)
     a = abs(_spacing(values, "x", path))
     attrs.update(cell_size=float(a), units="m", positive="up", source=str(path))
+    attrs["seabed_surface"] = SURFACES["upper" if stats is not None else "source"]
     if crs is not None:
         attrs["crs_wkt"] = crs.to_wkt()
     out = values.astype(np.float32)
@@ -213,15 +238,124 @@ def _canonicalise(
     out.attrs = attrs
     out.encoding = {}
     if chunks is None:
-        return out.load() if isinstance(out.data, da.Array) else out
-    return out.chunk(dict(zip(("y", "x"), chunks2d(chunks, out.shape), strict=True)))
+        if isinstance(out.data, da.Array):
+            import dask
+
+            data, stats = dask.compute(out.data, stats)
+            out = out.copy(data=data)
+        if stats is not None:
+            out.attrs.update(construction_figures(combine_stats(stats), path))
+        return out
+    out = out.chunk(dict(zip(("y", "x"), chunks2d(chunks, out.shape), strict=True)))
+    if stats is not None:
+        _FIGURES[out.data.name] = stats
+        while len(_FIGURES) > 64:
+            _FIGURES.pop(next(iter(_FIGURES)))
+    return out
 
 
-def _crop(arr: xr.DataArray, path: Path, crs, geographic: bool, region) -> xr.DataArray:
+# how the seabed a DEM store holds was made from the file (its attribute ``seabed_surface``)
+SURFACES = {
+    "source": "the source grid's own points (no resample)",
+    "upper": (
+        "upper envelope: each node the highest of the source's bilinear surface within one "
+        "cell of it, so the grid's bilinear surface lies on or above the source's"
+    ),
+}
+
+
+# the figures of the resamples of DEMs opened lazily and not written yet (the warp's blocks
+# give them as they are computed, in the write: warp_figures), by the dask name of the grid
+_FIGURES: dict = {}
+
+
+def warp_figures(dem: xr.DataArray):
+    """The per-block figures (delayed) of the resample that made ``dem`` (:func:`open_dem`
+    lazily), or None when it was not resampled or was changed since."""
+    data = dem.data
+    return _FIGURES.get(data.name) if isinstance(data, da.Array) else None
+
+
+def construction_figures(row, path) -> dict:
+    """A resample's figures (:func:`pipeline.dem.reproject.combine_stats`) as the DEM's
+    attributes, logged: the raise of the planning seabed over the source's bilinear surface
+    at the nodes (mean and greatest, metres) and the nodes beyond the source's coverage."""
+    total, count, most, beyond = (float(v) for v in row)
+    mean = total / count if count else 0.0
+    log.info(
+        "DEM %s: the planning seabed (upper envelope of the source) lies above the source's "
+        "bilinear surface by %.2f m on average at the grid points, %.2f m at most",
+        path,
+        mean,
+        most if count else 0.0,
+    )
+    if beyond:
+        notice(
+            log,
+            "DEM %s: %d grid points lie beyond the source's coverage (no-data, never passable)",
+            path,
+            int(beyond),
+        )
+    return {
+        "seabed_raise_mean_m": round(mean, 4),
+        "seabed_raise_max_m": round(most if count else 0.0, 4),
+        "cells_beyond_source": int(beyond),
+    }
+
+
+def _mean_spacing(values: xr.DataArray, dim: str) -> float:
+    c = np.asarray(values[dim].values, dtype=np.float64)
+    return float(abs(c[-1] - c[0]) / (c.size - 1))
+
+
+def _resample_margin(arr: xr.DataArray, path: Path, geographic: bool, resolution) -> int:
+    """The source cells read beyond a region: 1 when the grid is not resampled (one cell
+    each side), else enough for a target cell around the region's edge nodes (its square
+    of half-side one target cell, with slack)."""
+    for dim in ("y", "x"):
+        if "x" not in arr.coords or "y" not in arr.coords:
+            return 1
+        _step(arr, dim, path)  # (refuses a repeated or unordered axis, naming it)
+    if geographic:
+        from .reproject import degree_cell_metres, natural_cell
+
+        lat = np.asarray(arr["y"].values, dtype=np.float64)
+        a = resolution or natural_cell(arr, path)
+        dx_m, dy_m = degree_cell_metres(arr)
+        # (the cells of longitude narrow towards the poles: counted at the farthest latitude)
+        k = math.cos(math.radians(float(np.abs(lat).mean()))) / max(
+            math.cos(math.radians(min(float(np.abs(lat).max()), 89.0))), 1e-3
+        )
+        return 2 + math.ceil(a / min(dx_m / k, dy_m))
+    dx, dy = _mean_spacing(arr, "x"), _mean_spacing(arr, "y")
+    even = _step(arr, "x", path)[1] and _step(arr, "y", path)[1]
+    for dim in () if even else ("y", "x"):
+        d = np.abs(np.diff(np.asarray(arr[dim].values, dtype=np.float64)))
+        if np.ptp(d) > 1e-6 * d.mean():
+            notice(
+                log,
+                "DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
+                "resampling onto an even grid",
+                path,
+                dim,
+                d.min(),
+                d.max(),
+            )
+    square = math.isclose(dx, dy, rel_tol=1e-4)
+    if even and square and (resolution is None or math.isclose(dx, resolution, rel_tol=1e-4)):
+        return 1
+    a = resolution or math.sqrt(dx * dy)
+    return 2 + math.ceil(a / min(dx, dy))
+
+
+def _crop(
+    arr: xr.DataArray, path: Path, crs, geographic: bool, region, margin: int = 1
+) -> tuple[xr.DataArray, tuple | None]:
     """The cells of ``arr`` (dims y, x with 1-D coordinates) whose centres lie in the region,
-    and one more on each side, selected lazily (only their chunks are ever read)."""
+    and ``margin`` more on each side, selected lazily (only their chunks are ever read); and
+    the region's box in the grid's coordinates (None without a region)."""
     if region is None:
-        return arr
+        return arr, None
     form, box = region
     x = np.asarray(arr["x"].values, dtype=np.float64)
     y = np.asarray(arr["y"].values, dtype=np.float64)
@@ -246,10 +380,8 @@ def _crop(arr: xr.DataArray, path: Path, crs, geographic: bool, region) -> xr.Da
 
         tr = Transformer.from_crs("EPSG:4326", CRS.from_user_input(crs), always_xy=True)
         box = tr.transform_bounds(*box, densify_pts=21)
-    ax = abs(x[1] - x[0]) if len(x) > 1 else 0.0
-    ay = abs(y[1] - y[0]) if len(y) > 1 else 0.0
-    cols = np.nonzero((x >= box[0] - ax) & (x <= box[2] + ax))[0]
-    rows = np.nonzero((y >= box[1] - ay) & (y <= box[3] + ay))[0]
+    cols = _covering(x, box[0], box[2], margin)
+    rows = _covering(y, box[1], box[3], margin)
     if len(cols) < 2 or len(rows) < 2:
         raise InvalidParameterError(
             f"`{name}` {[round(v, 6) for v in box]} does not overlap DEM file {path} by 2 x 2 "
@@ -267,7 +399,22 @@ def _crop(arr: xr.DataArray, path: Path, crs, geographic: bool, region) -> xr.Da
         arr.shape[0],
         arr.shape[1],
     )
-    return out
+    return out, tuple(float(v) for v in box)
+
+
+def _covering(c: np.ndarray, lo: float, hi: float, margin: int) -> np.ndarray:
+    """The indices of the coordinates ``c`` (monotonic) within ``lo..hi`` and ``margin``
+    more each side; a centre on a bound (to a millionth of a step) is within."""
+    step = abs(c[1] - c[0]) if len(c) > 1 else 0.0
+    tol = 1e-6 * step
+    inside = np.nonzero((c >= lo - tol) & (c <= hi + tol))[0]
+    if not inside.size:  # a region between two centres: the two around it
+        inside = np.nonzero((c >= lo - step) & (c <= hi + step))[0]
+        if not inside.size:
+            return inside
+        margin = max(margin - 1, 0)
+    first, last = max(int(inside[0]) - margin, 0), min(int(inside[-1]) + margin, len(c) - 1)
+    return np.arange(first, last + 1)
 
 
 def _squeeze_to_2d(arr: xr.DataArray, path: Path) -> xr.DataArray:
@@ -313,28 +460,6 @@ def _synthesise_coords(arr: xr.DataArray, path: Path, cell_size: float | None) -
     rows, cols = arr.shape
     log.info("DEM %s has no coordinates: using cells of %g m from (0, 0)", path, a)
     return arr.assign_coords(x=(np.arange(cols) + 0.5) * a, y=(rows - np.arange(rows) - 0.5) * a)
-
-
-def _regularise(values: xr.DataArray, path: Path) -> xr.DataArray:
-    """Resample monotonic but unevenly spaced axes (e.g. Mercator latitudes) to even steps."""
-    for dim in ("y", "x"):
-        step, even = _step(values, dim, path)
-        c = np.asarray(values[dim].values, dtype=np.float64)
-        if even:
-            values = values.assign_coords({dim: c[0] + step * np.arange(c.size)})
-            continue
-        d = np.diff(c)
-        notice(
-            log,
-            "DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
-            "resampling linearly onto an even grid",
-            path,
-            dim,
-            d.min(),
-            d.max(),
-        )
-        values = values.load().interp({dim: c[0] + step * np.arange(c.size)}, method="linear")
-    return values
 
 
 def _crs_of(arr: xr.DataArray):

@@ -19,8 +19,9 @@ from ..params import DEFAULT_CHUNK, chunks2d
 from ..store.bands import store_in_bands
 from ..store.paths import atomic_path
 from ..store.schema import GRID_MAPPING, grid_mapping, layer_codec
-from .canonical import _check_canonical
+from .canonical import _check_canonical, construction_figures, warp_figures
 from .readers import reading
+from .reproject import combine_stats
 
 log = logging.getLogger(__name__)
 
@@ -147,6 +148,7 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
             log.warning(
                 "chunk side %d is not a multiple of 64: coarsening may need a rechunk", side
             )
+    figures = warp_figures(dem)
     data = dem.data if isinstance(dem.data, da.Array) else da.from_array(dem.data, chunks=ch)
     data = data.astype(np.float32).rechunk(ch)
     out = dem.copy(data=data)
@@ -176,7 +178,10 @@ def _write_dem(dem, store, chunks, overwrite: bool, empty: str | None = None) ->
             grid = zarr.open_array(
                 str(tmp / "elevation"), mode="r+", config={"write_empty_chunks": False}
             )
-            store_in_bands(data, grid, progress=_band_log(store))
+            parts = store_in_bands(data, grid, progress=_band_log(store), also=figures or ())
+        if figures:  # the resample's raise and coverage, recorded with the store
+            row = construction_figures(combine_stats(parts), dem.attrs.get("source", store))
+            zarr.open_array(str(tmp / "elevation"), mode="r+").attrs.update(row)
         stored = _stored_chunks(tmp / "elevation")
         if empty is not None and not _holds_a_valid_cell(tmp / "elevation", stored):
             raise InvalidDEMError(empty)

@@ -117,7 +117,44 @@ def open_dem(
         tile = file_chunks(path)
         if tile is not None and max(tile) < max(chunks2d(chunks, (2**31, 2**31))):
             read_chunks = max(tile)
-    raw, sigma = read(path, reader, read_chunks, variable, uncertainty)
+    raw, canonical, sigma_name = _surface(
+        path, reader, read_chunks, variable, uncertainty_k, uncertainty
+    )
+    if canonical and resolution is None:
+        dem, _ = _crop(raw, path, _crs_of(raw), False, region)
+        if chunks is None:
+            dem = dem.load()
+        else:
+            dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
+        return dem
+    with reading(path):
+        dem = _canonicalise(
+            raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution, region=region
+        )
+        if validate:
+            require_valid_cells(dem, _no_valid_cells(path))
+    if uncertainty_k is not None:
+        dem.attrs.update(
+            uncertainty_k=uncertainty_k,
+            surface=f"elevation + {uncertainty_k:g} * {sigma_name} (the shoal side of the survey)",
+        )
+    return dem
+
+
+def read_source(path: Path, variable=None, uncertainty_k=None, uncertainty=None):
+    """The grid of the DEM file ``path`` as read (its own coordinates, no resample), with the
+    shoal side of its uncertainty band when ``uncertainty_k`` is given."""
+    if not path.exists():
+        raise InvalidDEMError(f"DEM file {path} does not exist")
+    if uncertainty_k is not None:
+        uncertainty_k = DEM.uncertainty_k.check(uncertainty_k)
+    return _surface(path, reader_of(path), DEFAULT_CHUNK, variable, uncertainty_k, uncertainty)[0]
+
+
+def _surface(path, reader, chunks, variable, uncertainty_k, uncertainty):
+    """The file's elevation (or elevation + k sigma) as read, whether it is a DEM store of
+    this tool's, and the name of its uncertainty (or None)."""
+    raw, sigma = read(path, reader, chunks, variable, uncertainty)
     canonical = raw.attrs.get(CANONICAL_ATTR) == CANONICAL_VERSION
     if canonical and uncertainty_k is not None:
         raise InvalidParameterError(
@@ -139,25 +176,7 @@ def open_dem(
             path,
             sigma.name,
         )
-    if canonical and resolution is None:
-        dem = _crop(raw, path, _crs_of(raw), False, region)
-        if chunks is None:
-            dem = dem.load()
-        else:
-            dem = dem.chunk(dict(zip(("y", "x"), chunks2d(chunks, dem.shape), strict=True)))
-        return dem
-    with reading(path):
-        dem = _canonicalise(
-            raw, path, chunks=chunks, cell_size=cell_size, resolution=resolution, region=region
-        )
-        if validate:
-            require_valid_cells(dem, _no_valid_cells(path))
-    if uncertainty_k is not None:
-        dem.attrs.update(
-            uncertainty_k=uncertainty_k,
-            surface=f"elevation + {uncertainty_k:g} * {sigma.name} (the shoal side of the survey)",
-        )
-    return dem
+    return raw, canonical, None if sigma is None else sigma.name
 
 
 def import_dem(

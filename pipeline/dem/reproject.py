@@ -10,6 +10,7 @@ import logging
 import math
 from pathlib import Path
 
+import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
@@ -22,11 +23,17 @@ log = logging.getLogger(__name__)
 
 
 def _reproject_geographic(
-    values: xr.DataArray, path: Path, crs, resolution: float | None = None, chunks=None
+    values: xr.DataArray,
+    path: Path,
+    crs,
+    resolution: float | None = None,
+    chunks=None,
+    bounds: tuple | None = None,
 ):
-    """Reproject a lon/lat grid to an azimuthal equidistant projection centred on the grid,
-    bilinearly and exactly (:func:`exact_warp`), chunk by chunk when ``values`` is a dask
-    array. The output grid is rasterio's default one for that projection and cell."""
+    """Reproject a lon/lat grid to an azimuthal equidistant projection centred on the grid
+    (:func:`warp`: the upper envelope of its bilinear surface), chunk by chunk when ``values``
+    is a dask array. The output grid is rasterio's default one for that projection and cell,
+    over ``bounds`` (lon, lat) when a region was asked for, else over the grid's own cells."""
     from pyproj import CRS
     from rasterio.warp import calculate_default_transform
 
@@ -36,12 +43,19 @@ def _reproject_geographic(
     if lon.min() >= 180.0:
         values = values.assign_coords(x=lon - 360.0)
         lon = lon - 360.0
-    lon0, lat0 = float(lon.mean()), float(lat.mean())
-    dlon, dlat = abs(_spacing(values, "x", path)), abs(_spacing(values, "y", path))
-    metres_per_degree = 111_320.0
-    dx_m = dlon * metres_per_degree * math.cos(math.radians(lat0))
-    dy_m = dlat * metres_per_degree
-    a = resolution or float(f"{math.sqrt(dx_m * dy_m):.3g}")
+        if bounds is not None:
+            bounds = (bounds[0] - 360.0, bounds[1], bounds[2] - 360.0, bounds[3])
+    a = resolution or natural_cell(values, path)
+    dlon, dlat = _mean_step(lon), _mean_step(lat)
+    cover = (lon.min() - dlon / 2, lat.min() - dlat / 2, lon.max() + dlon / 2, lat.max() + dlat / 2)
+    if bounds is not None:  # the region asked for, where the grid covers it
+        cover = (
+            max(cover[0], bounds[0]),
+            max(cover[1], bounds[1]),
+            min(cover[2], bounds[2]),
+            min(cover[3], bounds[3]),
+        )
+    lon0, lat0 = 0.5 * (cover[0] + cover[2]), 0.5 * (cover[1] + cover[3])
     dst = CRS.from_proj4(f"+proj=aeqd +lat_0={lat0:.6f} +lon_0={lon0:.6f} +datum=WGS84 +units=m")
     notice(
         log,
@@ -57,64 +71,177 @@ def _reproject_geographic(
         dst,
         values.sizes["x"],
         values.sizes["y"],
-        left=lon.min() - dlon / 2,
-        bottom=lat.min() - dlat / 2,
-        right=lon.max() + dlon / 2,
-        top=lat.max() + dlat / 2,
+        left=cover[0],
+        bottom=cover[1],
+        right=cover[2],
+        top=cover[3],
         resolution=a,
     )
     lazy = isinstance(values.data, da.Array)
     side = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, (height, width))
-    out = exact_warp(values, src_crs, dst, transform, (height, width), side if lazy else None)
-    return out, dst
+    out, stats = warp(values, src_crs, dst, transform, (height, width), side if lazy else None)
+    return out, dst, stats
+
+
+METRES_PER_DEGREE = 111_320.0
+
+
+def natural_cell(values: xr.DataArray, path: Path | str = "DEM") -> float:
+    """The square cell (metres, three figures) a lon/lat grid is reprojected at by default:
+    the geometric mean of its cells' sides at its mean latitude."""
+    dx_m, dy_m = degree_cell_metres(values)
+    return float(f"{math.sqrt(dx_m * dy_m):.3g}")
+
+
+def degree_cell_metres(values: xr.DataArray) -> tuple[float, float]:
+    """The sides (metres, east and north) of a lon/lat grid's cells at its mean latitude."""
+    lon = np.asarray(values["x"].values, dtype=np.float64)
+    lat = np.asarray(values["y"].values, dtype=np.float64)
+    k = math.cos(math.radians(float(lat.mean())))
+    return abs(_mean_step(lon)) * METRES_PER_DEGREE * k, abs(_mean_step(lat)) * METRES_PER_DEGREE
+
+
+def _mean_step(c: np.ndarray) -> float:
+    return float(abs(c[-1] - c[0]) / max(c.size - 1, 1))
 
 
 def exact_warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None):
-    """``values`` (dims ``(y, x)`` on a regular grid of ``src_crs``) sampled at the cell
-    centres of the grid ``transform``, ``shape`` of ``dst_crs``: each centre transformed
-    exactly by pyproj (not GDAL's approximate transformer, whose error of up to an eighth of
-    a source cell moves terrain by tens of metres on coarse grids), then bilinear in the
-    source grid, the source's outer half cells holding their edge points' values (its cells
-    are areas, as GDAL reads them); NaN beyond them, or where a source point with a weight is
-    NaN. With ``chunks`` (a (rows, cols) side) the result is a dask array whose each block
-    reads only the source window it needs (memory bounded by the block), equal to the
-    in-memory result (each centre is computed alone)."""
+    """``values`` sampled bilinearly at the cell centres of the grid ``transform``, ``shape``
+    of ``dst_crs`` (:func:`warp` with ``upper=False``): the exact resample, for a display or
+    a comparison; planning takes the upper envelope."""
+    return warp(values, src_crs, dst_crs, transform, shape, chunks, upper=False)[0]
+
+
+def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, *, upper=True):
+    """``values`` (dims ``(y, x)`` on a grid of ``src_crs``, its axes monotonic, evenly spaced
+    or not) onto the cell centres of the grid ``transform``, ``shape`` of ``dst_crs``; with
+    ``src_crs`` None the two grids share their coordinates (a resample, no reprojection).
+
+    Each target centre is transformed exactly by pyproj (not GDAL's approximate transformer,
+    whose error of up to an eighth of a source cell moves terrain by tens of metres on coarse
+    grids) into the source grid's fractional rows and columns. ``upper`` (planning): each
+    target node takes the highest value of the source's bilinear surface over the square of
+    half-side one target cell around it (the box of the source rows and columns its eight
+    neighbours reach), so that the target's own bilinear surface lies on or above the source's
+    everywhere (docs/method.md section 1); else the source's bilinear value at the node. The
+    source's cells are areas: its outer half cells hold their edge points' values; a node
+    beyond them is NaN (no source), as is one whose surface weighs a NaN source point.
+
+    Returns the DataArray and the figures of the construction: a float64 array ``(sum of the
+    raise over the nodes, nodes counted, greatest raise, nodes beyond the source)``, where the
+    raise is the node's value less the source's bilinear value there (0 without ``upper``);
+    with ``chunks``, a list of one delayed such row per tile (:func:`combine_stats`). With
+    ``chunks`` (a (rows, cols) side) each block reads only the source window it needs (memory
+    bounded by the block) and equals the in-memory result (each node is computed alone)."""
     from pyproj import Transformer
 
-    # the exact operation as a PROJ pipeline: a thread makes its own copy of a transformer, and
-    # one made from a pipeline does not read PROJ's database again (2 MB a thread)
-    tr = _pipeline(Transformer.from_crs(dst_crs, src_crs, always_xy=True).definition)
+    tr = None
+    if src_crs is not None:  # the exact operation as a PROJ pipeline (made once per thread)
+        tr = _pipeline(Transformer.from_crs(dst_crs, src_crs, always_xy=True).definition)
     height, width = shape
+    a = abs(transform.a)
     xs = transform.c + (np.arange(width) + 0.5) * transform.a
     ys = transform.f + (np.arange(height) + 0.5) * transform.e
-    sx = np.asarray(values["x"].values, dtype=np.float64)
-    sy = np.asarray(values["y"].values, dtype=np.float64)
-    grid = (sx[0], _spacing(values, "x"), sy[0], _spacing(values, "y"), len(sy), len(sx))
+    grid = GridAxes(values)
+    eps = UPPER_SLACK if tr is not None else 1e-9
 
     def block(src, y, x, off):
-        llon, llat, fy, fx = _lattice(tr, x, y, grid)
+        # the nodes one target cell around the block too: the squares of its edge nodes
+        yp = np.concatenate(([y[0] - transform.e], y, [y[-1] + transform.e]))
+        xp = np.concatenate(([x[0] - transform.a], x, [x[-1] + transform.a]))
+        lfi, lfj, fy, fx = _lattice(tr, xp, yp, grid)
         src = np.ascontiguousarray(src, dtype=np.float32)
-        return _warp_kernel(src, off[0], off[1], *grid, llon, llat, fy, fx)
+        return _warp_kernel(src, off[0], off[1], grid.ny, grid.nx, lfi, lfj, fy, fx, upper, eps)
 
     if chunks is None:
-        data = block(values.values, ys, xs, (0, 0))
-    else:
-        rows = []
-        for i0 in range(0, height, chunks[0]):
-            row = []
-            for j0 in range(0, width, chunks[1]):
-                y, x = ys[i0 : i0 + chunks[0]], xs[j0 : j0 + chunks[1]]
-                (r0, r1), (c0, c1) = _source_window(tr, x, y, grid)
-                src = values.data[max(r0, 0) : max(r1, 1), max(c0, 0) : max(c1, 1)]
-                src = src.rechunk(src.shape)  # the window as one block
-                part = src.map_blocks(
-                    block, y, x, (r0, c0), chunks=(len(y), len(x)), dtype=np.float32,
-                    meta=np.empty((0, 0), dtype=np.float32),
-                )  # fmt: skip
-                row.append(part)
-            rows.append(row)
-        data = da.block(rows)
+        data, stats = block(values.values, ys, xs, (0, 0))
+        return _named(data, ys, xs, values), stats
+    rows, parts = [], []
+    for i0 in range(0, height, chunks[0]):
+        row = []
+        for j0 in range(0, width, chunks[1]):
+            y, x = ys[i0 : i0 + chunks[0]], xs[j0 : j0 + chunks[1]]
+            # a block whose source window is large (a coarse target) is warped in tiles
+            (r0, r1), (c0, c1) = _source_window(tr, x, y, grid, a)
+            k = max(1, math.ceil(math.sqrt((r1 - r0) * (c1 - c0) / WARP_WINDOW_CELLS)))
+            ty, tx = max(1, -(-len(y) // k)), max(1, -(-len(x) // k))
+            tiles = []
+            for a0 in range(0, len(y), ty):
+                trow = []
+                for b0 in range(0, len(x), tx):
+                    yy, xx = y[a0 : a0 + ty], x[b0 : b0 + tx]
+                    (r0, r1), (c0, c1) = _source_window(tr, xx, yy, grid, a)
+                    src = values.data[max(r0, 0) : max(r1, 1), max(c0, 0) : max(c1, 1)]
+                    # the window as one block, its tasks kept as they are (not fused into
+                    # new ones, which would read a source chunk once for each window)
+                    src = src.rechunk(src.shape).to_delayed(optimize_graph=False)[0, 0]
+                    pair = dask.delayed(block, pure=True, nout=2)(src, yy, xx, (r0, c0))
+                    trow.append(da.from_delayed(pair[0], (len(yy), len(xx)), dtype=np.float32))
+                    parts.append(pair[1])
+                tiles.append(trow)
+            piece = da.block(tiles)
+            row.append(piece if k == 1 else piece.rechunk(piece.shape))
+        rows.append(row)
+    return _named(da.block(rows), ys, xs, values), parts
+
+
+def _named(data, ys, xs, values) -> xr.DataArray:
     return xr.DataArray(data, dims=("y", "x"), coords={"y": ys, "x": xs}, name=values.name)
+
+
+def combine_stats(parts) -> np.ndarray:
+    """The figures of a warp's blocks (rows of :func:`warp`'s four) as one row."""
+    p = np.asarray(parts, dtype=np.float64).reshape(-1, 4)
+    if not len(p):
+        return np.zeros(4)
+    return np.array([p[:, 0].sum(), p[:, 1].sum(), p[:, 2].max(), p[:, 3].sum()])
+
+
+# a block whose source window holds more cells than this is warped in tiles, each reading its
+# own window (a target a tenth as fine as its source would otherwise read 100 source cells for
+# every cell it writes at once)
+WARP_WINDOW_CELLS = 2048 * 2048
+
+
+# the slack (source cells) added each way to a node's box of source rows and columns when the
+# grids are reprojected: the box is that of its eight neighbours' transforms, and the square's
+# sides between them bend from straight lines by far less (WARP_TOLERANCE bounds the lattice)
+UPPER_SLACK = 1e-3
+
+
+class GridAxes:
+    """A source grid's axes as fractional rows and columns: exact steps for an evenly spaced
+    axis, piecewise linear for an uneven one (the bilinear surface of a rectilinear grid is
+    bilinear in its rows and columns), extrapolated with the end steps."""
+
+    def __init__(self, values: xr.DataArray):
+        self.y = np.asarray(values["y"].values, dtype=np.float64)
+        self.x = np.asarray(values["x"].values, dtype=np.float64)
+        self.ny, self.nx = len(self.y), len(self.x)
+        self.even_y, self.even_x = _step(values, "y", "DEM")[1], _step(values, "x", "DEM")[1]
+
+    def rows(self, v):
+        return _index(self.y, v, self.even_y)
+
+    def cols(self, v):
+        return _index(self.x, v, self.even_x)
+
+    def steps(self) -> tuple[float, float]:
+        return abs(_mean_step(self.y)), abs(_mean_step(self.x))
+
+
+def _index(c: np.ndarray, v, even: bool):
+    """The fractional index of the coordinates ``v`` on the monotonic axis ``c``."""
+    v = np.asarray(v, dtype=np.float64)
+    n = c.size
+    if even:
+        return (v - c[0]) / ((c[-1] - c[0]) / (n - 1))
+    if c[0] > c[-1]:
+        return (n - 1) - _index(c[::-1], v, False)
+    out = np.interp(v, c, np.arange(n, dtype=np.float64))
+    lo, hi = v < c[0], v > c[-1]
+    out = np.where(lo, (v - c[0]) / (c[1] - c[0]), out)
+    return np.where(hi, (n - 1) + (v - c[-1]) / (c[-1] - c[-2]), out)
 
 
 # the source coordinates of a block's cell centres: transformed exactly on a lattice of every
@@ -127,87 +254,185 @@ WARP_LATTICE = 8
 WARP_TOLERANCE = 1e-4
 
 
-def _lattice(tr, x, y, grid) -> tuple:
-    """The source coordinates (lon, lat as ``tr`` gives them) of the centres ``x`` by ``y``
-    as a lattice and the fractional lattice row of each ``y`` and column of each ``x``: every
-    ``WARP_LATTICE``-th centre when interpolating between them is close enough, else all."""
+def _lattice(tr, x, y, grid: GridAxes) -> tuple:
+    """The source rows and columns of the centres ``x`` by ``y`` as a lattice and the
+    fractional lattice row of each ``y`` and column of each ``x``: every ``WARP_LATTICE``-th
+    centre when interpolating between them is close enough, else all."""
     k = WARP_LATTICE
     every = np.arange(len(y), dtype=np.float64), np.arange(len(x), dtype=np.float64)
     if len(x) > 2 * k and len(y) > 2 * k:
         ix = np.unique(np.append(np.arange(0, len(x), k), len(x) - 1))
         iy = np.unique(np.append(np.arange(0, len(y), k), len(y) - 1))
-        llon, llat = _transform_grid(tr, x[ix], y[iy])
+        li, lj = _transform_grid(tr, x[ix], y[iy], grid)
         # the midpoints of the lattice cells: exact against interpolated
-        clon, clat = _transform_grid(
-            tr, 0.5 * (x[ix[:-1]] + x[ix[1:]]), 0.5 * (y[iy[:-1]] + y[iy[1:]])
+        ci, cj = _transform_grid(
+            tr, 0.5 * (x[ix[:-1]] + x[ix[1:]]), 0.5 * (y[iy[:-1]] + y[iy[1:]]), grid
         )
-        ilon = 0.25 * (llon[:-1, :-1] + llon[1:, :-1] + llon[:-1, 1:] + llon[1:, 1:])
-        ilat = 0.25 * (llat[:-1, :-1] + llat[1:, :-1] + llat[:-1, 1:] + llat[1:, 1:])
+        ii = 0.25 * (li[:-1, :-1] + li[1:, :-1] + li[:-1, 1:] + li[1:, 1:])
+        jj = 0.25 * (lj[:-1, :-1] + lj[1:, :-1] + lj[:-1, 1:] + lj[1:, 1:])
         with np.errstate(invalid="ignore"):
-            dev = max(
-                np.max(np.abs(ilon - clon)) / abs(grid[1]),
-                np.max(np.abs(ilat - clat)) / abs(grid[3]),
-            )
+            dev = max(np.max(np.abs(ii - ci)), np.max(np.abs(jj - cj)))
         if dev <= WARP_TOLERANCE:  # (not NaN: every lattice point in the projection's domain)
             fy = np.interp(every[0], iy, np.arange(len(iy), dtype=np.float64))
             fx = np.interp(every[1], ix, np.arange(len(ix), dtype=np.float64))
-            return llon, llat, fy, fx
-    llon, llat = _transform_grid(tr, x, y)
-    return llon, llat, *every
+            return li, lj, fy, fx
+    li, lj = _transform_grid(tr, x, y, grid)
+    return li, lj, *every
 
 
-def _transform_grid(tr, x, y) -> tuple:
+def _transform_grid(tr, x, y, grid: GridAxes) -> tuple:
+    """The source rows and columns of the centres ``x`` by ``y`` (``tr`` None: the same
+    coordinates)."""
     xx, yy = np.meshgrid(x, y)
-    lon, lat = tr.transform(xx, yy)
-    return np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)
+    if tr is not None:
+        xx, yy = tr.transform(xx, yy)
+    return grid.rows(yy), grid.cols(xx)
 
 
 @njit(cache=True, nogil=True)
-def _warp_kernel(src, r0, c0, x0, dx, y0, dy, ny, nx, llon, llat, fy, fx):
-    """The bilinear sample of the source window ``src`` (its first point source row ``r0``,
-    column ``c0``; the source grid's first coordinates, steps and size ``x0, dx, y0, dy, ny,
-    nx``) at the source coordinates interpolated bilinearly in the lattice ``llon``, ``llat``
-    at fractional rows ``fy`` by columns ``fx`` (integers: the lattice's own values); the
-    outer half cells take their edge's values. NaN beyond them or where a point with a weight
-    is NaN; a neighbour of weight 0 (on a grid line)
-    is the point itself, so its NaN does not count."""
-    out = np.empty((fy.size, fx.size), dtype=np.float32)
-    h, w = src.shape
-    li, lj = llon.shape
+def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
+    """The warp of the source window ``src`` (its first point source row ``r0``, column
+    ``c0``; the source grid ``ny`` x ``nx``) onto the nodes whose source rows and columns are
+    interpolated bilinearly in the lattice ``li``, ``lj`` at fractional rows ``fy`` by columns
+    ``fx``: the nodes of a block and one ring around it, whose values are not returned.
+    ``upper``: a node's value is the highest of the source's bilinear surface over the box of
+    its eight neighbours' rows and columns (``eps`` each way, clipped to the source's points:
+    its outer half cells hold their edge values); else the bilinear value at the node. NaN
+    beyond the outer half cells, where a point with a weight is NaN, or (upper) where a
+    neighbour has no source coordinates. Returns the block and its figures (:func:`warp`)."""
+    h = fy.size - 2
+    w = fx.size - 2
+    pi = np.empty((fy.size, fx.size))
+    pj = np.empty((fy.size, fx.size))
+    n_i, n_j = li.shape
     for r in range(fy.size):
-        a0 = min(int(math.floor(fy[r])), li - 1)
+        a0 = min(int(math.floor(fy[r])), n_i - 1)
         ta = fy[r] - a0
-        a1 = min(a0 + 1, li - 1)
+        a1 = min(a0 + 1, n_i - 1)
         for c in range(fx.size):
-            b0 = min(int(math.floor(fx[c])), lj - 1)
+            b0 = min(int(math.floor(fx[c])), n_j - 1)
             tb = fx[c] - b0
-            b1 = min(b0 + 1, lj - 1)
-            lon = (llon[a0, b0] * (1 - tb) + llon[a0, b1] * tb) * (1 - ta)
-            lon += (llon[a1, b0] * (1 - tb) + llon[a1, b1] * tb) * ta
-            lat = (llat[a0, b0] * (1 - tb) + llat[a0, b1] * tb) * (1 - ta)
-            lat += (llat[a1, b0] * (1 - tb) + llat[a1, b1] * tb) * ta
-            fi = (lat - y0) / dy
-            fj = (lon - x0) / dx
+            b1 = min(b0 + 1, n_j - 1)
+            pi[r, c] = (li[a0, b0] * (1 - tb) + li[a0, b1] * tb) * (1 - ta) + (
+                li[a1, b0] * (1 - tb) + li[a1, b1] * tb
+            ) * ta
+            pj[r, c] = (lj[a0, b0] * (1 - tb) + lj[a0, b1] * tb) * (1 - ta) + (
+                lj[a1, b0] * (1 - tb) + lj[a1, b1] * tb
+            ) * ta
+    out = np.empty((h, w), dtype=np.float32)
+    stats = np.zeros(4)
+    for r in range(h):
+        for c in range(w):
+            fi = pi[r + 1, c + 1]
+            fj = pj[r + 1, c + 1]
             # the source's cells are areas: its outer half cells hold their points' values
             if not (-0.5 <= fi <= ny - 0.5 and -0.5 <= fj <= nx - 0.5):
                 out[r, c] = np.nan  # (NaN coordinates too)
+                stats[3] += 1
                 continue
-            fi = min(max(fi, 0.0), ny - 1.0)
-            fj = min(max(fj, 0.0), nx - 1.0)
-            i0 = int(math.floor(fi))
-            j0 = int(math.floor(fj))
-            ti = fi - i0
-            tj = fj - j0
-            i0 -= r0
-            j0 -= c0
-            i1 = i0 + 1 if ti > 0 else i0
-            j1 = j0 + 1 if tj > 0 else j0
-            if i0 < 0 or j0 < 0 or i1 >= h or j1 >= w:
-                raise AssertionError("a reprojected block's source window misses a point")
-            v = (src[i0, j0] * (1 - tj) + src[i0, j1] * tj) * (1 - ti)
-            v += (src[i1, j0] * (1 - tj) + src[i1, j1] * tj) * ti
-            out[r, c] = v
-    return out
+            base = _bilinear_at(src, r0, c0, ny, nx, fi, fj)
+            if not upper or base != base:
+                out[r, c] = base
+                continue
+            lo_i = np.inf
+            hi_i = -np.inf
+            lo_j = np.inf
+            hi_j = -np.inf
+            for dr in range(3):
+                for dc in range(3):
+                    u = pi[r + dr, c + dc]
+                    v = pj[r + dr, c + dc]
+                    lo_i = min(lo_i, u)
+                    hi_i = max(hi_i, u)
+                    lo_j = min(lo_j, v)
+                    hi_j = max(hi_j, v)
+                    if u != u or v != v:
+                        lo_i = np.nan
+            if lo_i != lo_i:
+                out[r, c] = np.nan
+                continue
+            top = _box_max(
+                src, r0, c0, ny, nx,
+                max(lo_i - eps, 0.0), min(hi_i + eps, ny - 1.0),
+                max(lo_j - eps, 0.0), min(hi_j + eps, nx - 1.0),
+            )  # fmt: skip
+            if top != top:
+                out[r, c] = np.nan
+                continue
+            # the value stored is float32: rounded up, never below the highest
+            v32 = np.float32(top)
+            if np.float64(v32) < top:
+                v32 = np.nextafter(v32, np.float32(np.inf))
+            out[r, c] = v32
+            raise_m = np.float64(v32) - base
+            stats[0] += raise_m
+            stats[1] += 1
+            stats[2] = max(stats[2], raise_m)
+    return out, stats
+
+
+@njit(inline="always", cache=True)
+def _bilinear_at(src, r0, c0, ny, nx, fi, fj):
+    """The source's bilinear value at fractional row ``fi``, column ``fj`` (clamped to its
+    points); a neighbour of weight 0 (on a grid line) is the point itself, so its NaN does
+    not count."""
+    fi = min(max(fi, 0.0), ny - 1.0)
+    fj = min(max(fj, 0.0), nx - 1.0)
+    i0 = int(math.floor(fi))
+    j0 = int(math.floor(fj))
+    ti = fi - i0
+    tj = fj - j0
+    i0 -= r0
+    j0 -= c0
+    i1 = i0 + 1 if ti > 0 else i0
+    j1 = j0 + 1 if tj > 0 else j0
+    h, w = src.shape
+    if i0 < 0 or j0 < 0 or i1 >= h or j1 >= w:
+        raise AssertionError("a warped block's source window misses a point")
+    v = (src[i0, j0] * (1 - tj) + src[i0, j1] * tj) * (1 - ti)
+    v += (src[i1, j0] * (1 - tj) + src[i1, j1] * tj) * ti
+    return v
+
+
+@njit(inline="always", cache=True)
+def _box_max(src, r0, c0, ny, nx, lo_i, hi_i, lo_j, hi_j):
+    """The highest value of the source's bilinear surface over the box of fractional rows
+    ``lo_i..hi_i`` and columns ``lo_j..hi_j`` (within its points): the surface is bilinear on
+    each source cell's part of the box, highest at one of its corners, and those corners are
+    the box's corners, the crossings of its sides with the grid lines and the grid points
+    inside it. NaN where a point with a weight is NaN."""
+    best = -np.inf
+    i_first = int(math.ceil(lo_i))
+    i_last = int(math.floor(hi_i))
+    j_first = int(math.ceil(lo_j))
+    j_last = int(math.floor(hi_j))
+    # the rows of the corners: the box's two sides and the grid rows between them
+    nr = i_last - i_first + 3
+    ncol = j_last - j_first + 3
+    for a in range(nr):
+        if a == 0:
+            u = lo_i
+        elif a == nr - 1:
+            u = hi_i
+        else:
+            u = np.float64(i_first + a - 1)
+        whole_u = u == math.floor(u)
+        for b in range(ncol):
+            if b == 0:
+                v = lo_j
+            elif b == ncol - 1:
+                v = hi_j
+            else:
+                v = np.float64(j_first + b - 1)
+            if whole_u and v == math.floor(v):
+                z = np.float64(src[int(u) - r0, int(v) - c0])
+            else:
+                z = _bilinear_at(src, r0, c0, ny, nx, u, v)
+            if z != z:
+                return np.nan
+            if z > best:
+                best = z
+    return best
 
 
 @functools.lru_cache(maxsize=8)
@@ -217,44 +442,60 @@ def _pipeline(definition: str):
     return Transformer.from_pipeline(definition)
 
 
-def _source_window(tr, x, y, grid) -> tuple:
-    """The rows and columns of the source grid that the bilinear sampling of the centres
-    ``x`` by ``y`` can weigh: the block's outline transformed densely (a projected block's
-    outline holds its extremes in lon/lat away from the poles), one source point of margin."""
-    x0, dx, y0, dy, ny, nx = grid
+def _source_window(tr, x, y, grid: GridAxes, a: float = 0.0) -> tuple:
+    """The rows and columns of the source grid that the warp of the centres ``x`` by ``y``
+    can weigh, with the squares of side ``2 a`` around them: the outline of the block grown
+    by ``a`` transformed densely (a projected block's outline holds its extremes in lon/lat
+    away from the poles), one source point of margin."""
+    x = np.concatenate(([np.min(x) - a], x, [np.max(x) + a]))
+    y = np.concatenate(([np.min(y) - a], y, [np.max(y) + a]))
     edge_x = np.concatenate([x, x, np.full(len(y), x[0]), np.full(len(y), x[-1])])
     edge_y = np.concatenate([np.full(len(x), y[0]), np.full(len(x), y[-1]), y, y])
-    lon, lat = tr.transform(edge_x, edge_y)
-    fi = (np.asarray(lat) - y0) / dy
-    fj = (np.asarray(lon) - x0) / dx
+    if tr is not None:
+        edge_x, edge_y = tr.transform(edge_x, edge_y)
+    fi = grid.rows(edge_y)
+    fj = grid.cols(edge_x)
     fi, fj = fi[np.isfinite(fi)], fj[np.isfinite(fj)]
     if not fi.size:
         return (0, 0), (0, 0)
-    r0 = int(np.clip(np.floor(fi.min()) - 1, 0, ny))
-    r1 = int(np.clip(np.ceil(fi.max()) + 2, 0, ny))
-    c0 = int(np.clip(np.floor(fj.min()) - 1, 0, nx))
-    c1 = int(np.clip(np.ceil(fj.max()) + 2, 0, nx))
+    r0 = int(np.clip(np.floor(fi.min()) - 1, 0, grid.ny))
+    r1 = int(np.clip(np.ceil(fi.max()) + 2, 0, grid.ny))
+    c0 = int(np.clip(np.floor(fj.min()) - 1, 0, grid.nx))
+    c1 = int(np.clip(np.ceil(fj.max()) + 2, 0, grid.nx))
     return (r0, r1), (c0, c1)
 
 
 def _resample_square(
-    values: xr.DataArray, path: Path, dx: float, dy: float, crs, resolution: float | None = None
+    values: xr.DataArray,
+    path: Path,
+    dx: float,
+    dy: float,
+    resolution: float | None = None,
+    chunks=None,
+    bounds: tuple | None = None,
 ):
-    """Bilinear resample onto square cells (of ``resolution``, by default of the geometric-mean
-    size), keeping the extent."""
+    """Resample onto square cells (of ``resolution``, by default of the geometric-mean size)
+    over the grid's extent (or ``bounds``, x0, y0, x1, y1, where the grid covers them): the
+    upper envelope of its bilinear surface (:func:`warp`)."""
+    from rasterio.transform import from_origin
+
     a = resolution or float(f"{math.sqrt(dx * dy):.4g}")
     notice(log, "DEM %s has cells of %g x %g m: resampling to square %g m cells", path, dx, dy, a)
-    x = np.asarray(values["x"].values)
-    y = np.asarray(values["y"].values)
+    x = np.asarray(values["x"].values, dtype=np.float64)
+    y = np.asarray(values["y"].values, dtype=np.float64)
     x0, x1 = x.min() - dx / 2, x.max() + dx / 2
     y0, y1 = y.min() - dy / 2, y.max() + dy / 2
+    if bounds is not None:
+        x0, y0 = max(x0, bounds[0]), max(y0, bounds[1])
+        x1, y1 = min(x1, bounds[2]), min(y1, bounds[3])
     nx, ny = max(2, int(round((x1 - x0) / a))), max(2, int(round((y1 - y0) / a)))
-    new_x = x0 + (np.arange(nx) + 0.5) * a
-    new_y = y1 - (np.arange(ny) + 0.5) * a
-    if y[0] < y[-1]:
-        new_y = new_y[::-1]
-    out = values.load().interp(x=new_x, y=new_y, method="linear", kwargs={"fill_value": None})
-    return out
+    transform = from_origin(x0, y1, a, a)
+    lazy = isinstance(values.data, da.Array)
+    side = chunks2d(chunks if chunks is not None else DEFAULT_CHUNK, (ny, nx))
+    out, stats = warp(values, None, None, transform, (ny, nx), side if lazy else None)
+    if y[0] < y[-1]:  # a south-up grid stays south-up
+        out = out.isel(y=slice(None, None, -1))
+    return out, stats
 
 
 def _spacing(arr: xr.DataArray, dim: str, path: Path | str = "DEM") -> float:

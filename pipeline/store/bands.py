@@ -12,7 +12,7 @@ import uuid
 BAND_BYTES = 256 * 2**20
 
 
-def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None) -> None:
+def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None, also=()) -> list:
     """Write the dask array ``data`` (2-D, or more with the rows on its first axis) into
     ``target`` (a Zarr array of its shape whose chunks are ``data``'s blocks), a band of block
     rows at a time, each band at most ``band_bytes`` of output, so that memory follows the
@@ -26,7 +26,11 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
     computed once, kept, and handed to the next band's graph as a value: the file is read once
     and the chunks written are those of one graph. On a distributed client what is kept stays
     on the workers (futures) and two bands are in flight, so that the next band's reads
-    overlap this one's warps."""
+    overlap this one's warps.
+
+    ``also``: delayed values computed by tasks of ``data``'s graph (a warp's figures, made
+    with its blocks), each computed in the band that computes its task and returned, in
+    order."""
     import functools
 
     import dask
@@ -43,6 +47,9 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
     per = max(1, int(band_bytes // row_bytes))
     bands = [[k for r in rows[i : i + per] for k in r] for i in range(0, len(rows), per)]
     graph = dict(stored.__dask_graph__())
+    extra = {d.key: d for d in also}
+    for d in also:
+        graph.update(d.__dask_graph__())
     deps: dict = {}
 
     def needs(key) -> set:
@@ -66,10 +73,14 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
             todo.extend(needs(key))
         return out
 
+    got_also: dict = {}
     known: dict = {}
     writing: list = []  # on a cluster, the writes of the bands sent and not waited for yet
     for i, keys in enumerate(bands):
         band = cull(keys, known)
+        mine = [k for k in extra if k not in got_also and needs(k) <= band.keys()]
+        if mine:
+            band.update(cull(mine, known))
         keep: list = []
         if i + 1 < len(bands):
             later = cull(bands[i + 1], {})
@@ -78,21 +89,30 @@ def store_in_bands(data, target, *, band_bytes: int = BAND_BYTES, progress=None)
             used = set().union(*(needs(j) for j in later if j not in shared))
             keep = [k for k in shared if k in used]
         if client is None:
-            got = get(band, keys + keep)
+            got = get(band, keys + keep + mine)
+            got_also.update(zip(mine, got[len(keys) + len(keep) :], strict=True))
             if progress is not None:
                 progress(i + 1, len(bands))
         else:
-            got = _send(client, band, keys + keep)
+            got = _send(client, band, keys + keep + mine)
+            got_also.update(zip(mine, got[len(keys) + len(keep) :], strict=True))
             writing.append(got[: len(keys)])
             if len(writing) > 1:  # a task's error is raised here
                 client.gather(writing.pop(0))
                 if progress is not None:
                     progress(i, len(bands))
-        known = dict(zip(keep, got[len(keys) :], strict=True))
+        known = dict(zip(keep, got[len(keys) : len(keys) + len(keep)], strict=True))
     for futures in writing:
         client.gather(futures)
         if progress is not None:
             progress(len(bands), len(bands))
+    rest = [k for k in extra if k not in got_also]  # (none: each is made with a block)
+    if rest:
+        got_also.update(zip(rest, dask.compute(*(extra[k] for k in rest)), strict=True))
+    values = [got_also[d.key] for d in also]
+    if client is not None:
+        values = [v.result() if hasattr(v, "result") else v for v in values]
+    return values
 
 
 def _send(client, graph: dict, keys: list) -> list:

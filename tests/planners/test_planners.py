@@ -211,7 +211,11 @@ def test_optimal_on_real_bathymetry(topobathy_tif):
     z = dem.values.astype(np.float64)
     ok = np.isfinite(z) & (z < -50.0)
     surface = np.nan_to_num(z, nan=0.0)
-    s = tuple(np.argwhere(ok)[0])
+    from scipy import ndimage
+
+    lab, _ = ndimage.label(ok, structure=np.ones((3, 3)))  # the largest sea, start in it
+    big = np.argmax(np.bincount(lab.ravel())[1:]) + 1
+    s = tuple(np.argwhere(lab == big)[0])
     d = reference_distances(surface, ok, a, s)
     far = int(np.argmax(np.where(np.isfinite(d), d, -1.0)))  # the farthest reachable cell
     g, ref = divmod(far, surface.shape[1]), float(d[far])
