@@ -227,6 +227,46 @@ def dem_info(path):
         click.echo(f"elevation: {lo:.1f} .. {hi:.1f} m")
 
 
+@main.command("verify")
+@click.argument("missions", type=click.Path())
+@click.option(
+    "--dem", "dem_path", required=True, type=click.Path(), help="The DEM file to check against."
+)
+@click.option("--variable", default=None, help="Its elevation variable, when it has several.")
+@click.option(
+    "--uncertainty-k", type=float, default=None, help="Check against elevation + k * sigma."
+)
+@click.option("--clearance", type=float, default=None, help="R (metres); default the mission's.")
+@click.option(
+    "--method",
+    type=click.Choice(["spherical", "horizontal", "vertical"]),
+    default=None,
+    help="How the clearance is measured; default the mission's.",
+)
+@click.option(
+    "--max-depth", type=float, default=None, help="The rated depth; default the mission's."
+)
+@click.option(
+    "--keep-out",
+    multiple=True,
+    type=click.Path(),
+    help="Zone files to check besides the mission's.",
+)
+@click.option("--keep-out-margin", type=float, default=None, help="Their margin (metres).")
+def verify_cmd(missions, dem_path, keep_out, **options):
+    """Re-check finished MISSIONS (a mission folder, its Item, or a catalog) against a DEM
+    file: clearance from its own seabed along the waypoint route and the track, depth against
+    the rating, keep-out margins, pitch and turn radius, each with where it is worst. Exit 0
+    only when every check of every mission holds (1 otherwise)."""
+    from .verify import report, verify_missions
+
+    with _errors():
+        verdicts = verify_missions(missions, dem_path, keep_out=list(keep_out) or None, **options)
+        click.echo(report(verdicts))
+        if not all(v.holds for v in verdicts):
+            sys.exit(EXIT_MISSIONS_FAILED)
+
+
 @main.command("build-maps")
 @click.argument("dem_path", type=click.Path())
 @click.argument("out", type=click.Path())

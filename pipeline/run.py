@@ -572,9 +572,20 @@ class _Recorder:
         self.job, self.maps, self.res, self.total = job, maps, res, total
         self.count = 0
         self.clearance = float(job.maps["clearance"])
+        self.source = None  # the user's own DEM file: the clearance is measured from it
+        if job.dem_path is not None and job.cell_size is None:
+            from .seabed import SourceSeabed
+
+            try:
+                self.source = SourceSeabed.open(
+                    job.dem_path, variable=job.variable, uncertainty_k=job.uncertainty_k
+                )
+            except PipelineError as exc:
+                log.warning("the clearance is measured from the DEM store: %s", exc)
 
     def __call__(self, mission: dict, traj) -> None:
         from .missions import failed_trajectory, min_clearance
+        from .verify import source_clearance
 
         self.count += 1
         self.res.ran += 1
@@ -582,7 +593,11 @@ class _Recorder:
         png = traj.extra.pop("quicklook_png", None)  # written now, not kept with the results
         try:
             clr = math.nan
-            if traj.flight is not None:  # what is flown, from the continuous seabed
+            if traj.flight is not None and self.source is not None:  # from the user's DEM
+                clr = source_clearance(self.source, traj.flight, self.maps)
+                if math.isnan(clr):  # (no-data within reach: the flight's own figure)
+                    clr = traj.flight.min_clearance_m
+            elif traj.flight is not None:  # what is flown, from the continuous seabed
                 clr = traj.flight.min_clearance_m
             elif traj.planned:  # the grid path, from the grid points
                 clr = min_clearance(self.maps, traj, self.clearance)

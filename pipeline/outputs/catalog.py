@@ -204,6 +204,13 @@ def write_mission(
             via = np.asarray(traj.extra["via_index"], dtype=np.int64)
             props["auv:via_xy"] = traj.points[via, :2].round(2).tolist()
             props["auv:via_cells"] = traj.cells[via].tolist()
+        par = getattr(maps, "parameters", None)
+        if par is not None:  # what a check of the mission (pipeline verify) measures against
+            props["auv:clearance_m"] = par.clearance_m
+            props["auv:clearance_method"] = par.method
+            if par.method == "horizontal":
+                props["auv:horizontal_clearance_m"] = par.horizontal_clearance_m or par.clearance_m
+            props["auv:sea_level_m"] = par.sea_level_m
         if traj.keep_out is not None:  # the keep-out zones it avoids, and their margin
             props["auv:keep_out"] = list(traj.keep_out.names)
             props["auv:keep_out_margin_m"] = traj.keep_out.margin_m

@@ -1,0 +1,275 @@
+"""Safe against the user's own seabed (docs/method.md section 1): every resample the tool makes
+lies on or above the bilinear surface of the file's own grid, a crop reads what it covers, a
+mission's clearance is measured from the file, and ``pipeline verify`` re-checks finished
+missions against any DEM. References: scipy's bilinear interpolation of the file's grid, pyproj,
+brute-force sampling; never the code's own resample.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+from click.testing import CliRunner
+from pyproj import CRS, Transformer
+from references import assert_upper_envelope
+from scipy.interpolate import RegularGridInterpolator
+
+import pipeline
+from pipeline.cli import main
+from pipeline.run import run_job
+from pipeline.seabed import SourceSeabed
+from pipeline.verify import verify_missions
+
+UTM = "EPSG:32610"
+
+
+def _tif(path, z, a, x0=500_000.0, y0=4_000_000.0, crs=UTM):
+    import rioxarray  # noqa: F401
+
+    rows, cols = z.shape
+    x = x0 + (np.arange(cols) + 0.5) * a
+    y = y0 - (np.arange(rows) + 0.5) * a
+    arr = xr.DataArray(z.astype(np.float32), dims=("y", "x"), coords={"x": x, "y": y})
+    arr.rio.write_crs(crs).rio.to_raster(path)
+    return path, x, y
+
+
+def _walls(n=300, a=30.0):
+    """Flat at -3000 m with six north-south walls one cell wide rising to -1500 m."""
+    z = np.full((n, n), -3000.0)
+    for k in range(6):
+        z[:, 30 + 45 * k] = -1500.0
+    return z
+
+
+def _pinnacles(n=300, seed=2):
+    """A field of single-cell pinnacles 200 to 1500 m high on a gentle slope."""
+    rng = np.random.default_rng(seed)
+    z = -3000.0 + np.linspace(0, 200, n)[None, :] + np.zeros((n, 1))
+    r, c = rng.integers(0, n, 300), rng.integers(0, n, 300)
+    z[r, c] += rng.uniform(200, 1500, 300)
+    return z
+
+
+@pytest.mark.parametrize("field", [_walls, _pinnacles])
+@pytest.mark.parametrize(("factor", "chunks"), [(2, None), (3.3, (37, 5)), (7, 16), (10, None)])
+def test_a_coarser_resolution_never_erases_terrain(tmp_path, field, factor, chunks):
+    """Walls and pinnacles narrower than a target cell, at 2x to 10x coarser cells (an odd
+    ratio, awkward chunks: a last chunk of one column): the planning seabed's own bilinear
+    surface is on or above the file's everywhere (scipy), no higher than it must be, and the
+    narrowest wall still stands in it."""
+    z = field()
+    path, x, y = _tif(tmp_path / "f.tif", z, 30.0)
+    dem = pipeline.open_dem(path, resolution=30.0 * factor, chunks=chunks)
+    if chunks is not None:
+        dem = dem.load()
+    raised = assert_upper_envelope(dem, z, x, y)
+    assert raised.max() > 0
+    v = dem.values
+    assert np.nanmax(v) == pytest.approx(z.max(), abs=1e-3)  # the highest point kept
+
+
+def test_a_written_store_records_its_construction(tmp_path):
+    """import_dem writes the raise it made (mean, greatest) and the construction, equal to
+    the raise measured against scipy's bilinear surface of the file."""
+    z = _pinnacles(200)
+    path, x, y = _tif(tmp_path / "p.tif", z, 30.0)
+    store = pipeline.import_dem(path, tmp_path / "dem.zarr", resolution=100.0, chunks=64)
+    dem = pipeline.open_dem(store, chunks=None)
+    assert "upper envelope" in dem.attrs["seabed_surface"]
+    raised = assert_upper_envelope(dem, z, x, y)
+    assert dem.attrs["seabed_raise_max_m"] == pytest.approx(raised.max(), abs=1e-2)
+    assert dem.attrs["source"] == str(path)
+
+
+def test_a_bbox_crop_reads_what_it_covers(tmp_path, topobathy, caplog):
+    """A lon/lat grid cropped by a bbox: the store's edge nodes are on or above the file's
+    surface (read with a margin of source cells, never its edge values copied outward); a
+    bbox reaching beyond the file leaves the nodes beyond it no-data, said in the log; a bbox
+    whose edges fall on cell centres keeps its last row and column."""
+    z, lon, lat = topobathy
+    lon = lon - 360.0
+    import rioxarray  # noqa: F401
+    from conftest import lonlat_dataarray
+
+    arr = lonlat_dataarray(z, lon, lat).rename(lat="y", lon="x").rio.write_crs("EPSG:4326")
+    path = tmp_path / "ll.tif"
+    arr.rio.to_raster(path)
+    # the file's own grid (its axes even: the sample's latitudes are not), as rasterio reads it
+    read = rioxarray.open_rasterio(path).squeeze(drop=True)
+    z, lon, lat = read.values.astype(np.float64), read.x.values, read.y.values
+    ls = np.sort(lat)
+    box = (float(lon[20]), float(ls[10]), float(lon[60]), float(ls[30]))
+    dem = pipeline.open_dem(path, bbox=box, chunks=None, resolution=2000.0)
+    assert_upper_envelope(dem, z, lon, lat, CRS.from_epsg(4326))
+    assert np.isfinite(dem.values).all()  # the box lies inside the file
+    # a bbox reaching beyond the file: the grid covers the file's part of it, and its nodes
+    # beyond the file's outer half cells (the projected grid's corners) are no-data, said
+    beyond = (float(lon[-5]), float(ls[5]), float(lon[-1]) + 0.5, float(ls[20]))
+    with caplog.at_level("WARNING", logger="pipeline"):
+        out = pipeline.open_dem(path, bbox=beyond, chunks=None, resolution=2000.0)
+    to_ll = Transformer.from_crs(CRS.from_wkt(out.attrs["crs_wkt"]), "EPSG:4326", always_xy=True)
+    olon, olat = to_ll.transform(*np.meshgrid(out.x.values, out.y.values))
+    half = abs(lon[1] - lon[0]) / 2
+    assert olon.max() <= lon.max() + half + 0.05  # not the half degree beyond the file
+    off = olon > lon.max() + half
+    assert np.isnan(out.values[off]).all()
+    assert_upper_envelope(out, z, lon, lat, CRS.from_epsg(4326))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="pipeline"):
+        whole = pipeline.open_dem(path, chunks=None, resolution=2000.0)
+    assert np.isnan(whole.values).any() and "beyond the source's coverage" in caplog.text
+    # bbox_xy on a projected grid at centres made by arithmetic: 83 x 143 read, not 82 x 142
+    zz = np.random.default_rng(1).normal(-2000, 50, (100, 160))
+    p2, x, y = _tif(tmp_path / "m.tif", zz, 0.1 * 3)
+    cut = pipeline.open_dem(p2, bbox_xy=(x[10], y[92], x[150], y[10]), chunks=None)
+    assert cut.shape == (83 + 2, 141 + 2)  # the cells within, and one more each side
+
+
+@pytest.fixture(scope="module")
+def walls_job(tmp_path_factory, local_client):
+    """The issue's case: a 30 m GeoTIFF with walls one cell wide, planned at 200 m cells with
+    R = 300 m, one mission straight across the walls."""
+    tmp = tmp_path_factory.mktemp("walls")
+    z = _walls(300)
+    path, x, y = _tif(tmp / "walls.tif", z, 30.0)
+    job = tmp / "job.toml"
+    job.write_text(
+        f"""
+name = "walls"
+[dem]
+path = "{path}"
+resolution = 200.0
+chunks = 64
+[maps]
+clearance = 300.0
+landmarks = 0
+[planning]
+planner = "astar"
+[[missions]]
+name = "across"
+start_xy = [{x[5]}, {y[150]}]
+goal_xy = [{x[290]}, {y[140]}]
+[output]
+catalog = "{tmp / "cat"}"
+quicklooks = false
+performance_report = false
+"""
+    )
+    res = run_job(job, scheduler=local_client)
+    assert res.planned == 1, res
+    return tmp, path, z, x, y
+
+
+def _track(tmp):
+    import pandas as pd
+
+    (item,) = (tmp / "cat").glob("**/missions/*/*.json")
+    t = pd.read_parquet(item.parent / "track.parquet")
+    return item, t
+
+
+def test_a_mission_over_narrow_walls_keeps_its_clearance_from_the_file(walls_job):
+    """Over the walls, not through them: every track sample at least R above the file's own
+    bilinear seabed below it (scipy); the clearance the mission reports is from the file,
+    at least R; pipeline verify holds."""
+    tmp, path, z, x, y = walls_job
+    item, t = _track(tmp)
+    f = RegularGridInterpolator((y[::-1], x), z[::-1])
+    inside = (t.x >= x[0]) & (t.x <= x[-1]) & (t.y >= y[-1]) & (t.y <= y[0])
+    below = f(np.column_stack([t.y[inside], t.x[inside]]))
+    assert (t.z[inside] - below).min() >= 300.0 - 1e-3
+    assert t.z.max() > -1500.0 + 300.0 - 1e-3  # it climbs over the walls
+    props = json.loads(item.read_text())["properties"]
+    assert props["auv:min_clearance_m"] >= 300.0 - 1e-3
+    (v,) = verify_missions(item.parent, path)
+    assert v.holds, v.checks
+    assert v.checks[0].worst == pytest.approx(props["auv:min_clearance_m"], abs=0.05)
+
+
+def test_verify_names_where_a_newer_survey_breaks_the_clearance(walls_job, tmp_path):
+    """A newer survey with a pinnacle under the track: pipeline verify fails (exit 1) and
+    names the point; the clearance it gives is the brute-force one (the least over the track
+    samples' 3-D distances to a dense sampling of the new surface bounds it above)."""
+    tmp, path, z, x, y = walls_job
+    item, t = _track(tmp)
+    k = len(t) // 2
+    r = int(np.argmin(np.abs(y - t.y.iloc[k])))
+    c = int(np.argmin(np.abs(x - t.x.iloc[k])))
+    newer = z.copy()
+    newer[r, c] = t.z.iloc[k] - 120.0  # 120 m under the vehicle
+    p2, _, _ = _tif(tmp_path / "newer.tif", newer, 30.0)
+    result = CliRunner().invoke(main, ["verify", str(item.parent), "--dem", str(p2)])
+    assert result.exit_code == 1, result.output
+    assert "FAIL clearance" in result.output and "km along the" in result.output
+    assert "0 of 1 missions hold" in result.output
+    (v,) = verify_missions(tmp / "cat", p2)
+    worst = v.checks[0].worst
+    # the pinnacle's top is a point of the new seabed: no clearance exceeds the least
+    # distance of a track sample from it
+    top = np.array([x[c], y[r], newer[r, c]])
+    reach = np.sqrt((t.x - top[0]) ** 2 + (t.y - top[1]) ** 2 + (t.z - top[2]) ** 2).min()
+    assert 100.0 < worst <= reach + 1e-3
+    ok = CliRunner().invoke(main, ["verify", str(item), "--dem", str(path)])
+    assert ok.exit_code == 0 and "1 of 1 missions hold" in ok.output, ok.output
+
+
+@pytest.mark.parametrize("geographic", [False, True])
+@pytest.mark.parametrize("method", ["spherical", "horizontal", "vertical"])
+@pytest.mark.parametrize("ratio", [0.3, 1.0, 10.0])
+def test_the_clearance_from_a_file_against_brute_force(tmp_path, geographic, method, ratio):
+    """SourceSeabed's clearance of points from a rough surface (R from 0.3 to 10 cells),
+    projected and lon/lat: between the brute force over the surface sampled at a sixteenth of
+    a cell (grid points included; it bounds a least distance above and a highest seabed
+    below) and that less the sampling's reach."""
+    rng = np.random.default_rng(3)
+    n = 40
+    z = rng.normal(-1000.0, 30.0, (n, n)).astype(np.float32).astype(np.float64)  # as stored
+    if geographic:
+        a_deg = 0.0005
+        path, x, y = _tif(tmp_path / "g.tif", z, a_deg, -120.0, 45.0, "EPSG:4326")
+        map_crs = CRS.from_proj4("+proj=aeqd +lat_0=44.99 +lon_0=-119.99 +datum=WGS84 +units=m")
+    else:
+        path, x, y = _tif(tmp_path / "p.tif", z, 30.0)
+        map_crs = CRS.from_user_input(UTM)
+    sb = SourceSeabed.open(path)
+    a = sb.cell_m()
+    R = ratio * a
+    from pyproj import Geod
+
+    to_src = Transformer.from_crs(map_crs, sb.crs, always_xy=True)
+    to_map = Transformer.from_crs(sb.crs, map_crs, always_xy=True)
+    cx, cy = to_map.transform(x[n // 2], y[n // 2])
+    px = cx + rng.uniform(-5 * a, 5 * a, 6)
+    py = cy + rng.uniform(-5 * a, 5 * a, 6)
+    sx, sy = to_src.transform(px, py)
+    f = RegularGridInterpolator((y[::-1], x), z[::-1])
+    pz = f(np.column_stack([sy, sx])) + rng.uniform(0.2, 1.5, 6) * max(R, 30.0)
+    got = sb.clearances(px, py, pz, map_crs.to_wkt(), R, method)
+    # brute force: the surface at a sixteenth of a cell in the file's own coordinates, its
+    # points placed in ground metres around each point (pyproj's Geod)
+    fine_x = np.linspace(x[0], x[-1], 16 * (n - 1) + 1)
+    fine_y = np.linspace(y[0], y[-1], 16 * (n - 1) + 1)
+    gx, gy = np.meshgrid(fine_x, fine_y)
+    gz = f(np.column_stack([gy.ravel(), gx.ravel()]))
+    geod = Geod(ellps="WGS84")
+    to_ll = Transformer.from_crs(sb.crs, "EPSG:4326", always_xy=True)
+    lon_g, lat_g = to_ll.transform(gx.ravel(), gy.ravel())
+    step = a / 16
+    slope = max(np.abs(np.diff(z, axis=0)).max(), np.abs(np.diff(z, axis=1)).max()) / a
+    for k in range(6):
+        plon, plat = to_ll.transform(sx[k], sy[k])
+        az, _, dist = geod.inv(np.full(gz.size, plon), np.full(gz.size, plat), lon_g, lat_g)
+        if method == "vertical":
+            assert got[k] == pytest.approx(pz[k] - f([[sy[k], sx[k]]])[0], abs=1e-6)
+            continue
+        if method == "spherical":
+            d = np.sqrt(dist**2 + (pz[k] - gz) ** 2)
+            brute = min(d[dist <= 1.25 * R].min(), 1.25 * R)
+            assert brute - step * (1 + slope) <= got[k] <= brute + 1e-3
+        else:
+            brute = pz[k] - gz[dist < R].max()
+            assert brute - step * 1.5 * slope <= got[k] <= brute + 1e-3
