@@ -351,10 +351,13 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
             if lo_i != lo_i:
                 out[r, c] = np.nan
                 continue
+            # the box within the source's points, and holding the node itself (clamped)
+            ci = min(max(fi, 0.0), ny - 1.0)
+            cj = min(max(fj, 0.0), nx - 1.0)
             top = _box_max(
-                src, r0, c0, ny, nx,
-                max(lo_i - eps, 0.0), min(hi_i + eps, ny - 1.0),
-                max(lo_j - eps, 0.0), min(hi_j + eps, nx - 1.0),
+                src, r0, c0,
+                min(max(lo_i - eps, 0.0), ci), max(min(hi_i + eps, ny - 1.0), ci),
+                min(max(lo_j - eps, 0.0), cj), max(min(hi_j + eps, nx - 1.0), cj),
             )  # fmt: skip
             if top != top:
                 out[r, c] = np.nan
@@ -395,44 +398,80 @@ def _bilinear_at(src, r0, c0, ny, nx, fi, fj):
 
 
 @njit(inline="always", cache=True)
-def _box_max(src, r0, c0, ny, nx, lo_i, hi_i, lo_j, hi_j):
+def _box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
     """The highest value of the source's bilinear surface over the box of fractional rows
-    ``lo_i..hi_i`` and columns ``lo_j..hi_j`` (within its points): the surface is bilinear on
-    each source cell's part of the box, highest at one of its corners, and those corners are
-    the box's corners, the crossings of its sides with the grid lines and the grid points
-    inside it. NaN where a point with a weight is NaN."""
-    best = -np.inf
-    i_first = int(math.ceil(lo_i))
-    i_last = int(math.floor(hi_i))
-    j_first = int(math.ceil(lo_j))
-    j_last = int(math.floor(hi_j))
-    # the rows of the corners: the box's two sides and the grid rows between them
-    nr = i_last - i_first + 3
-    ncol = j_last - j_first + 3
-    for a in range(nr):
-        if a == 0:
-            u = lo_i
-        elif a == nr - 1:
-            u = hi_i
-        else:
-            u = np.float64(i_first + a - 1)
-        whole_u = u == math.floor(u)
-        for b in range(ncol):
-            if b == 0:
-                v = lo_j
-            elif b == ncol - 1:
-                v = hi_j
-            else:
-                v = np.float64(j_first + b - 1)
-            if whole_u and v == math.floor(v):
-                z = np.float64(src[int(u) - r0, int(v) - c0])
-            else:
-                z = _bilinear_at(src, r0, c0, ny, nx, u, v)
+    ``lo_i..hi_i`` and columns ``lo_j..hi_j`` (within its points); NaN where a point with a
+    weight is NaN. The surface is bilinear on each source cell's part of the box, highest at
+    one of its corners: the grid points inside the box, the crossings of its sides with the
+    grid lines (linear between two points) and the box's corners. A crossing (or corner) is
+    measured only where one of its points is higher than every point inside: its value lies
+    between theirs."""
+    i0 = int(math.floor(lo_i))
+    i1 = int(math.ceil(hi_i))
+    j0 = int(math.floor(lo_j))
+    j1 = int(math.ceil(hi_j))
+    ia = int(math.ceil(lo_i))
+    ib = int(math.floor(hi_i))
+    ja = int(math.ceil(lo_j))
+    jb = int(math.floor(hi_j))
+    top = -np.inf  # the grid points inside
+    out = -np.inf  # those of the cells the box touches, outside it
+    for i in range(i0, i1 + 1):
+        inner_i = ia <= i <= ib
+        for j in range(j0, j1 + 1):
+            z = np.float64(src[i - r0, j - c0])
             if z != z:
                 return np.nan
-            if z > best:
-                best = z
-    return best
+            if inner_i and ja <= j <= jb:
+                top = max(top, z)
+            else:
+                out = max(out, z)
+    if out <= top:
+        return top
+    if i0 < ia:  # the side along the first row, between rows i0 and i0 + 1
+        t = lo_i - i0
+        for j in range(ja, jb + 1):
+            a = np.float64(src[i0 - r0, j - c0])
+            b = np.float64(src[i0 + 1 - r0, j - c0])
+            if max(a, b) > top:
+                top = max(top, a * (1 - t) + b * t)
+    if i1 > ib:  # the side along the last row, between rows i1 - 1 and i1
+        t = hi_i - (i1 - 1)
+        for j in range(ja, jb + 1):
+            a = np.float64(src[i1 - 1 - r0, j - c0])
+            b = np.float64(src[i1 - r0, j - c0])
+            if max(a, b) > top:
+                top = max(top, a * (1 - t) + b * t)
+    if j0 < ja:  # the side along the first column
+        t = lo_j - j0
+        for i in range(ia, ib + 1):
+            a = np.float64(src[i - r0, j0 - c0])
+            b = np.float64(src[i - r0, j0 + 1 - c0])
+            if max(a, b) > top:
+                top = max(top, a * (1 - t) + b * t)
+    if j1 > jb:  # the side along the last column
+        t = hi_j - (j1 - 1)
+        for i in range(ia, ib + 1):
+            a = np.float64(src[i - r0, j1 - 1 - c0])
+            b = np.float64(src[i - r0, j1 - c0])
+            if max(a, b) > top:
+                top = max(top, a * (1 - t) + b * t)
+    for u in (lo_i, hi_i):  # the box's corners
+        k = min(int(math.floor(u)), i1 - 1) if i1 > i0 else i0
+        for v in (lo_j, hi_j):
+            m = min(int(math.floor(v)), j1 - 1) if j1 > j0 else j0
+            k1 = k + 1 if i1 > i0 else k
+            m1 = m + 1 if j1 > j0 else m
+            z00 = np.float64(src[k - r0, m - c0])
+            z01 = np.float64(src[k - r0, m1 - c0])
+            z10 = np.float64(src[k1 - r0, m - c0])
+            z11 = np.float64(src[k1 - r0, m1 - c0])
+            if max(z00, z01, z10, z11) <= top:
+                continue
+            t = u - k
+            w = v - m
+            top = max(top, (z00 * (1 - w) + z01 * w) * (1 - t) + (z10 * (1 - w) + z11 * w) * t)
+    return top
 
 
 @functools.lru_cache(maxsize=8)

@@ -1002,3 +1002,34 @@ def test_import_dem_takes_open_dems_keywords_and_names_an_unknown_one(tmp_path):
     with pytest.raises(pipeline.PipelineError, match=r"no option 'chunk'; .* chunks, variable"):
         pipeline.import_dem(tmp_path / "in.tif", tmp_path / "other.zarr", chunk=8)
     assert not (tmp_path / "other.zarr").exists()
+
+
+def test_the_highest_of_a_bilinear_surface_over_a_box():
+    """The upper envelope's kernel (reproject._box_max) on random boxes of a random grid
+    (thin, on grid lines, within one cell, whole): the highest of scipy's bilinear surface
+    over the box's candidate points (its corners, its sides' crossings with the grid lines,
+    the grid points inside), and never below a dense sampling of the box."""
+    from pipeline.dem.reproject import _box_max
+
+    rng = np.random.default_rng(4)
+    z = rng.normal(0.0, 10.0, (9, 11)).astype(np.float32)
+    f = RegularGridInterpolator((np.arange(9.0), np.arange(11.0)), z.astype(np.float64))
+    boxes = [rng.uniform(0, 8, 2).tolist() + rng.uniform(0, 10, 2).tolist() for _ in range(400)]
+    boxes += [
+        [3.0, 3.0, 2.5, 7.0],
+        [2.2, 2.7, 4.0, 4.0],
+        [0.0, 8.0, 0.0, 10.0],
+        [5.5, 5.5, 6.5, 6.5],
+    ]
+    boxes += [[1.0, 4.0, 2.0, 6.0], [6.3, 6.6, 7.2, 7.9]]
+    for b in boxes:
+        lo_i, hi_i = sorted(b[:2])
+        lo_j, hi_j = sorted(b[2:])
+        got = _box_max(z, 0, 0, lo_i, hi_i, lo_j, hi_j)
+        us = np.unique([lo_i, hi_i, *range(int(np.ceil(lo_i)), int(np.floor(hi_i)) + 1)])
+        vs = np.unique([lo_j, hi_j, *range(int(np.ceil(lo_j)), int(np.floor(hi_j)) + 1)])
+        uu, vv = np.meshgrid(us, vs, indexing="ij")
+        want = f(np.column_stack([uu.ravel(), vv.ravel()])).max()
+        assert got == pytest.approx(want, abs=1e-9), (b, got, want)
+        du, dv = np.meshgrid(np.linspace(lo_i, hi_i, 41), np.linspace(lo_j, hi_j, 41))
+        assert got >= f(np.column_stack([du.ravel(), dv.ravel()])).max() - 1e-9
