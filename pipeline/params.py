@@ -411,6 +411,16 @@ VEHICLE = Schema(
         "metres",
         above=0,
     ),
+    Param(
+        "max_leg_m",
+        "float",
+        None,
+        "longest leg between two waypoints; however long, a leg is split until the map line, "
+        "the geodesic and the rhumb line between its waypoints lie within min(5 m, R/20) of "
+        "each other",
+        "metres",
+        above=0,
+    ),
     Param("hotel_power_w", "float", None, "power of everything but propulsion", "W", minimum=0),
     Param("propulsion_power_w", "float", None, "propulsion power at cruise speed", "W", minimum=0),
     Param(

@@ -507,6 +507,30 @@ def test_via_points_in_map_coordinates_and_lonlat_are_their_cells(zone_store):
         assert np.array_equal(t.cells, by_cell.cells), kw
 
 
+def test_via_miss_is_measured_to_the_point_as_given(zone_store):
+    """A via point given 0.45 cell off its cell's centre on both axes (0.64 cell from it),
+    each way: via_miss_m is the track's closest approach to the point as given (numpy), and
+    the mission's message says so exactly when that is more than half a cell (at least one
+    of the four is)."""
+    from pipeline.flight.fly import with_flight
+
+    path, maps = zone_store
+    cx, cy = _xy(maps, (100, 20))
+    opts = dict(omega=1.5, rho=4, section_size=24, margin=6)
+    far = 0
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        given = (cx + sx * 0.45 * A, cy + sy * 0.45 * A)
+        t = pipeline.plan(path, (10, 10), (110, 110), via_xy=[given], **opts)
+        t = with_flight(path, t, {"min_turn_radius_m": 30.0})
+        f = t.flight
+        near = float(np.hypot(f.x - given[0], f.y - given[1]).min())
+        assert f.via_miss_m == pytest.approx([near])
+        said = "from via 1 as given, more than half a cell" in (t.message or "")
+        assert said == (near > 0.5 * A), (near, t.message)
+        far += said
+    assert far >= 1
+
+
 def test_bad_via_points_name_the_point(zone_store):
     path, maps = zone_store
     zones = _boxes(maps)

@@ -415,7 +415,19 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
     on_ridge = _lookup(cor.rdg, cor.slot, cor.tr, cor.tc, mid_r, mid_c).astype(bool)
     total = float(seg.sum())
     x, y = _map_xy(m, pr, pc)
-    # waypoints: every corner of the route and every break of its height profile (wi)
+    # legs short enough that the map line, the geodesic and the rhumb line between their
+    # waypoints are one (docs/flyable-missions.md, "Legs"), each checked as flown
+    qx, qy = _map_xy(m, qr, qc)
+    wi, other, where, entered_by = _autopilot_legs(ctx, grid, qx, qy, zq, wi)
+    if other < ctx.clearance * (1 - 1e-6):
+        problems.append(
+            f"the {where} comes {other:.1f} m from the seabed, under the clearance "
+            f"{ctx.clearance:g} m"
+        )
+    if entered_by:
+        problems.append(f"the {entered_by}")
+    # waypoints: every corner of the route and every break of its height profile (wi), and
+    # the middles of legs split for the autopilot
     wx, wy = _map_xy(m, qr[wi], qc[wi])
     rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
     duration = float(t[-1])
@@ -455,8 +467,8 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         route=np.column_stack([*_map_xy(m, qr, qc), zq]),
         route_seabed_m=_bilinear(*grid, qr, qc),
         unknown_seabed_samples=pick["unsure"],
-        min_clearance_m=float(least),
-        via_miss_m=_via_miss(m, pick["via"], x, y),
+        min_clearance_m=float(min(least, other)),
+        via_miss_m=_via_miss(_given_via(m, traj, pick["via"]), x, y),
         max_depth_m=m.max_depth_m,
         at_rated_depth_m=_at_rated_depth(m.max_depth_m, s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
@@ -507,11 +519,65 @@ def _fly_over(wr, wc, fixed, rad: float, usable) -> tuple:
     return np.array(r, dtype=np.float64), np.array(c, dtype=np.float64), np.array(f, dtype=bool)
 
 
-def _via_miss(m, via, x, y) -> list:
-    """For each via point (grid units), how close the flown track comes to its cell's centre
-    (metres): the waypoint route turns at it."""
-    vx, vy = _map_xy(m, *via)
-    return [float(np.hypot(x - px, y - py).min()) for px, py in zip(vx, vy, strict=True)]
+def _via_miss(via, x, y) -> list:
+    """For each via point ``via`` (xs, ys in map coordinates: as the user gave them), how
+    close the flown track comes to it (metres)."""
+    return [float(np.hypot(x - px, y - py).min()) for px, py in zip(*via, strict=True)]
+
+
+def _given_via(m, traj, snapped) -> tuple:
+    """The via points as the user gave them (map coordinates), else their cells' centres."""
+    given = traj.extra.get("via_given_xy")
+    if given:
+        g = np.asarray(given, dtype=np.float64)
+        return g[:, 0], g[:, 1]
+    return _map_xy(m, *snapped)
+
+
+def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
+    """The waypoint indices with legs split until the map line, the geodesic and the rhumb
+    line of each lie within :func:`leg_tolerance` of each other (closer, a quarter at a time,
+    while one of them breaks the clearance or enters a zone; three times at most), and the
+    least clearance of the geodesics and rhumb lines of the legs where they part from the map
+    line by more than a millionth of the clearance (elsewhere the map line's own check holds
+    for them: a clearance moves no more than the point does), where it is, and the zone one
+    of them enters ("" for none)."""
+    from ..zones import entered
+    from .legs import deviation, leg_lines, leg_tolerance, split_legs
+
+    m, veh = ctx.m, ctx.veh
+    tol = leg_tolerance(ctx.clearance)
+    dx = m.x[1] - m.x[0] if len(m.x) > 1 else m.cell_size
+    dy = m.y[1] - m.y[0] if len(m.y) > 1 else -m.cell_size
+    least, where, zone = math.inf, "", ""
+    for _ in range(4):
+        wi = split_legs(m.crs_wkt, qx, qy, wi, tol, veh.max_leg_m)
+        least, where, zone = math.inf, "", ""
+        if not m.crs_wkt or len(wi) < 2:
+            break
+        a, b = wi[:-1], wi[1:]
+        dev = deviation(m.crs_wkt, qx[a], qy[a], qx[b], qy[b])
+        for j in np.flatnonzero(dev > 1e-6 * ctx.clearance):
+            length = math.hypot(qx[b[j]] - qx[a[j]], qy[b[j]] - qy[a[j]])
+            f = np.linspace(0.0, 1.0, int(math.ceil(length / (ctx.step * ctx.a))) + 2)
+            z = zq[a[j]] + (zq[b[j]] - zq[a[j]]) * f
+            lines = leg_lines(m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f)
+            for name, (lx, ly) in lines.items():
+                lx, ly = lx.ravel(), ly.ravel()
+                r, c = (ly - m.y[0]) / dy, (lx - m.x[0]) / dx
+                got = _least_clearance(ctx, grid, ((r, c, z, z),))
+                if got < least:
+                    least, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
+                hit = entered(m.keep_out, (lx, ly))
+                if hit and not zone:
+                    zone = (
+                        f"{name} between waypoints {j + 1} and {j + 2} enters keep-out zone "
+                        f"{', '.join(map(repr, hit))}"
+                    )
+        if least >= ctx.clearance * (1 - 1e-6) and not zone:
+            break
+        tol /= 4.0
+    return wi, least, where, zone
 
 
 def _at_rated_depth(depth: float | None, s: np.ndarray, h: np.ndarray) -> float:
@@ -607,8 +673,9 @@ def with_flight(maps, traj, vehicle=None):
         if d > half:
             _note(
                 traj,
-                f"the flown track passes via {k + 1} at {d:.0f} m (its turn is sharper than the "
-                "turn radius rounds within half a cell; the waypoint route turns at it)",
+                f"the flown track passes {d:.0f} m from via {k + 1} as given, more than half "
+                "a cell (the point's cell centre, where the waypoint route turns, is up to half "
+                "a cell from it; a turn sharper than the turn radius rounds off more)",
             )
     if f.unknown_seabed_samples:
         _note(

@@ -28,6 +28,7 @@ class Vehicle:
     propulsion_power_w: float | None = None
     battery_wh: float | None = None
     max_depth_m: float | None = None  # the rated depth (metres, positive down)
+    max_leg_m: float | None = None  # the longest leg between two waypoints
 
     def __post_init__(self):
         for p in VEHICLE:

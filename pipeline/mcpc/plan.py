@@ -304,7 +304,9 @@ def plan(
             margin=margin, coarse_planner=coarse_planner, coarse_weight=coarse_weight,
             repair_max_cells=repair_max_cells, client=client,
         )  # fmt: skip
-        return _plan_legs(m, points, names, legs, t0)
+        traj = _plan_legs(m, points, names, legs, t0)
+        traj.extra["via_given_xy"] = _given_via_xy(m, given)  # the flight's via_miss_m
+        return traj
     start, goal = _check_endpoints(m, points, names)
     # the components layer proves reachability at once, either way (_Reach)
     reach = _Reach(m, start, goal)
@@ -537,3 +539,21 @@ def _plan_mcpc(req: _Request) -> Trajectory:
     expansions = ct.expansions + sum(r.expansions for r in results)
     # the sections' own bounds hold on their windows only: the landmark bound is the proof
     return _finish(m, results, planner, omega, start, goal, expansions, t0, extra, bound.value())
+
+
+def _given_via_xy(m, given: dict) -> list:
+    """A mission's via points as the user gave them, in map coordinates (a cell: its
+    centre)."""
+    from ..params import via_form
+
+    form, points = via_form(given)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if form == "cell":
+        return [[float(m.x[int(c)]), float(m.y[int(r)])] for r, c in pts]
+    if form == "lonlat":
+        from pyproj import CRS, Transformer
+
+        tr = Transformer.from_crs("EPSG:4326", CRS.from_wkt(m.crs_wkt), always_xy=True)
+        x, y = tr.transform(pts[:, 0], pts[:, 1])
+        return np.column_stack([x, y]).tolist()
+    return pts.tolist()

@@ -1423,3 +1423,102 @@ def test_the_surface_limit_is_kept_exactly(tmp_path, below):
         assert max(f.z.max(), f.route[:, 2].max(), f.waypoints[:, 2].max()) <= -R + 1e-6
     else:
         assert f.problems and "above the surface limit (300 m)" in f.problems[0]
+
+
+# ------------------------------------------------------------------ legs any autopilot flies
+
+
+def _geodesic_points(crs, x0, y0, x1, y1, n=64):
+    """pyproj's Geod.npts between the leg's ends, in map coordinates."""
+    from pyproj import Geod, Transformer
+
+    to_ll = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    back = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    (lo0, la0), (lo1, la1) = to_ll.transform(x0, y0), to_ll.transform(x1, y1)
+    pts = np.array(Geod(ellps="WGS84").npts(lo0, la0, lo1, la1, n))
+    return back.transform(pts[:, 0], pts[:, 1])
+
+
+def _rhumb_points(crs, x0, y0, x1, y1, n=64, steps=4000):
+    """The rhumb line as a constant course flown on the ellipsoid: pyproj's Geod.fwd in small
+    steps at the course tan(a) = d(lon) / d(psi), psi the isometric latitude of the WGS84
+    ellipsoid, for the loxodrome's length (the meridian arc over cos a; along a parallel, the
+    parallel's arc)."""
+    from pyproj import Geod, Transformer
+
+    geod = Geod(ellps="WGS84")
+    e = math.sqrt(geod.es)
+    to_ll = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    back = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    (lo0, la0), (lo1, la1) = to_ll.transform(x0, y0), to_ll.transform(x1, y1)
+
+    def psi(lat):
+        s = math.sin(math.radians(lat))
+        return math.atanh(s) - e * math.atanh(e * s)
+
+    course = math.atan2(math.radians(lo1 - lo0), psi(la1) - psi(la0))
+    meridian = abs(geod.inv(lo0, la0, lo0, la1)[2])  # the meridian arc between the latitudes
+    length = meridian / abs(math.cos(course))
+    lon, lat, out = lo0, la0, [(lo0, la0)]
+    for _ in range(steps):
+        lon, lat, _ = geod.fwd(lon, lat, math.degrees(course), length / steps)
+        out.append((lon, lat))
+    track = np.array(out)
+    assert geod.inv(lon, lat, lo1, la1)[2] < 1.0  # it reaches the leg's end
+    track = track[:: max(steps // n, 1)]
+    return back.transform(track[:, 0], track[:, 1])
+
+
+def _off_chord(px, py, x0, y0, x1, y1):
+    dx, dy = x1 - x0, y1 - y0
+    t = np.clip(((px - x0) * dx + (py - y0) * dy) / (dx * dx + dy * dy), 0, 1)
+    return np.hypot(px - x0 - t * dx, py - y0 - t * dy).max()
+
+
+def test_a_long_leg_is_split_until_the_geodesic_and_the_rhumb_line_agree():
+    """A 150 km leg at 60 N on a local azimuthal equidistant grid: its geodesic (pyproj's
+    Geod.npts) and rhumb line (a constant course flown on the ellipsoid) part from the map
+    line by kilometres; split_legs adds waypoints until every leg's two lines lie within 5 m
+    of its map line, measured by those independent references."""
+    from pyproj import CRS
+
+    from pipeline.flight.legs import split_legs
+
+    crs = CRS.from_proj4("+proj=aeqd +lat_0=60 +lon_0=0 +datum=WGS84 +units=m")
+    wkt = crs.to_wkt()
+    n = 15001
+    x = np.linspace(-50_000.0, 100_000.0, n)
+    y = np.linspace(40_000.0, 40_000.0 + 20_000.0, n)
+    gx, gy = _geodesic_points(crs, x[0], y[0], x[-1], y[-1])
+    rx, ry = _rhumb_points(crs, x[0], y[0], x[-1], y[-1])
+    assert _off_chord(rx, ry, x[0], y[0], x[-1], y[-1]) > 500.0  # the problem is real
+    wi = split_legs(wkt, x, y, np.array([0, n - 1]), 5.0, None)
+    assert 4 < len(wi) < 200
+    for a, b in zip(wi[:-1], wi[1:], strict=True):
+        for px, py in (
+            _geodesic_points(crs, x[a], y[a], x[b], y[b], 16),
+            _rhumb_points(crs, x[a], y[a], x[b], y[b], 16, 400),
+        ):
+            assert _off_chord(np.asarray(px), np.asarray(py), x[a], y[a], x[b], y[b]) <= 5.5
+    # a longest leg given: none longer
+    wi = split_legs(None, x, y, np.array([0, n - 1]), 5.0, 20_000.0)
+    assert np.hypot(np.diff(x[wi]), np.diff(y[wi])).max() <= 20_000.0
+
+
+def test_max_leg_splits_the_waypoints_on_the_flown_profile(ridge_store):
+    """With max_leg_m, no two waypoints are farther apart, and the waypoints added lie on the
+    profile flown (the heights linear between the unsplit waypoints)."""
+    path, ok, graph, pts = ridge_store
+    ((s, g),) = missions(ok, 1, seed=5, min_cells=150)
+    t = pipeline.plan(path, s, g, planner="astar", client="synchronous")
+    free = pipeline.fly(path, t, {})
+    short = pipeline.fly(path, t, {"max_leg_m": 400.0})
+    assert short.ok, short.problems
+    w, w0 = short.waypoints, free.waypoints
+    assert np.hypot(*np.diff(w[:, :2], axis=0).T).max() <= 400.0 + 1e-6
+    assert len(w) > len(w0)
+    # every added waypoint on the unsplit legs' straight 3-D lines
+    along0 = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(w0[:, :2], axis=0).T))))
+    along = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(w[:, :2], axis=0).T))))
+    assert along[-1] == pytest.approx(along0[-1], rel=1e-9)
+    np.testing.assert_allclose(w[:, 2], np.interp(along, along0, w0[:, 2]), atol=1e-6)
