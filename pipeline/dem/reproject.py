@@ -204,7 +204,7 @@ WARP_WINDOW_CELLS = 2048 * 2048
 
 
 # the slack (source cells) added each way to a node's box of source rows and columns when the
-# grids are reprojected: the box is that of its eight neighbours' transforms, and the square's
+# grids are reprojected: the box is that of its four corners' transforms, and the square's
 # sides between them bend from straight lines by far less (WARP_TOLERANCE bounds the lattice)
 UPPER_SLACK = 1e-3
 
@@ -296,7 +296,7 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
     interpolated bilinearly in the lattice ``li``, ``lj`` at fractional rows ``fy`` by columns
     ``fx``: the nodes of a block and one ring around it, whose values are not returned.
     ``upper``: a node's value is the highest of the source's bilinear surface over the box of
-    its eight neighbours' rows and columns (``eps`` each way, clipped to the source's points:
+    its square's corners' rows and columns (``eps`` each way, clipped to the source's points:
     its outer half cells hold their edge values); else the bilinear value at the node. NaN
     beyond the outer half cells, where a point with a weight is NaN, or (upper) where a
     neighbour has no source coordinates. Returns the block and its figures (:func:`warp`)."""
@@ -338,8 +338,8 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
             hi_i = -np.inf
             lo_j = np.inf
             hi_j = -np.inf
-            for dr in range(3):
-                for dc in range(3):
+            for dr in range(0, 3, 2):  # the square's corners
+                for dc in range(0, 3, 2):
                     u = pi[r + dr, c + dc]
                     v = pj[r + dr, c + dc]
                     lo_i = min(lo_i, u)
@@ -414,18 +414,30 @@ def _box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
     ib = int(math.floor(hi_i))
     ja = int(math.ceil(lo_j))
     jb = int(math.floor(hi_j))
-    top = -np.inf  # the grid points inside
-    out = -np.inf  # those of the cells the box touches, outside it
-    for i in range(i0, i1 + 1):
-        inner_i = ia <= i <= ib
-        for j in range(j0, j1 + 1):
+    # the grid points inside, then those of the cells the box touches outside it (a NaN
+    # among them makes the sum NaN: source values are finite or NaN)
+    top = -np.inf
+    total = 0.0
+    for i in range(ia, ib + 1):
+        for j in range(ja, jb + 1):
             z = np.float64(src[i - r0, j - c0])
-            if z != z:
-                return np.nan
-            if inner_i and ja <= j <= jb:
-                top = max(top, z)
-            else:
+            total += z
+            top = max(top, z)
+    out = -np.inf
+    for i in (i0, i1):
+        if i < ia or i > ib:
+            for j in range(j0, j1 + 1):
+                z = np.float64(src[i - r0, j - c0])
+                total += z
                 out = max(out, z)
+    for j in (j0, j1):
+        if j < ja or j > jb:
+            for i in range(ia, ib + 1):
+                z = np.float64(src[i - r0, j - c0])
+                total += z
+                out = max(out, z)
+    if total != total:
+        return np.nan
     if out <= top:
         return top
     if i0 < ia:  # the side along the first row, between rows i0 and i0 + 1
