@@ -59,6 +59,8 @@ _LAZY = {
     "open_maps": "store.maps_store",
     "open_store": "store.maps_store",
     "synthetic_dem": "dem.synthetic",
+    "verify_missions": "verify",
+    "SourceSeabed": "seabed",
 }
 
 
