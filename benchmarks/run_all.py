@@ -50,6 +50,7 @@ SCRIPTS = [
     "certify",
     "flight",
     "constraints",
+    "user_seabed",
 ]
 
 PAPER_INDEX = [
