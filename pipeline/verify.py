@@ -270,14 +270,18 @@ def _zones_check(verdict, folder, crs_wkt, lines, zones, margin) -> None:
         for k, g in enumerate(f.geometry):
             label = str(f["name"].iloc[k]) if "name" in f.columns else f"zone {k + 1}"
             shapes.append((label, g))
-    near = (math.inf, "")
+    near, inside = (math.inf, ""), False
     for label, pts in lines.items():
         line = LineString(pts[:, :2])
         for zname, g in shapes:
             d = float(line.distance(g))
             if d < near[0]:
                 near = (d, f": {zname}, from the {label}")
-    verdict.checks.append(Check("keep-out margin", near[0] >= m - 1e-6, near[0], m, near[1]))
+            if line.intersects(g):  # (in a zone is never kept, whatever the margin)
+                inside = True
+                near = (0.0, f": the {label} enters {zname}")
+    holds = not inside and near[0] >= m - 1e-6
+    verdict.checks.append(Check("keep-out margin", holds, near[0], m, near[1]))
 
 
 def source_clearance(seabed: SourceSeabed, flight, maps) -> float:

@@ -273,3 +273,84 @@ def test_the_clearance_from_a_file_against_brute_force(tmp_path, geographic, met
         else:
             brute = pz[k] - gz[dist < R].max()
             assert brute - step * 1.5 * slope <= got[k] <= brute + 1e-3
+
+
+def test_verify_checks_the_rating_and_the_zones_it_is_given(walls_job, tmp_path):
+    """pipeline verify with a rated depth shallower than the track's deepest point (numpy, from
+    the track file) and a zone across the track (shapely's distance): both checks fail and
+    name what fails; a rating below the deepest point and a zone far away hold."""
+    import geopandas as gpd
+    from shapely.geometry import box
+
+    tmp, path, z, x, y = walls_job
+    item, t = _track(tmp)
+    deepest = float(-t.z.min())  # (sea level 0)
+    k = len(t) // 3
+    across = box(t.x.iloc[k] - 50, t.y.iloc[k] - 50, t.x.iloc[k] + 50, t.y.iloc[k] + 50)
+    far = box(x[0] - 5000, y[0] + 5000, x[0] - 4000, y[0] + 6000)
+    zones = tmp_path / "zones.geojson"
+    gpd.GeoDataFrame({"name": ["cable"]}, geometry=[across], crs=UTM).to_file(zones)
+    (v,) = verify_missions(item, path, max_depth=deepest - 10.0, keep_out=[zones])
+    checks = {c.name: c for c in v.checks}
+    assert not v.holds
+    assert not checks["depth against the rating"].holds
+    assert checks["depth against the rating"].worst == pytest.approx(deepest, abs=0.01)
+    assert not checks["keep-out margin"].holds and "cable" in checks["keep-out margin"].where
+    gpd.GeoDataFrame({"name": ["far"]}, geometry=[far], crs=UTM).to_file(zones)
+    (v,) = verify_missions(item, path, max_depth=deepest + 10.0, keep_out=[zones],
+                           keep_out_margin=100.0)  # fmt: skip
+    assert v.holds, [c.line() for c in v.checks]
+
+
+def test_missions_along_a_bbox_edge_keep_their_clearance_from_the_file(tmp_path, local_client):
+    """A lon/lat GeoTIFF cropped by a bbox, planned at 300 m cells with R 300 m, a mission
+    0.01 degree inside the bbox's south edge and one inside its east edge: every track sample
+    at least R above the file's own bilinear seabed (scipy, in the file's lon/lat), and
+    pipeline verify holds."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(7)
+    n, step, lon0, lat0 = 300, 0.002, -128.0, 45.0
+    z = ndimage.gaussian_filter(rng.normal(0, 1, (n, n)), 12) * 2e4 - 3000.0
+    z[rng.integers(0, n, 80), rng.integers(0, n, 80)] += 600.0  # narrow pinnacles
+    path, lon, lat = _tif(tmp_path / "ll.tif", z, step, lon0, lat0, "EPSG:4326")
+    box = [lon0 + 0.1, lat0 - 0.5, lon0 + 0.5, lat0 - 0.1]
+    job = tmp_path / "job.toml"
+    job.write_text(
+        f"""
+name = "edges"
+[dem]
+path = "{path}"
+bbox = {box}
+resolution = 300.0
+chunks = 64
+[maps]
+clearance = 300.0
+landmarks = 0
+[planning]
+planner = "astar"
+[[missions]]
+name = "south"
+start_lonlat = [{box[0] + 0.03}, {box[1] + 0.01}]
+goal_lonlat = [{box[2] - 0.03}, {box[1] + 0.01}]
+[[missions]]
+name = "east"
+start_lonlat = [{box[2] - 0.01}, {box[1] + 0.03}]
+goal_lonlat = [{box[2] - 0.01}, {box[3] - 0.03}]
+[output]
+catalog = "{tmp_path / "cat"}"
+quicklooks = false
+performance_report = false
+"""
+    )
+    res = run_job(job, scheduler=local_client)
+    assert res.planned == 2, res
+    import geopandas as gpd
+
+    f = RegularGridInterpolator((lat[::-1], lon), z.astype(np.float32)[::-1].astype(np.float64))
+    for item in (tmp_path / "cat").glob("**/missions/*/*.json"):
+        t = gpd.read_parquet(item.parent / "track.parquet")  # GeoParquet: lon/lat points
+        below = f(np.column_stack([t.geometry.y, t.geometry.x]))
+        assert (t.z.to_numpy() - below).min() >= 300.0 - 1e-3, item
+    verdicts = verify_missions(tmp_path / "cat", path)
+    assert len(verdicts) == 2 and all(v.holds for v in verdicts), [v.checks for v in verdicts]
