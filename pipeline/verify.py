@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._types import PathLike
 from .exceptions import InvalidParameterError
 from .seabed import TOLERANCE_M, SourceSeabed
 
@@ -96,8 +97,8 @@ def _json(path: Path) -> dict:
 
 
 def verify_missions(
-    target,
-    dem,
+    target: PathLike,
+    dem: PathLike | SourceSeabed,
     *,
     variable: str | None = None,
     uncertainty_k: float | None = None,
@@ -105,7 +106,7 @@ def verify_missions(
     method: str | None = None,
     horizontal_clearance: float | None = None,
     max_depth: float | None = None,
-    keep_out=None,
+    keep_out: PathLike | list[PathLike] | None = None,
     keep_out_margin: float | None = None,
 ) -> list[Verdict]:
     """Every mission of ``target`` (:func:`mission_items`) checked against the DEM file

@@ -354,7 +354,7 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
             # the box within the source's points, and holding the node itself (clamped)
             ci = min(max(fi, 0.0), ny - 1.0)
             cj = min(max(fj, 0.0), nx - 1.0)
-            top = _box_max(
+            top = box_max(
                 src, r0, c0,
                 min(max(lo_i - eps, 0.0), ci), max(min(hi_i + eps, ny - 1.0), ci),
                 min(max(lo_j - eps, 0.0), cj), max(min(hi_j + eps, nx - 1.0), cj),
@@ -398,7 +398,7 @@ def _bilinear_at(src, r0, c0, ny, nx, fi, fj):
 
 
 @njit(inline="always", cache=True)
-def _box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
+def box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
     """The highest value of the source's bilinear surface over the box of fractional rows
     ``lo_i..hi_i`` and columns ``lo_j..hi_j`` (within its points); NaN where a point with a
     weight is NaN. The surface is bilinear on each source cell's part of the box, highest at

@@ -1005,11 +1005,11 @@ def test_import_dem_takes_open_dems_keywords_and_names_an_unknown_one(tmp_path):
 
 
 def test_the_highest_of_a_bilinear_surface_over_a_box():
-    """The upper envelope's kernel (reproject._box_max) on random boxes of a random grid
+    """The upper envelope's kernel (reproject.box_max) on random boxes of a random grid
     (thin, on grid lines, within one cell, whole): the highest of scipy's bilinear surface
     over the box's candidate points (its corners, its sides' crossings with the grid lines,
     the grid points inside), and never below a dense sampling of the box."""
-    from pipeline.dem.reproject import _box_max
+    from pipeline.dem.reproject import box_max
 
     rng = np.random.default_rng(4)
     z = rng.normal(0.0, 10.0, (9, 11)).astype(np.float32)
@@ -1025,7 +1025,7 @@ def test_the_highest_of_a_bilinear_surface_over_a_box():
     for b in boxes:
         lo_i, hi_i = sorted(b[:2])
         lo_j, hi_j = sorted(b[2:])
-        got = _box_max(z, 0, 0, lo_i, hi_i, lo_j, hi_j)
+        got = box_max(z, 0, 0, lo_i, hi_i, lo_j, hi_j)
         us = np.unique([lo_i, hi_i, *range(int(np.ceil(lo_i)), int(np.floor(hi_i)) + 1)])
         vs = np.unique([lo_j, hi_j, *range(int(np.ceil(lo_j)), int(np.floor(hi_j)) + 1)])
         uu, vv = np.meshgrid(us, vs, indexing="ij")
