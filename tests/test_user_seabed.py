@@ -129,6 +129,32 @@ def test_a_bbox_crop_reads_what_it_covers(tmp_path, topobathy, caplog):
     assert cut.shape == (83 + 2, 141 + 2)  # the cells within, and one more each side
 
 
+def _run(tmp, name, path, dem, missions, client, planned):
+    """A job on the file ``path`` (``dem``: more [dem] keys), R 300 m, A*, run on ``client``;
+    ``missions``: TOML of its [[missions]]."""
+    job = tmp / "job.toml"
+    job.write_text(
+        f'''name = "{name}"
+[dem]
+path = "{path}"
+chunks = 64
+{dem}
+[maps]
+clearance = 300.0
+landmarks = 0
+[planning]
+planner = "astar"
+{missions}
+[output]
+catalog = "{tmp / "cat"}"
+quicklooks = false
+performance_report = false
+'''
+    )
+    res = run_job(job, scheduler=client)
+    assert res.planned == planned, res
+
+
 @pytest.fixture(scope="module")
 def walls_job(tmp_path_factory, local_client):
     """The issue's case: a 30 m GeoTIFF with walls one cell wide, planned at 200 m cells with
@@ -136,31 +162,11 @@ def walls_job(tmp_path_factory, local_client):
     tmp = tmp_path_factory.mktemp("walls")
     z = _walls(300)
     path, x, y = _tif(tmp / "walls.tif", z, 30.0)
-    job = tmp / "job.toml"
-    job.write_text(
-        f"""
-name = "walls"
-[dem]
-path = "{path}"
-resolution = 200.0
-chunks = 64
-[maps]
-clearance = 300.0
-landmarks = 0
-[planning]
-planner = "astar"
-[[missions]]
+    missions = f"""[[missions]]
 name = "across"
 start_xy = [{x[5]}, {y[150]}]
-goal_xy = [{x[290]}, {y[140]}]
-[output]
-catalog = "{tmp / "cat"}"
-quicklooks = false
-performance_report = false
-"""
-    )
-    res = run_job(job, scheduler=local_client)
-    assert res.planned == 1, res
+goal_xy = [{x[290]}, {y[140]}]"""
+    _run(tmp, "walls", path, "resolution = 200.0", missions, local_client, 1)
     return tmp, path, z, x, y
 
 
@@ -315,36 +321,15 @@ def test_missions_along_a_bbox_edge_keep_their_clearance_from_the_file(tmp_path,
     z[rng.integers(0, n, 80), rng.integers(0, n, 80)] += 600.0  # narrow pinnacles
     path, lon, lat = _tif(tmp_path / "ll.tif", z, step, lon0, lat0, "EPSG:4326")
     box = [lon0 + 0.1, lat0 - 0.5, lon0 + 0.5, lat0 - 0.1]
-    job = tmp_path / "job.toml"
-    job.write_text(
-        f"""
-name = "edges"
-[dem]
-path = "{path}"
-bbox = {box}
-resolution = 300.0
-chunks = 64
-[maps]
-clearance = 300.0
-landmarks = 0
-[planning]
-planner = "astar"
-[[missions]]
+    missions = f"""[[missions]]
 name = "south"
 start_lonlat = [{box[0] + 0.03}, {box[1] + 0.01}]
 goal_lonlat = [{box[2] - 0.03}, {box[1] + 0.01}]
 [[missions]]
 name = "east"
 start_lonlat = [{box[2] - 0.01}, {box[1] + 0.03}]
-goal_lonlat = [{box[2] - 0.01}, {box[3] - 0.03}]
-[output]
-catalog = "{tmp_path / "cat"}"
-quicklooks = false
-performance_report = false
-"""
-    )
-    res = run_job(job, scheduler=local_client)
-    assert res.planned == 2, res
+goal_lonlat = [{box[2] - 0.01}, {box[3] - 0.03}]"""
+    _run(tmp_path, "edges", path, f"bbox = {box}\nresolution = 300.0", missions, local_client, 2)
     import geopandas as gpd
 
     f = RegularGridInterpolator((lat[::-1], lon), z.astype(np.float32)[::-1].astype(np.float64))
