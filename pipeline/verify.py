@@ -38,6 +38,8 @@ class Check:
     def line(self) -> str:
         mark = "ok  " if self.holds else "FAIL"
         u = self.unit
+        if math.isinf(self.worst):  # (a straight track has no turn; no zone is near)
+            return f"  {mark} {self.name}: none (limit {self.limit:g} {u})"
         return f"  {mark} {self.name}: {self.worst:.2f} {u} (limit {self.limit:g} {u}){self.where}"
 
 
@@ -348,7 +350,8 @@ def _lonlat(crs_wkt, x, y) -> str:
     from .outputs.files import to_lonlat
 
     lon, lat = to_lonlat(crs_wkt, np.array([x]), np.array([y]))
-    return f" ({lat[0]:.5f} N, {lon[0]:.5f} E)"
+    la, lo = float(lat[0]), float(lon[0])
+    return f" ({abs(la):.5f} {'N' if la >= 0 else 'S'}, {abs(lo):.5f} {'E' if lo >= 0 else 'W'})"
 
 
 def report(verdicts: list[Verdict]) -> str:
