@@ -178,7 +178,15 @@ def _track(tmp):
     return item, t
 
 
-def test_a_mission_over_narrow_walls_keeps_its_clearance_from_the_file(walls_job):
+def test_the_walls_mission_and_pipeline_verify(walls_job, tmp_path):
+    """The walls job (built once: its three checks in one test, so that the job runs once
+    whichever worker takes it)."""
+    _a_mission_over_narrow_walls_keeps_its_clearance_from_the_file(walls_job)
+    _verify_names_where_a_newer_survey_breaks_the_clearance(walls_job, tmp_path)
+    _verify_checks_the_rating_and_the_zones_it_is_given(walls_job, tmp_path)
+
+
+def _a_mission_over_narrow_walls_keeps_its_clearance_from_the_file(walls_job):
     """Over the walls, not through them: every track sample at least R above the file's own
     bilinear seabed below it (scipy); the clearance the mission reports is from the file,
     at least R; pipeline verify holds."""
@@ -196,7 +204,7 @@ def test_a_mission_over_narrow_walls_keeps_its_clearance_from_the_file(walls_job
     assert v.checks[0].worst == pytest.approx(props["auv:min_clearance_m"], abs=0.05)
 
 
-def test_verify_names_where_a_newer_survey_breaks_the_clearance(walls_job, tmp_path):
+def _verify_names_where_a_newer_survey_breaks_the_clearance(walls_job, tmp_path):
     """A newer survey with a pinnacle under the track: pipeline verify fails (exit 1) and
     names the point; the clearance it gives is the brute-force one (the least over the track
     samples' 3-D distances to a dense sampling of the new surface bounds it above)."""
@@ -281,7 +289,7 @@ def test_the_clearance_from_a_file_against_brute_force(tmp_path, geographic, met
             assert brute - step * 1.5 * slope <= got[k] <= brute + 1e-3
 
 
-def test_verify_checks_the_rating_and_the_zones_it_is_given(walls_job, tmp_path):
+def _verify_checks_the_rating_and_the_zones_it_is_given(walls_job, tmp_path):
     """pipeline verify with a rated depth shallower than the track's deepest point (numpy, from
     the track file) and a zone across the track (shapely's distance): both checks fail and
     name what fails; a rating below the deepest point and a zone far away hold."""
