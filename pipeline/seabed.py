@@ -222,7 +222,6 @@ def _cell(z00, z01, z10, z11, i, j, p, q, h, si, sj, far, method, best, tol, sta
     bilinear surface lies within its corners' range, so the distance to the box of its rows,
     columns and that range bounds it below (its highest corner, above); a part is halved until
     it cannot beat ``best`` by more than ``tol``; its corners are points of the surface."""
-    top = 0
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = 0.0, 1.0, 0.0, 1.0
     top = 1
     lim = far * far
