@@ -2,8 +2,9 @@
 or a newer or finer survey of the same area), independently of the maps they were planned on
 (docs/guide.md, "Verifying a mission").
 
-A mission's waypoint route (straight map lines between its waypoints) and its flown track are
-walked in steps of at most a quarter of the DEM's cell and of the clearance, and at each point
+A mission's waypoint route (its waypoints joined by straight map lines, by geodesics and by rhumb
+lines, as autopilots steer) and its flown track are walked in steps of at most a quarter of the
+DEM's cell and of the clearance, and at each point
 the clearance from the file's own bilinear seabed is measured (:mod:`pipeline.seabed`); the
 depth against the vehicle's rating, the distance from each keep-out zone against its margin,
 the pitch and the turn radius of the track are checked too. Each check says where it is worst.
@@ -175,6 +176,8 @@ def _verify_one(item, seabed, clearance, method, horizontal, max_depth, zones, m
     lines = {"track": t[["x", "y", "z"]].to_numpy(dtype=np.float64)}
     if route is not None:
         lines["waypoint route"] = route
+        if crs_wkt and len(route) > 1:  # as an autopilot may steer between the waypoints
+            lines.update(_autopilot_routes(route, crs_wkt, step))
     worst = (math.inf, "")
     unknown = 0
     for label, pts in lines.items():
@@ -234,6 +237,24 @@ def _verify_one(item, seabed, clearance, method, horizontal, max_depth, zones, m
                   f" at {t['s_m'].iloc[k + 1] / 1e3:.3f} km along the track")
         )  # fmt: skip
     return verdict
+
+
+def _autopilot_routes(route: np.ndarray, crs_wkt: str, step: float) -> dict:
+    """The waypoint route along the geodesic and along the rhumb line of each leg (pyproj;
+    heights linear along the leg), in steps of at most ``step``: ``{"geodesic route": xyz,
+    "rhumb-line route": xyz}``."""
+    from .flight.legs import leg_lines
+
+    out: dict = {"geodesic route": [], "rhumb-line route": []}
+    for k in range(len(route) - 1):
+        (x0, y0, z0), (x1, y1, z1) = route[k], route[k + 1]
+        f = np.linspace(0.0, 1.0, int(math.ceil(math.hypot(x1 - x0, y1 - y0) / step)) + 2)
+        z = z0 + (z1 - z0) * f
+        steered = leg_lines(crs_wkt, x0, y0, x1, y1, f)
+        for name, key in (("geodesic route", "geodesic"), ("rhumb-line route", "rhumb line")):
+            lx, ly = steered[key]
+            out[name].append(np.column_stack([lx.ravel(), ly.ravel(), z]))
+    return {name: np.vstack(parts) for name, parts in out.items()}
 
 
 def _waypoints(w, crs_wkt, sea: float) -> np.ndarray:

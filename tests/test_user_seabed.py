@@ -8,6 +8,7 @@ brute-force sampling; never the code's own resample.
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -347,3 +348,60 @@ goal_lonlat = [{box[2] - 0.01}, {box[3] - 0.03}]"""
         assert (t.z.to_numpy() - below).min() >= 300.0 - 1e-3, item
     verdicts = verify_missions(tmp_path / "cat", path)
     assert len(verdicts) == 2 and all(v.holds for v in verdicts), [v.checks for v in verdicts]
+
+
+def test_verify_walks_the_geodesic_and_the_rhumb_line_of_each_leg(tmp_path):
+    """One 150 km leg at 60 N (a mission folder written here: its Item, track and waypoints),
+    level 350 m above a flat seabed, and a pinnacle under the middle of the leg's rhumb line
+    (a constant course, 800 m from the straight map line): verify fails the clearance and names
+    the rhumb-line route; a pinnacle under the map line's middle is found on the map line."""
+    import pandas as pd
+    from pyproj import Transformer
+
+    crs = CRS.from_proj4("+proj=aeqd +lat_0=60 +lon_0=0 +datum=WGS84 +units=m")
+    to_ll = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+    x0, y0, x1, y1 = -50_000.0, 40_000.0, 100_000.0, 60_000.0
+    from pipeline.flight.legs import leg_lines
+
+    (rx, ry) = leg_lines(crs.to_wkt(), x0, y0, x1, y1, [0.5])["rhumb line"]
+    assert math.hypot(rx[0, 0] - (x0 + x1) / 2, ry[0, 0] - (y0 + y1) / 2) > 500
+    lon = np.arange(-3.0, 3.0, 0.005)
+    lat = np.arange(61.5, 59.5, -0.005)
+    z = np.full((lat.size, lon.size), -3350.0)
+
+    def pinnacle(px, py, height):
+        plon, plat = to_ll.transform(px, py)
+        z[np.argmin(np.abs(lat - plat)), np.argmin(np.abs(lon - plon))] = height
+
+    for name, (px, py) in {
+        "rhumb": (rx[0, 0], ry[0, 0]),
+        "map": ((x0 + x1) / 2, (y0 + y1) / 2),
+    }.items():
+        folder = tmp_path / name
+        folder.mkdir()
+        z[:] = -3350.0
+        pinnacle(px, py, -3100.0)  # 100 m under the vehicle at -3000 m
+        import rioxarray  # noqa: F401
+
+        arr = xr.DataArray(z.astype(np.float32), dims=("y", "x"), coords={"x": lon, "y": lat})
+        arr.rio.write_crs("EPSG:4326").rio.to_raster(folder / "dem.tif")
+        s = np.linspace(0, 1, 3001)
+        x, y = x0 + (x1 - x0) * s, y0 + (y1 - y0) * s
+        pd.DataFrame(
+            {"x": x, "y": y, "z": -3000.0, "s_m": s * math.hypot(x1 - x0, y1 - y0)}
+        ).to_parquet(folder / "track.parquet")
+        wl, wa = to_ll.transform([x0, x1], [y0, y1])
+        pd.DataFrame({"lat": wa, "lon": wl, "depth_m": [3000.0, 3000.0]}).to_csv(
+            folder / "waypoints.csv", index=False
+        )
+        item = {"type": "Feature", "properties": {
+            "auv:name": name, "auv:clearance_m": 300.0, "auv:clearance_method": "spherical",
+            "auv:sea_level_m": 0.0, "proj:wkt2": crs.to_wkt()}}  # fmt: skip
+        (folder / f"{name}.json").write_text(json.dumps(item))
+        (v,) = verify_missions(folder, folder / "dem.tif")
+        check = v.checks[0]
+        assert not check.holds and check.worst < 250.0, check  # (the pinnacle on its node)
+        if name == "rhumb":  # found on the rhumb line only: the map line passes 800 m away
+            assert "rhumb-line route" in check.where, check.where
+        else:
+            assert "rhumb-line" not in check.where, check.where
