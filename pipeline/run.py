@@ -578,7 +578,10 @@ class _Recorder:
 
             try:
                 self.source = SourceSeabed.open(
-                    job.dem_path, variable=job.variable, uncertainty_k=job.uncertainty_k
+                    job.dem_path,
+                    variable=job.variable,
+                    uncertainty_k=job.uncertainty_k,
+                    uncertainty=job.uncertainty,
                 )
             except PipelineError as exc:
                 log.warning("the clearance is measured from the DEM store: %s", exc)
