@@ -175,7 +175,8 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
                     # the window as one block, its tasks kept as they are (not fused into
                     # new ones, which would read a source chunk once for each window)
                     src = src.rechunk(src.shape).to_delayed(optimize_graph=False)[0, 0]
-                    pair = dask.delayed(block, pure=True, nout=2)(src, yy, xx, (r0, c0))
+                    # (not pure: tokenizing the closure cloudpickles it, 0.2 s a grid)
+                    pair = dask.delayed(block, pure=False, nout=2)(src, yy, xx, (r0, c0))
                     trow.append(da.from_delayed(pair[0], (len(yy), len(xx)), dtype=np.float32))
                     parts.append(pair[1])
                 tiles.append(trow)
