@@ -11,6 +11,7 @@ from the mission's own map coordinates through pyproj.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .exceptions import InvalidDEMError
+from .methods import METHODS
 from .runtime.jit import njit
 
 # a clearance is found to this many metres (the least over a cell's parts is refined until
@@ -60,7 +62,7 @@ class SourceSeabed:
         height above it. Negative under the seabed; NaN where the point is off the grid or
         over no-data (nothing known to measure)."""
         x, y, z = (np.asarray(v, dtype=np.float64).ravel() for v in (x, y, z))
-        code = {"vertical": 0, "horizontal": 1, "spherical": 2}[method]
+        code = METHODS[method].code
         fi, fj = self._index(x, y, crs_wkt)
         out = np.full(x.size, np.nan)
         ny, nx = self.values.shape
@@ -83,6 +85,14 @@ class SourceSeabed:
                 win, r0, c0, ny, nx, gi, gj, z[sl], si, sj, radius, code, TOLERANCE_M
             )
         return out
+
+    @functools.cached_property
+    def _to_lonlat(self):
+        """The file's coordinates to WGS84 longitude and latitude (made once: pyproj takes
+        milliseconds to make a transformer, and the scale is measured every group)."""
+        from pyproj import Transformer
+
+        return Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
 
     def cell_m(self) -> float:
         """The smaller side of the grid's cells in ground metres, at its middle."""
@@ -121,12 +131,11 @@ class SourceSeabed:
         dy, dx = abs(yv[i + 1] - yv[i]), abs(xv[j + 1] - xv[j])
         if self.crs is None:
             return dy, dx
-        from pyproj import Geod, Transformer
-
-        to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
         px = np.array([xv[j], xv[j], xv[j + 1]])
         py = np.array([yv[i], yv[i + 1], yv[i]])
-        lon, lat = to_ll.transform(px, py)
+        from pyproj import Geod
+
+        lon, lat = self._to_lonlat.transform(px, py)
         geod = Geod(ellps="WGS84")
         _, _, d_row = geod.inv(lon[0], lat[0], lon[1], lat[1])
         _, _, d_col = geod.inv(lon[0], lat[0], lon[2], lat[2])

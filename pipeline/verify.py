@@ -21,6 +21,7 @@ import numpy as np
 
 from ._types import PathLike
 from .exceptions import InvalidParameterError
+from .methods import METHODS
 from .seabed import TOLERANCE_M, SourceSeabed
 
 
@@ -162,16 +163,16 @@ def _verify_one(item, seabed, clearance, method, horizontal, max_depth, zones, m
     t = pd.read_parquet(track, columns=["x", "y", "z", "s_m"])
     wp = folder / "waypoints.csv"
     route = None
+    sea = float(props.get("auv:sea_level_m", 0.0))
     if wp.is_file():  # the waypoints as the vehicle is given them
-        route = _waypoints(pd.read_csv(wp), crs_wkt, float(props.get("auv:sea_level_m", 0.0)))
+        route = _waypoints(pd.read_csv(wp), crs_wkt, sea)
     R = float(clearance if clearance is not None else props.get("auv:clearance_m", math.nan))
     how = method or props.get("auv:clearance_method", "spherical")
     if not math.isfinite(R):
         verdict.problem = "the mission does not record its clearance: give --clearance"
         return verdict
-    reach = R
-    if how == "horizontal":
-        reach = float(horizontal or props.get("auv:horizontal_clearance_m") or R)
+    radius = float(horizontal or props.get("auv:horizontal_clearance_m") or R)
+    reach = METHODS[how].reach_m(R, radius)
     step = max(min(R / 4.0, seabed.cell_m() / 4.0), 0.05)
     lines = {"track": t[["x", "y", "z"]].to_numpy(dtype=np.float64)}
     if route is not None:
@@ -200,7 +201,6 @@ def _verify_one(item, seabed, clearance, method, horizontal, max_depth, zones, m
     )
     rating = max_depth if max_depth is not None else props.get("auv:max_depth_m")
     if rating is not None:
-        sea = float(props.get("auv:sea_level_m", 0.0))
         deepest = (-math.inf, "")
         for label, pts in lines.items():
             k = int(np.argmin(pts[:, 2]))
@@ -313,14 +313,11 @@ def source_clearance(seabed: SourceSeabed, flight, maps) -> float:
     own seabed, by the maps' method and clearance: the figure a mission reports
     (``auv:min_clearance_m``). NaN where a point lies off the file or over its no-data."""
     par = maps.parameters
-    reach = par.clearance_m
-    if par.method == "horizontal":
-        reach = par.horizontal_clearance_m or par.clearance_m
     step = max(min(par.clearance_m / 4.0, seabed.cell_m() / 4.0), 0.05)
     least = math.inf
     for pts in (np.column_stack([flight.x, flight.y, flight.z]), flight.route):
         x, y, z, _ = _walk(np.asarray(pts, dtype=np.float64), step)
-        c = seabed.clearances(x, y, z, maps.crs_wkt, reach, par.method)
+        c = seabed.clearances(x, y, z, maps.crs_wkt, par.reach_m, par.method)
         if np.isnan(c).any():
             return math.nan
         least = min(least, float(c.min()))

@@ -24,7 +24,14 @@ from ..exceptions import InvalidDEMError, InvalidParameterError, notice
 from ..params import CELL_SIZE, DEFAULT_CHUNK, chunks2d
 from ..store.schema import GRID_MAPPING
 from .readers import _X_NAMES, _Y_NAMES, _pick_variable
-from .reproject import _reproject_geographic, _resample_square, _spacing, _step, combine_stats
+from .reproject import (
+    _mean_step,
+    _reproject_geographic,
+    _resample_square,
+    _spacing,
+    _step,
+    combine_stats,
+)
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +233,7 @@ def _canonicalise(
     if geographic:
         values, crs, stats = _reproject_geographic(values, path, crs, resolution, chunks, bounds)
     elif margin > 1:
-        dx, dy = _mean_spacing(values, "x"), _mean_spacing(values, "y")
+        dx, dy = _mean_step(values["x"].values), _mean_step(values["y"].values)
         values, stats = _resample_square(values, path, dx, dy, resolution, chunks, bounds)
     a = abs(_spacing(values, "x", path))
     attrs.update(cell_size=float(a), units="m", positive="up", source=str(path))
@@ -303,46 +310,38 @@ def construction_figures(row, path) -> dict:
     }
 
 
-def _mean_spacing(values: xr.DataArray, dim: str) -> float:
-    c = np.asarray(values[dim].values, dtype=np.float64)
-    return float(abs(c[-1] - c[0]) / (c.size - 1))
-
-
 def _resample_margin(arr: xr.DataArray, path: Path, geographic: bool, resolution) -> int:
     """The source cells read beyond a region: 1 when the grid is not resampled (one cell
     each side), else enough for a target cell around the region's edge nodes (its square
     of half-side one target cell, with slack)."""
-    for dim in ("y", "x"):
-        if "x" not in arr.coords or "y" not in arr.coords:
-            return 1
-        _step(arr, dim, path)  # (refuses a repeated or unordered axis, naming it)
+    # (an axis repeated or unordered is refused here, named)
+    even = {dim: _step(arr, dim, path)[1] for dim in ("y", "x")}
     if geographic:
         from .reproject import degree_cell_metres, natural_cell
 
         lat = np.asarray(arr["y"].values, dtype=np.float64)
-        a = resolution or natural_cell(arr, path)
+        a = resolution or natural_cell(arr)
         dx_m, dy_m = degree_cell_metres(arr)
         # (the cells of longitude narrow towards the poles: counted at the farthest latitude)
         k = math.cos(math.radians(float(np.abs(lat).mean()))) / max(
             math.cos(math.radians(min(float(np.abs(lat).max()), 89.0))), 1e-3
         )
         return 2 + math.ceil(a / min(dx_m / k, dy_m))
-    dx, dy = _mean_spacing(arr, "x"), _mean_spacing(arr, "y")
-    even = _step(arr, "x", path)[1] and _step(arr, "y", path)[1]
-    for dim in () if even else ("y", "x"):
-        d = np.abs(np.diff(np.asarray(arr[dim].values, dtype=np.float64)))
-        if np.ptp(d) > 1e-6 * d.mean():
-            notice(
-                log,
-                "DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
-                "resampling onto an even grid",
-                path,
-                dim,
-                d.min(),
-                d.max(),
-            )
+    for dim in (d for d, ok in even.items() if not ok):
+        steps = np.abs(np.diff(np.asarray(arr[dim].values, dtype=np.float64)))
+        notice(
+            log,
+            "DEM %s: %s coordinates are unevenly spaced (steps %.6g to %.6g): "
+            "resampling onto an even grid",
+            path,
+            dim,
+            steps.min(),
+            steps.max(),
+        )
+    dx, dy = _mean_step(arr["x"].values), _mean_step(arr["y"].values)
     square = math.isclose(dx, dy, rel_tol=1e-4)
-    if even and square and (resolution is None or math.isclose(dx, resolution, rel_tol=1e-4)):
+    same = resolution is None or math.isclose(dx, resolution, rel_tol=1e-4)
+    if all(even.values()) and square and same:
         return 1
     a = resolution or math.sqrt(dx * dy)
     return 2 + math.ceil(a / min(dx, dy))

@@ -45,7 +45,7 @@ def _reproject_geographic(
         lon = lon - 360.0
         if bounds is not None:
             bounds = (bounds[0] - 360.0, bounds[1], bounds[2] - 360.0, bounds[3])
-    a = resolution or natural_cell(values, path)
+    a = resolution or natural_cell(values)
     dlon, dlat = _mean_step(lon), _mean_step(lat)
     cover = (lon.min() - dlon / 2, lat.min() - dlat / 2, lon.max() + dlon / 2, lat.max() + dlat / 2)
     if bounds is not None:  # the region asked for, where the grid covers it
@@ -86,7 +86,7 @@ def _reproject_geographic(
 METRES_PER_DEGREE = 111_320.0
 
 
-def natural_cell(values: xr.DataArray, path: Path | str = "DEM") -> float:
+def natural_cell(values: xr.DataArray) -> float:
     """The square cell (metres, three figures) a lon/lat grid is reprojected at by default:
     the geometric mean of its cells' sides at its mean latitude."""
     dx_m, dy_m = degree_cell_metres(values)
@@ -98,10 +98,12 @@ def degree_cell_metres(values: xr.DataArray) -> tuple[float, float]:
     lon = np.asarray(values["x"].values, dtype=np.float64)
     lat = np.asarray(values["y"].values, dtype=np.float64)
     k = math.cos(math.radians(float(lat.mean())))
-    return abs(_mean_step(lon)) * METRES_PER_DEGREE * k, abs(_mean_step(lat)) * METRES_PER_DEGREE
+    return _mean_step(lon) * METRES_PER_DEGREE * k, _mean_step(lat) * METRES_PER_DEGREE
 
 
-def _mean_step(c: np.ndarray) -> float:
+def _mean_step(c) -> float:
+    """The mean step (its size) of a monotonic coordinate axis."""
+    c = np.asarray(c, dtype=np.float64)
     return float(abs(c[-1] - c[0]) / max(c.size - 1, 1))
 
 
@@ -121,8 +123,8 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
     whose error of up to an eighth of a source cell moves terrain by tens of metres on coarse
     grids) into the source grid's fractional rows and columns. ``upper`` (planning): each
     target node takes the highest value of the source's bilinear surface over the square of
-    half-side one target cell around it (the box of the source rows and columns its eight
-    neighbours reach), so that the target's own bilinear surface lies on or above the source's
+    half-side one target cell around it (the box of the source rows and columns its corners
+    reach), so that the target's own bilinear surface lies on or above the source's
     everywhere (docs/method.md section 1); else the source's bilinear value at the node. The
     source's cells are areas: its outer half cells hold their edge points' values; a node
     beyond them is NaN (no source), as is one whose surface weighs a NaN source point.
@@ -162,7 +164,8 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
         for j0 in range(0, width, chunks[1]):
             y, x = ys[i0 : i0 + chunks[0]], xs[j0 : j0 + chunks[1]]
             # a block whose source window is large (a coarse target) is warped in tiles
-            (r0, r1), (c0, c1) = _source_window(tr, x, y, grid, a)
+            window = _source_window(tr, x, y, grid, a)
+            (r0, r1), (c0, c1) = window
             k = max(1, math.ceil(math.sqrt((r1 - r0) * (c1 - c0) / WARP_WINDOW_CELLS)))
             ty, tx = max(1, -(-len(y) // k)), max(1, -(-len(x) // k))
             tiles = []
@@ -170,7 +173,7 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
                 trow = []
                 for b0 in range(0, len(x), tx):
                     yy, xx = y[a0 : a0 + ty], x[b0 : b0 + tx]
-                    (r0, r1), (c0, c1) = _source_window(tr, xx, yy, grid, a)
+                    (r0, r1), (c0, c1) = window if k == 1 else _source_window(tr, xx, yy, grid, a)
                     src = values.data[max(r0, 0) : max(r1, 1), max(c0, 0) : max(c1, 1)]
                     # the window as one block, its tasks kept as they are (not fused into
                     # new ones, which would read a source chunk once for each window)
@@ -226,9 +229,6 @@ class GridAxes:
 
     def cols(self, v):
         return _index(self.x, v, self.even_x)
-
-    def steps(self) -> tuple[float, float]:
-        return abs(_mean_step(self.y)), abs(_mean_step(self.x))
 
 
 def _index(c: np.ndarray, v, even: bool):
@@ -441,34 +441,22 @@ def box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
         return np.nan
     if out <= top:
         return top
-    if i0 < ia:  # the side along the first row, between rows i0 and i0 + 1
-        t = lo_i - i0
-        for j in range(ja, jb + 1):
-            a = np.float64(src[i0 - r0, j - c0])
-            b = np.float64(src[i0 + 1 - r0, j - c0])
-            if max(a, b) > top:
-                top = max(top, a * (1 - t) + b * t)
-    if i1 > ib:  # the side along the last row, between rows i1 - 1 and i1
-        t = hi_i - (i1 - 1)
-        for j in range(ja, jb + 1):
-            a = np.float64(src[i1 - 1 - r0, j - c0])
-            b = np.float64(src[i1 - r0, j - c0])
-            if max(a, b) > top:
-                top = max(top, a * (1 - t) + b * t)
-    if j0 < ja:  # the side along the first column
-        t = lo_j - j0
-        for i in range(ia, ib + 1):
-            a = np.float64(src[i - r0, j0 - c0])
-            b = np.float64(src[i - r0, j0 + 1 - c0])
-            if max(a, b) > top:
-                top = max(top, a * (1 - t) + b * t)
-    if j1 > jb:  # the side along the last column
-        t = hi_j - (j1 - 1)
-        for i in range(ia, ib + 1):
-            a = np.float64(src[i - r0, j1 - 1 - c0])
-            b = np.float64(src[i - r0, j1 - c0])
-            if max(a, b) > top:
-                top = max(top, a * (1 - t) + b * t)
+    # the sides along rows (between rows k and k + 1, at t), then along columns, where they
+    # lie between two grid lines
+    for k, t, on in ((i0, lo_i - i0, i0 < ia), (i1 - 1, hi_i - (i1 - 1), i1 > ib)):
+        if on:
+            for j in range(ja, jb + 1):
+                a = np.float64(src[k - r0, j - c0])
+                b = np.float64(src[k + 1 - r0, j - c0])
+                if max(a, b) > top:
+                    top = max(top, a * (1 - t) + b * t)
+    for m, t, on in ((j0, lo_j - j0, j0 < ja), (j1 - 1, hi_j - (j1 - 1), j1 > jb)):
+        if on:
+            for i in range(ia, ib + 1):
+                a = np.float64(src[i - r0, m - c0])
+                b = np.float64(src[i - r0, m + 1 - c0])
+                if max(a, b) > top:
+                    top = max(top, a * (1 - t) + b * t)
     for u in (lo_i, hi_i):  # the box's corners
         k = min(int(math.floor(u)), i1 - 1) if i1 > i0 else i0
         for v in (lo_j, hi_j):

@@ -547,9 +547,6 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
 
     m, veh = ctx.m, ctx.veh
     tol = leg_tolerance(ctx.clearance)
-    dx = m.x[1] - m.x[0] if len(m.x) > 1 else m.cell_size
-    dy = m.y[1] - m.y[0] if len(m.y) > 1 else -m.cell_size
-    least, where, zone = math.inf, "", ""
     for _ in range(4):
         wi = split_legs(m.crs_wkt, qx, qy, wi, tol, veh.max_leg_m)
         least, where, zone = math.inf, "", ""
@@ -564,7 +561,7 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
             lines = leg_lines(m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f)
             for name, (lx, ly) in lines.items():
                 lx, ly = lx.ravel(), ly.ravel()
-                r, c = (ly - m.y[0]) / dy, (lx - m.x[0]) / dx
+                r, c = _grid_rc(m, lx, ly)
                 got = _least_clearance(ctx, grid, ((r, c, z, z),))
                 if got < least:
                     least, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
@@ -640,10 +637,24 @@ def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:
     return step, terrain, top + 1e-6
 
 
-def _map_xy(m, pr, pc):
+def _map_steps(m) -> tuple:
+    """The maps' steps (metres) along columns and rows."""
     dx = m.x[1] - m.x[0] if len(m.x) > 1 else m.cell_size
     dy = m.y[1] - m.y[0] if len(m.y) > 1 else -m.cell_size
+    return dx, dy
+
+
+def _map_xy(m, pr, pc):
+    """Map coordinates of the grid positions (rows ``pr``, columns ``pc``)."""
+    dx, dy = _map_steps(m)
     return m.x[0] + pc * dx, m.y[0] + pr * dy
+
+
+def _grid_rc(m, x, y):
+    """Grid positions (rows, columns) of the map coordinates ``x, y``: :func:`_map_xy`'s
+    inverse."""
+    dx, dy = _map_steps(m)
+    return (y - m.y[0]) / dy, (x - m.x[0]) / dx
 
 
 def with_flight(maps, traj, vehicle=None):
