@@ -387,6 +387,11 @@ def test_scheduler_flags(tmp_path, small_job, monkeypatch):
         (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--landmarks", "65"], "landmarks"),
         (["build-maps", "{t}/dem.zarr", "{t}/dem.zarr"], "exists already"),
         (["build-maps", "{t}/dem.zarr", "{t}/m.zarr", "--clearance", "1e7"], "needs about"),
+        (["verify", "{t}/none", "--dem", "{t}/dem.zarr"], "does not exist: give a mission"),
+        (["verify", "{t}", "--dem", "{t}/dem.zarr"], "holds no mission"),
+        (["verify", "{t}/dem.zarr/zarr.json", "--dem", "{t}/dem.zarr"], "neither a mission"),
+        (["verify", "{t}", "--dem", "{t}/none.tif"], "DEM file"),
+        (["verify", "{t}", "--dem", "{t}/dem.zarr", "--method", "diagonal"], "diagonal"),
     ],
 )
 def test_bad_cli_arguments(tmp_path, args, match):
