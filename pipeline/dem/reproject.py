@@ -123,11 +123,12 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
     whose error of up to an eighth of a source cell moves terrain by tens of metres on coarse
     grids) into the source grid's fractional rows and columns. ``upper`` (planning): each
     target node takes the highest value of the source's bilinear surface over the square of
-    half-side one target cell around it (the box of the source rows and columns its corners
-    reach), so that the target's own bilinear surface lies on or above the source's
-    everywhere (docs/method.md section 1); else the source's bilinear value at the node. The
-    source's cells are areas: its outer half cells hold their edge points' values; a node
-    beyond them is NaN (no source), as is one whose surface weighs a NaN source point.
+    half-side one target cell around it (the highest over each of the four target cells that
+    make it: the box of the source rows and columns the cell's corners reach), so that the
+    target's own bilinear surface lies on or above the source's everywhere (docs/method.md
+    section 1); else the source's bilinear value at the node. The source's cells are areas:
+    its outer half cells hold their edge points' values; a node beyond them is NaN (no
+    source), as is one whose surface weighs a NaN source point.
 
     Returns the DataArray and the figures of the construction: a float64 array ``(sum of the
     raise over the nodes, nodes counted, greatest raise, nodes beyond the source)``, where the
@@ -207,9 +208,10 @@ def combine_stats(parts) -> np.ndarray:
 WARP_WINDOW_CELLS = 2048 * 2048
 
 
-# the slack (source cells) added each way to a node's box of source rows and columns when the
-# grids are reprojected: the box is that of its four corners' transforms, and the square's
-# sides between them bend from straight lines by far less (WARP_TOLERANCE bounds the lattice)
+# the slack (source cells) added each way to a target cell's box of source rows and columns
+# when the grids are reprojected: the box is that of its four corners' transforms (each within
+# WARP_TOLERANCE of exact), and the cell's sides between them bend from straight lines by far
+# less
 UPPER_SLACK = 1e-3
 
 
@@ -246,13 +248,13 @@ def _index(c: np.ndarray, v, even: bool):
 
 
 # the source coordinates of a block's cell centres: transformed exactly on a lattice of every
-# WARP_LATTICE-th centre and interpolated bilinearly between (8^2 times fewer transforms), where
+# WARP_LATTICE-th centre and interpolated bilinearly between (16^2 times fewer transforms), where
 # the lattice cells' midpoints, transformed exactly too, are within WARP_TOLERANCE source cells
 # of the interpolation (else every centre of the block is transformed)
-WARP_LATTICE = 8
+WARP_LATTICE = 16
 
 
-WARP_TOLERANCE = 1e-4
+WARP_TOLERANCE = 2.5e-4
 
 
 def _lattice(tr, x, y, grid: GridAxes) -> tuple:
@@ -296,36 +298,35 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
     ``c0``; the source grid ``ny`` x ``nx``) onto the nodes whose source rows and columns are
     interpolated bilinearly in the lattice ``li``, ``lj`` at fractional rows ``fy`` by columns
     ``fx``: the nodes of a block and one ring around it, whose values are not returned.
-    ``upper``: a node's value is the highest of the source's bilinear surface over the box of
-    its square's corners' rows and columns (``eps`` each way, clipped to the source's points:
-    its outer half cells hold their edge values); else the bilinear value at the node. NaN
+    ``upper``: a node's value is the highest of the source's bilinear surface over its four
+    dual cells (:func:`_dual_row`; ``eps`` each way, clipped to the source's points: its outer
+    half cells hold their edge values); else the bilinear value at the node. NaN
     beyond the outer half cells, where a point with a weight is NaN, or (upper) where a
     neighbour has no source coordinates. Returns the block and its figures (:func:`warp`)."""
     h = fy.size - 2
     w = fx.size - 2
-    pi = np.empty((fy.size, fx.size))
-    pj = np.empty((fy.size, fx.size))
-    n_i, n_j = li.shape
-    for r in range(fy.size):
-        a0 = min(int(math.floor(fy[r])), n_i - 1)
-        ta = fy[r] - a0
-        a1 = min(a0 + 1, n_i - 1)
-        for c in range(fx.size):
-            b0 = min(int(math.floor(fx[c])), n_j - 1)
-            tb = fx[c] - b0
-            b1 = min(b0 + 1, n_j - 1)
-            pi[r, c] = (li[a0, b0] * (1 - tb) + li[a0, b1] * tb) * (1 - ta) + (
-                li[a1, b0] * (1 - tb) + li[a1, b1] * tb
-            ) * ta
-            pj[r, c] = (lj[a0, b0] * (1 - tb) + lj[a0, b1] * tb) * (1 - ta) + (
-                lj[a1, b0] * (1 - tb) + lj[a1, b1] * tb
-            ) * ta
+    # the nodes' source rows and columns, three rows of them at a time (row k at k % 3),
+    # and the highest over each dual cell (between four nodes), two rows at a time
+    pi = np.empty((3, fx.size))
+    pj = np.empty((3, fx.size))
+    cell = np.empty((2, w + 1))
+    _lattice_row(li, lj, fy[0], fx, pi[0], pj[0])
+    _lattice_row(li, lj, fy[1], fx, pi[1], pj[1])
+    if upper:
+        _dual_row(src, r0, c0, ny, nx, pi[0], pi[1], pj[0], pj[1], eps, cell[0])
     out = np.empty((h, w), dtype=np.float32)
     stats = np.zeros(4)
     for r in range(h):
+        _lattice_row(li, lj, fy[r + 2], fx, pi[(r + 2) % 3], pj[(r + 2) % 3])
+        node_i, node_j = pi[(r + 1) % 3], pj[(r + 1) % 3]
+        if upper:
+            ri, rj = pi[(r + 2) % 3], pj[(r + 2) % 3]
+            _dual_row(src, r0, c0, ny, nx, node_i, ri, node_j, rj, eps, cell[(r + 1) % 2])
+        above = cell[r % 2]
+        below = cell[(r + 1) % 2]
         for c in range(w):
-            fi = pi[r + 1, c + 1]
-            fj = pj[r + 1, c + 1]
+            fi = node_i[c + 1]
+            fj = node_j[c + 1]
             # the source's cells are areas: its outer half cells hold their points' values
             if not (-0.5 <= fi <= ny - 0.5 and -0.5 <= fj <= nx - 0.5):
                 out[r, c] = np.nan  # (NaN coordinates too)
@@ -335,34 +336,15 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
             if not upper or base != base:
                 out[r, c] = base
                 continue
-            lo_i = np.inf
-            hi_i = -np.inf
-            lo_j = np.inf
-            hi_j = -np.inf
-            for dr in range(0, 3, 2):  # the square's corners
-                for dc in range(0, 3, 2):
-                    u = pi[r + dr, c + dc]
-                    v = pj[r + dr, c + dc]
-                    lo_i = min(lo_i, u)
-                    hi_i = max(hi_i, u)
-                    lo_j = min(lo_j, v)
-                    hi_j = max(hi_j, v)
-                    if u != u or v != v:
-                        lo_i = np.nan
-            if lo_i != lo_i:
+            # the four dual cells around the node: the square of half-side one cell
+            a = above[c]
+            b = below[c]
+            d = above[c + 1]
+            e = below[c + 1]
+            if a != a or b != b or d != d or e != e:
                 out[r, c] = np.nan
                 continue
-            # the box within the source's points, and holding the node itself (clamped)
-            ci = min(max(fi, 0.0), ny - 1.0)
-            cj = min(max(fj, 0.0), nx - 1.0)
-            top = box_max(
-                src, r0, c0,
-                min(max(lo_i - eps, 0.0), ci), max(min(hi_i + eps, ny - 1.0), ci),
-                min(max(lo_j - eps, 0.0), cj), max(min(hi_j + eps, nx - 1.0), cj),
-            )  # fmt: skip
-            if top != top:
-                out[r, c] = np.nan
-                continue
+            top = max(max(a, b), max(d, e))
             # the value stored is float32: rounded up, never below the highest
             v32 = np.float32(top)
             if np.float64(v32) < top:
@@ -373,6 +355,55 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
             stats[1] += 1
             stats[2] = max(stats[2], raise_m)
     return out, stats
+
+
+@njit(inline="always", cache=True)
+def _lattice_row(li, lj, fy, fx, pi, pj):
+    """The source rows ``pi`` and columns ``pj`` of a row of nodes: the lattice ``li``,
+    ``lj`` interpolated bilinearly at fractional row ``fy`` and columns ``fx``."""
+    n_i, n_j = li.shape
+    a0 = min(int(math.floor(fy)), n_i - 1)
+    ta = fy - a0
+    a1 = min(a0 + 1, n_i - 1)
+    for c in range(fx.size):
+        b0 = min(int(math.floor(fx[c])), n_j - 1)
+        tb = fx[c] - b0
+        b1 = min(b0 + 1, n_j - 1)
+        pi[c] = (li[a0, b0] * (1 - tb) + li[a0, b1] * tb) * (1 - ta) + (
+            li[a1, b0] * (1 - tb) + li[a1, b1] * tb
+        ) * ta
+        pj[c] = (lj[a0, b0] * (1 - tb) + lj[a0, b1] * tb) * (1 - ta) + (
+            lj[a1, b0] * (1 - tb) + lj[a1, b1] * tb
+        ) * ta
+
+
+@njit(inline="always", cache=True)
+def _dual_row(src, r0, c0, ny, nx, pi0, pi1, pj0, pj1, eps, out):
+    """The highest of the source's bilinear surface over each dual cell between two rows of
+    nodes (source rows ``pi0``, ``pi1``, columns ``pj0``, ``pj1``): over the box of its four
+    corners, ``eps`` each way (NaN where a corner has no source coordinates)."""
+    for c in range(out.size):
+        u0 = pi0[c]
+        u1 = pi1[c]
+        u2 = pi0[c + 1]
+        u3 = pi1[c + 1]
+        v0 = pj0[c]
+        v1 = pj1[c]
+        v2 = pj0[c + 1]
+        v3 = pj1[c + 1]
+        lo_i = min(min(u0, u1), min(u2, u3)) - eps
+        hi_i = max(max(u0, u1), max(u2, u3)) + eps
+        lo_j = min(min(v0, v1), min(v2, v3)) - eps
+        hi_j = max(max(v0, v1), max(v2, v3)) + eps
+        if not (lo_i == lo_i and hi_i == hi_i and lo_j == lo_j and hi_j == hi_j):
+            out[c] = np.nan
+            continue
+        # within the source's points (its outer half cells hold their edge values)
+        out[c] = small_box_max(
+            src, r0, c0,
+            min(max(lo_i, 0.0), ny - 1.0), min(max(hi_i, 0.0), ny - 1.0),
+            min(max(lo_j, 0.0), nx - 1.0), min(max(hi_j, 0.0), nx - 1.0),
+        )  # fmt: skip
 
 
 @njit(inline="always", cache=True)
@@ -396,6 +427,66 @@ def _bilinear_at(src, r0, c0, ny, nx, fi, fj):
     v = (src[i0, j0] * (1 - tj) + src[i0, j1] * tj) * (1 - ti)
     v += (src[i1, j0] * (1 - tj) + src[i1, j1] * tj) * ti
     return v
+
+
+@njit(inline="always", cache=True)
+def _row_breaks(src, k, jj, s, t0, th):
+    """Row ``k`` of ``src`` at the column breakpoints of a box over ``s`` (1-3) cells from
+    column ``jj``: its left side (at ``t0`` in the first cell), the grid points inside and
+    its right side (at ``th`` in the last cell), padded with repeats; and the points' sum."""
+    w0 = np.float64(src[k, jj])
+    w1 = np.float64(src[k, jj + 1])
+    g0 = w0 + (w1 - w0) * t0
+    if s == 1:
+        gh = w0 + (w1 - w0) * th
+        return g0, gh, gh, gh, w0 + w1
+    w2 = np.float64(src[k, jj + 2])
+    if s == 2:
+        return g0, w1, w1 + (w2 - w1) * th, g0, w0 + w1 + w2
+    w3 = np.float64(src[k, jj + 3])
+    return g0, w1, w2, w2 + (w3 - w2) * th, (w0 + w1) + (w2 + w3)
+
+
+@njit(inline="always", cache=True)
+def _lerp_max(a0, a1, a2, a3, b0, b1, b2, b3, t):
+    return max(
+        max(a0 + (b0 - a0) * t, a1 + (b1 - a1) * t), max(a2 + (b2 - a2) * t, a3 + (b3 - a3) * t)
+    )
+
+
+@njit(inline="always", cache=True)
+def small_box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
+    """:func:`box_max`, in straight lines for a box over 1-2 source cells by 1-3 (a target
+    cell about as fine as the source's; others go to :func:`box_max`): the surface's highest
+    is at a breakpoint of both axes (the box's sides and the grid lines between them), so
+    each row the box touches is taken at the column breakpoints, then the rows at the row
+    breakpoints."""
+    i0 = int(math.floor(lo_i))
+    i1 = int(math.ceil(hi_i))
+    j0 = int(math.floor(lo_j))
+    j1 = int(math.ceil(hi_j))
+    r = i1 - i0
+    s = j1 - j0
+    if r > 2 or s > 3 or r == 0 or s == 0:
+        return box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j)
+    t0 = lo_j - j0
+    th = hi_j - (j1 - 1)
+    jj = j0 - c0
+    k = i0 - r0
+    a0, a1, a2, a3, s0 = _row_breaks(src, k, jj, s, t0, th)
+    b0, b1, b2, b3, s1 = _row_breaks(src, k + 1, jj, s, t0, th)
+    top = _lerp_max(a0, a1, a2, a3, b0, b1, b2, b3, lo_i - i0)
+    if r == 1:
+        top = max(top, _lerp_max(a0, a1, a2, a3, b0, b1, b2, b3, hi_i - i0))
+        total = s0 + s1
+    else:  # row i0 + 1 inside the box
+        d0, d1, d2, d3, s2 = _row_breaks(src, k + 2, jj, s, t0, th)
+        top = max(top, max(max(b0, b1), max(b2, b3)))
+        top = max(top, _lerp_max(b0, b1, b2, b3, d0, d1, d2, d3, hi_i - (i0 + 1)))
+        total = s0 + s1 + s2
+    if total != total:  # (a NaN among the points: source values are finite or NaN)
+        return np.nan
+    return top
 
 
 @njit(inline="always", cache=True)
