@@ -138,9 +138,10 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
     bounded by the block) and equals the in-memory result (each node is computed alone)."""
     from pyproj import Transformer
 
-    tr = None
-    if src_crs is not None:  # the exact operation as a PROJ pipeline (made once per thread)
-        tr = _pipeline(Transformer.from_crs(dst_crs, src_crs, always_xy=True).definition)
+    tr = definition = None
+    if src_crs is not None:  # the exact operation as a PROJ pipeline (made once per process)
+        definition = Transformer.from_crs(dst_crs, src_crs, always_xy=True).definition
+        tr = _pipeline(definition)
     height, width = shape
     a = abs(transform.a)
     xs = transform.c + (np.arange(width) + 0.5) * transform.a
@@ -148,13 +149,10 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
     grid = GridAxes(values)
     eps = UPPER_SLACK if tr is not None else 1e-9
 
-    def block(src, y, x, off):
-        # the nodes one target cell around the block too: the squares of its edge nodes
-        yp = np.concatenate(([y[0] - transform.e], y, [y[-1] + transform.e]))
-        xp = np.concatenate(([x[0] - transform.a], x, [x[-1] + transform.a]))
-        lfi, lfj, fy, fx = _lattice(tr, xp, yp, grid)
-        src = np.ascontiguousarray(src, dtype=np.float32)
-        return _warp_kernel(src, off[0], off[1], grid.ny, grid.nx, lfi, lfj, fy, fx, upper, eps)
+    block = functools.partial(
+        _warp_block, definition=definition, step=(transform.e, transform.a), grid=grid,
+        upper=upper, eps=eps,
+    )  # fmt: skip
 
     if chunks is None:
         data, stats = block(values.values, ys, xs, (0, 0))
@@ -179,7 +177,7 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
                     # the window as one block, its tasks kept as they are (not fused into
                     # new ones, which would read a source chunk once for each window)
                     src = src.rechunk(src.shape).to_delayed(optimize_graph=False)[0, 0]
-                    # (not pure: tokenizing the closure cloudpickles it, 0.2 s a grid)
+                    # (not pure: tokenizing the partial pickles its grid axes, 0.2 s a grid)
                     pair = dask.delayed(block, pure=False, nout=2)(src, yy, xx, (r0, c0))
                     trow.append(da.from_delayed(pair[0], (len(yy), len(xx)), dtype=np.float32))
                     parts.append(pair[1])
@@ -188,6 +186,20 @@ def warp(values: xr.DataArray, src_crs, dst_crs, transform, shape, chunks=None, 
             row.append(piece if k == 1 else piece.rechunk(piece.shape))
         rows.append(row)
     return _named(da.block(rows), ys, xs, values), parts
+
+
+def _warp_block(src, y, x, off, *, definition, step, grid, upper, eps):
+    """One block of :func:`warp`: the source window ``src`` (its first point at source row and
+    column ``off``) onto the nodes ``y`` by ``x``. At module level, so that a worker imports it
+    and its kernel (compiled once, cached on disk) rather than being sent a copy of the kernel
+    to compile again in every process of every job."""
+    tr = _pipeline(definition) if definition is not None else None
+    # the nodes one target cell around the block too: the squares of its edge nodes
+    yp = np.concatenate(([y[0] - step[0]], y, [y[-1] + step[0]]))
+    xp = np.concatenate(([x[0] - step[1]], x, [x[-1] + step[1]]))
+    lfi, lfj, fy, fx = _lattice(tr, xp, yp, grid)
+    src = np.ascontiguousarray(src, dtype=np.float32)
+    return _warp_kernel(src, off[0], off[1], grid.ny, grid.nx, lfi, lfj, fy, fx, upper, eps)
 
 
 def _named(data, ys, xs, values) -> xr.DataArray:
