@@ -108,6 +108,15 @@ def build(code_root: Path, src: Path, small: Path, res) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+REPEATS = 5
+
+
+def _median(runs: list) -> dict:
+    """The run of median time, with the spread of them all."""
+    runs = sorted(runs, key=lambda r: r["seconds"])
+    return {**runs[len(runs) // 2], "spread": (runs[0]["seconds"], runs[-1]["seconds"])}
+
+
 def rough(n, seed):
     rng = np.random.default_rng(seed)
     from scipy import ndimage
@@ -131,16 +140,26 @@ def builds(before: Path | None, n: int) -> list:
         (f"30 m projected, {n}^2, at 200 m", proj, small, 200.0),
         (f"0.0004 deg lon/lat, {n}^2, at its own cell (36 m)", ll, lls, "None"),
     ):
-        after = build(HERE.parent, src, sm, res)
-        old = build(before, src, sm, res) if before else None
+        # fresh processes, after and before in turn; the median of REPEATS (this machine's
+        # timings of one build vary by a third from run to run)
+        afters, olds = [], []
+        for _ in range(REPEATS):
+            afters.append(build(HERE.parent, src, sm, res))
+            if before:
+                olds.append(build(before, src, sm, res))
+        after, old = _median(afters), _median(olds) if before else None
         rows.append((name, after, old))
         print(name, "after", after, "before", old, flush=True)
-    # what a job builds from the lon/lat file: the DEM store and the maps (each run twice, the
-    # first to compile and cache the kernels of its code in the workers; the second timed)
+    # what a job builds from the lon/lat file: the DEM store and the maps (a first run of each
+    # to compile and cache the kernels of its code; then three in turn, the median timed)
     for root in (HERE.parent, before):
         maps_build(root, ll, lls, "None")
-    after = maps_build(HERE.parent, ll, lls, "None")
-    old = maps_build(before, ll, lls, "None") if before else None
+    afters, olds = [], []
+    for _ in range(3):
+        afters.append(maps_build(HERE.parent, ll, lls, "None"))
+        if before:
+            olds.append(maps_build(before, ll, lls, "None"))
+    after, old = _median(afters), _median(olds) if before else None
     print("lon/lat file to maps", after, old, flush=True)
     return rows, (after, old)
 
@@ -259,13 +278,18 @@ def main():
     node the highest of it within one new cell); before ({args.before}), the bilinear value at
     the node. Rough synthetic terrain with narrow pinnacles, GeoTIFFs tiled 512^2,
     `import_dem(..., chunks=1024)` on the threaded scheduler (2 threads), each in a fresh
-    process; "raise" is what the build records: the node's value above the file's bilinear
+    process, after and before in turn {REPEATS} times: the median, and the fastest and slowest
+    in brackets; "raise" is what the build records: the node's value above the file's bilinear
     surface there (metres), mean and greatest. The last row is what a job builds from the
     lon/lat file: its DEM store and its maps (`build_maps`, R 300 m) on a LocalCluster of 2
     workers.""")
     table = []
+
+    def timed(r):
+        return f"{r['seconds']:.2f} ({r['spread'][0]:.2f}-{r['spread'][1]:.2f})"
+
     for name, after, old in rows:
-        table.append([name, old["seconds"], after["seconds"],
+        table.append([name, timed(old), timed(after),
                       f"{after['seconds'] / old['seconds']:.2f}x", after["raise_mean_m"],
                       after["raise_max_m"], after["peak_gib"]])  # fmt: skip
     for what, key in (("DEM store", "dem_seconds"), ("DEM store and maps", "seconds")):
