@@ -168,8 +168,9 @@ def run_job(
 def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
     """What the catalog of ``job`` holds that this tool made and the job no longer uses: DEM
     and maps stores (this tool's, by their mark) other than ``dem_store`` and ``maps_store``,
-    and mission folders (each with its Item) of missions no longer in the job."""
-    from .outputs.catalog import COLLECTION, mission_id
+    and mission folders the tool wrote (by their mark, :func:`~pipeline.outputs.catalog.tool_files`)
+    of missions no longer in the job; a folder of the user's own is never among them."""
+    from .outputs.catalog import COLLECTION, mission_id, tool_files
     from .store.paths import own_store
 
     out = []
@@ -184,12 +185,18 @@ def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
     folder = job.catalog / COLLECTION
     if folder.is_dir():
         for p in sorted(folder.iterdir()):
-            if p.is_dir() and p.name not in ids and (p / f"{p.name}.json").is_file():
+            if p.is_dir() and p.name not in ids and tool_files(p) is not None:
                 out.append(p)
     return out
 
 
 def _size(p: Path) -> int:
+    """What removing ``p`` frees: a store's files, or those the tool wrote in a mission folder."""
+    if p.suffix != ".zarr":
+        from .outputs.catalog import tool_files
+
+        files = [p / f for f in tool_files(p) or []]
+        return sum(f.stat().st_size for f in files if f.is_file() and not f.is_symlink())
     return sum(f.stat().st_size for f in p.rglob("*") if f.is_file() and not f.is_symlink())
 
 
@@ -199,12 +206,19 @@ def _prune(job: Job, dem_store: Path, maps_store: Path, remove: bool) -> None:
         return
     size = sum(_size(p) for p in old)
     if remove:
+        from .outputs.catalog import remove_tool_files
+
+        kept = []
         for p in old:
-            shutil.rmtree(p, ignore_errors=True)
+            if p.suffix == ".zarr":
+                shutil.rmtree(p, ignore_errors=True)
+            else:  # only the files the tool wrote in a mission folder
+                kept += [f"{p.name}/{f}" for f in remove_tool_files(p)]
         log.info(
-            "pruned %d stores and mission folders the job no longer uses (%.2f GB)",
+            "pruned %d stores and mission folders the job no longer uses (%.2f GB)%s",
             len(old),
             size / 1e9,
+            f"; kept {len(kept)} files of yours in them ({', '.join(kept[:3])})" if kept else "",
         )
         return
     names = ", ".join(p.name for p in old[:3]) + (

@@ -1055,7 +1055,9 @@ def test_old_stores_and_missions_are_counted_and_pruned_on_request(
 ):
     """A job whose maps parameters changed and one of whose missions was removed: the run says
     what the catalog holds that the job no longer uses, and removes it only with prune; what
-    the job uses and a user's file stay."""
+    the job uses and the user's files stay: a folder of their own among the missions (with a
+    JSON of its name), their file in a mission folder that is planned again, and their file
+    in a pruned mission's folder (the tool's files go, the folder stays with it)."""
     with_stores(stores, tmp_path)
     job = write_job(tmp_path, missions=TWO, name="prune")
     root = tmp_path / "cat"
@@ -1067,14 +1069,51 @@ def test_old_stores_and_missions_are_counted_and_pruned_on_request(
         .replace('name = "south"', 'name = "north"')
     )
     (root / "notes.txt").write_text("mine")
+    survey = root / "missions" / "my-survey"
+    survey.mkdir()
+    (survey / "my-survey.json").write_text('{"id": "my-survey", "properties": {}}')
+    (survey / "raw.dat").write_bytes(b"\x00" * 100)
+    (root / "missions" / "east" / "dive-log.md").write_text("east, mine")
+    (root / "missions" / "south" / "dive-log.md").write_text("south, mine")
     with caplog.at_level("INFO", logger="pipeline.run"):
         res = run_job(job, scheduler=local_client)
     assert res.ok and old_maps.exists() and (root / "missions" / "south").exists()
+    # east planned again (a new clearance): its folder replaced, the user's file moved over
+    assert (root / "missions" / "east" / "dive-log.md").read_text() == "east, mine"
     assert "holds 2 stores and mission folders the job no longer uses" in caplog.text
     assert "--prune` removes them" in caplog.text
     proc = console(job, local_client, "--prune")
     assert proc.returncode == 0, proc.stderr
     assert "pruned 2 stores and mission folders" in proc.stderr
-    assert not old_maps.exists() and not (root / "missions" / "south").exists()
+    assert "kept 1 files of yours in them (south/dive-log.md)" in proc.stderr
+    assert not old_maps.exists()
+    assert [p.name for p in (root / "missions" / "south").iterdir()] == ["dive-log.md"]
+    assert sorted(p.name for p in survey.iterdir()) == ["my-survey.json", "raw.dat"]
+    assert (root / "missions" / "east" / "dive-log.md").read_text() == "east, mine"
     assert len(list(root.glob("maps-*.zarr"))) == 1 and len(list(root.glob("dem-*.zarr"))) == 1
-    assert set(_props(root)) == {"east", "north"} and (root / "notes.txt").read_text() == "mine"
+    collection = json.loads((root / "missions" / "collection.json").read_text())
+    items = {link["href"] for link in collection["links"] if link["rel"] == "item"}
+    assert items == {"./east/east.json", "./north/north.json"}
+    assert (root / "notes.txt").read_text() == "mine"
+
+
+def test_a_folder_of_the_users_own_named_as_a_mission_is_never_touched(
+    tmp_path, stores, local_client
+):
+    """A folder the tool did not write where a mission's folder goes (no mark, no Item of the
+    tool's): that mission fails, saying so in one line, the folder is left as it was, and the
+    other mission completes."""
+    with_stores(stores, tmp_path)
+    job = write_job(tmp_path, missions=TWO, name="theirs")
+    mine = tmp_path / "cat" / "missions" / "east"
+    mine.mkdir(parents=True)
+    (mine / "raw.dat").write_bytes(b"\x01" * 10)
+    (mine / "east.json").write_text('{"note": "my own east survey"}')
+    proc = console(job, local_client)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "missions/east exists and was not written by this tool" in proc.stderr
+    assert sorted(p.name for p in mine.iterdir()) == ["east.json", "raw.dat"]
+    assert (mine / "east.json").read_text() == '{"note": "my own east survey"}'
+    south = json.loads((tmp_path / "cat" / "missions" / "south" / "south.json").read_text())
+    assert south["properties"]["auv:status"] in ("ok", "uncertified")

@@ -26,6 +26,7 @@ Item's presence means the mission is finished (a re-run skips it).
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import functools
 import hashlib
@@ -39,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..exceptions import PipelineError
 from ..store.paths import write_atomically
 
 COLLECTION = "missions"
@@ -70,9 +72,69 @@ def finished(root: Path, name: str) -> dict | None:
     mid = mission_id(name)
     p = mission_dir(root, name) / f"{mid}.json"
     try:
-        return json.loads(p.read_text())
+        item = json.loads(p.read_text())
     except (OSError, ValueError):
         return None
+    if not isinstance(item, dict) or not isinstance(item.get("properties"), dict):
+        return None  # (a JSON of the user's own)
+    return item if tool_files(p.parent) is not None else None
+
+
+# the mark the tool leaves in each mission folder it writes: the files it wrote there (what a
+# re-run replaces and --prune removes; anything else in the folder is the user's and stays)
+MARK = ".pipeline-mission"  # (JSON; not named *.json: it is no Item)
+TOOL = "auv-pipeline"
+
+
+def tool_files(folder: Path) -> list[str] | None:
+    """The names of the files the tool wrote in the mission folder ``folder``, from its mark;
+    for a folder written before the mark, its Item (``<folder name>.json`` holding the tool's
+    ``auv:run_id``) and the Item's assets. None when the folder is not the tool's."""
+    try:
+        mark = json.loads((folder / MARK).read_text())
+        if isinstance(mark, dict) and mark.get("made_by") == TOOL:
+            return [str(f) for f in mark.get("files", []) if "/" not in str(f)] + [MARK]
+    except (OSError, ValueError):
+        pass
+    try:
+        item = json.loads((folder / f"{folder.name}.json").read_text())
+        if not isinstance(item, dict) or "auv:run_id" not in item.get("properties", {}):
+            return None
+        hrefs = [str(a.get("href", "")) for a in (item.get("assets") or {}).values()]
+    except (OSError, ValueError, AttributeError):
+        return None
+    names = [h[2:] if h.startswith("./") else h for h in hrefs]
+    return [f"{folder.name}.json"] + [n for n in names if n and "/" not in n]
+
+
+def remove_tool_files(folder: Path) -> list[str]:
+    """Remove what the tool wrote in the mission folder ``folder`` (:func:`tool_files`) and the
+    folder itself when nothing else is left; returns the names of the user's files kept."""
+    for name in tool_files(folder) or []:
+        with contextlib.suppress(FileNotFoundError):
+            (folder / name).unlink()
+    kept = sorted(p.name for p in folder.iterdir())
+    if not kept:
+        folder.rmdir()
+    return kept
+
+
+def _replace(final: Path, tmp: Path, name: str) -> None:
+    """Put the new mission folder ``tmp`` in place of ``final``: the files the tool wrote
+    there before are replaced, the user's own files are moved into the new folder; a folder
+    of that name the tool did not write is never touched."""
+    if final.exists():
+        mine = tool_files(final)
+        if mine is None:
+            raise PipelineError(
+                f"{final} exists and was not written by this tool: move it away or rename "
+                f"mission {name!r}"
+            )
+        for p in final.iterdir():
+            if p.name not in mine and not (tmp / p.name).exists():
+                os.rename(p, tmp / p.name)  # the user's own file, kept
+        shutil.rmtree(final)
+    os.rename(tmp, final)
 
 
 def damaged_assets(root: Path, item: dict) -> list[str]:
@@ -225,9 +287,9 @@ def write_mission(
         ]
         d["collection"] = COLLECTION
         (tmp / f"{mid}.json").write_text(_item_text(d))
-        if final.exists():
-            shutil.rmtree(final)
-        os.rename(tmp, final)
+        written = sorted(p.name for p in tmp.iterdir())
+        (tmp / MARK).write_text(json.dumps({"made_by": TOOL, "files": written}))
+        _replace(final, tmp, name)
         return d
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
