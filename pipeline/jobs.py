@@ -140,6 +140,8 @@ class Job:
     # [output] performance_report: dask's performance report of each run that computed
     performance_report: bool = PERFORMANCE_REPORT.default
     missions: list = field(default_factory=list)
+    # the inputs' content hashes (:meth:`content_hash`), made when first asked for
+    _hashes: object = field(default=None, init=False, repr=False, compare=False)
 
     def maps_fingerprint(self) -> str:
         """A hash of the DEM definition and the maps parameters (reuse the maps store)."""
@@ -168,8 +170,30 @@ class Job:
             "revision": RESULTS_REVISION,
         }
         if plan.get("keep_out"):
-            what["zones"] = [_file_stamp(f) for f in plan["keep_out"]]
+            what["zones"] = [self._zone_files(f) for f in plan["keep_out"]]
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
+
+    def content_hash(self, path) -> str:
+        """The hash of what the input file or folder ``path`` holds (:mod:`.store.content`),
+        kept in the catalog between runs (:meth:`save_hashes`)."""
+        from .store.content import CACHE_NAME, ContentHashes
+
+        if self._hashes is None:
+            self._hashes = ContentHashes(self.catalog / CACHE_NAME)
+        return self._hashes.of(path)
+
+    def save_hashes(self) -> None:
+        """Keep the inputs' hashes in the catalog (a run, holding its lock)."""
+        if self._hashes is not None:
+            self._hashes.save()
+
+    def _zone_files(self, path: str) -> list:
+        """The contents of a zone file and of those beside it that share its stem (a
+        Shapefile's .dbf and .prj): a mission planned with zones is planned again when they
+        change."""
+        p = Path(path)
+        files = sorted(p.parent.glob(glob_escape(p.stem) + ".*")) if p.is_file() else [p]
+        return [[f.name, self.content_hash(f)] for f in files]
 
     def vehicle_of(self, mission: dict) -> dict:
         """The vehicle of a mission: the job's [vehicle] with the mission's own keys over it."""
@@ -178,11 +202,9 @@ class Job:
     def dem_fingerprint(self) -> str:
         """A hash of what defines the DEM: re-running with the same inputs reuses the store."""
         if self.dem_path is not None:
-            st = self.dem_path.stat()
             what = {
                 "path": str(self.dem_path.resolve()),
-                "size": st.st_size,
-                "mtime_ns": st.st_mtime_ns,
+                "content": self.content_hash(self.dem_path),
                 "variable": self.variable,
                 "cell_size": self.cell_size,
                 "construction": DEM_CONSTRUCTION,
@@ -199,15 +221,6 @@ class Job:
             what = {"synthetic": self.synthetic, "version": GENERATOR_VERSION}
         what["chunks"] = self.chunks
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def _file_stamp(path: str) -> list:
-    """The size and modification time of a file and of those beside it that share its stem
-    (a Shapefile's .dbf and .prj): a mission planned with zones is planned again when they
-    change."""
-    p = Path(path)
-    files = sorted(p.parent.glob(glob_escape(p.stem) + ".*")) if p.is_file() else [p]
-    return [[f.name, *(lambda st: (st.st_size, st.st_mtime_ns))(f.stat())] for f in files]
 
 
 def _fail(path: Path, msg: str):

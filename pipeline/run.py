@@ -143,6 +143,7 @@ def run_job(
             dashboard_address,
             workers,
         )
+        job.save_hashes()
         res.catalog = write_catalog(
             job.catalog,
             job.name,
@@ -339,6 +340,7 @@ CATALOG_ENTRIES = (
     "reports",
     "index.html",
     "performance-report.html",
+    ".input-hashes.json",
 )
 
 

@@ -405,3 +405,81 @@ def test_verify_walks_the_geodesic_and_the_rhumb_line_of_each_leg(tmp_path):
             assert "rhumb-line route" in check.where, check.where
         else:
             assert "rhumb-line" not in check.where, check.where
+
+
+def _same_stamp(path, write):
+    """Rewrite ``path`` by ``write()`` and set its size and modification time back to what they
+    were (as ``cp -p``, ``rsync -t`` or tar leave a replaced file)."""
+    import os
+
+    st = os.stat(path)
+    write()
+    assert os.stat(path).st_size == st.st_size
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def test_an_input_changed_in_place_with_its_size_and_time_is_planned_again(tmp_path, local_client):
+    """Inputs are known by their content: a GeoTIFF DEM replaced by one with a ridge across the
+    route, a zone file moved onto the route, and a chunk of a Zarr DEM raised, each with the
+    same size and modification time as before, plan the mission again (and the new track keeps
+    its clearance from the new file, by pipeline verify); an untouched re-run skips it."""
+    import shapely
+    import zarr
+
+    z = np.full((60, 60), -3000.0)
+    path, x, y = _tif(tmp_path / "dem.tif", z, 100.0)
+    zone = tmp_path / "zone.geojson"
+
+    def zone_at(x0):  # a 400 m square, its coordinates always written with the same width
+        box = shapely.box(x0, y[40], x0 + 400.0, y[36])
+        zone.write_text(
+            json.dumps(
+                {
+                    "type": "FeatureCollection",
+                    "crs": {"type": "name", "properties": {"name": UTM}},
+                    "features": [
+                        {
+                            "type": "Feature",
+                            "properties": {"name": "box"},
+                            "geometry": shapely.geometry.mapping(box),
+                        }
+                    ],
+                }
+            )
+        )
+
+    zone_at(x[5])  # off the route
+    missions = f"""[[missions]]
+name = "m"
+start_xy = [{x[5]}, {y[30]}]
+goal_xy = [{x[55]}, {y[30]}]
+keep_out = ["{zone}"]"""
+    _run(tmp_path, "inplace", path, "", missions, local_client, 1)
+    _run(tmp_path, "inplace", path, "", missions, local_client, 0)  # nothing changed
+
+    ridge = z.copy()
+    ridge[:, 28:32] = -2000.0
+    _same_stamp(path, lambda: _tif(path, ridge, 100.0))
+    _run(tmp_path, "inplace", path, "", missions, local_client, 1)
+    (verdict,) = verify_missions(tmp_path / "cat", dem=path)
+    assert verdict.holds, verdict
+    _same_stamp(zone, lambda: zone_at(x[27]))  # across the route now
+    _run(tmp_path, "inplace", path, "", missions, local_client, 1)
+    (verdict,) = verify_missions(tmp_path / "cat", dem=path, keep_out=zone)
+    assert verdict.holds, verdict  # the new track keeps its margin from the zone where it is now
+
+    # a Zarr DEM (uncompressed: a chunk's size is its shape's), one chunk rewritten in place
+    store = tmp_path / "dem.zarr"
+    (tmp_path / "zarr").mkdir()
+    arr = xr.DataArray(
+        z.astype(np.float32), dims=("y", "x"), coords={"x": x, "y": y}, name="elevation"
+    )
+    arr.attrs["crs_wkt"] = CRS.from_user_input(UTM).to_wkt()
+    arr.to_dataset().to_zarr(
+        store, encoding={"elevation": {"compressors": None}}, consolidated=False
+    )
+    _run(tmp_path / "zarr", "inplace-zarr", store, "", missions, local_client, 1)
+    (chunk,) = [p for p in (store / "elevation" / "c").rglob("*") if p.is_file()]
+    _same_stamp(chunk, lambda: zarr.open_array(store / "elevation", mode="r+").__setitem__(
+        (slice(None), slice(28, 32)), -2000.0))  # fmt: skip
+    _run(tmp_path / "zarr", "inplace-zarr", store, "", missions, local_client, 1)
