@@ -347,11 +347,31 @@ def _clean(v):
     return v
 
 
+# what the data inlined in the page may not hold as itself: "<" and ">" (no "</script" closes
+# the element and no "<!--" turns the parser to the escaped state where it would not close),
+# "&", and the two line separators older scripts read as line ends; JSON's own escapes stand
+# for them, as each string still means
+_SCRIPT_ESCAPES = {
+    "<": "\\u003c",
+    ">": "\\u003e",
+    "&": "\\u0026",
+    "\u2028": "\\u2028",
+    "\u2029": "\\u2029",
+}
+
+
+def _script_json(data) -> str:
+    """``data`` as JSON safe to inline in an HTML script element (:data:`_SCRIPT_ESCAPES`)."""
+    text = json.dumps(data, allow_nan=False, separators=(",", ":"))
+    for raw, escaped in _SCRIPT_ESCAPES.items():
+        text = text.replace(raw, escaped)
+    return text
+
+
 def _page(data: dict) -> str:
     """The page: ``static/report.html`` with Leaflet, the report's style and script
     (``static/report.css``, ``static/report.js``) and the data inlined."""
-    payload = json.dumps(_clean(data), allow_nan=False, separators=(",", ":"))
-    payload = payload.replace("</", "<\\/")  # nothing in the data can close the script element
+    payload = _script_json(_clean(data))
 
     def read(path: Path) -> str:
         return path.read_text(encoding="utf-8")

@@ -58,7 +58,7 @@
     (m.zones || []).forEach((z) => {
       zoned = true;
       L.polygon(z.ring.map(ll), { color: "#7b3294", weight: 1, fillOpacity: 0.2,
-                                  className: "zone" }).bindTooltip("keep-out zone: " + z.name).addTo(map);
+                                  className: "zone" }).bindTooltip(el("span", "keep-out zone: " + z.name)).addTo(map);
     });
   });
   D.missions.forEach((m) => {
@@ -75,11 +75,11 @@
     m.waypoint_xy.forEach((w) => L.circleMarker(ll(w), { radius: 2, color: "#222", weight: 0.6,
       fillColor: "#fff", fillOpacity: 1, className: "waypoint" }).addTo(map));
     (m.via_xy || []).forEach((v, k) => L.circleMarker(ll(v), { radius: 5, color: "#000", weight: 1,
-      fillColor: "#00bcd4", fillOpacity: 1, className: "via" }).bindTooltip(m.name + ": via " + (k + 1)).addTo(map));
+      fillColor: "#00bcd4", fillOpacity: 1, className: "via" }).bindTooltip(el("span", m.name + ": via " + (k + 1))).addTo(map));
     L.circleMarker(ll(m.track[0]), { radius: 6, color: "#000", weight: 1, fillColor: "#3c3",
-      fillOpacity: 1, className: "start" }).bindTooltip(m.name + ": start").addTo(map);
+      fillOpacity: 1, className: "start" }).bindTooltip(el("span", m.name + ": start")).addTo(map);
     L.circleMarker(ll(m.track[m.track.length - 1]), { radius: 6, color: "#000", weight: 1,
-      fillColor: "#fc0", fillOpacity: 1, className: "goal" }).bindTooltip(m.name + ": goal").addTo(map);
+      fillColor: "#fc0", fillOpacity: 1, className: "goal" }).bindTooltip(el("span", m.name + ": goal")).addTo(map);
     grow(line.getBounds());
   });
   if (bounds) map.fitBounds(bounds, { padding: [10, 10] }); else map.setView([0, 0], 0);
