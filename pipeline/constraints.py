@@ -201,11 +201,11 @@ def constrained(
     depth ``max_depth_m``, or ``m`` itself without either. A rating shallower than the
     surface limit (the sea level less the surface clearance: no height would be allowed) is
     one :class:`InvalidParameterError`."""
-    from .zones import read_zones
+    from .zones import map_extent, read_zones
 
     if isinstance(m, ConstrainedStore):
         m = m.base
-    zones = read_zones(keep_out, m.crs_wkt, margin_m)
+    zones = read_zones(keep_out, m.crs_wkt, margin_m, map_extent(m))
     if max_depth_m is not None:
         max_depth_m = check_rating(max_depth_m, m.parameters)
     if zones is None and max_depth_m is None:

@@ -564,7 +564,10 @@ class _Zones:
     see the job's files."""
 
     def __init__(self, job: Job, maps):
+        from .zones import map_extent
+
         self.job, self.crs, self.read = job, maps.crs_wkt, {}
+        self.extent = map_extent(maps)
 
     def of(self, mission: dict) -> dict:
         """The mission's ``keep_out`` as :class:`pipeline.zones.KeepOut` (none: ``{}``)."""
@@ -576,7 +579,7 @@ class _Zones:
         margin = mission.get("keep_out_margin_m", self.job.planning.get("keep_out_margin_m"))
         key = (tuple(files), margin)
         if key not in self.read:
-            self.read[key] = read_zones(files, self.crs, margin)
+            self.read[key] = read_zones(files, self.crs, margin, self.extent)
         return {"keep_out": self.read[key]}
 
 

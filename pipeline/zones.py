@@ -27,6 +27,7 @@ exhaustive search of the whole map proves it.
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import os
 import threading
@@ -35,7 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .exceptions import InvalidParameterError
+from .exceptions import InvalidParameterError, notice
+
+log = logging.getLogger(__name__)
 
 # the cells removed reach this share of a cell beyond the margin (the module's description)
 SLACK = 0.25
@@ -189,7 +192,6 @@ def read_zone_file(path: str | os.PathLike):
     """A zone file as a GeoDataFrame (its polygons, a ``name`` each, its CRS), checked: one
     :class:`InvalidParameterError` for a file that does not exist or does not parse, that
     holds no polygon, or whose geometry is not polygons, or that has no CRS."""
-    import geopandas as gpd
 
     path = Path(path)
     if not path.exists():
@@ -197,7 +199,7 @@ def read_zone_file(path: str | os.PathLike):
     if not path.is_file() and not path.is_dir():
         raise InvalidParameterError(f"keep-out zone file {path} is not a regular file")
     try:
-        frame = gpd.read_file(path)
+        frame = _every_layer(path)
     except Exception as exc:  # noqa: BLE001 - pyogrio and GDAL raise many types
         what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InvalidParameterError(
@@ -211,6 +213,28 @@ def read_zone_file(path: str | os.PathLike):
             "projected coordinates needs its 'crs' member)"
         )
     return _named(frame, str(path))
+
+
+def _every_layer(path: Path):
+    """Every layer of a vector file as one GeoDataFrame (a GeoPackage may hold several), each
+    layer in the first one's CRS."""
+    import geopandas as gpd
+    import pandas as pd
+    import pyogrio
+
+    layers = [str(row[0]) for row in pyogrio.list_layers(path)]
+    if len(layers) <= 1:
+        return gpd.read_file(path)
+    frames = [gpd.read_file(path, layer=name) for name in layers]
+    crs = next((f.crs for f in frames if f.crs is not None), None)
+    if crs is not None and any(f.crs is None for f in frames):
+        bare = [n for n, f in zip(layers, frames, strict=True) if f.crs is None]
+        raise InvalidParameterError(
+            f"keep-out zone file {path}: layer {bare[0]!r} has no coordinate reference "
+            "system (the others have one); write one into it"
+        )
+    frames = [f.to_crs(crs) if crs is not None else f for f in frames]
+    return gpd.GeoDataFrame(pd.concat(frames, ignore_index=True), crs=crs)
 
 
 def _named(frame, source: str):
@@ -246,11 +270,14 @@ def _named(frame, source: str):
     return out.set_geometry(frame.geometry.name)
 
 
-def read_zones(keep_out, crs_wkt: str | None, margin_m: float = 0.0) -> KeepOut | None:
+def read_zones(
+    keep_out, crs_wkt: str | None, margin_m: float = 0.0, extent: tuple | None = None
+) -> KeepOut | None:
     """:class:`KeepOut` of ``keep_out`` in the maps' CRS ``crs_wkt``: a path or a list of
     paths of zone files (:func:`read_zone_file`), a GeoDataFrame (without a CRS: in the maps'
     coordinates), a shapely polygon, a list of them, or a :class:`KeepOut` (its margin kept
-    unless ``margin_m`` is given). None or an empty list: None."""
+    unless ``margin_m`` is given). None or an empty list: None. With the map's ``extent``
+    (x min, y min, x max, y max), zones are placed against it (:func:`_in_maps_crs`)."""
     if keep_out is None:
         return None  # (a mission without zones imports neither geopandas nor pandas)
     import geopandas as gpd
@@ -273,9 +300,9 @@ def read_zones(keep_out, crs_wkt: str | None, margin_m: float = 0.0) -> KeepOut 
     zones, shapes = [], {}
     for k, item in enumerate(items):
         if isinstance(item, str | os.PathLike):
-            zones += _in_maps_crs(read_zone_file(item), crs_wkt, str(item))
+            zones += _in_maps_crs(read_zone_file(item), crs_wkt, str(item), extent)
         elif isinstance(item, gpd.GeoDataFrame):
-            zones += _in_maps_crs(_named(item, "GeoDataFrame"), crs_wkt, "GeoDataFrame")
+            zones += _in_maps_crs(_named(item, "GeoDataFrame"), crs_wkt, "GeoDataFrame", extent)
         elif isinstance(item, BaseGeometry):
             shapes[f"keep_out[{k}]"] = item  # in the maps' coordinates, checked together
         else:
@@ -285,11 +312,17 @@ def read_zones(keep_out, crs_wkt: str | None, margin_m: float = 0.0) -> KeepOut 
             )
     if shapes:
         frame = gpd.GeoDataFrame({"name": list(shapes)}, geometry=list(shapes.values()))
-        zones += _in_maps_crs(_named(frame, "keep_out"), crs_wkt, "shapely")
+        zones += _in_maps_crs(_named(frame, "keep_out"), crs_wkt, "shapely", extent)
     return KeepOut(tuple(zones), margin) if zones else None
 
 
-def _in_maps_crs(frame, crs_wkt: str | None, source: str) -> list:
+def _in_maps_crs(frame, crs_wkt: str | None, source: str, extent: tuple | None = None) -> list:
+    """The zones of ``frame`` as (name, polygon) in the maps' CRS. A zone never vanishes
+    silently: coordinates that a geographic CRS cannot hold (a GeoJSON in map metres without
+    its ``crs`` member) are read in the map's CRS when they lie on the map, else refused; a
+    geographic zone is cut to a window around the map before it is projected (a world box
+    would become infinite); a zone that is not finite in the map's CRS is refused, and one
+    off the map is named in a warning."""
     import shapely
 
     if frame.crs is not None:
@@ -298,12 +331,96 @@ def _in_maps_crs(frame, crs_wkt: str | None, source: str) -> list:
                 f"keep-out zones {source} have a CRS but the maps have none, so they cannot "
                 "be placed on the map; give the zones as shapely polygons in map coordinates"
             )
+        if frame.crs.is_geographic:
+            frame = _geographic(frame, crs_wkt, source, extent)
         frame = frame.to_crs(crs_wkt)
     out = []
+    on_map = shapely.box(*extent) if extent is not None else None
     for name, geom in zip(frame["name"], frame.geometry, strict=True):
-        if not geom.is_valid:
+        if geom is not None and not geom.is_valid:
             geom = shapely.make_valid(geom)
+        if geom is None or geom.is_empty:
+            notice(
+                log, "keep-out zone %r (%s) lies off the map: it constrains nothing", name, source
+            )
+            continue
+        if not np.all(np.isfinite(geom.bounds)):
+            raise InvalidParameterError(
+                f"keep-out zone {name!r} ({source}) cannot be placed on the map: its "
+                "coordinates are not finite in the map's CRS; check the zone file's CRS"
+            )
+        if on_map is not None and not geom.intersects(on_map):
+            notice(
+                log,
+                "keep-out zone %r (%s) lies off the map (its bounds %s, the map's %s): it "
+                "constrains nothing; check its coordinates and CRS",
+                name,
+                source,
+                _rounded(geom.bounds),
+                _rounded(extent),
+            )
         out.append((str(name), geom))
+    return out
+
+
+def map_extent(m) -> tuple:
+    """The extent (x min, y min, x max, y max) of the maps ``m``: its cells' outer edges."""
+    a = m.cell_size / 2
+    return (
+        float(np.min(m.x)) - a,
+        float(np.min(m.y)) - a,
+        float(np.max(m.x)) + a,
+        float(np.max(m.y)) + a,
+    )
+
+
+def _rounded(b) -> str:
+    return "(" + ", ".join(f"{v:.6g}" for v in b) + ")"
+
+
+def _geographic(frame, crs_wkt: str, source: str, extent: tuple | None):
+    """A geographic ``frame`` made ready to project onto the map: read in the map's CRS when
+    its coordinates cannot be longitude and latitude but lie on the map (with a warning),
+    refused when they lie nowhere; else cut to the map's window in its CRS (a degree around
+    it), so that what lies far beyond the map is not projected."""
+    import shapely
+    from pyproj import Transformer
+
+    b = frame.total_bounds
+    if not (-180.0 <= b[0] and b[2] <= 360.0 and -90.0 <= b[1] and b[3] <= 90.0):
+        if extent is not None and shapely.box(*b).intersects(shapely.box(*extent)):
+            notice(
+                log,
+                "keep-out zones %s: coordinates %s are not longitude and latitude, as the file's "
+                "CRS says, but lie on the map: read in the map's CRS (write its CRS into the "
+                "file to say so)",
+                source,
+                _rounded(b),
+            )
+            return frame.set_crs(crs_wkt, allow_override=True)
+        raise InvalidParameterError(
+            f"keep-out zones {source}: coordinates {_rounded(b)} are not longitude and "
+            "latitude, as the file's CRS says, and do not lie on the map"
+            + (f" {_rounded(extent)}" if extent is not None else "")
+            + "; write the file's CRS into it (a GeoJSON in projected coordinates needs its "
+            "'crs' member)"
+        )
+    if extent is None:
+        return frame
+    to_geo = Transformer.from_crs(crs_wkt, frame.crs, always_xy=True)
+    w = to_geo.transform_bounds(*extent, densify_pts=21)
+    if w[0] > w[2]:  # (the map spans the antimeridian: its zones are projected whole)
+        return frame
+    window = shapely.box(
+        max(w[0] - 1.0, -180.0),
+        max(w[1] - 1.0, -90.0),
+        min(w[2] + 1.0, 360.0),
+        min(w[3] + 1.0, 90.0),
+    )
+    out = frame.copy()
+    out[out.geometry.name] = [
+        g.intersection(window) if g is not None else g for g in frame.geometry
+    ]
     return out
 
 

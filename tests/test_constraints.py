@@ -191,6 +191,76 @@ def test_zones_in_lonlat_on_a_utm_map(zone_store, tmp_path):
     assert not shapely.LineString(t.points[:, :2]).intersects(zone)
 
 
+def _feature_collection(path, zones: dict, crs: str | None = None):
+    """A GeoJSON file of the polygons ``zones`` (by name), with a ``crs`` member when given."""
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            {"type": "Feature", "properties": {"name": k}, "geometry": shapely.geometry.mapping(z)}
+            for k, z in zones.items()
+        ],
+    }
+    if crs:
+        doc["crs"] = {"type": "name", "properties": {"name": crs}}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_zones_never_vanish(zone_store, tmp_path, caplog):
+    """Zone files as they come from elsewhere: a GeoJSON in map metres without its ``crs``
+    member (read as longitude and latitude by definition) is placed where its coordinates lie
+    on the map, with a warning, and the route keeps out of it (shapely); the same coordinates
+    off the map are refused in one line; a box of 1e300 metres and a world box in longitude
+    and latitude cover the whole map (no route, said so); a zone with its latitude and
+    longitude swapped lies off the map and is named in a warning; every layer of a GeoPackage
+    is read."""
+    import geopandas as gpd
+
+    path, maps = zone_store
+    zones = _boxes(maps)
+    bare = _feature_collection(tmp_path / "bare.geojson", zones)
+    with caplog.at_level("WARNING", logger="pipeline.zones"):
+        t = pipeline.plan(path, (10, 10), (110, 110), keep_out=bare, keep_out_margin_m=30.0)
+    assert (
+        "are not longitude and latitude" in caplog.text and "read in the map's CRS" in caplog.text
+    )
+    assert t.status == "ok" and sorted(t.keep_out.names) == ["cable", "wreck"]
+    for z in zones.values():
+        assert shapely.LineString(t.points[:, :2]).distance(z) >= 30.0
+    far = {k: shapely.affinity.translate(z, 1e6, 0) for k, z in zones.items()}
+    f = _feature_collection(tmp_path / "far.geojson", far)
+    match = "are not longitude and latitude, as the file's CRS says, and do not lie on the map"
+    with pytest.raises(InvalidParameterError, match=match):
+        pipeline.plan(path, (10, 10), (110, 110), keep_out=f)
+    # a box of 1e300 metres from the origin covers the map: the ends lie in it, said so
+    huge = _feature_collection(tmp_path / "huge.geojson", {"huge": shapely.box(0, 0, 1e300, 1e300)})
+    with pytest.raises(pipeline.PipelineError, match="lies in keep-out zone 'huge'"):
+        pipeline.plan(path, (10, 10), (110, 110), keep_out=huge)
+    world = _feature_collection(
+        tmp_path / "world.geojson", {"world": shapely.box(-180, -90, 180, 90)}
+    )
+    with pytest.raises(pipeline.PipelineError, match="world"):
+        pipeline.plan(path, (10, 10), (110, 110), keep_out=world)
+    to_ll = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True)
+    lon, lat = to_ll.transform(*np.array(zones["cable"].exterior.coords).T)
+    swapped = _feature_collection(
+        tmp_path / "swapped.geojson", {"swapped": shapely.Polygon(np.c_[lat, lon])}
+    )
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="pipeline.zones"):
+        pipeline.plan(path, (10, 10), (110, 110), keep_out=swapped)
+    assert "keep-out zone 'swapped'" in caplog.text and "lies off the map" in caplog.text
+    gpkg = tmp_path / "two.gpkg"
+    for k, (name, z) in enumerate(zones.items()):
+        gpd.GeoDataFrame({"name": [name]}, geometry=[z], crs=CRS).to_file(
+            gpkg, layer=f"layer{k}", driver="GPKG"
+        )
+    t = pipeline.plan(path, (10, 10), (110, 110), keep_out=gpkg, keep_out_margin_m=30.0)
+    assert sorted(t.keep_out.names) == ["cable", "wreck"]
+    for z in zones.values():
+        assert shapely.LineString(t.points[:, :2]).distance(z) >= 30.0
+
+
 # ------------------------------------------------------------------ ends and cut-off goals
 
 
@@ -682,3 +752,61 @@ def test_the_flown_arcs_keep_the_margin_between_their_samples(radius, step):
     track = (pc, pr)
     assert pipeline.zones.entered(keep, track) == []  # on the chords alone: missed
     assert pipeline.zones.entered(keep, track, slack=(sag,)) == ["rock"]
+
+
+HOSTILE = [
+    "</script><script>window.pwned = 1</script>",
+    "<!--<script>window.pwned = 2</script>",
+    '<img src=x onerror="window.pwned = 3">',
+    "a & b \u2028 c \u2029 d ' \"",
+]
+
+
+def test_hostile_names_are_text_in_the_report(tmp_path, local_client):
+    """Mission, zone and job names holding markup (as a zone file from elsewhere may): the
+    report renders in Chromium with every mission's row in its table and each name shown as the
+    text it is (in the table and in the zones' and points' tooltips), and nothing of it runs."""
+    import geopandas as gpd
+
+    from pipeline.run import run_job
+
+    dem = pipeline.synthetic_dem((120, 120), cell_size=30.0, seed=2, chunks=None)
+    x, y = float(dem.x[60]), float(dem.y[60])
+    (tmp_path / "z").mkdir()
+    gpd.GeoDataFrame(
+        {"name": HOSTILE[1:3]},
+        geometry=[
+            shapely.box(x - 200, y + 900, x + 200, y + 1300),
+            shapely.box(x, y, x + 90, y + 90),
+        ],
+        crs=dem.attrs["crs_wkt"],
+    ).to_file(tmp_path / "z" / "zones.geojson")
+    missions = "".join(
+        f"[[missions]]\nname = {json.dumps(name)}\nstart = [10, {10 + 30 * k}]\n"
+        f"goal = [110, {20 + 30 * k}]\n"
+        for k, name in enumerate(HOSTILE)
+    )
+    job = tmp_path / "job.toml"
+    job.write_text(
+        f'name = "evil"\n[dem]\nchunks = 60\n[dem.synthetic]\nshape = [120, 120]\nseed = 2\n'
+        "[maps]\nclearance = 60.0\nlandmarks = 2\n"
+        '[planning]\nkeep_out = ["z/zones.geojson"]\nkeep_out_margin_m = 30.0\n'
+        f"{missions}"
+        '[output]\ncatalog = "out"\nquicklooks = false\nperformance_report = false\n'
+    )
+    res = run_job(job, scheduler=local_client)
+    assert res.planned == len(HOSTILE), res
+    from _browser import offline_page
+
+    with offline_page(tmp_path / "out" / "index.html") as (page, problems):
+        assert page.evaluate("window.pwned") is None
+        rows = page.locator("#missions tbody tr")
+        assert rows.count() == len(HOSTILE)
+        shown = page.locator("#missions tbody").inner_text()
+        for name in HOSTILE:
+            assert name.split("\u2028")[0] in shown, (name, shown)
+        assert page.locator("path.zone").count() == 2 * len(HOSTILE)  # each mission its own
+        page.locator("path.zone").first.hover(force=True)
+        tips = page.locator(".leaflet-tooltip").all_inner_texts()
+        assert any(t.startswith("keep-out zone: <") for t in tips), tips
+    assert not any(problems.values()), problems
