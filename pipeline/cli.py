@@ -294,11 +294,13 @@ def build_maps_cmd(dem_path, out, chunks, scheduler, scheduler_file, overwrite, 
     landmark distances) from the DEM at DEM_PATH."""
     from .dem.open import open_dem
     from .maps.build import build_maps, check_build_arguments
-    from .runtime.cluster import session
+    from .runtime.cluster import local_workers, session
     from .store.paths import is_url, require_writable
 
     with _errors():
         t0 = time.perf_counter()
+        if workers is not None and not (scheduler or scheduler_file):
+            local_workers(workers)  # (at once: reading the DEM may take a while)
         dem = open_dem(dem_path, chunks=chunks or DEM.chunks.default)
         # a wrong argument, a wrong bucket or credential before a cluster is started
         check_build_arguments(dem, out, chunks=chunks, overwrite=overwrite, **params)

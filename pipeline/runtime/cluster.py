@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import os
 import socket
 import threading
 from contextlib import contextmanager
@@ -384,7 +385,35 @@ def local_workers(workers: int | None = None) -> int:
         raise InvalidParameterError(
             f"the number of workers must be a whole number of at least 1, got {value!r}"
         )
+    most, why = most_local_workers()
+    if n > most:
+        raise InvalidParameterError(
+            f"{n} local workers: this machine holds at most {most} ({why}); give at most "
+            f"{most}, or a cluster's address with --scheduler"
+        )
     return n
+
+
+# what a local worker process needs to do its share of a build: it holds about 0.2 GiB once
+# the tool is imported, and up to 0.9 at the peak of a 10000^2 maps build (CHANGELOG.md,
+# "Measurements"); and how many worker processes a core may carry at most
+WORKER_BYTES = 2**30
+WORKERS_PER_CORE = 8
+
+
+def most_local_workers() -> tuple[int, str]:
+    """The most worker processes a LocalCluster may start on this machine, and why: one per
+    :data:`WORKER_BYTES` of the memory available now, at most :data:`WORKERS_PER_CORE` per
+    core (a thousand would start until the memory is gone)."""
+    import psutil
+
+    free = psutil.virtual_memory().available
+    cores = os.cpu_count() or 1
+    by_memory = max(1, int(free // WORKER_BYTES))
+    by_cores = WORKERS_PER_CORE * cores
+    if by_memory <= by_cores:
+        return by_memory, f"{free / 2**30:.1f} GiB of memory available, 1 GiB a worker"
+    return by_cores, f"{cores} cores, {WORKERS_PER_CORE} workers a core"
 
 
 def _client(client):
