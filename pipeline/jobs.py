@@ -230,7 +230,13 @@ def _fail(path: Path, msg: str):
 def _check_keys(path: Path, table: dict, allowed: set[str], where: str) -> None:
     unknown = sorted(set(table) - allowed)
     if unknown:
-        _fail(path, f"unknown key {where}{unknown[0]!r}; allowed keys here: {sorted(allowed)}")
+        key = unknown[0]
+        hint = ""
+        if key in VEHICLE.names() and "vehicle" in allowed:  # a mission's vehicle key
+            hint = f" ({key!r} is a vehicle's: give it as vehicle = {{{key} = ...}})"
+        elif key in VEHICLE.names() and where != "vehicle.":
+            hint = f" ({key!r} is a vehicle's: give it under [vehicle])"
+        _fail(path, f"unknown key {where}{key!r}{hint}; allowed keys here: {sorted(allowed)}")
 
 
 def _typed(path: Path, table: dict, key: str, types, where: str, what: str):

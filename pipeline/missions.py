@@ -19,7 +19,7 @@ import logging
 import math
 import threading
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 
@@ -57,7 +57,9 @@ _PLAN_KEYS = PLANNING.names()
 _ENDPOINT_KEYS = {endpoint_key(end, f) for end in ("start", "goal") for f in ENDPOINT_FORMS}
 
 
-_MISSION_KEYS = sorted(_PLAN_KEYS | _ENDPOINT_KEYS | set(VIA_KEYS) | {"vehicle", "name"})
+_MISSION_KEYS = sorted(
+    _PLAN_KEYS | _ENDPOINT_KEYS | set(VIA_KEYS) | {"vehicle", "name", "max_depth_m"}
+)
 
 
 def failed_trajectory(mission: dict, message: str) -> Trajectory:
@@ -125,7 +127,8 @@ def plan_missions(
     missions : sequence
         Each a ``(start, goal)`` pair of cells or a dict with ``start``, ``goal`` and any of
         :func:`pipeline.plan`'s options (``planner``, ``omega``, ``mcpc``, ``rho``,
-        ``section_size``, ``margin``) and ``vehicle``; other keys (a ``name``, a tag of the
+        ``section_size``, ``margin``, ``keep_out``, ``max_depth_m``: the rating, as the
+        vehicle's) and ``vehicle``; other keys (a ``name``, a tag of the
         caller's) are kept for ``on_done``, but a near miss of an option (``omgea``) fails
         its mission with the reason, as it would be planned as if it were absent.
     client : as :func:`pipeline.plan`
@@ -176,6 +179,12 @@ def plan_missions(
     ...                                           "planner": "lagrangian", "omega": 1.5}])
     ... # doctest: +SKIP
     """
+    if isinstance(missions, str | bytes | dict) or not isinstance(missions, Iterable):
+        raise InvalidParameterError(
+            "`missions` must be a sequence of missions (each a (start, goal) pair of cells or "
+            f"a dict with start and goal), got {type(missions).__name__}"
+        )
+    missions = list(missions)
     m = open_store(maps)
     run_on = get_client(client)
     items, invalid = _read_missions(m, missions)
@@ -306,6 +315,15 @@ def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory
     opts = {**batch.defaults, **{k: v for k, v in mission.items() if k in _PLAN_KEYS}}
     opts.update({k: mission[k] for k in VIA_KEYS if k in mission})
     vehicle = {**(batch.vehicle or {}), **mission.get("vehicle", {})}
+    rated = mission.get("max_depth_m")  # plan's own keyword, or the vehicle's rating
+    if rated is not None and vehicle.get("max_depth_m") not in (None, rated):
+        return failed_trajectory(
+            {**opts},
+            f"max_depth_m is {rated!r} for the mission and {vehicle['max_depth_m']!r} for its "
+            "vehicle; give the rating once",
+        )
+    if rated is not None:
+        vehicle["max_depth_m"] = rated
     if vehicle.get("max_depth_m") is not None:  # the rating: its path is planned for it too
         opts["max_depth_m"] = vehicle["max_depth_m"]
     try:

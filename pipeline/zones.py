@@ -292,11 +292,26 @@ def read_zones(
         raise InvalidParameterError(
             f"`keep_out_margin_m` must be a finite number of metres >= 0, got {margin_m!r}"
         )
-    items = (
-        [keep_out]
-        if isinstance(keep_out, str | os.PathLike | BaseGeometry | gpd.GeoDataFrame)
-        else list(keep_out)
-    )
+    one = (str, os.PathLike, BaseGeometry, gpd.GeoDataFrame)
+    if isinstance(keep_out, one):
+        items = [keep_out]
+    elif isinstance(keep_out, list | tuple):
+        items = list(keep_out)
+    else:  # (bytes, a dict or a number would be read item by item as something else)
+        raise InvalidParameterError(
+            "`keep_out` takes a zone file's path, a GeoDataFrame, a shapely polygon or a list "
+            f"of them, got {type(keep_out).__name__}"
+        )
+    for item in items:
+        if isinstance(item, str) and not item.strip():
+            raise InvalidParameterError(
+                "`keep_out` holds an empty path; give a zone file's path, or leave it out"
+            )
+        if isinstance(item, str) and "://" in item:
+            raise InvalidParameterError(
+                f"keep-out zone file {item} is a URL: zone files are read from local paths; "
+                "download it first"
+            )
     zones, shapes = [], {}
     for k, item in enumerate(items):
         if isinstance(item, str | os.PathLike):

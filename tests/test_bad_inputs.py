@@ -957,3 +957,71 @@ def test_a_dem_store_read_through_its_guard_equals_its_source_for_awkward_chunks
     got = pipeline.open_dem(dem, chunks=16)
     assert got.data.chunks == ((16, 16, 16, 1), (16, 16, 1))
     np.testing.assert_array_equal(got.values, pipeline.open_dem(src, chunks=None).values)
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda p: pipeline.plan(p, (5, 5), (50, 50), keep_out=5), "got int"),
+        (lambda p: pipeline.plan(p, (5, 5), (50, 50), keep_out=b"zones.geojson"), "got bytes"),
+        (lambda p: pipeline.plan(p, (5, 5), (50, 50), keep_out={"a": 1}), "got dict"),
+        (lambda p: pipeline.plan(p, (5, 5), (50, 50), keep_out=""), "an empty path"),
+        (lambda p: pipeline.plan(p, (5, 5), (50, 50), keep_out="https://x.org/z.json"), "URL"),
+        (lambda p: pipeline.plan_missions(p, None), "`missions` must be a sequence"),
+        (lambda p: pipeline.plan_missions(p, 5), "got int"),
+        (lambda p: pipeline.plan_missions(p, {"start": (5, 5)}), "got dict"),
+    ],
+)
+def test_wrong_types_are_one_pipeline_error(built_store, call, match):
+    with pytest.raises(pipeline.PipelineError, match=match):
+        call(built_store)
+
+
+def test_a_missions_rating_in_plan_missions_is_kept(built_store):
+    """``max_depth_m`` in a mission's dict is plan's own keyword: the path keeps to it (its
+    points' heights, numpy), as a vehicle's rating does; given twice and differently, that
+    mission fails saying so and the other is planned."""
+    import xarray as xr
+
+    safety = xr.open_zarr(built_store)["safety"].values
+    free = pipeline.plan(built_store, (5, 5), (50, 50), client="synchronous")
+    deepest = -float(free.points[:, 2].min())
+    rating = deepest - 0.25 * (deepest + float(np.nanmax(safety)))  # shallower than the path
+    a, b = pipeline.plan_missions(
+        built_store,
+        [
+            {"start": (5, 5), "goal": (50, 50), "max_depth_m": rating},
+            {
+                "start": (5, 5),
+                "goal": (50, 50),
+                "max_depth_m": rating,
+                "vehicle": {"max_depth_m": 1},
+            },
+        ],
+        client="synchronous",
+    )
+    assert a.status in ("ok", "uncertified"), a.message
+    assert -a.points[:, 2].min() <= rating + 1e-6 < deepest
+    assert b.status == "failed" and "give the rating once" in b.message
+
+
+def test_plan_missions_from_a_plain_script_runs_once_in_threads(built_store, tmp_path):
+    """A script without ``if __name__ == "__main__":`` calling plan_missions at its top level:
+    it plans on its own threads, says so in one warning naming the fix, and its body runs once
+    (worker processes would have imported it again and failed to start)."""
+    script = tmp_path / "plain.py"
+    script.write_text(
+        "import pipeline\n"
+        "print('body runs')\n"
+        f"ts = pipeline.plan_missions({str(built_store)!r},\n"
+        "                             [((5, 5), (50, 50)), ((6, 6), (40, 50))])\n"
+        "print('statuses', [str(t.status) for t in ts])\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=300, cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("body runs") == 1, proc.stdout
+    assert "statuses ['ok', 'ok']" in proc.stdout or "uncertified" in proc.stdout, proc.stdout
+    assert "Traceback" not in proc.stderr and "Nanny" not in proc.stderr
+    assert 'outside `if __name__ == "__main__":`' in proc.stderr

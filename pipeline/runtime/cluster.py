@@ -20,13 +20,16 @@ from __future__ import annotations
 
 import atexit
 import json
+import logging
 import os
 import socket
 import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..exceptions import InvalidParameterError, SchedulerError
+from ..exceptions import InvalidParameterError, SchedulerError, notice
+
+log = logging.getLogger(__name__)
 
 LOCAL_WORKERS = 2
 DASHBOARD_PORT = 8787
@@ -352,9 +355,69 @@ def get_client(client=None, *, own: str = "cluster"):
         if active is None:
             return "threads"
         client = active
+    if client is None and _active_client() is None and "client" not in _LOCAL:
+        script = unguarded_script()
+        if script is not None:
+            notice(
+                log,
+                "%s calls the planner at its top level, outside `if __name__ == "
+                "\"__main__\":`: planning on this process's threads (a cluster's worker "
+                "processes would run the script again); put the call under that guard to plan "
+                "on a local cluster",
+                script,
+            )
+            return "threads"
     got = _client(client)
     prompt(got)
     return got
+
+
+def unguarded_script() -> str | None:
+    """The path of the script this process runs when it is calling here from its top level
+    outside an ``if __name__ == "__main__":`` block (worker processes started now would import
+    the script and run that call again, and fail to start), else None (a guarded call, a call
+    from a function the guard calls, ``python -c``, a notebook)."""
+    import ast
+    import sys
+
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if main is None or not path or not os.path.isfile(path):
+        return None
+    frame = sys._getframe(1)
+    while frame is not None and not (
+        frame.f_globals is vars(main) and frame.f_code.co_name == "<module>"
+    ):
+        frame = frame.f_back
+    if frame is None:
+        return None
+    line = frame.f_lineno
+    try:
+        tree = ast.parse(Path(path).read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, ValueError):
+        return None
+    for node in tree.body:
+        if node.lineno <= line <= (node.end_lineno or node.lineno):
+            return None if _main_guard(node) else str(path)
+    return None
+
+
+def _main_guard(node) -> bool:
+    """Whether ``node`` is ``if __name__ == "__main__":`` (either way round)."""
+    import ast
+
+    if not isinstance(node, ast.If) or not isinstance(node.test, ast.Compare):
+        return False
+    t = node.test
+    sides = [t.left, *t.comparators]
+    names = {s.id for s in sides if isinstance(s, ast.Name)}
+    texts = {s.value for s in sides if isinstance(s, ast.Constant)}
+    return (
+        len(t.ops) == 1
+        and isinstance(t.ops[0], ast.Eq)
+        and names == {"__name__"}
+        and (texts == {"__main__"})
+    )
 
 
 def _active_client():
