@@ -1050,6 +1050,36 @@ def test_sigterm_ends_a_run_in_one_line_and_the_rerun_goes_on(tmp_path):
     assert set(_props(tmp_path / "cat")) == {"east", "south"}
 
 
+def test_ctrl_c_ends_a_run_in_one_line(tmp_path):
+    """Ctrl-C as a terminal sends it (SIGINT to every process of the group: the run and its
+    workers) while the maps are built: exit 130, one line, no traceback from any worker
+    (there were 3-9); the re-run completes the job."""
+    import os
+    import signal
+
+    job = write_job(tmp_path, missions=TWO, name="intr")
+    proc = subprocess.Popen(
+        [str(EXE), "run", str(job)],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+        start_new_session=True,  # its own group, as a terminal's job
+    )
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if "building the maps store" in line:
+            os.killpg(proc.pid, signal.SIGINT)
+            break
+    rest = proc.stderr.read()
+    assert proc.wait(timeout=120) == 130, "".join(lines) + rest
+    assert "Traceback" not in rest and "KeyboardInterrupt" not in rest, rest
+    assert rest.strip().splitlines()[-1] == "error: interrupted", rest
+    proc = subprocess.run([str(EXE), "run", str(job)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert set(_props(tmp_path / "cat")) == {"east", "south"}
+
+
 def test_old_stores_and_missions_are_counted_and_pruned_on_request(
     tmp_path, stores, local_client, caplog
 ):

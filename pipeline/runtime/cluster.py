@@ -68,6 +68,25 @@ HOUSEKEEPING = {  # key: (ours, dask's default)
 }
 
 
+@contextmanager
+def _interrupts_ignored():
+    """SIGINT blocked in this thread while the workers are started: the processes started
+    meanwhile inherit the mask and never see Ctrl-C, which is the client's to answer (the
+    worker plugin ignores it too, in a worker a nanny restarts:
+    :class:`pipeline.runtime.exit.PromptExit`); a Ctrl-C meanwhile is delivered here once the
+    mask is lifted."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def local_cluster(dashboard_address: str = ":0", workers: int | None = None):
     """A LocalCluster of :func:`local_workers` single-threaded worker processes (2 unless
     ``workers`` or dask's configuration says otherwise), their
@@ -84,7 +103,7 @@ def local_cluster(dashboard_address: str = ":0", workers: int | None = None):
     cfg = {k: v for k, (v, default) in HOUSEKEEPING.items() if dask.config.get(k, None) == default}
     # read when the scheduler and each nanny are made, inside LocalCluster(); each worker
     # process gets its nanny's configuration
-    with dask.config.set({key: env, **cfg}):
+    with dask.config.set({key: env, **cfg}), _interrupts_ignored():
         cluster = LocalCluster(
             n_workers=local_workers(workers),
             threads_per_worker=1,

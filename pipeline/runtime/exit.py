@@ -21,16 +21,29 @@ from distributed.diagnostics.plugin import WorkerPlugin
 NAME = "auv-pipeline-prompt-exit"
 
 
+def _ignore_interrupts() -> None:
+    """Ctrl-C is the client's to answer: a terminal sends SIGINT to every process of the
+    group, and each worker printed KeyboardInterrupt's tracebacks while the client was closing
+    the cluster anyway (it ends the workers)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class PromptExit(WorkerPlugin):
     """On each worker of a cluster the pipeline starts
-    (:func:`pipeline.runtime.cluster.local_cluster`): once the worker has closed, its process
-    skips Python's shutdown."""
+    (:func:`pipeline.runtime.cluster.local_cluster`): Ctrl-C is left to the client
+    (:func:`_ignore_interrupts`), and once the worker has closed, its process skips Python's
+    shutdown."""
 
     idempotent = True
     name = NAME
 
     def setup(self, worker) -> None:
         self._closed = False
+        _ignore_interrupts()
         # registered last, run first: the handlers registered before it (logging's) are done
         # by hand
         atexit.register(self._exit)
