@@ -73,13 +73,21 @@ class ConstrainedStore(MapsStore):
             return None
         return self.keep_out.blocked(self.x[c0:c1], self.y[r0:r1], self.cell_size)
 
+    @property
+    def floor_m(self) -> float | None:
+        """The lowest height the rating allows: its depth below the sea surface (the sea
+        level less the rated depth, as the vehicle files measure depth), or None."""
+        if self.max_depth_m is None:
+            return None
+        return float(self.base.parameters.sea_level_m) - self.max_depth_m
+
     def _raised(self, surface: np.ndarray) -> np.ndarray:
         if self.max_depth_m is None:
             return surface
         from .maps.safety import float32_toward
 
         # the rating rounded up (never deeper than it) as a float32 surface holds it
-        floor = -self.max_depth_m
+        floor = self.floor_m
         if surface.dtype == np.float32:
             floor = float32_toward(floor, np.inf)
         return np.maximum(surface, np.asarray(floor, dtype=surface.dtype))  # NaN kept
@@ -214,17 +222,17 @@ def constrained(
 
 
 def check_rating(max_depth_m, parameters) -> float:
-    """The rated depth checked against the maps' surface limit (``parameters.top_m``: the sea
-    level less the surface clearance): a rating shallower leaves no height to fly at, one
-    :class:`InvalidParameterError`."""
+    """The rated depth (metres below the sea surface, as every depth the tool writes) checked
+    against the maps' surface limit (the surface clearance below the sea surface): a rating
+    shallower leaves no height to fly at, one :class:`InvalidParameterError`."""
     from .params import VEHICLE
 
     max_depth_m = VEHICLE.max_depth_m.check(max_depth_m)
-    top = parameters.top_m
-    if -max_depth_m > top:
+    below = float(parameters.sea_level_m) - float(parameters.top_m)  # the surface clearance
+    if max_depth_m < below:
         raise InvalidParameterError(
-            f"the rated depth {max_depth_m:g} m is shallower than the surface limit "
-            f"({-top:g} m: the sea level less the surface clearance), so no height keeps "
+            f"the rated depth {max_depth_m:g} m is shallower than the surface limit, "
+            f"{below:g} m below the sea surface (the surface clearance), so no height keeps "
             "both; give the vehicle's real rating, or a smaller surface_clearance"
         )
     return max_depth_m

@@ -406,8 +406,8 @@ VEHICLE = Schema(
         "max_depth_m",
         "float",
         None,
-        "the vehicle's rated depth: no point of the route deeper; where the lowest safe "
-        "height lies deeper the vehicle flies at it",
+        "the vehicle's rated depth below the sea surface: no point of the route deeper; where "
+        "the lowest safe height lies deeper the vehicle flies at it",
         "metres",
         above=0,
     ),

@@ -525,6 +525,43 @@ def test_a_rating_no_height_can_keep_is_refused(zone_store, tmp_path):
     assert got.stderr.count("\n") == 1 and "rated depth 40 m" in got.stderr
 
 
+@pytest.mark.parametrize("sea_level", [200.0, -300.0])
+def test_a_rating_is_a_depth_below_the_sea_surface(tmp_path, sea_level):
+    """One depth convention: with the sea surface at ``sea_level`` (the DEM's datum elsewhere),
+    a rating of D metres keeps every point of the route, the flight and the waypoint CSV at
+    most D metres below the sea surface (the CSV's depth column is sea level less z), and the
+    rating binds (the free route goes deeper). A rating between the surface clearance and the
+    sea level's offset is accepted (it was refused, measured from z = 0)."""
+    import csv
+
+    import rioxarray  # noqa: F401
+
+    z = random_surface((80, 80), seed=5) * 0.3 - 2000.0 + sea_level
+    dem = metric_dataarray(z.astype(np.float32), a=A).rio.write_crs(CRS)
+    path = tmp_path / "maps.zarr"
+    maps = pipeline.build_maps(
+        dem, path, clearance=60.0, landmarks=0, sea_level=sea_level, surface_clearance=100.0
+    )
+    s, g = (5, 5), (75, 75)
+    free = pipeline.plan(path, s, g, client="synchronous")
+    deepest = sea_level - float(free.points[:, 2].min())
+    rating = deepest - 200.0
+    assert rating > 100.0  # deeper than the surface clearance, so it leaves heights to fly at
+    vehicle = {"max_depth_m": rating, "min_turn_radius_m": 30.0}
+    (t,) = pipeline.plan_missions(path, [{"start": s, "goal": g}], vehicle=vehicle)
+    assert t.status in ("ok", "uncertified"), t.message
+    assert sea_level - t.points[:, 2].min() <= rating + 1e-3
+    assert sea_level - t.flight.z.min() <= rating + 1e-3 and not t.flight.problems
+    folder = tmp_path / "files"
+    pipeline.write_mission(maps, t, t.flight, folder)
+    with open(folder / "waypoints.csv") as fh:
+        depths = [float(row["depth_m"]) for row in csv.DictReader(fh)]
+    assert max(depths) <= rating + 0.01 and max(depths) > rating - 50.0
+    pipeline.plan(path, s, g, max_depth_m=150.0, client="synchronous")  # 150 >= 100: accepted
+    with pytest.raises(InvalidParameterError, match="100 m below the sea surface"):
+        pipeline.plan(path, s, g, max_depth_m=90.0)
+
+
 # ------------------------------------------------------------------ via points
 
 

@@ -289,9 +289,10 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     new = shared < 0
     hq[~new] = h_track[shared[~new]]
     hq[new], unsure_q = _required_threaded(grid, ctx.terrain, qr[new], qc[new])
-    depth = ctx.m.max_depth_m
-    if depth is not None:  # no deeper than the rating: there the vehicle flies at it
-        h_track, hq = np.maximum(h_track, -depth), np.maximum(hq, -depth)
+    sea = float(ctx.m.parameters.sea_level_m)  # depths are measured from the sea surface
+    floor = ctx.m.floor_m if ctx.m.max_depth_m is not None else None
+    if floor is not None:  # no deeper than the rating: there the vehicle flies at it
+        h_track, hq = np.maximum(h_track, floor), np.maximum(hq, floor)
     unsure = int(unsure.sum() + unsure_q.sum())
     prof = vertical_profile(
         wr, wc, qr, qc, vi, pr, pc, leg, radii, tan_d, hq, h_track, a, ctx.slope, ctx.bands,
@@ -325,21 +326,22 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         problems.append("the terrain near the track is unknown (no-data) at some samples")
     elif (need := max(h_track.max(), hq.max())) > ctx.top_ok:
         problems.append(
-            f"the clearance from the seabed needs {-need:.0f} m depth on the route, above the "
-            f"surface limit ({-ctx.top:.0f} m)"
+            f"the clearance from the seabed needs {sea - need:.0f} m depth on the route, above "
+            f"the surface limit ({sea - ctx.top:.0f} m)"
         )
     elif max(z_t.max(), zq.max()) > ctx.top_ok:
         problems.append(
-            f"the pitch limit forces the vehicle to {-max(z_t.max(), zq.max()):.0f} m depth, "
-            f"above the surface limit ({-ctx.top:.0f} m)"
+            f"the pitch limit forces the vehicle to {sea - max(z_t.max(), zq.max()):.0f} m "
+            f"depth, above the surface limit ({sea - ctx.top:.0f} m)"
         )
     else:
         low = min(float(np.min(z_t - h_track)), float(np.min(zq - hq)))
         if low < -1e-6:  # never by construction: a check of what is written
             problems.append(f"the route passes {-low:.2f} m below its required height")
-        deepest = -min(float(z_t.min()), float(zq.min()))
-        if depth is not None and deepest > depth + 1e-6:  # never by construction, as above
-            problems.append(f"the route reaches {deepest:.1f} m, below the rated {depth:g} m")
+        deepest = sea - min(float(z_t.min()), float(zq.min()))  # (below the sea surface)
+        rated = ctx.m.max_depth_m
+        if rated is not None and deepest > rated + 1e-6:  # never by construction, as above
+            problems.append(f"the route reaches {deepest:.1f} m, below the rated {rated:g} m")
     route_length = float(np.hypot(np.diff(route["s"]), np.diff(zq)).sum())
     longest = max(track["length"], route_length)
     over = ""
@@ -470,7 +472,7 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         min_clearance_m=float(min(least, other)),
         via_miss_m=_via_miss(_given_via(m, traj, pick["via"]), x, y),
         max_depth_m=m.max_depth_m,
-        at_rated_depth_m=_at_rated_depth(m.max_depth_m, s, h),
+        at_rated_depth_m=_at_rated_depth(m.floor_m if m.max_depth_m is not None else None, s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
         **profile_figures(s, z, seabed),
     )
@@ -577,13 +579,13 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
     return wi, least, where, zone
 
 
-def _at_rated_depth(depth: float | None, s: np.ndarray, h: np.ndarray) -> float:
-    """The horizontal length of the track where the rated depth ``depth`` binds: its lowest
-    allowed height ``h`` is the rating (within 1 cm), as the lowest safe height lies deeper;
-    each step counted by halves at its two samples."""
-    if depth is None or len(s) < 2:
+def _at_rated_depth(floor: float | None, s: np.ndarray, h: np.ndarray) -> float:
+    """The horizontal length of the track where the rating binds: its lowest allowed height
+    ``h`` is the rating's ``floor`` (within 1 cm), as the lowest safe height lies deeper; each
+    step counted by halves at its two samples."""
+    if floor is None or len(s) < 2:
         return 0.0
-    at = h <= -depth + 0.01
+    at = h <= floor + 0.01
     step = np.diff(s)
     return float(0.5 * (step * at[:-1]).sum() + 0.5 * (step * at[1:]).sum())
 
