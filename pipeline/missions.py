@@ -225,7 +225,7 @@ def _read_missions(m, missions) -> tuple[list, dict]:
     for i, x in enumerate(missions):
         try:
             items.append(endpoint_cells(m, _normalise(x)))
-        except InvalidParameterError as exc:
+        except PipelineError as exc:  # (an end or a via point off the map, on land: its own)
             items.append(dict(x) if isinstance(x, dict) else {"mission": x})
             invalid[i] = str(exc)
     return items, invalid

@@ -1025,3 +1025,22 @@ def test_plan_missions_from_a_plain_script_runs_once_in_threads(built_store, tmp
     assert "statuses ['ok', 'ok']" in proc.stdout or "uncertified" in proc.stdout, proc.stdout
     assert "Traceback" not in proc.stderr and "Nanny" not in proc.stderr
     assert 'outside `if __name__ == "__main__":`' in proc.stderr
+
+
+@pytest.mark.parametrize("via", ["via_xy = [[1e9, 1e9]]", "via_lonlat = [[10.0, 80.0]]"])
+def test_one_missions_off_map_via_point_fails_that_mission_alone(tmp_path, local_client, via):
+    """A via point in map coordinates or longitude and latitude off the map (the dry run cannot
+    see it: the map's extent is known once the DEM is read) fails its mission with the reason,
+    naming the point, and the other mission is planned (the whole job stopped with exit 2)."""
+    job = tmp_path / "job.toml"
+    job.write_text(
+        f"name = 'v'\n{SYN}[maps]\nclearance = 100.0\n"
+        f"[[missions]]\nname = 'bad'\nstart = [1, 1]\ngoal = [38, 38]\n{via}\n"
+        "[[missions]]\nname = 'good'\nstart = [2, 2]\ngoal = [30, 38]\n"
+        "[output]\ncatalog = 'cat'\nquicklooks = false\nperformance_report = false\n"
+    )
+    res = pipeline.run_job(job, scheduler=local_client)
+    assert res.failed == ["bad"] and res.planned == 1, res
+    item = json.loads((tmp_path / "cat" / "missions" / "bad" / "bad.json").read_text())
+    assert "via 1" in item["properties"]["auv:message"]
+    assert "is off the map" in item["properties"]["auv:message"]
