@@ -349,12 +349,18 @@ def check_catalog(catalog: Path, job_name: str) -> None:
     another job's catalog (its ``catalog.json`` names that job: the two would drop each other's
     missions); a folder without a catalog that holds anything a run does not write (the job's
     own folder, a user's files). Absent, empty, or this job's catalog: fine."""
+    import errno
     import fnmatch
 
+    if catalog.exists() and not catalog.is_dir():  # (at the dry run too, as the run says)
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(catalog))
+    for parent in catalog.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(parent))
+            break
     if not catalog.exists() and not catalog.is_symlink():
         return
-    if not catalog.is_dir():
-        return  # a file: creating the lock says so
     index = catalog / "catalog.json"
     if index.exists():
         try:
@@ -400,7 +406,9 @@ def remove_temporaries(catalog: Path) -> list[Path]:
         else:
             p.unlink(missing_ok=True)
     if gone:
-        log.info("removed %d temporaries left by earlier runs that were killed", len(gone))
+        log.info(
+            "removed %d temporaries an earlier run left behind (one killed or failed)", len(gone)
+        )
     return gone
 
 

@@ -202,6 +202,13 @@ def read_zone_file(path: str | os.PathLike):
         frame = _every_layer(path)
     except Exception as exc:  # noqa: BLE001 - pyogrio and GDAL raise many types
         what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        known = {".geojson": "GeoJSON", ".json": "GeoJSON", ".gpkg": "GeoPackage"}
+        known[".shp"] = "a Shapefile"
+        if path.suffix.lower() in known:  # the right kind of file, damaged or malformed
+            raise InvalidParameterError(
+                f"keep-out zone file {path} is not valid {known[path.suffix.lower()]} ({what}); "
+                "fix the file"
+            ) from None
         raise InvalidParameterError(
             f"keep-out zone file {path} cannot be read as a vector file ({what}); give "
             "GeoJSON, GeoPackage or a Shapefile"
@@ -218,14 +225,18 @@ def read_zone_file(path: str | os.PathLike):
 def _every_layer(path: Path):
     """Every layer of a vector file as one GeoDataFrame (a GeoPackage may hold several), each
     layer in the first one's CRS."""
+    import warnings
+
     import geopandas as gpd
     import pandas as pd
     import pyogrio
 
-    layers = [str(row[0]) for row in pyogrio.list_layers(path)]
-    if len(layers) <= 1:
-        return gpd.read_file(path)
-    frames = [gpd.read_file(path, layer=name) for name in layers]
+    with warnings.catch_warnings():  # (GDAL's own warnings: what matters is raised, in a line)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        layers = [str(row[0]) for row in pyogrio.list_layers(path)]
+        if len(layers) <= 1:
+            return gpd.read_file(path)
+        frames = [gpd.read_file(path, layer=name) for name in layers]
     crs = next((f.crs for f in frames if f.crs is not None), None)
     if crs is not None and any(f.crs is None for f in frames):
         bare = [n for n, f in zip(layers, frames, strict=True) if f.crs is None]
@@ -344,7 +355,8 @@ def _in_maps_crs(frame, crs_wkt: str | None, source: str, extent: tuple | None =
         if not crs_wkt:
             raise InvalidParameterError(
                 f"keep-out zones {source} have a CRS but the maps have none, so they cannot "
-                "be placed on the map; give the zones as shapely polygons in map coordinates"
+                "be placed on the map; write the DEM's CRS into its file (then the maps have "
+                "it), or in Python give the zones as shapely polygons in map coordinates"
             )
         if frame.crs.is_geographic:
             frame = _geographic(frame, crs_wkt, source, extent)

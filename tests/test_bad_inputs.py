@@ -416,6 +416,8 @@ def test_catalog_path_is_a_file_or_unwritable(tmp_path):
         job = tmp_path / "job.toml"
         job.write_text(f"{SYN}\n[output]\ncatalog = '{catalog}'\n")
         one_line_error(invoke("run", job), 3, match)
+        if "file" in str(catalog):  # the dry run says so too (it said "valid")
+            one_line_error(invoke("run", job, "--dry-run"), 3, match)
 
 
 def test_output_store_under_a_file_is_an_environment_error(tmp_path):
@@ -1044,3 +1046,24 @@ def test_one_missions_off_map_via_point_fails_that_mission_alone(tmp_path, local
     item = json.loads((tmp_path / "cat" / "missions" / "bad" / "bad.json").read_text())
     assert "via 1" in item["properties"]["auv:message"]
     assert "is off the map" in item["properties"]["auv:message"]
+
+
+def test_points_on_the_maps_outer_edges_are_in_its_edge_cells(built_store):
+    """The map spans its cells' squares (as the off-map message says): a point on each outer
+    edge and corner is in the edge cell there; a hair beyond is off the map; three numbers are
+    not a point."""
+    from pipeline.store.maps_store import open_store
+
+    m = open_store(built_store)
+    x, y, a = m.x, m.y, m.cell_size
+    n_r, n_c = len(y), len(x)
+    west, east = min(x) - a / 2, max(x) + a / 2
+    north, south = max(y) + a / 2, min(y) - a / 2
+    row_of = {north: 0 if y[0] > y[-1] else n_r - 1, south: n_r - 1 if y[0] > y[-1] else 0}
+    for px, col in ((west, 0), (east, n_c - 1)):
+        for py in (north, south):
+            assert m.cell_of("start", "xy", (px, py)) == (row_of[py], col)
+    with pytest.raises(pipeline.PipelineError, match="is off the map"):
+        m.cell_of("start", "xy", (east + 0.01, north))
+    with pytest.raises(pipeline.PipelineError, match="must be a pair of finite numbers"):
+        m.cell_of("start", "xy", (1.0, 2.0, 3.0))

@@ -343,7 +343,18 @@ def _points(path):
 
 BAD = [
     ("missing.geojson", lambda p: p, "does not exist"),
-    ("garbage.geojson", lambda p: (p.write_text("{not json"), p)[1], "cannot be read"),
+    ("garbage.geojson", lambda p: (p.write_text("{not json"), p)[1], "is not valid GeoJSON"),
+    ("garbage.txt", lambda p: (p.write_text("{not json"), p)[1], "cannot be read as a vector"),
+    (
+        "unclosed.geojson",
+        lambda p: (
+            p.write_text(
+                '{"type": "Polygon", "coordinates": [[[-9, 45], [-8.9, 45], [-8.9, 45.1]]]}'
+            ),
+            p,
+        )[1],
+        "is not valid GeoJSON .*; fix the file",
+    ),
     ("points.geojson", _points, "'mooring' .* is a Point, not a polygon"),
     ("nocrs.gpkg", _gpkg_without_crs, "has no coordinate reference system"),
 ]

@@ -291,6 +291,8 @@ class MapsStore:
         if form == "cell":
             return int(value[0]), int(value[1])
         try:
+            if len(value) != 2:
+                raise ValueError
             x, y = float(value[0]), float(value[1])
             if not (math.isfinite(x) and math.isfinite(y)):
                 raise ValueError
@@ -322,9 +324,16 @@ class MapsStore:
                 f"unknown form {form!r} of {name}: 'cell', 'xy' or 'lonlat'"
             )
         xs, ys, a = self.x, self.y, self.cell_size
-        col = int(round((x - xs[0]) / (xs[1] - xs[0])))
-        row = int(round((y - ys[0]) / (ys[1] - ys[0])))
-        if not (0 <= row < len(ys) and 0 <= col < len(xs)):
+        # the cell whose square holds the point; a point on the map's outer edge is in its
+        # edge cell (the map spans its cells' squares, as the message says)
+        fc = (x - xs[0]) / (xs[1] - xs[0])
+        fr = (y - ys[0]) / (ys[1] - ys[0])
+        inside = (
+            -0.5 - 1e-9 <= fc <= len(xs) - 0.5 + 1e-9 and -0.5 - 1e-9 <= fr <= len(ys) - 0.5 + 1e-9
+        )
+        col = min(max(int(math.floor(fc + 0.5)), 0), len(xs) - 1)
+        row = min(max(int(math.floor(fr + 0.5)), 0), len(ys) - 1)
+        if not inside:
             raise InvalidEndpointError(
                 f"{name} {value} ({form}) is off the map: x spans "
                 f"{min(xs[0], xs[-1]) - a / 2:.1f} to {max(xs[0], xs[-1]) + a / 2:.1f}, y "
