@@ -1067,3 +1067,38 @@ def test_points_on_the_maps_outer_edges_are_in_its_edge_cells(built_store):
         m.cell_of("start", "xy", (east + 0.01, north))
     with pytest.raises(pipeline.PipelineError, match="must be a pair of finite numbers"):
         m.cell_of("start", "xy", (1.0, 2.0, 3.0))
+
+
+def test_a_dataarray_of_depths_or_of_no_numbers(tmp_path):
+    """A DataArray of depths (``positive = "down"``, as a NetCDF's depth variable) is read as
+    elevation, as a file's is (it built a store with nothing passable); bool or complex values
+    are refused in one line (they were built)."""
+    import xarray as xr
+
+    elev = pipeline.synthetic_dem((48, 48), chunks=None)
+    depths = xr.DataArray(
+        -elev.values, dims=elev.dims, coords=elev.coords, attrs={**elev.attrs, "positive": "down"}
+    )
+    got = pipeline.build_maps(depths, tmp_path / "d.zarr", clearance=60.0, landmarks=0)
+    want = pipeline.build_maps(elev, tmp_path / "e.zarr", clearance=60.0, landmarks=0)
+    np.testing.assert_array_equal(got["elevation"].values, elev.values.astype(np.float32))
+    np.testing.assert_array_equal(got["passable"].values, want["passable"].values)
+    assert got["passable"].values.mean() > 0.5
+    for bad in (elev > -2000, elev.astype(complex)):
+        with pytest.raises(pipeline.PipelineError, match="got values of type (bool|complex)"):
+            pipeline.build_maps(bad, tmp_path / "bad.zarr", clearance=60.0)
+
+
+def test_a_geographic_dataarray_names_the_reprojection(tmp_path):
+    """A lon/lat DataArray given to build_maps is refused for what it is (it said "cells are
+    not square"), naming open_dem, which reprojects it."""
+    import rioxarray  # noqa: F401
+    import xarray as xr
+
+    a = xr.DataArray(
+        np.full((50, 60), -3000.0, np.float32),
+        dims=("y", "x"),
+        coords={"y": np.linspace(48, 47, 50), "x": np.linspace(-130, -129, 60)},
+    ).rio.write_crs("EPSG:4326")
+    with pytest.raises(pipeline.PipelineError, match="geographic coordinates .*open_dem"):
+        pipeline.build_maps(a, tmp_path / "g.zarr", clearance=60.0)

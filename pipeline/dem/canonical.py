@@ -49,6 +49,13 @@ def cell_size(dem: xr.DataArray) -> float:
     if "cell_size" in dem.attrs:
         return float(dem.attrs["cell_size"])
     dx, dy = _spacing(dem, "x"), _spacing(dem, "y")
+    crs = _crs_of(dem)
+    if crs is not None and crs.is_geographic:
+        raise InvalidDEMError(
+            "the DEM is in geographic coordinates (longitude and latitude, not metres); "
+            "open it with pipeline.open_dem (or pipeline.import_dem), which reprojects it to "
+            "square cells in metres"
+        )
     if not math.isclose(abs(dx), abs(dy), rel_tol=1e-6):
         raise InvalidDEMError(
             f"cells are not square (dx={abs(dx)}, dy={abs(dy)}); "
@@ -83,7 +90,16 @@ def as_dem(dem: DEMLike, chunks: Chunks = DEFAULT_CHUNK) -> xr.DataArray:
     if extra:
         dem = dem.squeeze(extra, drop=True)
     dem = dem.transpose("y", "x")
+    if dem.dtype.kind not in "iuf":  # (bool or complex values are no elevations)
+        raise InvalidDEMError(
+            f"a DEM holds elevations in metres (numbers), got values of type {dem.dtype}; "
+            "give the elevation grid"
+        )
     attrs = dict(dem.attrs)
+    if str(attrs.get("positive", "")).lower() == "down":  # depths, as a file's are read
+        notice(log, "DEM has positive='down' (depths): negating to elevation, positive up")
+        dem = -dem
+        attrs["positive"] = "up"
     crs = _crs_of(dem)  # (rio.crs: a spatial_ref or grid_mapping variable; or an attribute)
     data = dem.data
     if isinstance(data, np.ma.MaskedArray):
