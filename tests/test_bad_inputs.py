@@ -1102,3 +1102,41 @@ def test_a_geographic_dataarray_names_the_reprojection(tmp_path):
     ).rio.write_crs("EPSG:4326")
     with pytest.raises(pipeline.PipelineError, match="geographic coordinates .*open_dem"):
         pipeline.build_maps(a, tmp_path / "g.zarr", clearance=60.0)
+
+
+def test_an_end_on_land_is_answered_in_the_form_it_was_given(tmp_path):
+    """A start given in map coordinates or longitude and latitude that lies on land: the error
+    names it as given (and its cell) and the nearest passable point in the same form, whose
+    cell (pyproj and the grid, independently) is passable."""
+    import re
+
+    from pyproj import Transformer
+
+    from pipeline.store.maps_store import open_store
+
+    pipeline.build_maps(
+        pipeline.synthetic_dem((64, 64), chunks=None), tmp_path / "m.zarr", clearance=60.0,
+        landmarks=0,
+    )  # fmt: skip
+    m = open_store(tmp_path / "m.zarr")
+    passable = np.asarray(
+        m.values("passable", [(r, c) for r in range(64) for c in range(64)])
+    ).reshape(64, 64)
+    r, c = (int(v) for v in np.argwhere(~passable)[0])
+    x, y = float(m.x[c]), float(m.y[r])
+    to_ll = Transformer.from_crs(m.crs_wkt, "EPSG:4326", always_xy=True)
+    lon, lat = to_ll.transform(x, y)
+    for kw, form in ((dict(start_xy=(x, y)), "xy"), (dict(start_lonlat=(lon, lat)), "lonlat")):
+        with pytest.raises(pipeline.PipelineError) as info:
+            pipeline.plan(tmp_path / "m.zarr", goal=(32, 32), client="synchronous", **kw)
+        msg = str(info.value)
+        assert msg.startswith(f"start_{form} (") and f"(cell ({r}, {c})) is on land" in msg, msg
+        px, py = (
+            float(v)
+            for v in re.search(r"nearest passable point: \(([^,]+), ([^)]+)\)", msg).groups()
+        )
+        if form == "lonlat":
+            px, py = Transformer.from_crs("EPSG:4326", m.crs_wkt, always_xy=True).transform(px, py)
+        cc = int(np.argmin(np.abs(m.x - px)))
+        rr = int(np.argmin(np.abs(m.y - py)))
+        assert passable[rr, cc] and f"(cell ({rr}, {cc}))" in msg, msg

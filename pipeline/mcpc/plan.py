@@ -34,7 +34,7 @@ from numbers import Integral
 import numpy as np
 
 from .._types import Cell, ClientLike, Maps, Pair, ZonesLike
-from ..exceptions import InvalidParameterError, UnreachableGoalError
+from ..exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
 from ..params import PLANNING, check_planner
 from ..planners.endpoints import (
     NO_PASSABLE,
@@ -93,9 +93,10 @@ def _cell(name, value) -> tuple[int, int]:
     return int(r), int(c)
 
 
-def _check_endpoints(m: MapsStore, cells, names=("start", "goal")):
+def _check_endpoints(m: MapsStore, cells, names=("start", "goal"), given: dict | None = None):
     """``cells`` (a start, via points, a goal: ``names``) checked: on the map and passable,
-    else one error naming the first that is not and the nearest passable cell."""
+    else one error naming the first that is not and the nearest passable cell (in the form
+    the point was ``given``: map coordinates or longitude and latitude, with its cell)."""
     rows, cols = m.shape
     out = []
     for name, cell in zip(names, cells, strict=True):
@@ -113,14 +114,44 @@ def _check_endpoints(m: MapsStore, cells, names=("start", "goal")):
         r0, r1, c0, c1 = max(r - h, 0), min(r + h + 1, rows), max(c - h, 0), min(c + h + 1, cols)
         ok = m.window("passable", r0, r1, c0, c1)
         if not ok[r - r0, c - c0]:
-            raise not_passable_error(
-                name,
-                r,
-                c,
-                nearest_passable(ok, (r, c), (r0, c0)),
-                NO_PASSABLE if m.passable_cells == 0 else f"no passable cell within {h} cells",
+            near = nearest_passable(ok, (r, c), (r0, c0))
+            none = NO_PASSABLE if m.passable_cells == 0 else f"no passable cell within {h} cells"
+            form, value = _given_form(given or {}, name)
+            if form == "cell":
+                raise not_passable_error(name, r, c, near, none)
+            hint = f"nearest passable point: {_as_given(m, form, near)}" if near else none
+            raise InvalidEndpointError(
+                f"{name}_{form} {tuple(value)} (cell ({r}, {c})) is on land or inside the "
+                f"clearance zone; {hint}"
             )
     return out
+
+
+def _given_form(given: dict, name: str) -> tuple[str, object]:
+    """How the point ``name`` (start, goal, via k) was given: ``(form, value)``."""
+    from ..params import ENDPOINT_FORMS, endpoint_key, via_form
+
+    if name.startswith("via "):
+        form, points = via_form(given)
+        k = int(name.split()[1]) - 1
+        return (form or "cell"), (points[k] if form else None)
+    for form in ENDPOINT_FORMS:
+        if endpoint_key(name, form) in given:
+            return form, given[endpoint_key(name, form)]
+    return "cell", None
+
+
+def _as_given(m, form: str, cell) -> str:
+    """The centre of ``cell`` in map coordinates or longitude and latitude, with the cell."""
+    r, c = cell
+    x, y = float(m.x[c]), float(m.y[r])
+    if form == "lonlat":
+        from pyproj import CRS, Transformer
+
+        to_ll = Transformer.from_crs(CRS.from_wkt(m.crs_wkt), "EPSG:4326", always_xy=True)
+        lon, lat = to_ll.transform(x, y)
+        return f"({lon:.6f}, {lat:.6f}) (cell ({r}, {c}))"
+    return f"({x:.1f}, {y:.1f}) (cell ({r}, {c}))"
 
 
 def _finish(
@@ -298,7 +329,7 @@ def plan(
     for name, cell in zip(names, points, strict=True):
         check_outside(m, name, cell)
     if vias:
-        _check_endpoints(m, points, names)
+        _check_endpoints(m, points, names, given)
         legs = dict(
             planner=planner, omega=omega, mcpc=mcpc, rho=rho, section_size=section_size,
             margin=margin, coarse_planner=coarse_planner, coarse_weight=coarse_weight,
@@ -307,7 +338,7 @@ def plan(
         traj = _plan_legs(m, points, names, legs, t0)
         traj.extra["via_given_xy"] = _given_via_xy(m, given)  # the flight's via_miss_m
         return traj
-    start, goal = _check_endpoints(m, points, names)
+    start, goal = _check_endpoints(m, points, names, given)
     # the components layer proves reachability at once, either way (_Reach)
     reach = _Reach(m, start, goal)
     run_on = get_client(client, own="threads")  # no cluster of its own for one mission
