@@ -858,3 +858,27 @@ def test_hostile_names_are_text_in_the_report(tmp_path, local_client):
         tips = page.locator(".leaflet-tooltip").all_inner_texts()
         assert any(t.startswith("keep-out zone: <") for t in tips), tips
     assert not any(problems.values()), problems
+
+
+def test_zones_that_split_a_large_map_are_named(tmp_path):
+    """A zone wall across a map larger than the pocket check's windows (1100 cells): the
+    mission fails naming the zone as the cause (it said only 'no path on the whole map'), on
+    the whole-map search and under MCPC."""
+    import geopandas as gpd
+
+    pipeline.build_maps(
+        pipeline.synthetic_dem((1100, 1100), chunks=550, islands=0), tmp_path / "m.zarr",
+        clearance=60.0, landmarks=2,
+    )  # fmt: skip
+    maps = pipeline.open_maps(tmp_path / "m.zarr")
+    y = float(maps.y[550])
+    wall = gpd.GeoDataFrame(
+        {"name": ["cable wall"]},
+        geometry=[shapely.box(float(maps.x.min()) - 50, y - 40, float(maps.x.max()) + 50, y + 40)],
+    )
+    for mcpc in (False, True):
+        with pytest.raises(pipeline.PipelineError, match="keep-out zones \\(cable wall, kept 30 m"):
+            pipeline.plan(
+                tmp_path / "m.zarr", (100, 550), (1000, 550), keep_out=wall,
+                keep_out_margin_m=30.0, mcpc=mcpc, client="synchronous",
+            )  # fmt: skip

@@ -494,12 +494,33 @@ def _plan_whole(req: _Request, extra: dict | None = None) -> Trajectory:
     whole = Section((0, m.shape[0], 0, m.shape[1]), req.start, req.goal, landmarks=k)
     res = _run(req.run_on, m, [whole], planner, req.omega)[0]
     if not res.ok:
-        raise UnreachableGoalError(f"no path on the whole map: {res.message}")
+        raise UnreachableGoalError(
+            f"no path on the whole map: {res.message}{_zones_cause(m, req.start, req.goal)}"
+        )
     extra["sections"] = [_section_summary(res, whole)]
     # a search of the whole map proves its own bound on L*
     lower = max(req.bound.value(), res.lower_bound_m)
     return _finish(
         m, [res], planner, req.omega, req.start, req.goal, res.expansions, req.t0, extra, lower
+    )
+
+
+def _zones_cause(m, start, goal) -> str:
+    """What to add to a mission's 'no path' when its keep-out zones are the cause: the store
+    without them holds start and goal in one passable region (its components layer)."""
+    zones = getattr(m, "keep_out", None)
+    base = getattr(m, "base", None)
+    if zones is None or base is None:
+        return ""
+    try:
+        a, b = base.components(start, goal)
+    except Exception:  # noqa: BLE001 - a store without the layer: nothing to add
+        return ""
+    if a is None or a != b:
+        return ""
+    return (
+        f"; without the keep-out zones ({', '.join(zones.names)}, kept {zones.margin_m:g} m "
+        "off) the two are connected: the zones close the way between them"
     )
 
 
@@ -539,10 +560,11 @@ def _plan_mcpc(req: _Request) -> Trajectory:
             coarse_omega,
         )
     except UnreachableGoalError:
+        cause = _zones_cause(m, start, goal)
         raise UnreachableGoalError(
             f"no coarse path from {start} to {goal} at rho={rho}: the goal is unreachable, or "
             "reachable only through passages narrower than rho cells; try a smaller rho or "
-            "mcpc=False"
+            f"mcpc=False{cause}"
         ) from None
     extra["coarse_cells"] = ct.cells.astype(np.int32)  # an array: quick to send back
     extra["coarse_s"] = time.perf_counter() - tc
