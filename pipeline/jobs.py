@@ -339,7 +339,9 @@ def load_job(path: str | os.PathLike) -> Job:
             check_region(job.bbox, job.bbox_xy, "dem.")
         except InvalidParameterError as exc:
             _fail(path, str(exc))
-        cell = job.resolution  # the cell side the maps are built on, when the job says it
+        # the cell side the maps are built on: the job's, else the file's own when its header
+        # says it (so that --dry-run refuses a clearance below half a cell, as a build would)
+        cell = job.resolution if job.resolution is not None else _header_cell(p)
     else:
         for key in ("bbox", "bbox_xy"):
             if key in dem:
@@ -449,6 +451,34 @@ def _check_size(path: Path, job: Job, shape) -> None:
         )
 
 
+def _header_cell(p: Path) -> float | None:
+    """The cell side (metres) a raster file's header gives, cheaply (rasterio; no values
+    read): its step in a projected CRS in metres, or for longitude and latitude the square
+    cell it is reprojected at by default (:func:`~pipeline.dem.reproject.natural_cell`'s
+    formula); None when it cannot be told (then the build checks)."""
+    import math
+
+    try:
+        import rasterio
+
+        with rasterio.open(p) as src:
+            crs, (dx, dy), bounds = src.crs, src.res, src.bounds
+    except Exception:  # noqa: BLE001 - not a raster GDAL opens (a Zarr store, ...): no header
+        return None
+    if crs is None or dx <= 0 or dy <= 0:
+        return None
+    if crs.is_geographic:
+        from .dem.reproject import METRES_PER_DEGREE
+
+        lat = math.radians(0.5 * (bounds.bottom + bounds.top))
+        return float(
+            f"{math.sqrt(dx * METRES_PER_DEGREE * math.cos(lat) * dy * METRES_PER_DEGREE):.3g}"
+        )
+    if crs.linear_units_factor[1] != 1.0 or abs(dx - dy) > 1e-6 * dx:
+        return None  # (feet, or cells not square: the build resamples, then checks)
+    return float(dx)
+
+
 def _load_maps(path, doc, job, cell_size: float | None):
     t = doc.get("maps", {})
     if not isinstance(t, dict):
@@ -460,7 +490,12 @@ def _load_maps(path, doc, job, cell_size: float | None):
             if t.get(key) is not None:
                 check_clearance(t[key], cell_size, f"maps.{key}", MAPS[key])
     except InvalidParameterError as exc:
-        _fail(path, str(exc))
+        hint = ""
+        if cell_size is not None and "half a cell" in str(exc):
+            finest = 2 * min(t[k] for k in ("clearance", "horizontal_clearance") if t.get(k))
+            where = "[dem] resolution" if job.dem_path is not None else "dem.synthetic.cell_size"
+            hint = f" (in this job: a larger [maps] clearance, or {where} = {finest:g} or finer)"
+        _fail(path, f"{exc}{hint}")
     job.maps = _maps_defaults(t)
 
 

@@ -1140,3 +1140,29 @@ def test_an_end_on_land_is_answered_in_the_form_it_was_given(tmp_path):
         cc = int(np.argmin(np.abs(m.x - px)))
         rr = int(np.argmin(np.abs(m.y - py)))
         assert passable[rr, cc] and f"(cell ({rr}, {cc}))" in msg, msg
+
+
+@pytest.mark.parametrize("crs, a, half", [("EPSG:32610", 30.0, 15.0), ("EPSG:4326", 0.0004, 18.2)])
+def test_a_clearance_below_half_a_cell_is_refused_at_the_dry_run(tmp_path, crs, a, half):
+    """The dry run reads the DEM file's header (rasterio, no values): a clearance below half
+    its cell (a lon/lat grid: the cell it is reprojected at, 36.4 m at 47.96 N) is refused
+    before anything is read or built, naming [dem] resolution (it was found after the DEM was
+    read, without naming it)."""
+    import rioxarray  # noqa: F401
+    import xarray as xr
+
+    x = (-130.0 if crs == "EPSG:4326" else 500_000.0) + (np.arange(40) + 0.5) * a
+    y = (48.0 if crs == "EPSG:4326" else 4_000_000.0) - (np.arange(40) + 0.5) * a
+    arr = xr.DataArray(np.full((40, 40), -3000.0, np.float32), dims=("y", "x"),
+                       coords={"x": x, "y": y})  # fmt: skip
+    arr.rio.write_crs(crs).rio.to_raster(tmp_path / "dem.tif")
+    job = tmp_path / "job.toml"
+    job.write_text(
+        f"name = 'h'\n[dem]\npath = 'dem.tif'\n[maps]\nclearance = {half - 0.1}\n"
+        "[[missions]]\nstart = [1, 1]\ngoal = [30, 30]\n[output]\ncatalog = 'cat'\n"
+    )
+    res = invoke("run", job, "--dry-run")
+    one_line_error(res, 2, f"smaller than half a cell ({half:g} m)")
+    assert "[dem] resolution" in res.output and not (tmp_path / "cat").exists()
+    job.write_text(job.read_text().replace(f"clearance = {half - 0.1}", f"clearance = {half}"))
+    assert invoke("run", job, "--dry-run").exit_code == 0
