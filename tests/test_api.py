@@ -360,8 +360,13 @@ def test_write_mission_writes_a_folder_of_its_own_and_replaces_only_that(store, 
     t = pipeline.plan(path, tuple(s), tuple(g))
     f = pipeline.fly(path, t, {"max_pitch_deg": 15.0})
     files = pipeline.write_mission(path, t, f, tmp_path / "m1")
-    assert set(files) == {"track", "grid-path", "waypoints-csv", "waypoints", "qgc", "kml", "imc"}
+    kinds = {"track", "grid-path", "waypoints-csv", "waypoints", "qgc", "kml", "imc"}
+    assert set(files) == kinds | {"quicklook"}  # the folder as a job writes it
     assert all(p.parent == tmp_path / "m1" and p.is_file() for p in files.values())
+    from PIL import Image
+
+    with Image.open(files["quicklook"]) as im:  # a real PNG, as an image reader meets it
+        assert im.format == "PNG" and im.size[0] > 400 and im.size[1] > 300
     loader = mavwp.MAVWPLoader()
     assert loader.load(str(files["qgc"])) == len(f.waypoints) + 1
     m = pipeline.open_store(path)

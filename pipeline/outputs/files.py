@@ -663,12 +663,13 @@ def write_mission(
     *,
     name: str | None = None,
     overwrite: bool = False,
+    quicklook: bool = True,
 ) -> dict[str, Path]:
     """Write a mission's files for people and vehicles into the new folder ``folder``, as a
     job writes them into its catalog: the flown track and the grid path (GeoParquet), the
     waypoints (CSV, GeoJSON), a QGroundControl / ArduSub mission, a KML file and an IMC plan
-    (docs/flyable-missions.md, "Files"), and ``mission.json`` (the trajectory's and the
-    flight's figures).
+    (docs/flyable-missions.md, "Files"), the quick-look (``quicklook.png``: plan view and
+    depth profile) and ``mission.json`` (the trajectory's and the flight's figures).
 
     Parameters
     ----------
@@ -683,6 +684,8 @@ def write_mission(
         ``overwrite`` and only when this function wrote it.
     name : str, optional
         The mission's name in the files (default: the folder's name).
+    quicklook : bool
+        Draw ``quicklook.png`` (about a second), as a job does by default.
 
     Returns
     -------
@@ -720,6 +723,11 @@ def write_mission(
         tmp.mkdir()
         files = write_mission_files(tmp, name, name, flown, m.crs_wkt, sea)
         skipped = files.pop("skipped", None)
+        if quicklook:
+            from .plots import mission_quicklook
+
+            mission_quicklook(m, flown, tmp / "quicklook.png", title=name, crs_wkt=m.crs_wkt)
+            files["quicklook"] = ("quicklook.png",)
         figures = {
             "name": name,
             "status": traj.status,
