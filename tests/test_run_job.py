@@ -1064,6 +1064,9 @@ def test_ctrl_c_ends_a_run_in_one_line(tmp_path):
         stdout=subprocess.DEVNULL,
         text=True,
         start_new_session=True,  # its own group, as a terminal's job
+        # as a terminal starts it: Ctrl-C not ignored (a pytest-xdist worker ignores it, and an
+        # ignored SIGINT is inherited)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     lines = []
     for line in proc.stderr:
