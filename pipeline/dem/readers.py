@@ -322,6 +322,35 @@ def file_chunks(path: str | os.PathLike) -> tuple[int, int] | None:
 def _pick_variable(
     ds: xr.Dataset, path: Path, variable: str | None, exclude: str | None = None
 ) -> xr.DataArray:
+    """The elevation variable of ``ds`` (``variable``, else its one 2-D variable, else the one
+    of an elevation's name), with the dataset's CRS when that lies in a variable of its own
+    (:func:`_with_grid_mapping`)."""
+    return _with_grid_mapping(ds, _choose_variable(ds, path, variable, exclude))
+
+
+def _with_grid_mapping(ds: xr.Dataset, arr: xr.DataArray) -> xr.DataArray:
+    """``arr`` with the CRS of a lone grid-mapping variable of ``ds`` (a 0-D variable holding
+    ``crs_wkt`` or ``spatial_ref``, as rioxarray writes ``spatial_ref``) when ``arr`` names
+    none: a store written by ``to_zarr`` keeps the variable but may lose the link to it."""
+    if any(k in arr.attrs for k in ("crs_wkt", "crs", "spatial_ref", "grid_mapping")):
+        return arr
+    if "grid_mapping" in arr.encoding or any(
+        "crs_wkt" in arr[c].attrs or "spatial_ref" in arr[c].attrs for c in arr.coords
+    ):
+        return arr
+    found = [
+        v.attrs.get("crs_wkt") or v.attrs.get("spatial_ref")
+        for v in ds.variables.values()
+        if v.ndim == 0 and (v.attrs.get("crs_wkt") or v.attrs.get("spatial_ref"))
+    ]
+    if len(found) != 1:
+        return arr
+    return arr.assign_attrs(crs_wkt=str(found[0]))
+
+
+def _choose_variable(
+    ds: xr.Dataset, path: Path, variable: str | None, exclude: str | None = None
+) -> xr.DataArray:
     if variable is not None:
         if variable not in ds.data_vars:
             raise InvalidDEMError(

@@ -1047,3 +1047,24 @@ def test_the_highest_of_a_bilinear_surface_over_a_box():
         assert got == pytest.approx(want, abs=1e-9), (b, got, want)
         du, dv = np.meshgrid(np.linspace(lo_i, hi_i, 41), np.linspace(lo_j, hi_j, 41))
         assert got >= f(np.column_stack([du.ravel(), dv.ravel()])).max() - 1e-9
+
+
+def test_a_zarr_or_netcdf_with_its_crs_in_a_variable_of_its_own(tmp_path):
+    """A store written as rioxarray and xarray leave it (``write_crs``, then ``to_zarr`` or
+    ``to_netcdf`` of the Dataset) keeps the CRS in a ``spatial_ref`` variable that the elevation
+    may no longer name: the DEM takes that CRS (pyproj's equality), as a GeoTIFF's is taken."""
+    import rioxarray  # noqa: F401
+
+    z = np.full((20, 30), -3000.0, np.float32)
+    x = 500_000.0 + (np.arange(30) + 0.5) * 50.0
+    y = 4_000_000.0 - (np.arange(20) + 0.5) * 50.0
+    arr = xr.DataArray(z, dims=("y", "x"), coords={"x": x, "y": y}, name="elevation")
+    ds = arr.rio.write_crs("EPSG:32610").to_dataset()
+    ds["elevation"].attrs.pop("grid_mapping", None)
+    ds["elevation"].encoding.pop("grid_mapping", None)
+    ds = ds.reset_coords("spatial_ref")  # a variable of its own, no longer linked
+    ds.to_zarr(tmp_path / "d.zarr", consolidated=False)
+    ds.to_netcdf(tmp_path / "d.nc")
+    for path in (tmp_path / "d.zarr", tmp_path / "d.nc"):
+        dem = pipeline.open_dem(path, chunks=None)
+        assert CRS.from_wkt(dem.attrs["crs_wkt"]) == CRS.from_epsg(32610), path
