@@ -266,8 +266,26 @@ def _maps_defaults(table: dict) -> dict:
 
 
 def load_job(path: str | os.PathLike) -> Job:
-    """Read and validate a job file without computing anything."""
+    """Read and validate a job file without computing anything: its TOML, its name, the DEM,
+    the maps, the planning options, the vehicle, the missions and their ratings, the output;
+    each step refuses what a run would, in one line naming the key."""
     path = Path(path)
+    doc = _read_toml(path)
+    _check_keys(path, doc, TOP_KEYS, "")
+    job, cell = _load_dem(path, doc, _job_name(path, doc))
+    _load_maps(path, doc, job, cell)
+    _load_planning(path, doc, job)
+    job.vehicle = _load_vehicle(path, doc.get("vehicle", {}), "vehicle.")
+    _load_missions(path, doc, job)
+    _check_ratings(path, job)
+    _load_output(path, doc, job)
+    if job.dem_path is None and "shape" in (job.synthetic or {}):
+        _check_size(path, job, job.synthetic["shape"])
+    return job
+
+
+def _read_toml(path: Path) -> dict:
+    """The job file's TOML document (a byte-order mark allowed), or one line saying why not."""
     if not path.is_file():
         what = (
             "is a directory, not a file"
@@ -289,7 +307,11 @@ def load_job(path: str | os.PathLike) -> Job:
         ) from exc
     except OSError as exc:
         raise JobFileError(f"job file {path} cannot be read: {exc.strerror}") from exc
-    _check_keys(path, doc, TOP_KEYS, "")
+    return doc
+
+
+def _job_name(path: Path, doc: dict) -> str:
+    """The job's name (default: the file's stem), safe as a file name."""
     name = doc.get("name", path.stem)
     if (
         not isinstance(name, str)
@@ -303,6 +325,12 @@ def load_job(path: str | os.PathLike) -> Job:
             f"name must be a non-empty file-name-safe string (no '/', no leading '.', no "
             f"control characters), got {name!r}",
         )
+    return name
+
+
+def _load_dem(path: Path, doc: dict, name: str) -> tuple[Job, float | None]:
+    """The job with its [dem] table read (a file or a synthetic DEM), and the cell side the
+    maps are built on when it can be told before reading the DEM."""
     dem = doc.get("dem")
     if not isinstance(dem, dict):
         _fail(path, "a [dem] table is required, with path = '...' or a [dem.synthetic] table")
@@ -375,11 +403,12 @@ def load_job(path: str | os.PathLike) -> Job:
             ),
         }
         cell = job.synthetic["cell_size"]
-    _load_maps(path, doc, job, cell)
-    _load_planning(path, doc, job)
-    job.vehicle = _load_vehicle(path, doc.get("vehicle", {}), "vehicle.")
-    _load_missions(path, doc, job)
-    _check_ratings(path, job)
+    return job, cell
+
+
+def _load_output(path: Path, doc: dict, job: Job) -> None:
+    """The [output] table: the catalog (relative to the job file, made absolute), quick-looks
+    and the performance report."""
     out = doc.get("output", {})
     if not isinstance(out, dict):
         _fail(path, "[output] must be a table")
@@ -397,9 +426,6 @@ def load_job(path: str | os.PathLike) -> Job:
     # absolute so that workers in other directories or on other machines write where the
     # client reads
     job.catalog = Path(os.path.abspath(job.catalog))
-    if job.dem_path is None and "shape" in (job.synthetic or {}):
-        _check_size(path, job, job.synthetic["shape"])
-    return job
 
 
 # a grid cut into more chunks than this is refused: each is a task of every layer and pass,

@@ -272,8 +272,9 @@ def plan(
     keep_out_margin_m : float, optional
         The distance kept from every zone (default 0).
     max_depth_m : float, optional
-        The vehicle's rated depth (metres, positive down): the path is planned and measured on
-        the safety surface raised to ``-max_depth_m`` where it lies deeper, and certified
+        The vehicle's rated depth (metres below the sea surface, as the vehicle files measure
+        depth): the path is planned and measured on the safety surface raised to the sea level
+        less ``max_depth_m`` where it lies deeper, and certified
         against the octile distance (:mod:`pipeline.constraints`). :func:`pipeline.fly` keeps
         the rating the trajectory records (``max_depth_m``).
     client : None, "synchronous", "threads", scheduler address or distributed.Client
@@ -317,18 +318,12 @@ def plan(
         ).items()
         if v is not None
     }
-    from ..constraints import check_outside, constrained
-    from ..params import endpoint_cells
+    from ..constraints import constrained
 
     margin_m = PLANNING.keep_out_margin_m.check_optional(keep_out_margin_m)
     m = constrained(m, keep_out, margin_m, max_depth_m)
-    ends = endpoint_cells(m, given)  # as a job file gives them
-    vias = [_cell(f"via {k + 1}", v) for k, v in enumerate(ends.get("via", []))]
-    names = ["start", *(f"via {k + 1}" for k in range(len(vias))), "goal"]
-    points = [_cell("start", ends["start"]), *vias, _cell("goal", ends["goal"])]
-    for name, cell in zip(names, points, strict=True):
-        check_outside(m, name, cell)
-    if vias:
+    points, names = _points(m, given)
+    if len(points) > 2:  # via points: each leg a mission of its own
         _check_endpoints(m, points, names, given)
         legs = dict(
             planner=planner, omega=omega, mcpc=mcpc, rho=rho, section_size=section_size,
@@ -367,6 +362,29 @@ def plan(
         _Bound(m, start, goal, extra),
         reach,
     )
+    return _plan_request(req, mcpc, repair_max_cells)
+
+
+def _points(m, given: dict) -> tuple[list, list]:
+    """The mission's points as cells (start, via points, goal) and their names, from the
+    forms they were ``given`` in, each outside the zones (:func:`check_outside`)."""
+    from ..constraints import check_outside
+    from ..params import endpoint_cells
+
+    ends = endpoint_cells(m, given)  # as a job file gives them
+    vias = [_cell(f"via {k + 1}", v) for k, v in enumerate(ends.get("via", []))]
+    names = ["start", *(f"via {k + 1}" for k in range(len(vias))), "goal"]
+    points = [_cell("start", ends["start"]), *vias, _cell("goal", ends["goal"])]
+    for name, cell in zip(names, points, strict=True):
+        check_outside(m, name, cell)
+    return points, names
+
+
+def _plan_request(req: _Request, mcpc: bool, repair_max_cells: int) -> Trajectory:
+    """One mission's search: the whole map (``mcpc`` False), or MCPC, falling back to the whole
+    map when MCPC finds no path though start and goal share a component, and repaired by a
+    search of the whole map (up to ``repair_max_cells``) when its bound is not proven."""
+    m, omega, reach, extra = req.m, req.omega, req.reach, req.extra
     if not mcpc:
         reach.check()
         return _done(m, _plan_whole(req))
