@@ -482,7 +482,6 @@ def _header_cell(p: Path) -> float | None:
     read): its step in a projected CRS in metres, or for longitude and latitude the square
     cell it is reprojected at by default (:func:`~pipeline.dem.reproject.natural_cell`'s
     formula); None when it cannot be told (then the build checks)."""
-    import math
 
     try:
         import rasterio
@@ -493,6 +492,16 @@ def _header_cell(p: Path) -> float | None:
         return None
     if crs is None or dx <= 0 or dy <= 0:
         return None
+    try:
+        return _cell_of_header(crs, dx, dy, bounds)
+    except Exception:  # noqa: BLE001 - a CRS rasterio cannot describe (compound...): the build checks
+        return None
+
+
+def _cell_of_header(crs, dx: float, dy: float, bounds) -> float | None:
+    """:func:`_header_cell` from the header's CRS, steps and bounds."""
+    import math
+
     if crs.is_geographic:
         from .dem.reproject import METRES_PER_DEGREE
 
