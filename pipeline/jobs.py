@@ -482,7 +482,6 @@ def _header_cell(p: Path) -> float | None:
     read): its step in a projected CRS in metres, or for longitude and latitude the square
     cell it is reprojected at by default (:func:`~pipeline.dem.reproject.natural_cell`'s
     formula); None when it cannot be told (then the build checks)."""
-
     try:
         import rasterio
 
@@ -500,15 +499,10 @@ def _header_cell(p: Path) -> float | None:
 
 def _cell_of_header(crs, dx: float, dy: float, bounds) -> float | None:
     """:func:`_header_cell` from the header's CRS, steps and bounds."""
-    import math
-
     if crs.is_geographic:
-        from .dem.reproject import METRES_PER_DEGREE
+        from .dem.reproject import lonlat_cell
 
-        lat = math.radians(0.5 * (bounds.bottom + bounds.top))
-        return float(
-            f"{math.sqrt(dx * METRES_PER_DEGREE * math.cos(lat) * dy * METRES_PER_DEGREE):.3g}"
-        )
+        return lonlat_cell(dx, dy, 0.5 * (bounds.bottom + bounds.top))
     if crs.linear_units_factor[1] != 1.0 or abs(dx - dy) > 1e-6 * dx:
         return None  # (feet, or cells not square: the build resamples, then checks)
     return float(dx)

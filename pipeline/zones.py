@@ -188,11 +188,28 @@ def _name_column(frame) -> str | None:
     return None
 
 
+# the vector files zones come in, by suffix: one that does not parse is a damaged one of them
+_VECTOR_KINDS = {
+    ".geojson": "GeoJSON",
+    ".json": "GeoJSON",
+    ".gpkg": "GeoPackage",
+    ".shp": "a Shapefile",
+}
+
+
 def read_zone_file(path: str | os.PathLike):
     """A zone file as a GeoDataFrame (its polygons, a ``name`` each, its CRS), checked: one
     :class:`InvalidParameterError` for a file that does not exist or does not parse, that
     holds no polygon, or whose geometry is not polygons, or that has no CRS."""
-
+    if not str(path).strip():
+        raise InvalidParameterError(
+            "`keep_out` holds an empty path; give a zone file's path, or leave it out"
+        )
+    if "://" in str(path):
+        raise InvalidParameterError(
+            f"keep-out zone file {path} is a URL: zone files are read from local paths; "
+            "download it first"
+        )
     path = Path(path)
     if not path.exists():
         raise InvalidParameterError(f"keep-out zone file {path} does not exist")
@@ -202,12 +219,10 @@ def read_zone_file(path: str | os.PathLike):
         frame = _every_layer(path)
     except Exception as exc:  # noqa: BLE001 - pyogrio and GDAL raise many types
         what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        known = {".geojson": "GeoJSON", ".json": "GeoJSON", ".gpkg": "GeoPackage"}
-        known[".shp"] = "a Shapefile"
-        if path.suffix.lower() in known:  # the right kind of file, damaged or malformed
+        kind = _VECTOR_KINDS.get(path.suffix.lower())
+        if kind is not None:  # the right kind of file, damaged or malformed
             raise InvalidParameterError(
-                f"keep-out zone file {path} is not valid {known[path.suffix.lower()]} ({what}); "
-                "fix the file"
+                f"keep-out zone file {path} is not valid {kind} ({what}); fix the file"
             ) from None
         raise InvalidParameterError(
             f"keep-out zone file {path} cannot be read as a vector file ({what}); give "
@@ -313,16 +328,6 @@ def read_zones(
             "`keep_out` takes a zone file's path, a GeoDataFrame, a shapely polygon or a list "
             f"of them, got {type(keep_out).__name__}"
         )
-    for item in items:
-        if isinstance(item, str) and not item.strip():
-            raise InvalidParameterError(
-                "`keep_out` holds an empty path; give a zone file's path, or leave it out"
-            )
-        if isinstance(item, str) and "://" in item:
-            raise InvalidParameterError(
-                f"keep-out zone file {item} is a URL: zone files are read from local paths; "
-                "download it first"
-            )
     zones, shapes = [], {}
     for k, item in enumerate(items):
         if isinstance(item, str | os.PathLike):

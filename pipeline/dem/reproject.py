@@ -89,8 +89,15 @@ METRES_PER_DEGREE = 111_320.0
 def natural_cell(values: xr.DataArray) -> float:
     """The square cell (metres, three figures) a lon/lat grid is reprojected at by default:
     the geometric mean of its cells' sides at its mean latitude."""
-    dx_m, dy_m = degree_cell_metres(values)
-    return float(f"{math.sqrt(dx_m * dy_m):.3g}")
+    lat = np.asarray(values["y"].values, dtype=np.float64)
+    return lonlat_cell(_mean_step(values["x"].values), _mean_step(lat), float(lat.mean()))
+
+
+def lonlat_cell(dlon: float, dlat: float, lat: float) -> float:
+    """:func:`natural_cell` of a grid of steps ``dlon`` by ``dlat`` degrees at latitude
+    ``lat`` (what a file's header tells, before its values are read)."""
+    dx_m = abs(dlon) * METRES_PER_DEGREE * math.cos(math.radians(lat))
+    return float(f"{math.sqrt(dx_m * (abs(dlat) * METRES_PER_DEGREE)):.3g}")
 
 
 def degree_cell_metres(values: xr.DataArray) -> tuple[float, float]:

@@ -290,7 +290,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     hq[~new] = h_track[shared[~new]]
     hq[new], unsure_q = _required_threaded(grid, ctx.terrain, qr[new], qc[new])
     sea = float(ctx.m.parameters.sea_level_m)  # depths are measured from the sea surface
-    floor = ctx.m.floor_m if ctx.m.max_depth_m is not None else None
+    floor = ctx.m.floor_m
     if floor is not None:  # no deeper than the rating: there the vehicle flies at it
         h_track, hq = np.maximum(h_track, floor), np.maximum(hq, floor)
     unsure = int(unsure.sum() + unsure_q.sum())
@@ -472,7 +472,7 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         min_clearance_m=float(min(least, other)),
         via_miss_m=_via_miss(_given_via(m, traj, pick["via"]), x, y),
         max_depth_m=m.max_depth_m,
-        at_rated_depth_m=_at_rated_depth(m.floor_m if m.max_depth_m is not None else None, s, h),
+        at_rated_depth_m=_at_rated_depth(m.floor_m, s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
         **profile_figures(s, z, seabed),
     )

@@ -69,7 +69,7 @@ HOUSEKEEPING = {  # key: (ours, dask's default)
 
 
 @contextmanager
-def _interrupts_ignored():
+def _interrupts_blocked():
     """SIGINT blocked in this thread while the workers are started: the processes started
     meanwhile inherit the mask and never see Ctrl-C, which is the client's to answer (the
     worker plugin ignores it too, in a worker a nanny restarts:
@@ -103,7 +103,7 @@ def local_cluster(dashboard_address: str = ":0", workers: int | None = None):
     cfg = {k: v for k, (v, default) in HOUSEKEEPING.items() if dask.config.get(k, None) == default}
     # read when the scheduler and each nanny are made, inside LocalCluster(); each worker
     # process gets its nanny's configuration
-    with dask.config.set({key: env, **cfg}), _interrupts_ignored():
+    with dask.config.set({key: env, **cfg}), _interrupts_blocked():
         cluster = LocalCluster(
             n_workers=local_workers(workers),
             threads_per_worker=1,
@@ -435,7 +435,7 @@ def _main_guard(node) -> bool:
         len(t.ops) == 1
         and isinstance(t.ops[0], ast.Eq)
         and names == {"__name__"}
-        and (texts == {"__main__"})
+        and texts == {"__main__"}
     )
 
 

@@ -67,9 +67,8 @@ class ContentHashes:
         with open(p, "rb") as fh:
             digest = hashlib.file_digest(fh, "sha256").hexdigest()
         # the stamp taken after the read too: a file written meanwhile is hashed next time
-        after = p.stat()
-        self.entries[key] = {"stamp": _stamp(after) if _stamp(after) == _stamp(st) else None}
-        self.entries[key]["hash"] = digest
+        stamp = _stamp(st)
+        self.entries[key] = {"stamp": stamp if _stamp(p.stat()) == stamp else None, "hash": digest}
         return digest
 
     def save(self) -> None:

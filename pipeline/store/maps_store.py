@@ -42,6 +42,7 @@ class MapsStore:
     # a mission's constraints (pipeline.constraints.ConstrainedStore): none on the store itself
     keep_out = None  # keep-out zones (pipeline.zones.KeepOut)
     max_depth_m = None  # the vehicle's rated depth (metres)
+    floor_m = None  # the lowest height the rating allows (ConstrainedStore.floor_m)
 
     def __init__(self, path: str | os.PathLike):
         import zarr
