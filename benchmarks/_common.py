@@ -100,7 +100,7 @@ def run_job_timed(job: Path) -> dict:
     import re
     import shutil
 
-    from pipeline.jobs import load_job
+    from pipeline.jobs.job_file import load_job
 
     shutil.rmtree(HERE.parent / load_job(job).catalog, ignore_errors=True)
     cmd = ["/usr/bin/time", "-v", str(Path(sys.executable).parent / "pipeline"), "run", str(job)]

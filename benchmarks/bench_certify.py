@@ -134,7 +134,7 @@ def realdata_store() -> Path:
     subprocess.run(
         [sys.executable, str(ROOT / "tasks" / "data" / "make_topobathy.py")], check=True, cwd=ROOT
     )
-    job = pipeline.jobs.load_job(ROOT / "tasks" / "topobathy.toml")
+    job = pipeline.jobs.job_file.load_job(ROOT / "tasks" / "topobathy.toml")
     res = pipeline.run_job(job.path)
     return Path(res.maps_store)
 

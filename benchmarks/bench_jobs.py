@@ -93,7 +93,7 @@ with local_cluster(dashboard_address=None) as cl, \\
     import tempfile
     from pathlib import Path
     from pipeline.outputs.catalog import write_mission
-    from pipeline.missions import min_clearance
+    from pipeline.verify.clearance import min_clearance
     named = [dict(m, name=f"m{{i}}") for i, m in enumerate(missions[:{k_rec}])]
     maps = pipeline.open_store(store)
     R = maps.parameters.clearance_m

@@ -276,8 +276,8 @@ def quality(client, n_missions):
 def case_study(client):
     """Figure 14: 2000^2, RA*+MCPC omega 3 between opposite corners; time, mean clearance."""
     import pipeline
-    from pipeline.missions import clearances
     from pipeline.planners.endpoints import nearest_passable
+    from pipeline.verify.clearance import clearances
 
     store = maps_store(2000)
     ok = pipeline.open_maps(store)["passable"].values

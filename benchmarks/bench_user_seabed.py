@@ -167,8 +167,8 @@ def builds(before: Path | None, n: int) -> list:
 def missions() -> list:
     import dask
 
-    from pipeline.run import run_job
-    from pipeline.verify import verify_missions
+    from pipeline.jobs.run import run_job
+    from pipeline.verify.missions import verify_missions
 
     out = []
     cases = []

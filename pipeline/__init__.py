@@ -41,11 +41,11 @@ _LAZY = {
     "Vehicle": "flight.vehicle",
     "write_mission": "outputs.files",
     "fly": "flight.fly",
-    "run_job": "run",
+    "run_job": "jobs.run",
     "build_maps": "maps.build",
     "dem_hash": "maps.build",
     "plan": "mcpc.plan",
-    "plan_missions": "missions",
+    "plan_missions": "jobs.missions",
     "PLANNERS": "planners.registry",
     "Status": "trajectory",
     "Trajectory": "trajectory",
@@ -59,8 +59,8 @@ _LAZY = {
     "open_maps": "store.maps_store",
     "open_store": "store.maps_store",
     "synthetic_dem": "dem.synthetic",
-    "verify_missions": "verify",
-    "SourceSeabed": "seabed",
+    "verify_missions": "verify.missions",
+    "SourceSeabed": "verify.seabed",
 }
 
 

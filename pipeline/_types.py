@@ -12,9 +12,9 @@ if TYPE_CHECKING:
     from distributed import Client
     from shapely.geometry.base import BaseGeometry
 
+    from .constraints.zones import KeepOut
     from .flight.vehicle import Vehicle
     from .store.maps_store import MapsStore
-    from .zones import KeepOut
 
 # a file or store: a path, or for stores a URL (s3://...)
 PathLike = str | os.PathLike

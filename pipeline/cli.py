@@ -258,7 +258,7 @@ def verify_cmd(missions, dem_path, keep_out, **options):
     file: clearance from its own seabed along the waypoint route and the track, depth against
     the rating, keep-out margins, pitch and turn radius, each with where it is worst. Exit 0
     only when every check of every mission holds (1 otherwise)."""
-    from .verify import report, verify_missions
+    from .verify.missions import report, verify_missions
 
     with _errors():
         verdicts = verify_missions(missions, dem_path, keep_out=list(keep_out) or None, **options)
@@ -361,7 +361,7 @@ def run(job, scheduler, scheduler_file, dashboard_address, dry_run, overwrite, p
     the environment (disk, permissions, memory, an unreachable scheduler, a catalog in use by
     another run); 4 an internal error (a bug: -v shows the traceback); 5 every mission
     planned, some not certified (status "uncertified", the proven ratio in the Item)."""
-    from .run import run_job
+    from .jobs.run import run_job
 
     if scheduler and scheduler_file:
         raise click.UsageError("give --scheduler or --scheduler-file, not both")

@@ -40,7 +40,9 @@ class Trajectory:
     message: str = ""
     extra: dict = field(default_factory=dict)
     flight: object = None  # the flown track (pipeline.flight.vehicle.Flight), when computed
-    keep_out: object = None  # the keep-out zones it avoids (pipeline.zones.KeepOut), if any
+    keep_out: object = (
+        None  # the keep-out zones it avoids (pipeline.constraints.zones.KeepOut), if any
+    )
     max_depth_m: float | None = None  # the rated depth it was planned for, if any (metres)
 
     @property

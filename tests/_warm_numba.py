@@ -4,11 +4,11 @@ finish in seconds):
 
     python tests/_warm_numba.py first|second MARKS
 
-- first: the first half of the library's warm-up (``pipeline.warmup.HALVES``; writes
+- first: the first half of the library's warm-up (``pipeline.jobs.warmup.HALVES``; writes
   MARKS/first), then the argument types only the tests use (MARKS/tests), then the pysheds
   kernels the comparisons call (conftest.pysheds_ridges on a small grid; MARKS/pysheds).
 - second: the other half, then (once the first is done) stamps the library compiled
-  (``pipeline.warmup.mark_compiled``) where both halves ran to their end, else runs the
+  (``pipeline.jobs.warmup.mark_compiled``) where both halves ran to their end, else runs the
   library's whole warm-up (from the cache, what the halves compiled); writes MARKS/library,
   which every test process waits for. (Running the whole warm-up from the cache to stamp it
   took 2-5 s: MARKS/library after 25.6-27.0 s in a fresh numba cache, 23.3-25.4 s now, three
@@ -41,7 +41,7 @@ atexit.register(
 
 from conftest import compile_test_kernels  # noqa: E402
 
-from pipeline.warmup import HALVES, compile_parts, ensure_compiled, mark_compiled  # noqa: E402
+from pipeline.jobs.warmup import HALVES, compile_parts, ensure_compiled, mark_compiled  # noqa: E402
 
 if half == "first":
     try:

@@ -25,14 +25,14 @@ def pytest_sessionstart(session):
     """In a fresh environment numba compiles every kernel on first use (about two minutes of
     one core for the library's, about 20 s for the pysheds kernels the comparisons call), then
     caches it on disk. Two processes (tests/_warm_numba.py) compile the library's kernels in
-    the two halves of ``pipeline.warmup`` at once; then one compiles the argument types only
+    the two halves of ``pipeline.jobs.warmup`` at once; then one compiles the argument types only
     the tests use, then pysheds', while the tests run. Under pytest-xdist (``./dev test`` runs
     one test process per core, up to 4) only the controller starts them; every test process
     waits for the library's kernels (the cores are busy compiling them meanwhile), the pysheds
     comparisons for pysheds'."""
     if hasattr(session.config, "workerinput"):  # an xdist worker: the controller started them
         return
-    from pipeline.warmup import is_compiled
+    from pipeline.jobs.warmup import is_compiled
 
     marks = Path(tempfile.mkdtemp(prefix="pipeline-warm-"))
     os.environ[_WARM_DIR] = str(marks)  # inherited by the xdist workers started after this
@@ -161,9 +161,9 @@ def pysheds_ridges(z):
 
 def compile_kernels() -> None:
     """Compile every numba kernel the tests use into numba's on-disk cache: the pipeline's own
-    warm-up (pipeline.warmup, as a job's first run does), then the argument types only the
+    warm-up (pipeline.jobs.warmup, as a job's first run does), then the argument types only the
     tests use (the session cluster runs this before its workers start)."""
-    from pipeline.warmup import ensure_compiled
+    from pipeline.jobs.warmup import ensure_compiled
 
     ensure_compiled()
     compile_test_kernels()

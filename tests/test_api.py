@@ -157,7 +157,7 @@ def test_endpoints_in_the_api_as_in_job_files(tmp_path, synchronous):
     Item records, checked both ways (the cell's own centre and its lon/lat by pyproj)."""
     from pyproj import Transformer
 
-    import pipeline.jobs as jobs
+    import pipeline.jobs.job_file as jobs
 
     tif = _nodata_tif(tmp_path / "nd.tif")
     maps = tmp_path / "m.zarr"
@@ -424,7 +424,8 @@ def test_a_submodule_is_reached_as_an_attribute():
         """
         import pipeline
         print(pipeline.maps.build.build_maps.__name__, pipeline.store.maps_store.MapsStore.__name__,
-              pipeline.runtime.cluster.local_cluster.__name__, pipeline.jobs.load_job.__name__)
+              pipeline.runtime.cluster.local_cluster.__name__,
+              pipeline.jobs.job_file.load_job.__name__)
         try:
             pipeline.flight.nothing
         except AttributeError as e:

@@ -62,7 +62,7 @@ def test_no_private_name_of_another_subpackage(path):
 def test_a_subpackage_shares_its_private_names_only_within():
     assert not _outside(("pipeline", "store"), "from pipeline.store.cache import _x")
     assert _outside(("pipeline", "mcpc"), "from pipeline.store.cache import _x")
-    assert _outside(("pipeline",), "from pipeline.jobs import _x")
+    assert _outside(("pipeline",), "from pipeline.params import _x")
     assert _outside(("tests",), "pipeline.store.cache._x")
     assert _outside(("pipeline", "store"), "from pipeline.store import _x")  # its __init__
 
@@ -111,7 +111,7 @@ def test_the_packages_kernels_compile_through_one_module():
 
 def _unit(module: str) -> str:
     """The part of the package a module belongs to: its subpackage (``pipeline.store.cache``:
-    ``store``), or itself for a top-level module (``pipeline.jobs``: ``jobs``)."""
+    ``store``), or itself for a top-level module (``pipeline.params``: ``params``)."""
     parts = module.split(".")
     return parts[1] if len(parts) > 1 else "pipeline"
 
@@ -177,7 +177,18 @@ def test_no_import_cycle_between_the_parts_of_the_package():
         [graph.edges[a, b]["line"] for a, b in zip(c, c[1:] + c[:1], strict=True)] for c in cycles
     ]
     # the stages stand in the order of the pipeline
-    order = ["runtime", "planners", "params", "store", "dem", "maps", "mcpc", "missions", "run"]
+    order = [
+        "runtime",
+        "planners",
+        "params",
+        "store",
+        "dem",
+        "maps",
+        "constraints",
+        "mcpc",
+        "verify",
+        "jobs",
+    ]
     for low, high in zip(order, order[1:], strict=False):
         assert not networkx.has_path(graph, low, high), f"{low} reaches {high}"
 

@@ -341,7 +341,7 @@ def test_a_device_is_not_a_job_file_and_a_byte_order_mark_is_read(tmp_path):
     job.write_bytes(b"\xef\xbb\xbf" + f"name = 'bom'\n{SYN}".encode())
     res = invoke("run", job, "--dry-run")
     assert res.exit_code == 0, res.output
-    from pipeline.jobs import load_job
+    from pipeline.jobs.job_file import load_job
 
     assert load_job(job).name == "bom"
 

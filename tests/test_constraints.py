@@ -1,4 +1,4 @@
-"""Operational constraints (pipeline.zones, pipeline.constraints).
+"""Operational constraints (pipeline.constraints.zones, pipeline.constraints.store).
 
 Keep-out zones: the cells they remove against shapely's brute force, the route, the waypoint
 legs and the flown track against the zones themselves (shapely, not the cells), the
@@ -23,8 +23,8 @@ from pyproj import Transformer
 from references import cell_metrics, optimum, reference_graph
 
 import pipeline
+from pipeline.constraints.zones import KeepOut
 from pipeline.exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
-from pipeline.zones import KeepOut
 
 A = 30.0
 CRS = "EPSG:32629"  # the test maps' x0 = 500 km, y0 = 5000 km: UTM zone 29 north, 9 W
@@ -100,7 +100,7 @@ def test_removed_cells_are_those_whose_square_comes_within_the_margin(margin, as
 _RACE = """
 import numpy as np, shapely
 from concurrent.futures import ThreadPoolExecutor
-from pipeline.zones import KeepOut
+from pipeline.constraints.zones import KeepOut
 rng = np.random.default_rng(0)
 a = 30.0
 xs = 500000 + (np.arange(400) + 0.5) * a
@@ -219,7 +219,7 @@ def test_zones_never_vanish(zone_store, tmp_path, caplog):
     path, maps = zone_store
     zones = _boxes(maps)
     bare = _feature_collection(tmp_path / "bare.geojson", zones)
-    with caplog.at_level("WARNING", logger="pipeline.zones"):
+    with caplog.at_level("WARNING", logger="pipeline.constraints.zones"):
         t = pipeline.plan(path, (10, 10), (110, 110), keep_out=bare, keep_out_margin_m=30.0)
     assert (
         "are not longitude and latitude" in caplog.text and "read in the map's CRS" in caplog.text
@@ -247,7 +247,7 @@ def test_zones_never_vanish(zone_store, tmp_path, caplog):
         tmp_path / "swapped.geojson", {"swapped": shapely.Polygon(np.c_[lat, lon])}
     )
     caplog.clear()
-    with caplog.at_level("WARNING", logger="pipeline.zones"):
+    with caplog.at_level("WARNING", logger="pipeline.constraints.zones"):
         pipeline.plan(path, (10, 10), (110, 110), keep_out=swapped)
     assert "keep-out zone 'swapped'" in caplog.text and "lies off the map" in caplog.text
     gpkg = tmp_path / "two.gpkg"
@@ -399,8 +399,8 @@ def test_a_job_with_zone_files_plans_round_them_and_records_them(tmp_path, local
     a re-run skips the finished one, and plans it again once its zone file changed."""
     import geopandas as gpd
 
+    from pipeline.jobs.run import run_job
     from pipeline.outputs.catalog import finished
-    from pipeline.run import run_job
 
     dem = pipeline.synthetic_dem((160, 160), cell_size=30.0, seed=2, chunks=None)
     ll = Transformer.from_crs(dem.attrs["crs_wkt"], "EPSG:4326", always_xy=True)
@@ -690,7 +690,9 @@ def test_the_quicklook_shows_zones_via_points_and_the_rating(zone_store, monkeyp
         path, (10, 10), (110, 110), via=[(100, 20), (20, 100)], keep_out=zones,
         keep_out_margin_m=40.0, max_depth_m=depth, omega=1.5, rho=4, section_size=24, margin=6,
     )  # fmt: skip
-    t = pipeline.missions.with_flight(path, t, {"min_turn_radius_m": 30.0, "max_depth_m": depth})
+    t = pipeline.jobs.missions.with_flight(
+        path, t, {"min_turn_radius_m": 30.0, "max_depth_m": depth}
+    )
     saved = []
     save = Figure.savefig
     monkeypatch.setattr(
@@ -798,8 +800,8 @@ def test_the_flown_arcs_keep_the_margin_between_their_samples(radius, step):
     keep = KeepOut((("rock", zone),), margin)
     assert shapely.Point(arc[k, 1], arc[k, 0]).distance(zone) < margin  # the arc enters
     track = (pc, pr)
-    assert pipeline.zones.entered(keep, track) == []  # on the chords alone: missed
-    assert pipeline.zones.entered(keep, track, slack=(sag,)) == ["rock"]
+    assert pipeline.constraints.zones.entered(keep, track) == []  # on the chords alone: missed
+    assert pipeline.constraints.zones.entered(keep, track, slack=(sag,)) == ["rock"]
 
 
 HOSTILE = [
@@ -816,7 +818,7 @@ def test_hostile_names_are_text_in_the_report(tmp_path, local_client):
     text it is (in the table and in the zones' and points' tooltips), and nothing of it runs."""
     import geopandas as gpd
 
-    from pipeline.run import run_job
+    from pipeline.jobs.run import run_job
 
     dem = pipeline.synthetic_dem((120, 120), cell_size=30.0, seed=2, chunks=None)
     x, y = float(dem.x[60]), float(dem.y[60])

@@ -1,4 +1,4 @@
-"""The job-file reference and JSON Schema (pipeline.job_schema): the committed files are what
+"""The job-file reference and JSON Schema (pipeline.jobs.schema): the committed files are what
 the generator writes from the parameter schema, and the JSON Schema (jsonschema's validator)
 agrees with the job loader, the reference, on the project's job files and on bad ones."""
 
@@ -13,7 +13,7 @@ import pytest
 from jsonschema import Draft202012Validator
 
 import pipeline
-from pipeline.job_schema import json_schema, markdown
+from pipeline.jobs.schema import json_schema, markdown
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -21,7 +21,7 @@ DOCS = ROOT / "docs"
 
 def test_the_committed_reference_and_schema_are_the_generated_ones():
     """docs/job-file.md and docs/job-file.schema.json cannot drift from pipeline/params.py:
-    regenerate them with `python -m pipeline.job_schema docs/`."""
+    regenerate them with `python -m pipeline.jobs.schema docs/`."""
     assert (DOCS / "job-file.md").read_text() == markdown()
     assert json.loads((DOCS / "job-file.schema.json").read_text()) == json_schema()
     Draft202012Validator.check_schema(json_schema())
@@ -97,14 +97,14 @@ def test_the_schema_refuses_what_the_loader_refuses(tmp_path, path, value):
 
     good = tmp_path / "good.toml"
     good.write_text(tomli_w.dumps(GOOD))
-    pipeline.jobs.load_job(good)
+    pipeline.jobs.job_file.load_job(good)
     assert not list(validator.iter_errors(GOOD))
     doc = copy.deepcopy(GOOD)
     _set(doc, path, value)
     bad = tmp_path / "bad.toml"
     bad.write_text(tomli_w.dumps(doc))
     with pytest.raises(pipeline.JobFileError):
-        pipeline.jobs.load_job(bad)
+        pipeline.jobs.job_file.load_job(bad)
     assert list(validator.iter_errors(doc))
 
 

@@ -15,8 +15,8 @@ from click.testing import CliRunner
 import pipeline
 from pipeline.cli import main
 from pipeline.exceptions import JobFileError
-from pipeline.jobs import load_job
-from pipeline.run import run_job
+from pipeline.jobs.job_file import load_job
+from pipeline.jobs.run import run_job
 
 GOOD = """
 name = "small"
@@ -236,7 +236,7 @@ for name in pipeline.__all__:
     owner = getattr(value, "__module__", None)
     if owner and owner.startswith("pipeline."):
         assert getattr(importlib.import_module(owner), name) is value, name
-assert pipeline.jobs.load_job is importlib.import_module("pipeline.jobs").load_job
+assert pipeline.jobs.job_file.load_job is importlib.import_module("pipeline.jobs.job_file").load_job
 print("heavy after the API:", loaded())
 """
 

@@ -31,9 +31,9 @@ from scipy.spatial import cKDTree
 
 import pipeline
 from pipeline.exceptions import JobFileError
-from pipeline.jobs import load_job
-from pipeline.missions import clearances
-from pipeline.run import run_job
+from pipeline.jobs.job_file import load_job
+from pipeline.jobs.run import run_job
+from pipeline.verify.clearance import clearances
 
 ROOT = Path(__file__).parents[1]
 EXE = Path(sys.executable).parent / "pipeline"
@@ -633,7 +633,7 @@ def test_a_changed_mission_or_maps_is_planned_again(tmp_path, stores, local_clie
     first = _run_ids(root)
     # the goal of one mission edited: that one is planned again, the other is skipped
     job.write_text(job.read_text().replace("goal = [150, 290]", "goal = [140, 280]"))
-    with caplog.at_level("INFO", logger="pipeline.run"):
+    with caplog.at_level("INFO", logger="pipeline.jobs.run"):
         res = run_job(job, scheduler=local_client)
     second = _run_ids(root)
     assert res.skipped == 1 and res.replanned == 1 and res.ok
@@ -658,14 +658,16 @@ def test_a_new_default_or_results_revision_plans_finished_missions_again(
     """A finished mission is kept only while the code would give the same result: a planning
     default that changed (the job does not set it), or a new RESULTS_REVISION (a planner that
     now returns other paths), plans it again."""
-    import pipeline.jobs
+    import pipeline.jobs.job_file
     import pipeline.params
 
     with_stores(stores, tmp_path)
     job = write_job(tmp_path, missions=TWO, name="rev")
     run_job(job, scheduler=local_client)
     assert run_job(job, scheduler=local_client).skipped == 2
-    monkeypatch.setattr("pipeline.jobs.RESULTS_REVISION", pipeline.jobs.RESULTS_REVISION + 1)
+    monkeypatch.setattr(
+        "pipeline.jobs.job_file.RESULTS_REVISION", pipeline.jobs.job_file.RESULTS_REVISION + 1
+    )
     res = run_job(job, scheduler=local_client)
     assert res.replanned == 2 and res.skipped == 0 and res.ok
     assert run_job(job, scheduler=local_client).skipped == 2
@@ -718,7 +720,7 @@ def test_any_mission_name_gives_a_catalog_pystac_loads(tmp_path, stores, local_c
 
 
 def test_a_second_run_on_a_busy_catalog_refuses(tmp_path, local_client):
-    from pipeline.run import catalog_lock
+    from pipeline.jobs.run import catalog_lock
 
     job = write_job(tmp_path, missions="", name="busy")
     with catalog_lock(tmp_path / "cat"):
@@ -1108,7 +1110,7 @@ def test_old_stores_and_missions_are_counted_and_pruned_on_request(
     (survey / "raw.dat").write_bytes(b"\x00" * 100)
     (root / "missions" / "east" / "dive-log.md").write_text("east, mine")
     (root / "missions" / "south" / "dive-log.md").write_text("south, mine")
-    with caplog.at_level("INFO", logger="pipeline.run"):
+    with caplog.at_level("INFO", logger="pipeline.jobs.run"):
         res = run_job(job, scheduler=local_client)
     assert res.ok and old_maps.exists() and (root / "missions" / "south").exists()
     # east planned again (a new clearance): its folder replaced, the user's file moved over

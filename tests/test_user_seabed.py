@@ -20,9 +20,9 @@ from scipy.interpolate import RegularGridInterpolator
 
 import pipeline
 from pipeline.cli import main
-from pipeline.run import run_job
-from pipeline.seabed import SourceSeabed
-from pipeline.verify import verify_missions
+from pipeline.jobs.run import run_job
+from pipeline.verify.missions import verify_missions
+from pipeline.verify.seabed import SourceSeabed
 
 UTM = "EPSG:32610"
 

@@ -1,14 +1,15 @@
-"""The first run's up-front compilation (pipeline.warmup): announced, run in two halves
+"""The first run's up-front compilation (pipeline.jobs.warmup): announced, run in two halves
 on two workers, stamped so that later runs skip it, and never fatal."""
 
 from __future__ import annotations
 
 import logging
 import os
+from pathlib import Path
 
 import pytest
 
-from pipeline import warmup
+from pipeline.jobs import warmup
 
 
 def test_fingerprint_follows_every_source_file(tmp_path):
@@ -33,7 +34,7 @@ def stamp(tmp_path, monkeypatch):
 
 
 def test_compiles_once_in_two_halves_on_two_workers(local_client, stamp, caplog):
-    caplog.set_level(logging.DEBUG, logger="pipeline.warmup")
+    caplog.set_level(logging.DEBUG, logger="pipeline.jobs.warmup")
     assert not warmup.is_compiled()
     seconds = warmup.ensure_compiled(local_client)
     assert seconds > 0 and warmup.is_compiled() and stamp.exists()
@@ -54,7 +55,7 @@ def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
         raise OSError("no space left on device")
 
     monkeypatch.setattr(warmup, "_compile", broken)
-    caplog.set_level(logging.INFO, logger="pipeline.warmup")
+    caplog.set_level(logging.INFO, logger="pipeline.jobs.warmup")
     warmup.ensure_compiled(None)
     assert "compile as they are first used instead" in caplog.text
     assert "no space left on device" in caplog.text
@@ -98,7 +99,7 @@ def test_the_planners_kernels_load_from_the_cache_in_the_next_process():
 def _child_env() -> dict:
     """The environment of a child process that imports this checkout's pipeline and keeps
     numba's cache beside the sources it compiles (no NUMBA_CACHE_DIR)."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(warmup.__file__)))
+    root = str(Path(warmup.__file__).resolve().parents[2])
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["PYTHONPATH"] = os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])
     return env

@@ -103,7 +103,7 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
     (True, 41)
     """
-    from ..constraints import constrained
+    from ..constraints.store import constrained
     from ..store.maps_store import open_store
 
     t0 = time.perf_counter()
@@ -309,7 +309,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         "length": float(np.hypot(np.diff(s_t), np.diff(z_t)).sum()),
     }
     track["known"] = not (np.isnan(h_track).any() or np.isnan(hq).any())
-    from ..zones import entered
+    from ..constraints.zones import entered
 
     problems = []
     # the track's arcs lie up to a sagitta outside its samples' polyline; the waypoint legs
@@ -544,7 +544,7 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
     line by more than a millionth of the clearance (elsewhere the map line's own check holds
     for them: a clearance moves no more than the point does), where it is, and the zone one
     of them enters ("" for none)."""
-    from ..zones import entered
+    from ..constraints.zones import entered
     from .legs import deviation, leg_lines, leg_tolerance, split_legs
 
     m, veh = ctx.m, ctx.veh

@@ -550,7 +550,7 @@ class Corridor:
         try:
             for f in first:
                 f.result()
-            if m.keep_out is not None:  # its cells removed (pipeline.constraints)
+            if m.keep_out is not None:  # its cells removed (pipeline.constraints.store)
                 for k, (i, j) in enumerate(zip(ti.tolist(), tj.tolist(), strict=True)):
                     r0, c0 = i * tr, j * tc
                     r1, c1 = min(r0 + tr, rows), min(c0 + tc, cols)

@@ -266,16 +266,16 @@ def plan(
         (a lower bound on the sum of their optima, the shortest path through the points in
         order), and ``extra["legs"]`` records each leg.
     keep_out : path, list of paths, GeoDataFrame, shapely polygons or KeepOut, optional
-        Keep-out zones the path never enters (:mod:`pipeline.zones`): vector files geopandas
-        reads (GeoJSON, GeoPackage, Shapefile; any CRS), a GeoDataFrame, or polygons in map
-        coordinates. The trajectory keeps them (``keep_out``) for :func:`pipeline.fly`.
+        Keep-out zones the path never enters (:mod:`pipeline.constraints.zones`): vector files
+        geopandas reads (GeoJSON, GeoPackage, Shapefile; any CRS), a GeoDataFrame, or polygons in
+        map coordinates. The trajectory keeps them (``keep_out``) for :func:`pipeline.fly`.
     keep_out_margin_m : float, optional
         The distance kept from every zone (default 0).
     max_depth_m : float, optional
         The vehicle's rated depth (metres below the sea surface, as the vehicle files measure
         depth): the path is planned and measured on the safety surface raised to the sea level
         less ``max_depth_m`` where it lies deeper, and certified
-        against the octile distance (:mod:`pipeline.constraints`). :func:`pipeline.fly` keeps
+        against the octile distance (:mod:`pipeline.constraints.store`). :func:`pipeline.fly` keeps
         the rating the trajectory records (``max_depth_m``).
     client : None, "synchronous", "threads", scheduler address or distributed.Client
         Where the sections run (see :func:`pipeline.runtime.cluster.get_client`). None: the dask
@@ -318,7 +318,7 @@ def plan(
         ).items()
         if v is not None
     }
-    from ..constraints import constrained
+    from ..constraints.store import constrained
 
     margin_m = PLANNING.keep_out_margin_m.check_optional(keep_out_margin_m)
     m = constrained(m, keep_out, margin_m, max_depth_m)
@@ -368,7 +368,7 @@ def plan(
 def _points(m, given: dict) -> tuple[list, list]:
     """The mission's points as cells (start, via points, goal) and their names, from the
     forms they were ``given`` in, each outside the zones (:func:`check_outside`)."""
-    from ..constraints import check_outside
+    from ..constraints.store import check_outside
     from ..params import endpoint_cells
 
     ends = endpoint_cells(m, given)  # as a job file gives them

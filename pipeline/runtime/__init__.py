@@ -1,8 +1,7 @@
 """Where and how the work runs: dask clusters and clients (:mod:`.cluster`), the compiled
-kernels' cache (:mod:`.jit`) and their warm-up (:mod:`.warmup`), the process's thread pools
-(:mod:`.threads`) and shared claims (:mod:`.share`), a worker's inbox for notes from the
-client (:mod:`.inbox`), distributed's quiet task errors (:mod:`.quiet`) and exit handling
-(:mod:`.exit`)."""
+kernels' cache (:mod:`.jit`), the process's thread pools (:mod:`.threads`) and shared claims
+(:mod:`.share`), a worker's inbox for notes from the client (:mod:`.inbox`), distributed's quiet
+task errors (:mod:`.quiet`) and exit handling (:mod:`.exit`)."""
 
 from .._lazy import submodules
 

@@ -39,8 +39,8 @@ class MapsStore:
 
     Open it with :func:`open_store` (one per store and process)."""
 
-    # a mission's constraints (pipeline.constraints.ConstrainedStore): none on the store itself
-    keep_out = None  # keep-out zones (pipeline.zones.KeepOut)
+    # a mission's constraints (constraints.store.ConstrainedStore): none on the store itself
+    keep_out = None  # keep-out zones (pipeline.constraints.zones.KeepOut)
     max_depth_m = None  # the vehicle's rated depth (metres)
     floor_m = None  # the lowest height the rating allows (ConstrainedStore.floor_m)
 

@@ -650,7 +650,7 @@ def test_a_bad_vehicle_table_is_one_clear_line(tmp_path):
     bad = JOB.replace("hotel_power_w = 40.0\npropulsion_power_w = 100.0\n", "")
     (tmp_path / "bad2.toml").write_text(bad)
     with pytest.raises(pipeline.JobFileError, match="without a power"):
-        pipeline.jobs.load_job(tmp_path / "bad2.toml")
+        pipeline.jobs.job_file.load_job(tmp_path / "bad2.toml")
 
 
 def test_no_data_holes_and_no_crs(tmp_path):
@@ -703,7 +703,7 @@ def test_no_data_holes_and_no_crs(tmp_path):
 def test_a_fault_in_one_flight_fails_that_mission_only(ridge_store, monkeypatch):
     """A bug in the flight of one mission (a fault injected into it) fails that mission with
     the reason, keeps its planned path, and the batch goes on."""
-    import pipeline.missions as pm
+    import pipeline.jobs.missions as pm
 
     path, ok, *_ = ridge_store
     real = pm.with_flight

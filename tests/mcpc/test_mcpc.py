@@ -442,7 +442,7 @@ def test_plan_missions_in_groups_per_task(store, local_client):
     ``on_done``; a mission that fails in a group fails alone."""
     from distributed import get_task_stream
 
-    from pipeline.missions import mission_groups
+    from pipeline.jobs.missions import mission_groups
 
     for n, threads, per in ((100, 2, None), (7, 2, 2), (30, 1, 4), (5, 4, 3), (32, 2, None)):
         groups = mission_groups(n, threads, per)
@@ -1196,8 +1196,8 @@ def test_plan_missions_in_threads(store, monkeypatch):
     """plan_missions(client="threads"): the missions in client threads, the trajectories
     those of the missions planned in turn; a mission's sections shared by threads only while
     fewer missions than cores are in flight (2 cores here)."""
+    import pipeline.jobs.missions as pm
     import pipeline.mcpc.runners as mcpc
-    import pipeline.missions as pm
 
     real, shared = mcpc._threaded, []
 

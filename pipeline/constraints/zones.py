@@ -4,7 +4,7 @@ wrecks, protected areas, another vehicle's box), each kept at a margin.
 Zones come from vector files geopandas reads (GeoJSON, GeoPackage, Shapefile; polygons in any
 CRS, reprojected to the maps'), from a GeoDataFrame, or as shapely polygons in the maps'
 coordinates. :class:`KeepOut` holds them in the maps' CRS; a
-:class:`pipeline.constraints.ConstrainedStore` is a maps store whose passable layer has the
+:class:`pipeline.constraints.store.ConstrainedStore` is a maps store whose passable layer has the
 cells near a zone removed, which every stage reads as it reads a store: the planners'
 windows, the coarse level, the endpoints' checks, the flight's corridor.
 
@@ -19,7 +19,7 @@ shortens no path: the store's landmark bound stays a lower bound on the shortest
 avoids the zones, so the certificate holds as it is (docs/certified-bound.md).
 
 A goal that zones cut off is proven unreachable at once when the region round it (or round the
-start) closes within :data:`pipeline.constraints.POCKET_SIDES` cells: the regions are labelled
+start) closes within :data:`pipeline.constraints.store.POCKET_SIDES` cells: the regions are labelled
 as the store's components are (4-connectivity, docs/method.md section 9). Otherwise an
 exhaustive search of the whole map proves it.
 """
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .exceptions import InvalidParameterError, notice
+from ..exceptions import InvalidParameterError, notice
 
 log = logging.getLogger(__name__)
 

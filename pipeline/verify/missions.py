@@ -5,7 +5,7 @@ or a newer or finer survey of the same area), independently of the maps they wer
 A mission's waypoint route (its waypoints joined by straight map lines, by geodesics and by rhumb
 lines, as autopilots steer) and its flown track are walked in steps of at most a quarter of the
 DEM's cell and of the clearance, and at each point
-the clearance from the file's own bilinear seabed is measured (:mod:`pipeline.seabed`); the
+the clearance from the file's own bilinear seabed is measured (:mod:`pipeline.verify.seabed`); the
 depth against the vehicle's rating, the distance from each keep-out zone against its margin,
 the pitch and the turn radius of the track are checked too. Each check says where it is worst.
 """
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._types import PathLike
-from .exceptions import InvalidParameterError
-from .methods import METHODS
+from .._types import PathLike
+from ..exceptions import InvalidParameterError
+from ..methods import METHODS
 from .seabed import TOLERANCE_M, SourceSeabed
 
 
@@ -123,7 +123,7 @@ def verify_missions(
     )
     extra = None
     if keep_out:
-        from .zones import read_zone_file
+        from ..constraints.zones import read_zone_file
 
         extra = [
             read_zone_file(p)
@@ -243,7 +243,7 @@ def _autopilot_routes(route: np.ndarray, crs_wkt: str, step: float) -> dict:
     """The waypoint route along the geodesic and along the rhumb line of each leg (pyproj;
     heights linear along the leg), in steps of at most ``step``: ``{"geodesic route": xyz,
     "rhumb-line route": xyz}``."""
-    from .flight.legs import leg_lines
+    from ..flight.legs import leg_lines
 
     out: dict = {"geodesic route": [], "rhumb-line route": []}
     for k in range(len(route) - 1):
@@ -279,7 +279,7 @@ def _zones_check(verdict, folder, crs_wkt, lines, zones, margin) -> None:
     own = folder / "keep-out.geojson"
     own_margin = None
     if own.is_file():
-        from .zones import read_zone_file
+        from ..constraints.zones import read_zone_file
 
         frame = read_zone_file(own)
         frames.append(frame)
@@ -365,7 +365,7 @@ def _crs_of_item(doc: dict) -> str | None:
 def _lonlat(crs_wkt, x, y) -> str:
     if not crs_wkt:
         return f" (x {x:.1f}, y {y:.1f})"
-    from .outputs.files import to_lonlat
+    from ..outputs.files import to_lonlat
 
     lon, lat = to_lonlat(crs_wkt, np.array([x]), np.array([y]))
     la, lo = float(lat[0]), float(lon[0])

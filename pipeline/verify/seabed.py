@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .exceptions import InvalidDEMError
-from .methods import METHODS
-from .runtime.jit import njit
+from ..exceptions import InvalidDEMError
+from ..methods import METHODS
+from ..runtime.jit import njit
 
 # a clearance is found to this many metres (the least over a cell's parts is refined until
 # no part could come closer by more)
@@ -44,8 +44,8 @@ class SourceSeabed:
 
     @classmethod
     def open(cls, path, *, variable=None, uncertainty_k=None, uncertainty=None) -> SourceSeabed:
-        from .dem.canonical import source_grid
-        from .dem.open import read_source
+        from ..dem.canonical import source_grid
+        from ..dem.open import read_source
 
         path = Path(path)
         raw = read_source(path, variable, uncertainty_k, uncertainty)
@@ -101,7 +101,7 @@ class SourceSeabed:
 
     def _index(self, x, y, crs_wkt):
         """The file's fractional rows and columns of the map points ``x, y``."""
-        from .dem.reproject import GridAxes
+        from ..dem.reproject import GridAxes
 
         sx, sy = x, y
         if self.crs is not None and crs_wkt:

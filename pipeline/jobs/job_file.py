@@ -48,11 +48,11 @@ from dataclasses import dataclass, field
 from glob import escape as glob_escape
 from pathlib import Path
 
-from .exceptions import (
+from ..exceptions import (
     InvalidParameterError,
     JobFileError,
 )
-from .params import (
+from ..params import (
     DEFAULT_CHUNK,
     DEM,
     GENERATOR_VERSION,
@@ -74,7 +74,7 @@ from .params import (
     shape2d,
     via_form,
 )
-from .store.paths import has_scheme
+from ..store.paths import has_scheme
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ class Job:
 
     def maps_fingerprint(self) -> str:
         """A hash of the DEM definition and the maps parameters (reuse the maps store)."""
-        from .store.schema import MAPS_VERSION
+        from ..store.schema import MAPS_VERSION
 
         what = {"dem": self.dem_fingerprint(), "maps": self.maps, "version": MAPS_VERSION}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:16]
@@ -176,7 +176,7 @@ class Job:
     def content_hash(self, path) -> str:
         """The hash of what the input file or folder ``path`` holds (:mod:`.store.content`),
         kept in the catalog between runs (:meth:`save_hashes`)."""
-        from .store.content import CACHE_NAME, ContentHashes
+        from ..store.content import CACHE_NAME, ContentHashes
 
         if self._hashes is None:
             self._hashes = ContentHashes(self.catalog / CACHE_NAME)
@@ -500,7 +500,7 @@ def _header_cell(p: Path) -> float | None:
 def _cell_of_header(crs, dx: float, dy: float, bounds) -> float | None:
     """:func:`_header_cell` from the header's CRS, steps and bounds."""
     if crs.is_geographic:
-        from .dem.reproject import lonlat_cell
+        from ..dem.reproject import lonlat_cell
 
         return lonlat_cell(dx, dy, 0.5 * (bounds.bottom + bounds.top))
     if crs.linear_units_factor[1] != 1.0 or abs(dx - dy) > 1e-6 * dx:
@@ -541,7 +541,7 @@ def _zone_files(path: Path, table: dict, where: str) -> None:
     """``table``'s keep_out files as absolute paths (relative to the job file), each read and
     checked as a run reads it: a missing or unreadable file, a geometry that is not a
     polygon, a file without a CRS is one :class:`JobFileError` (``--dry-run`` included)."""
-    from .zones import read_zone_file
+    from ..constraints.zones import read_zone_file
 
     if table.get("keep_out") is None:
         return
@@ -598,8 +598,8 @@ def _check_ratings(path: Path, job: Job) -> None:
     ]
     if all(v.get("max_depth_m") is None for _, v in vehicles):
         return
-    from .constraints import check_rating
-    from .store.schema import MapsParameters
+    from ..constraints.store import check_rating
+    from ..store.schema import MapsParameters
 
     maps = job.maps
     parameters = MapsParameters(
@@ -617,7 +617,7 @@ def _check_ratings(path: Path, job: Job) -> None:
 
 
 def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:
-    from .flight.vehicle import Vehicle
+    from ..flight.vehicle import Vehicle
 
     if not isinstance(t, dict):
         _fail(
@@ -635,7 +635,7 @@ def _load_vehicle(path, t, where: str, base: dict | None = None) -> dict:
 
 
 def _load_missions(path, doc, job):
-    from .outputs.catalog import mission_id
+    from ..outputs.catalog import mission_id
 
     ms = doc.get("missions", [])
     if not isinstance(ms, list) or not all(isinstance(m, dict) for m in ms):

@@ -1,12 +1,12 @@
-"""A mission's operational constraints on the maps: keep-out zones (:mod:`pipeline.zones`) and
-the vehicle's rated depth.
+"""A mission's operational constraints on the maps: keep-out zones
+(:mod:`pipeline.constraints.zones`) and the vehicle's rated depth.
 
 :class:`ConstrainedStore` is a maps store as a mission under constraints sees it, read by every
 stage as a store is (the planners' windows, the coarse level, the endpoints' checks, the
 flight's corridor):
 
 - **keep-out zones** remove from the passable layer every cell whose square comes within the
-  margin and a quarter cell of a zone (:class:`pipeline.zones.KeepOut`);
+  margin and a quarter cell of a zone (:class:`pipeline.constraints.zones.KeepOut`);
 - **a rated depth** ``D`` raises the safety surface to ``max(S, -D)``: where the lowest safe
   height lies deeper than the rating, the vehicle flies at its rated depth, which keeps the
   clearance from the seabed (it is above the lowest safe height) and stays below the surface
@@ -27,8 +27,8 @@ import threading
 
 import numpy as np
 
-from .exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
-from .store.maps_store import MapsStore
+from ..exceptions import InvalidEndpointError, InvalidParameterError, UnreachableGoalError
+from ..store.maps_store import MapsStore
 
 # the half-sides of the windows a closed region round an endpoint is looked for in (a larger
 # region is proven apart by the exhaustive search; CHANGELOG.md, "Measurements")
@@ -36,8 +36,8 @@ POCKET_SIDES = (64, 256)
 
 
 class ConstrainedStore(MapsStore):
-    """The maps store ``base`` under ``keep_out`` (a :class:`pipeline.zones.KeepOut`, or None)
-    and ``max_depth_m`` (the vehicle's rated depth in metres, or None): the module's
+    """The maps store ``base`` under ``keep_out`` (a :class:`~pipeline.constraints.zones.KeepOut`,
+    or None) and ``max_depth_m`` (the vehicle's rated depth in metres, or None): the module's
     description; everything else is the store's."""
 
     def __init__(self, base: MapsStore, keep_out=None, max_depth_m: float | None = None):
@@ -84,7 +84,7 @@ class ConstrainedStore(MapsStore):
     def _raised(self, surface: np.ndarray) -> np.ndarray:
         if self.max_depth_m is None:
             return surface
-        from .maps.safety import float32_toward
+        from ..maps.safety import float32_toward
 
         # the rating rounded up (never deeper than it) as a float32 surface holds it
         floor = self.floor_m
@@ -205,8 +205,8 @@ class ConstrainedStore(MapsStore):
 def constrained(
     m: MapsStore, keep_out=None, margin_m: float | None = None, max_depth_m: float | None = None
 ) -> MapsStore:
-    """``m`` under the zones of ``keep_out`` (:func:`pipeline.zones.read_zones`) and the rated
-    depth ``max_depth_m``, or ``m`` itself without either. A rating shallower than the
+    """``m`` under the zones of ``keep_out`` (:func:`~pipeline.constraints.zones.read_zones`) and
+    the rated depth ``max_depth_m``, or ``m`` itself without either. A rating shallower than the
     surface limit (the sea level less the surface clearance: no height would be allowed) is
     one :class:`InvalidParameterError`."""
     from .zones import map_extent, read_zones
@@ -225,7 +225,7 @@ def check_rating(max_depth_m, parameters) -> float:
     """The rated depth (metres below the sea surface, as every depth the tool writes) checked
     against the maps' surface limit (the surface clearance below the sea surface): a rating
     shallower leaves no height to fly at, one :class:`InvalidParameterError`."""
-    from .params import VEHICLE
+    from ..params import VEHICLE
 
     max_depth_m = VEHICLE.max_depth_m.check(max_depth_m)
     below = float(parameters.sea_level_m) - float(parameters.top_m)  # the surface clearance

@@ -18,18 +18,18 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ._types import ClientLike
-from .exceptions import (
+from .._types import ClientLike
+from ..exceptions import (
     CatalogBusyError,
     InvalidDEMError,
     InvalidParameterError,
     JobFileError,
     PipelineError,
 )
-from .jobs import Job, load_job
-from .params import endpoint_key
-from .store.paths import TEMPORARY
-from .trajectory import Status
+from ..params import endpoint_key
+from ..store.paths import TEMPORARY
+from ..trajectory import Status
+from .job_file import Job, load_job
 
 log = logging.getLogger(__name__)
 
@@ -63,8 +63,8 @@ class JobResult:
 
 def _report(job: Job, maps_store: Path) -> Path:
     """The catalog's offline report, ``index.html`` (:mod:`pipeline.outputs.report`)."""
-    from .outputs.report import write_report
-    from .store.maps_store import open_store
+    from ..outputs.report import write_report
+    from ..store.maps_store import open_store
 
     maps = open_store(maps_store) if (maps_store / "zarr.json").exists() else None
     path = write_report(
@@ -107,11 +107,11 @@ def run_job(
     """
     job = load_job(path)
     if dashboard_address is not None:  # at the dry run too, not when a cluster starts
-        from .runtime.cluster import check_dashboard_address
+        from ..runtime.cluster import check_dashboard_address
 
         check_dashboard_address(dashboard_address)
     if workers is not None:
-        from .runtime.cluster import local_workers
+        from ..runtime.cluster import local_workers
 
         local_workers(workers)
     dem_store = job.catalog / f"dem-{job.dem_fingerprint()}.zarr"
@@ -128,7 +128,7 @@ def run_job(
             job.catalog,
         )
         return JobResult(job, dem_store, dem_store.exists(), 0.0, maps_store=maps_store)
-    from .outputs.catalog import write_catalog
+    from ..outputs.catalog import write_catalog
 
     with catalog_lock(job.catalog):
         check_catalog(job.catalog, job.name)  # (as another run may have left it)
@@ -171,8 +171,8 @@ def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
     and maps stores (this tool's, by their mark) other than ``dem_store`` and ``maps_store``,
     and mission folders the tool wrote (by their mark, :func:`~pipeline.outputs.catalog.tool_files`)
     of missions no longer in the job; a folder of the user's own is never among them."""
-    from .outputs.catalog import COLLECTION, mission_id, tool_files
-    from .store.paths import own_store
+    from ..outputs.catalog import COLLECTION, mission_id, tool_files
+    from ..store.paths import own_store
 
     out = []
     for kind, pattern, keep in (
@@ -194,7 +194,7 @@ def stale(job: Job, dem_store: Path, maps_store: Path) -> list[Path]:
 def _size(p: Path) -> int:
     """What removing ``p`` frees: a store's files, or those the tool wrote in a mission folder."""
     if p.suffix != ".zarr":
-        from .outputs.catalog import tool_files
+        from ..outputs.catalog import tool_files
 
         files = [p / f for f in tool_files(p) or []]
         return sum(f.stat().st_size for f in files if f.is_file() and not f.is_symlink())
@@ -207,7 +207,7 @@ def _prune(job: Job, dem_store: Path, maps_store: Path, remove: bool) -> None:
         return
     size = sum(_size(p) for p in old)
     if remove:
-        from .outputs.catalog import remove_tool_files
+        from ..outputs.catalog import remove_tool_files
 
         kept = []
         for p in old:
@@ -259,7 +259,7 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         return res
     from distributed import performance_report
 
-    from .runtime.cluster import session
+    from ..runtime.cluster import session
     from .warmup import ensure_compiled
 
     with session(*cluster) as client:
@@ -417,7 +417,7 @@ def _sorted_missions(job: Job, overwrite: bool) -> list[tuple[dict, dict | None,
     Item when it finished as it is defined now (None: to be planned; always with
     ``overwrite``), and whether it finished under another definition (its fields, the maps, the
     DEM, the library's defaults or results revision). Read once a run, before its cluster."""
-    from .outputs.catalog import damaged_assets, finished
+    from ..outputs.catalog import damaged_assets, finished
 
     out = []
     for m in job.missions:
@@ -448,9 +448,9 @@ def _dem_store(job: Job, store: Path, overwrite: bool) -> bool:
         log.info("DEM store %s is up to date: reusing it", store)
         return True
     # here, not above: a run on stores it reuses imports neither xarray nor dask.array
-    from .dem.dem_store import write_dem
-    from .dem.open import import_dem
-    from .dem.synthetic import synthetic_dem
+    from ..dem.dem_store import write_dem
+    from ..dem.open import import_dem
+    from ..dem.synthetic import synthetic_dem
 
     log.info("writing the DEM store %s", store)
     try:
@@ -480,8 +480,8 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
     if store.exists() and not rebuild:
         log.info("maps store %s is up to date: reusing it", store)
         return False
-    from .dem.open import open_dem
-    from .maps.build import build_maps
+    from ..dem.open import open_dem
+    from ..maps.build import build_maps
 
     log.info("building the maps store %s (%s)", store, job.maps)
     try:
@@ -502,8 +502,8 @@ def _maps_store(job: Job, dem_store: Path, store: Path, rebuild: bool) -> None:
 def _missions(job: Job, maps_store: Path, client, missions: list, res: JobResult) -> None:
     """Plan the missions not finished yet (or changed since; ``missions`` as
     :func:`_sorted_missions` gives them), writing each as it ends."""
+    from ..store.maps_store import open_store
     from .missions import failed_trajectory, plan_missions
-    from .store.maps_store import open_store
 
     maps = open_store(maps_store)
     res.crs_wkt = maps.crs_wkt
@@ -572,14 +572,15 @@ class _Zones:
     see the job's files."""
 
     def __init__(self, job: Job, maps):
-        from .zones import map_extent
+        from ..constraints.zones import map_extent
 
         self.job, self.crs, self.read = job, maps.crs_wkt, {}
         self.extent = map_extent(maps)
 
     def of(self, mission: dict) -> dict:
-        """The mission's ``keep_out`` as :class:`pipeline.zones.KeepOut` (none: ``{}``)."""
-        from .zones import read_zones
+        """The mission's ``keep_out`` as :class:`~pipeline.constraints.zones.KeepOut` (none:
+        ``{}``)."""
+        from ..constraints.zones import read_zones
 
         files = mission.get("keep_out", self.job.planning.get("keep_out"))
         if not files:
@@ -601,7 +602,7 @@ class _Recorder:
         self.clearance = float(job.maps["clearance"])
         self.source = None  # the user's own DEM file: the clearance is measured from it
         if job.dem_path is not None and job.cell_size is None:
-            from .seabed import SourceSeabed
+            from ..verify.seabed import SourceSeabed
 
             try:
                 self.source = SourceSeabed.open(
@@ -614,8 +615,9 @@ class _Recorder:
                 log.warning("the clearance is measured from the DEM store: %s", exc)
 
     def __call__(self, mission: dict, traj) -> None:
-        from .missions import failed_trajectory, min_clearance
-        from .verify import source_clearance
+        from ..verify.clearance import min_clearance
+        from ..verify.missions import source_clearance
+        from .missions import failed_trajectory
 
         self.count += 1
         self.res.ran += 1
@@ -636,7 +638,7 @@ class _Recorder:
             reason = f"its result could not be written: {type(exc).__name__}: {exc}"
             log.error("[%d/%d] %s: FAILED: %s", self.count, self.total, name, reason)
             self.res.failed.append(name)
-            from .outputs.catalog import finished
+            from ..outputs.catalog import finished
 
             before = finished(self.job.catalog, name)
             if before is not None and before["properties"].get("auv:status") != Status.FAILED:
@@ -678,7 +680,7 @@ class _Recorder:
             log.warning("[%d/%d] %s: FAILED: %s", self.count, self.total, name, traj.message)
 
     def _write(self, mission, traj, clr=math.nan, png=None):
-        from .outputs.catalog import write_mission
+        from ..outputs.catalog import write_mission
 
         write_mission(
             self.job.catalog,

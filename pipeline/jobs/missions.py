@@ -1,4 +1,4 @@
-"""Many missions at once on one maps store, and the independent clearance check.
+"""Many missions at once on one maps store.
 
 ``plan_missions`` on a cluster runs each mission within one task (its coarse search, bound,
 sections and flight in one worker, the sections in turn), as many at once as the cluster has
@@ -25,13 +25,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._types import ClientLike, Maps, VehicleLike
-from .exceptions import InvalidParameterError, PipelineError
-from .flight.fly import with_flight
-from .flight.vehicle import Vehicle
-from .mcpc.algorithm import coarse_rho
-from .mcpc.plan import plan
-from .params import (
+from .._types import ClientLike, Maps, VehicleLike
+from ..exceptions import InvalidParameterError, PipelineError
+from ..flight.fly import with_flight
+from ..flight.vehicle import Vehicle
+from ..mcpc.algorithm import coarse_rho
+from ..mcpc.plan import plan
+from ..params import (
     ENDPOINT_FORMS,
     MISSIONS_PER_TASK,
     PLANNING,
@@ -40,11 +40,10 @@ from .params import (
     endpoint_form,
     endpoint_key,
 )
-from .runtime.cluster import IN_PROCESS, get_client
-from .runtime.jit import njit
-from .runtime.threads import cores
-from .store.maps_store import open_store
-from .trajectory import Status, Trajectory
+from ..runtime.cluster import IN_PROCESS, get_client
+from ..runtime.threads import cores
+from ..store.maps_store import open_store
+from ..trajectory import Status, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -305,7 +304,7 @@ _DRAWING = threading.Lock()
 def _quicklook_png(m, t: Trajectory, name) -> bytes:
     import io
 
-    from .outputs.plots import mission_quicklook
+    from ..outputs.plots import mission_quicklook
 
     with _DRAWING:
         return mission_quicklook(m, t, io.BytesIO(), title=name, crs_wkt=m.crs_wkt).getvalue()
@@ -438,66 +437,3 @@ def _on_cluster(client, m, items, batch: _Batch, done, per_task=None, todo=None)
             ts = [failed_trajectory(items[i], f"{type(exc).__name__}: {exc}") for i in group]
         for i, t in zip(group, ts, strict=True):
             done(i, t)
-
-
-def clearances(maps, traj: Trajectory, radius_m: float) -> np.ndarray:
-    """For each point of the trajectory, its 3-D distance to the nearest DEM grid point.
-
-    Independent of the safety map: it reads the elevation layer only and measures, for every
-    point of the track, its distance to every grid point within ``radius_m`` horizontally
-    (farther grid points are farther than ``radius_m`` anyway); a point with no grid point that
-    close gets ``inf``.
-    """
-    m = open_store(maps)
-    out = np.full(len(traj.cells), np.inf)
-    if len(traj.cells) == 0:
-        return out
-    a = m.cell_size
-    r = int(math.ceil(radius_m / a))
-    off = np.arange(-r, r + 1)
-    dr, dc = np.meshgrid(off, off, indexing="ij")
-    h2 = (a * a) * (dr**2 + dc**2).ravel()
-    keep = h2 <= radius_m * radius_m
-    dr, dc, h2 = dr.ravel()[keep], dc.ravel()[keep], h2[keep]
-    rows, cols = m.shape
-    cells = traj.cells
-    z = traj.points[:, 2].astype(np.float64)
-    for k in range(0, len(cells), 512):
-        cc, zz = cells[k : k + 512], z[k : k + 512]
-        r0, r1 = max(int(cc[:, 0].min()) - r, 0), min(int(cc[:, 0].max()) + r + 1, rows)
-        c0, c1 = max(int(cc[:, 1].min()) - r, 0), min(int(cc[:, 1].max()) + r + 1, cols)
-        elev = m.window("elevation", r0, r1, c0, c1)
-        rc = np.ascontiguousarray(cc, dtype=np.int64)
-        out[k : k + 512] = _nearest_grid_point(rc, zz, elev, r0, c0, dr, dc, h2, rows, cols)
-    return out
-
-
-@njit(nogil=True, cache=True)
-def _nearest_grid_point(cells, z, elev, r0, c0, dr, dc, h2, rows, cols):
-    """For each cell ``(row, col)`` with height ``z``: the 3-D distance to the nearest grid
-    point among its offsets ``(dr, dc)`` (squared horizontal distances ``h2``) inside the map;
-    ``elev`` is the elevation window whose corner is ``(r0, c0)``; no-data is skipped, and a
-    cell with no grid point gets ``inf``."""
-    out = np.empty(cells.shape[0])
-    for i in range(cells.shape[0]):
-        best = np.inf
-        for k in range(dr.shape[0]):
-            r = cells[i, 0] + dr[k]
-            c = cells[i, 1] + dc[k]
-            if r < 0 or r >= rows or c < 0 or c >= cols:
-                continue
-            d = z[i] - np.float64(elev[r - r0, c - c0])
-            d2 = h2[k] + d * d
-            if d2 < best:  # False for NaN (no-data)
-                best = d2
-        out[i] = math.sqrt(best)
-    return out
-
-
-def min_clearance(maps, traj: Trajectory, radius_m: float) -> float:
-    """The smallest 3-D distance from the trajectory's points to the DEM's grid points
-    (:func:`clearances`); ``inf`` when no grid point is within ``radius_m``, NaN for an empty
-    track."""
-    if len(traj.cells) == 0:
-        return math.nan
-    return float(clearances(maps, traj, radius_m).min())

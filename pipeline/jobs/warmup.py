@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .store.paths import write_atomically
+from ..store.paths import write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,8 @@ PARTS = ("maps", "search", "bucketed", "planners", "dem", "flight")
 HALVES = (("bucketed", "maps", "flight"), ("landmarks", "safety", "search", "dem", "planners"))
 # how long a part waits for the tiny maps store another process builds, before building its own
 STORE_WAIT_S = 300.0
+# the package whose sources the kernels are compiled from
+_PACKAGE = Path(__file__).parents[1]
 
 
 def _stamp_path() -> Path:
@@ -58,7 +60,7 @@ def _stamp_path() -> Path:
 
     if config.CACHE_DIR:
         return Path(config.CACHE_DIR) / "auv-pipeline-kernels.json"
-    return Path(__file__).parent / "__pycache__" / "kernels.json"
+    return _PACKAGE / "__pycache__" / "kernels.json"
 
 
 def _fingerprint(root: Path | None = None) -> str:
@@ -68,7 +70,7 @@ def _fingerprint(root: Path | None = None) -> str:
     from numba.core import config
 
     parts = [numba.__version__, sys.version, str(config.CPU_NAME or ""), _cpu_name()]
-    root = Path(__file__).parent if root is None else Path(root)
+    root = _PACKAGE if root is None else Path(root)
     for p in sorted(root.rglob("*.py")):
         st = p.stat()
         parts.append(f"{p.relative_to(root)}:{st.st_mtime_ns}:{st.st_size}")
@@ -127,8 +129,8 @@ def _tiny_dem():
 
 def _safety(dem) -> None:
     """The safety kernels of every method, and the passable layer's."""
-    from .maps.build import passable
-    from .maps.safety import safety_map
+    from ..maps.build import passable
+    from ..maps.safety import safety_map
 
     for method in ("spherical", "vertical", "horizontal"):
         passable(dem, safety_map(dem, method=method, clearance=60.0)).compute()
@@ -138,9 +140,9 @@ def _store(tmp: Path, build: bool) -> Path:
     """The tiny maps store: built here (``build``), or waited for (another process builds it)."""
     store, ready = tmp / "maps.zarr", tmp / "maps.ready"
     if build:
-        from .dem.dem_store import write_dem
-        from .dem.open import open_dem
-        from .maps.build import build_maps
+        from ..dem.dem_store import write_dem
+        from ..dem.open import open_dem
+        from ..maps.build import build_maps
 
         write_dem(_tiny_dem(), tmp / "dem.zarr", chunks=24, overwrite=True)
         dem = open_dem(tmp / "dem.zarr", chunks=24)
@@ -174,8 +176,8 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 pipeline.synthetic_dem((64, 64), chunks=32).compute()
                 _warp()
             elif part == "safety":
-                from .dem.dem_store import write_dem
-                from .dem.open import open_dem
+                from ..dem.dem_store import write_dem
+                from ..dem.open import open_dem
 
                 write_dem(_tiny_dem(), tmp / "dem-safety.zarr", chunks=24, overwrite=True)
                 _safety(open_dem(tmp / "dem-safety.zarr", chunks=24))
@@ -193,8 +195,8 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 store = _store(tmp, build=False)
                 t = _plan_each(store, planners=("astar",))
                 if t is not None:
-                    from .missions import min_clearance
-                    from .outputs.files import crc16
+                    from ..outputs.files import crc16
+                    from ..verify.clearance import min_clearance
 
                     pipeline.fly(store, t)
                     _widen(store, t)
@@ -225,7 +227,7 @@ def _tiny_window():
 def _landmarks() -> None:
     """The kernels of landmark placement and of a landmark's layer (an exact search of the whole
     map), on a map of the types the store's build gives them."""
-    from .maps.landmarks import landmark_layer, place_landmarks
+    from ..maps.landmarks import landmark_layer, place_landmarks
 
     z, ok = _tiny_arrays()
     place_landmarks(z, ok, 30.0, 2)
@@ -237,9 +239,9 @@ def _search_each() -> None:
     store needed): what :func:`_plan_each` then finds compiled."""
     import pipeline
 
-    from .planners import sweep
-    from .planners.bounds import lagrangian_bound, off_ridge_to_goal, raised_bound
-    from .planners.paths import measured_path
+    from ..planners import sweep
+    from ..planners.bounds import lagrangian_bound, off_ridge_to_goal, raised_bound
+    from ..planners.paths import measured_path
 
     z, rdg, ok, s, g = _tiny_window()
     for planner in tuple(pipeline.PLANNERS)[::-1]:
@@ -265,7 +267,7 @@ def _search_each() -> None:
 def _search_bucketed() -> None:
     """The A* of windows from BUCKET_CELLS on (whole large maps), which the tiny map is not: a
     part of its own, so that the process with less of the rest to compile takes it."""
-    from .planners.search import NO_GOAL, NO_LANDMARKS, astar_search_bucketed, search_arrays
+    from ..planners.search import NO_GOAL, NO_LANDMARKS, astar_search_bucketed, search_arrays
 
     z, rdg, ok, s, g = _tiny_window()
     astar_search_bucketed(
@@ -276,8 +278,8 @@ def _search_bucketed() -> None:
 def _widen(store: Path, t) -> None:
     """The kernels of corners too close for the turn radius (``widen_turns``), which the tiny
     mission's flight may not meet: its grid path's corners with a radius of 10 cells."""
-    from .flight.geometry import Corridor, widen_turns
-    from .store.maps_store import open_store
+    from ..flight.geometry import Corridor, widen_turns
+    from ..store.maps_store import open_store
 
     m = open_store(store)
     cells = np.asarray(t.cells, dtype=np.int64)
@@ -367,7 +369,7 @@ def _warp() -> None:
     from pyproj import CRS
     from rasterio.transform import from_origin
 
-    from .dem.reproject import exact_warp
+    from ..dem.reproject import exact_warp
 
     lon, lat = -20.0 + 0.01 * np.arange(40), 40.0 - 0.01 * np.arange(40)
     src = xr.DataArray(np.zeros((40, 40), np.float32), dims=("y", "x"), coords={"y": lat, "x": lon})
