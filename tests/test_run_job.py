@@ -777,6 +777,33 @@ def test_temporaries_of_killed_runs_go_and_a_no_op_run_keeps_the_report(
     assert len(list((root / "reports").glob("performance-*.html"))) == 1
 
 
+def test_a_failed_run_leaves_no_temporary_and_the_next_run_finds_none(
+    tmp_path, local_client, caplog
+):
+    """A run that fails in its maps build (a clearance the Zarr DEM's cells cannot resolve,
+    found once the DEM is read) leaves nothing half-written: the next run, fixed, removes no
+    temporary and says nothing of killed runs."""
+    dem = pipeline.synthetic_dem((60, 60), cell_size=100.0, seed=1, chunks=None)
+    dem.to_dataset(name="elevation").to_zarr(tmp_path / "dem.zarr", zarr_format=3)
+    text = (
+        'name = "failed"\n[dem]\npath = "dem.zarr"\n[maps]\nclearance = {c}\n'
+        '[[missions]]\nname = "a"\nstart = [5, 5]\ngoal = [50, 50]\n'
+        '[output]\ncatalog = "cat"\nperformance_report = true\n'
+    )
+    job = tmp_path / "job.toml"
+    job.write_text(text.format(c=20))
+    with pytest.raises(
+        pipeline.JobFileError, match=r"\[maps\]: `clearance` = 20 m is smaller than half"
+    ):
+        run_job(job, scheduler=local_client)
+    assert [p.name for p in (tmp_path / "cat").rglob(".*tmp*")] == []
+    job.write_text(text.format(c=150))
+    with caplog.at_level("INFO", logger="pipeline.jobs.run"):
+        assert run_job(job, scheduler=local_client).ok
+    assert "temporaries" not in caplog.text and "killed" not in caplog.text
+    assert (tmp_path / "cat" / "performance-report.html").is_file()
+
+
 NO_OP_RUN = """
 import sys
 from pipeline.cli import main

@@ -279,10 +279,16 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
             if job.performance_report
             else nullcontext()
         )
-        with recording:
-            res.reused = _dem_store(job, dem_store, overwrite)
-            built = _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
-            _missions(job, maps_store, client, missions, res)
+        try:
+            with recording:
+                res.reused = _dem_store(job, dem_store, overwrite)
+                built = _maps_store(job, dem_store, maps_store, overwrite or not res.reused)
+                _missions(job, maps_store, client, missions, res)
+        except BaseException:
+            # dask writes the report as the run ends, failed too: a run that did not finish
+            # keeps none (else the next run would find it as a killed run's temporary)
+            tmp_report.unlink(missing_ok=True)
+            raise
     if not job.performance_report:
         return res  # none asked for: an earlier run's report stays as it is
     if res.reused and not built and not res.ran:
