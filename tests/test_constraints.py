@@ -212,8 +212,8 @@ def test_zones_never_vanish(zone_store, tmp_path, caplog):
     on the map, with a warning, and the route keeps out of it (shapely); the same coordinates
     off the map are refused in one line; a box of 1e300 metres and a world box in longitude
     and latitude cover the whole map (no route, said so); a zone with its latitude and
-    longitude swapped lies off the map and is named in a warning; every layer of a GeoPackage
-    is read."""
+    longitude swapped lies off the map and is named in a warning; a ``crs`` member PROJ does not
+    know is refused; every layer of a GeoPackage is read."""
     import geopandas as gpd
 
     path, maps = zone_store
@@ -241,6 +241,12 @@ def test_zones_never_vanish(zone_store, tmp_path, caplog):
     )
     with pytest.raises(pipeline.PipelineError, match="world"):
         pipeline.plan(path, (10, 10), (110, 110), keep_out=world)
+    # a crs member PROJ does not know (GDAL reads the file as longitude and latitude)
+    unknown = json.loads(bare.read_text())
+    unknown["crs"] = {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::999999"}}
+    (tmp_path / "unknown.geojson").write_text(json.dumps(unknown))
+    with pytest.raises(InvalidParameterError, match="names the CRS 'urn:ogc:def:crs:EPSG::999999'"):
+        pipeline.plan(path, (10, 10), (110, 110), keep_out=tmp_path / "unknown.geojson")
     to_ll = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True)
     lon, lat = to_ll.transform(*np.array(zones["cable"].exterior.coords).T)
     swapped = _feature_collection(

@@ -234,7 +234,35 @@ def read_zone_file(path: str | os.PathLike):
             "(GeoJSON is WGS84 longitude and latitude by definition: a .geojson file with "
             "projected coordinates needs its 'crs' member)"
         )
+    unknown = _unknown_crs_member(path) if frame.crs.to_epsg() == 4326 else None
+    if unknown is not None:  # GDAL read it as longitude and latitude
+        raise InvalidParameterError(
+            f"keep-out zone file {path} names the CRS {unknown!r}, which PROJ does not know; "
+            "write a known one in its 'crs' member (such as urn:ogc:def:crs:EPSG::32610) or "
+            "the coordinates in longitude and latitude"
+        )
     return _named(frame, str(path))
+
+
+def _unknown_crs_member(path: Path) -> str | None:
+    """The name in a GeoJSON file's ``crs`` member when PROJ cannot read it (GDAL then takes
+    the file as WGS84 longitude and latitude without a word), else None."""
+    if path.suffix.lower() not in (".geojson", ".json") or not path.is_file():
+        return None
+    import json
+
+    from pyproj import CRS
+    from pyproj.exceptions import CRSError
+
+    try:
+        name = json.loads(path.read_text(encoding="utf-8"))["crs"]["properties"]["name"]
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+        return None  # no named crs member (GDAL read the file: its JSON is sound)
+    try:
+        CRS.from_user_input(str(name))
+    except CRSError:
+        return str(name)
+    return None
 
 
 def _every_layer(path: Path):
