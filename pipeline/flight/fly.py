@@ -326,12 +326,12 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         problems.append("the terrain near the track is unknown (no-data) at some samples")
     elif (need := max(h_track.max(), hq.max())) > ctx.top_ok:
         problems.append(
-            f"the clearance from the seabed needs {sea - need:.0f} m depth on the route, above "
+            f"the clearance from the seabed needs {sea - need:.1f} m depth on the route, above "
             f"the surface limit ({sea - ctx.top:.0f} m)"
         )
     elif max(z_t.max(), zq.max()) > ctx.top_ok:
         problems.append(
-            f"the pitch limit forces the vehicle to {sea - max(z_t.max(), zq.max()):.0f} m "
+            f"the pitch limit forces the vehicle to {sea - max(z_t.max(), zq.max()):.1f} m "
             f"depth, above the surface limit ({sea - ctx.top:.0f} m)"
         )
     else:
@@ -353,6 +353,22 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         problems.append(over)
     turns = radii[np.isfinite(radii)] * a
     tight = int(np.sum(_too_tight(turns, ctx.turn_m)))
+    # where a limit broke (the seabed unknown, a height above the surface limit, a turn too
+    # tight): the places a mission planned again keeps away from (jobs.missions)
+    bad_t = ~(h_track <= ctx.top_ok) | (z_t > ctx.top_ok)
+    bad_q = ~(hq <= ctx.top_ok) | (zq > ctx.top_ok)
+    sharp = _too_tight(radii, rad) if rad > 0 else np.zeros(len(wr), dtype=bool)
+    trouble = np.column_stack(
+        [
+            np.concatenate(v)
+            for v in zip(
+                _map_xy(ctx.m, pr[bad_t], pc[bad_t]),
+                _map_xy(ctx.m, qr[bad_q], qc[bad_q]),
+                _map_xy(ctx.m, wr[sharp], wc[sharp]),
+                strict=True,
+            )
+        ]
+    )
     if rad == 0:
         problems.append("turns are not rounded (the smoothed tracks broke a limit)")
     elif tight:  # corners that widen_turns could not part: the next smoothing may
@@ -379,6 +395,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         zones=zones,
         unsure=unsure,
         grid=grid,
+        trouble=trouble,
     )
 
 
@@ -474,6 +491,7 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         max_depth_m=m.max_depth_m,
         at_rated_depth_m=_at_rated_depth(m.floor_m, s, h),
         short_legs=int(np.sum(np.hypot(np.diff(wx), np.diff(wy)) < ctx.turn_m * (1 - 1e-9))),
+        trouble_xy=pick["trouble"],
         **profile_figures(s, z, seabed),
     )
 

@@ -131,6 +131,9 @@ class Flight:
     at_rated_depth_m: float = 0.0
     # for each via point (its cell's centre a waypoint), the flown track's closest approach
     via_miss_m: list = field(default_factory=list)
+    # where the flight broke a limit it can place (map x, y; rows): samples over unknown
+    # seabed or above the surface limit, corners turning tighter than the vehicle can
+    trouble_xy: np.ndarray | None = None
 
     @property
     def altitude_m(self) -> np.ndarray:

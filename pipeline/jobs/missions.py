@@ -30,6 +30,7 @@ from ..exceptions import InvalidParameterError, PipelineError
 from ..flight.fly import with_flight
 from ..flight.vehicle import Vehicle
 from ..mcpc.algorithm import coarse_rho
+from ..mcpc.certify import certified
 from ..mcpc.plan import plan
 from ..params import (
     ENDPOINT_FORMS,
@@ -331,8 +332,13 @@ def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory
         return failed_trajectory({**opts}, str(exc))
     if batch.vehicle is None and "vehicle" not in mission:
         return t
+
+    def again(keep) -> Trajectory:  # the mission planned again under the zones ``keep``
+        o = {**opts, "keep_out": keep, "keep_out_margin_m": None}
+        return plan(m, mission["start"], mission["goal"], client=run_on, **o)
+
     try:
-        return with_flight(m, t, vehicle)
+        return fly_or_plan_again(m, t, vehicle, again, mission.get("name", f"mission {i}"))
     except PipelineError as exc:
         t.status = Status.FAILED
         t.message = f"its flown track could not be made: {exc}"
@@ -345,6 +351,105 @@ def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory
             "planned path is kept; this is a bug, please report it with the log"
         )
         return t
+
+
+# how many times a mission whose flight breaks a limit at places it can name (a height above
+# the surface limit, unknown seabed, a turn too tight) is planned again around them
+FLIGHT_ROUNDS = 3
+
+
+def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
+    """``t`` flown (:func:`~pipeline.flight.fly.with_flight`); while its flight fails at
+    places it names (``Flight.trouble_xy``), the mission is planned again by ``again(zones)``
+    around them (each round's zone kept, a disc of ``k`` times the turn radius and a cell
+    around each place in round ``k``, the mission's own points left clear) and flown again,
+    up to :data:`FLIGHT_ROUNDS` rounds, each logged and recorded (``extra["flight_rounds"]``).
+
+    A path planned again is certified against the original problem: its length against
+    ``omega`` times the lower bound proven in the first round (the zones only lengthen the
+    shortest path, so that bound still holds; the bound proven under the zones need not):
+    ok where it holds, else uncertified (docs/certified-bound.md, "Planning around the
+    flight")."""
+    from ..constraints.zones import KeepOut
+
+    t = with_flight(m, t, vehicle)
+    lower, user, rounds, zones = t.lower_bound_m, t.keep_out, [], []
+    while t.status == Status.FAILED and t.flight is not None and len(rounds) < FLIGHT_ROUNDS:
+        k = len(rounds) + 1
+        zone, end = _around(m, t, k, user.margin_m if user is not None else 0.0)
+        if end is not None:  # no route to plan can help
+            t.message = (
+                f"{t.message}; it breaks in the {end}'s own cell, which no route avoids: move "
+                f"the {end}"
+            )
+            break
+        if zone is None:
+            break  # nothing the planner can go around (the battery, a zone entered, ...)
+        problem = "; ".join(t.flight.problems)
+        rounds.append({"round": k, "problem": problem})
+        log.info("%s: flight round %d: %s; planning again around it", name, k, problem)
+        zones.append((f"flight round {k}", zone))
+        keep = KeepOut((*(user.zones if user is not None else ()), *zones), 0.0)
+        if user is not None:
+            keep = KeepOut(keep.zones, user.margin_m)
+        try:
+            nxt = again(keep)
+        except PipelineError as exc:
+            rounds[-1]["result"] = f"no path around it ({exc})"
+            break
+        nxt.extra["lower_bound_under_zones_m"] = nxt.lower_bound_m
+        nxt.lower_bound_m = lower  # the original problem's bound (see above)
+        if nxt.status == Status.OK and not certified(nxt.length_m, lower, nxt.omega):
+            nxt.status = Status.UNCERTIFIED
+            nxt.message = (
+                f"planned around the flight's problems, its length {nxt.length_m:.0f} m is "
+                f"above omega x the proven lower bound of the mission as given "
+                f"({nxt.omega * lower:.0f} m): flyable, the bound not proven"
+            )
+        t = with_flight(m, nxt, vehicle)
+        rounds[-1]["result"] = str(t.status)
+    if rounds:
+        t.extra["flight_rounds"] = rounds
+        tried = "; ".join(
+            f"round {r['round']}: "
+            + (r["problem"] if j == 0 or r["problem"] != rounds[j - 1]["problem"] else "the same")
+            + f" -> {r['result']}"
+            for j, r in enumerate(rounds)
+        )
+        lead = (
+            "planned again around its flight's problems"
+            if t.status != Status.FAILED
+            else f"no flyable route within {len(rounds)} rounds of planning around the flight"
+        )
+        t.message = f"{lead} ({tried})" + (f"; {t.message}" if t.message else "")
+    return t
+
+
+def _around(m, t: Trajectory, k: int, margin: float) -> tuple:
+    """``(zone, end)``: the zone round ``k`` keeps the mission away from, a disc of ``k``
+    times the turn radius and a cell round each place the flight names, less a disc round each
+    of the mission's own points (start, via points, goal: a point in a zone is refused), None
+    when nothing is left; ``end`` names the point ("start", "via 2", "goal") in whose own cell
+    the flight breaks a limit (no route can help), else None."""
+    import shapely
+
+    from ..constraints.zones import SLACK
+
+    f = t.flight
+    if f.trouble_xy is None or not len(f.trouble_xy):
+        return None, None
+    a = m.cell_size
+    via = np.asarray(t.extra.get("via_index", []), dtype=np.int64)
+    own = [0, *via, len(t.cells) - 1]
+    names = ["start", *(f"via {j + 1}" for j in range(len(via))), "goal"]
+    cells = t.cells[own]
+    ends = np.column_stack([np.asarray(m.x)[cells[:, 1]], np.asarray(m.y)[cells[:, 0]]])
+    for name, (x, y) in zip(names, ends, strict=True):
+        if np.any(np.maximum(*np.abs(f.trouble_xy - (x, y)).T) <= 0.5 * a):
+            return None, name
+    zone = shapely.MultiPoint(f.trouble_xy).buffer(k * (f.turn_radius_m + a), quad_segs=8)
+    zone = zone.difference(shapely.MultiPoint(ends).buffer(margin + (SLACK + 1.0) * a))
+    return (None if zone.is_empty else zone), None
 
 
 def _mission_task(path: str, mission: dict, batch: _Batch, i: int) -> Trajectory:

@@ -266,6 +266,10 @@ def write_mission(
             via = np.asarray(traj.extra["via_index"], dtype=np.int64)
             props["auv:via_xy"] = traj.points[via, :2].round(2).tolist()
             props["auv:via_cells"] = traj.cells[via].tolist()
+        if traj.extra.get("flight_rounds"):  # planned again around its flight's problems
+            props["auv:flight_rounds"] = [
+                {k: json_value(v) for k, v in r.items()} for r in traj.extra["flight_rounds"]
+            ]
         par = getattr(maps, "parameters", None)
         if par is not None:  # what a check of the mission (pipeline verify) measures against
             props["auv:clearance_m"] = par.clearance_m

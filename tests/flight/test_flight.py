@@ -1522,3 +1522,120 @@ def test_max_leg_splits_the_waypoints_on_the_flown_profile(ridge_store):
     along = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(w[:, :2], axis=0).T))))
     assert along[-1] == pytest.approx(along0[-1], rel=1e-9)
     np.testing.assert_allclose(w[:, 2], np.interp(along, along0, w0[:, 2]), atol=1e-6)
+
+
+# ------------------------------------------------------------------ planning around the flight
+
+
+def _shoal_store(tmp_path, z, name):
+    """A maps store of the elevations ``z`` (100 m cells), R 300 m, surface clearance 30 m:
+    the surface limit 30 m below the sea surface."""
+    import dask
+    from conftest import metric_dataarray
+
+    path = tmp_path / f"{name}.zarr"
+    dem = metric_dataarray(z.astype(np.float32), a=100.0).rename("elevation")
+    with dask.config.set(scheduler="synchronous"):
+        pipeline.build_maps(dem, path, clearance=300.0, surface_clearance=30.0, chunks=32)
+    return path
+
+
+def _seamount_chain(n=64, seed=3):
+    """Seven seamounts across the middle of a 900 m deep plain, their summits 300 to 360 m
+    deep: passable over most of their tops at the grid points, some saddles within a metre of
+    what the flight can keep."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:n, 0:n].astype(float)
+    z = np.full((n, n), -900.0)
+    for k in range(7):
+        cx, cy = (k + 0.5) * n / 7 + rng.uniform(-2, 2), n / 2 + rng.uniform(-6, 6)
+        s, top = rng.uniform(3, 6), rng.uniform(-360, -300)
+        bump = (top + 900) * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * s * s))
+        z = np.maximum(z, -900 + bump)
+    return z
+
+
+VEHICLE_NEAR_THE_TOP = {"min_turn_radius_m": 150.0, "max_pitch_deg": 15.0}
+
+
+def test_a_mission_the_flight_cannot_fly_is_planned_again_and_flies(tmp_path):
+    """A seamount chain near the surface limit: the first path's flight needs a height above
+    the limit (it fails as flown alone); ``plan_missions`` plans it again around that place
+    and flies it. What it flies is checked independently: the clearance of the waypoint route
+    and the track from scipy's bilinear seabed (sampled every 15 m), every height under the
+    surface limit, the pitch and the turns; its length within omega of scipy's optimum of the
+    mission as given (the bound it keeps is that problem's, at most the optimum), and the
+    track out of the zone it was planned around."""
+    import shapely
+
+    path = _shoal_store(tmp_path, _seamount_chain(), "chain")
+    start, goal, omega = (4, 4), (59, 59), 2.0
+    first = pipeline.plan(path, start, goal, omega=omega, client="synchronous")
+    alone = with_flight(path, first, VEHICLE_NEAR_THE_TOP)
+    assert alone.status == "failed" and "above the surface limit (30 m)" in alone.message
+    mission = {"name": "across", "start": start, "goal": goal, "omega": omega}
+    (t,) = pipeline.plan_missions(path, [mission], vehicle=VEHICLE_NEAR_THE_TOP, client="threads")
+    assert t.status == "ok", t.message
+    rounds = t.extra["flight_rounds"]
+    assert rounds[0]["problem"].startswith("the clearance from the seabed needs")
+    assert rounds[-1]["result"] == "ok" and t.message.startswith("planned again around")
+    f = t.flight
+    assert not f.problems
+    for xyz in (densify(f.waypoints[:, :3], 2.0), densify(np.column_stack([f.x, f.y, f.z]), 2.0)):
+        least = independent_clearance(path, xyz, "spherical", 300.0, 15.0)
+        assert least >= 300.0 * (1 - 1e-6) - 1e-6
+        assert xyz[:, 2].max() <= -30.0 + 1e-6  # the surface limit
+    tan = math.tan(math.radians(15.0))
+    w = f.waypoints
+    assert np.all(np.abs(np.diff(w[:, 2])) <= tan * np.hypot(*np.diff(w[:, :2], axis=0).T) + 1e-6)
+    assert np.all(np.abs(np.diff(f.z)) <= tan * np.hypot(np.diff(f.x), np.diff(f.y)) + 1e-6)
+    assert f.min_turn_radius_m >= 150.0 * (1 - 1e-9)
+    ds = pipeline.open_maps(path)
+    surface, ok = ds["safety"].values, ds["passable"].values.astype(bool)
+    best = optimum(reference_graph(surface, ok, 100.0), ok.shape, start, goal)
+    assert t.lower_bound_m == first.lower_bound_m <= best * (1 + 1e-9)
+    assert t.length_m <= omega * t.lower_bound_m * (1 + 1e-9) <= omega * best * (1 + 1e-9)
+    zones = dict(t.keep_out.zones)
+    assert "flight round 1" in zones
+    track = shapely.LineString(np.column_stack([f.x, f.y]))
+    assert not track.intersects(zones["flight round 1"])
+    # the Item says how it came to be, and a STAC reader takes it
+    import pystac
+
+    from pipeline.outputs.catalog import write_mission as write_item
+
+    d = write_item(
+        tmp_path / "cat", "across", mission, t, maps=pipeline.open_store(path),
+        crs_wkt=None, min_clearance_m=f.min_clearance_m, run_id="r", quicklook=False,
+    )  # fmt: skip
+    item = pystac.Item.from_dict(d)
+    assert item.properties["auv:flight_rounds"] == rounds
+    assert item.properties["auv:lower_bound_m"] == pytest.approx(first.lower_bound_m)
+
+
+def test_a_mission_with_no_flyable_route_fails_naming_its_rounds(tmp_path):
+    """A ridge across the whole map whose crest leaves the planner half a metre under the
+    surface limit at the grid points: every route crosses it, and no flight can (its samples
+    keep a little more than R). The mission fails after every round, each named; one whose
+    start lies on the crest itself stops at once, saying to move the start."""
+    n = 48
+    y = np.mgrid[0:n, 0:n][0].astype(float)
+    crest = -300.0 - 30.0 - 0.5
+    z = -900 + (crest + 900) * np.exp(-((y - 24) ** 2) / (2 * 2.0**2))
+    path = _shoal_store(tmp_path, z, "wall")
+    assert pipeline.open_maps(path)["passable"].values[24].all()  # passable at the grid points
+    missions = [
+        {"name": "across", "start": (4, 4), "goal": (44, 40)},
+        {"name": "from the crest", "start": (24, 4), "goal": (44, 40)},
+    ]
+    across, crest_start = pipeline.plan_missions(
+        path, missions, vehicle=VEHICLE_NEAR_THE_TOP, client="threads"
+    )
+    assert across.status == "failed"
+    assert across.message.startswith("no flyable route within 3 rounds")
+    assert [r["round"] for r in across.extra["flight_rounds"]] == [1, 2, 3]
+    assert "round 3: " in across.message and "above the surface limit (30 m)" in across.message
+    assert crest_start.status == "failed" and "flight_rounds" not in crest_start.extra
+    assert crest_start.message.endswith(
+        "it breaks in the start's own cell, which no route avoids: move the start"
+    )
