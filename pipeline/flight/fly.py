@@ -11,7 +11,8 @@ layer):
    that a straight leg reaches over usable cells (passable, no corner cutting, terrain known
    around them) without flying more off the ridge cells than the path did.
 2. **Route**: the corners simplified once more (a leg may skip corners it passes within
-   a tolerance of, ``ROUTE_SIMPLIFICATIONS``): the waypoints' horizontal positions.
+   a tolerance of, ``ROUTE_SIMPLIFICATIONS``), with more waypoints where fewer would keep less
+   than ``RIDGE_KEPT`` of the path's ridge share: the waypoints' horizontal positions.
 3. **Turns**: corners too close for the turn radius are cut where a straight leg between
    their neighbours is usable; every other corner is rounded by a circular arc of the
    vehicle's minimum turn radius (never tighter), tangent to both legs: the flown track.
@@ -90,6 +91,12 @@ WAYPOINT_BANDS = (0.25, 0.5, 1.0)
 
 WAYPOINT_SHARE = 0.1
 
+# the share of the planned path's ridge cover (the length over ridge cells) a smoothing keeps:
+# the waypoint route takes more waypoints (these multiples of the count wanted, the last
+# keeping every corner) rather than cut across more of the ridges
+RIDGE_KEPT = 0.9
+ROUTE_WAYPOINTS = (0.75, 1.5, 3.0, math.inf)
+
 
 def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     """The track a vehicle flies for ``traj`` (a planned :class:`Trajectory`) on the maps store
@@ -119,7 +126,12 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
         results.append(_attempt(ctx, name, make(), rad))
         if not results[-1]["problems"]:
             break
-    return _flight(ctx, traj, _pick(results), t0)
+    pick = _pick(results)
+    flight = _flight(ctx, traj, pick, t0)
+    first = results[0]  # the smoothing that keeps the ridges, when another is flown
+    if pick is not first and len(first["trouble"]) and not first["zones"]:
+        flight.ridge_trouble_xy = first["trouble"]
+    return flight
 
 
 @dataclass(frozen=True)
@@ -146,6 +158,7 @@ class _Context:
     limit: float  # the flown length allowed: omega x the proven lower bound
     bands: tuple
     want: int  # waypoints wanted at most
+    ridge_share: float  # the grid path's share over ridge cells (a polyline through its cells)
 
 
 def _context(m, traj: Trajectory, veh: Vehicle) -> _Context:
@@ -190,6 +203,17 @@ def _context(m, traj: Trajectory, veh: Vehicle) -> _Context:
         limit=limit,
         bands=bands,
         want=max(2, int(WAYPOINT_SHARE * len(cells))),
+        ridge_share=_ridge_share(
+            *_polyline_off_ridge(
+                cells[:, 0].astype(np.float64),
+                cells[:, 1].astype(np.float64),
+                True,
+                cor.rdg,
+                cor.slot,
+                cor.tr,
+                cor.tc,
+            )
+        ),  # fmt: skip
     )
 
 
@@ -266,16 +290,23 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     if rad > 0:
         keep_ridge = name != "straight shortcuts"
         woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
-        # the closest route with few corners
-        enough = 0.75 * ctx.want
+        share = max(_ridge_share(woff, walong), ctx.ridge_share)  # the corners', the path's
+        # the closest route with few corners that keeps RIDGE_KEPT of the corners' ridge share
+        # (more waypoints where fewer would cut across the ridges' bends)
+        for enough in ROUTE_WAYPOINTS if keep_ridge else ROUTE_WAYPOINTS[:1]:
 
-        def route(i, j):  # (a leg between via points: its share of the waypoints)
-            most = enough * (j - i) / len(wr)
-            return _route_vertices(
-                wr[i:j], wc[i:j], woff[i:j], walong[i:j], _LEVELS, most, cor.rdg, *usable
-            )
+            def route(i, j, enough=enough):  # (a leg between via points: its share)
+                most = enough * ctx.want * (j - i) / len(wr)
+                return _route_vertices(
+                    wr[i:j], wc[i:j], woff[i:j], walong[i:j], _LEVELS, most, cor.rdg, *usable
+                )
 
-        sr, sc, sf = _widened(*_by_leg(wr, wc, fixed, route), rad, usable)
+            sr, sc, sf = _widened(*_by_leg(wr, wc, fixed, route), rad, usable)
+            if not keep_ridge:
+                break
+            so, sa = _polyline_off_ridge(sr, sc, True, cor.rdg, *usable[1:4])
+            if _ridge_share(so, sa) >= RIDGE_KEPT * share:
+                break
         # a simplified route whose corners come too close together where no straight leg
         # can part them: every corner of the smoothing kept instead (more waypoints)
         if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
@@ -397,6 +428,12 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         grid=grid,
         trouble=trouble,
     )
+
+
+def _ridge_share(off: np.ndarray, along: np.ndarray) -> float:
+    """The share of a polyline's length over ridge cells, from
+    :func:`~pipeline.flight.geometry._polyline_off_ridge` (1 for a polyline of no length)."""
+    return 1.0 - float(off[-1]) / float(along[-1]) if along[-1] > 0 else 1.0
 
 
 def _pick(results: list) -> dict:

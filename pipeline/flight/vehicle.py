@@ -134,6 +134,8 @@ class Flight:
     # where the flight broke a limit it can place (map x, y; rows): samples over unknown
     # seabed or above the surface limit, corners turning tighter than the vehicle can
     trouble_xy: np.ndarray | None = None
+    # where the smoothing that keeps the ridges broke such a limit, when another was flown
+    ridge_trouble_xy: np.ndarray | None = None
 
     @property
     def altitude_m(self) -> np.ndarray:

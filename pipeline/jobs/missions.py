@@ -27,7 +27,7 @@ import numpy as np
 
 from .._types import ClientLike, Maps, VehicleLike
 from ..exceptions import InvalidParameterError, PipelineError
-from ..flight.fly import with_flight
+from ..flight.fly import RIDGE_KEPT, with_flight
 from ..flight.vehicle import Vehicle
 from ..mcpc.algorithm import coarse_rho
 from ..mcpc.certify import certified
@@ -356,14 +356,20 @@ def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory
 # how many times a mission whose flight breaks a limit at places it can name (a height above
 # the surface limit, unknown seabed, a turn too tight) is planned again around them
 FLIGHT_ROUNDS = 3
+# below this share of the grid path's ridge share kept by its flight, the message says so
+RIDGE_SAID = 0.75
 
 
 def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
-    """``t`` flown (:func:`~pipeline.flight.fly.with_flight`); while its flight fails at
-    places it names (``Flight.trouble_xy``), the mission is planned again by ``again(zones)``
-    around them (each round's zone kept, a disc of ``k`` times the turn radius and a cell
-    around each place in round ``k``, the mission's own points left clear) and flown again,
-    up to :data:`FLIGHT_ROUNDS` rounds, each logged and recorded (``extra["flight_rounds"]``).
+    """``t`` flown (:func:`~pipeline.flight.fly.with_flight`), then planned again by
+    ``again(zones)`` around the places its flight names and flown again, up to
+    :data:`FLIGHT_ROUNDS` rounds, each logged and recorded (``extra["flight_rounds"]``):
+    while the flight fails at places (``Flight.trouble_xy``), or flies but keeps less than
+    ``RIDGE_KEPT`` of the planned ridge share because the smoothing that keeps the ridges broke
+    a limit at places (``Flight.ridge_trouble_xy``; the mission planned again is kept only
+    when it flies no worse and over more ridge). Round ``k``'s zone is a disc of ``k`` times
+    the turn radius and a cell round each place, less the mission's own points; every round's
+    zone is kept.
 
     A path planned again is certified against the original problem: its length against
     ``omega`` times the lower bound proven in the first round (the zones only lengthen the
@@ -374,41 +380,44 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
 
     t = with_flight(m, t, vehicle)
     lower, user, rounds, zones = t.lower_bound_m, t.keep_out, [], []
-    while t.status == Status.FAILED and t.flight is not None and len(rounds) < FLIGHT_ROUNDS:
+    margin = user.margin_m if user is not None else 0.0
+    best, best_round = t, 0  # the best flight so far (status, then ridge share flown)
+    while t.flight is not None and len(rounds) < FLIGHT_ROUNDS:
+        why = _why_again(t)
+        if why is None:
+            break
+        problem, places, kind = why
         k = len(rounds) + 1
-        zone, end = _around(m, t, k, user.margin_m if user is not None else 0.0)
+        zone, end = _around(m, t, places, k, margin)
         if end is not None:  # no route to plan can help
-            t.message = (
-                f"{t.message}; it breaks in the {end}'s own cell, which no route avoids: move "
-                f"the {end}"
-            )
+            if kind == "fail":
+                t.message = (
+                    f"{t.message}; it breaks in the {end}'s own cell, which no route avoids: "
+                    f"move the {end}"
+                )
             break
         if zone is None:
-            break  # nothing the planner can go around (the battery, a zone entered, ...)
-        problem = "; ".join(t.flight.problems)
+            break
         rounds.append({"round": k, "problem": problem})
         log.info("%s: flight round %d: %s; planning again around it", name, k, problem)
         zones.append((f"flight round {k}", zone))
-        keep = KeepOut((*(user.zones if user is not None else ()), *zones), 0.0)
-        if user is not None:
-            keep = KeepOut(keep.zones, user.margin_m)
+        keep = KeepOut((*(user.zones if user is not None else ()), *zones), margin)
         try:
             nxt = again(keep)
         except PipelineError as exc:
             rounds[-1]["result"] = f"no path around it ({exc})"
             break
-        nxt.extra["lower_bound_under_zones_m"] = nxt.lower_bound_m
-        nxt.lower_bound_m = lower  # the original problem's bound (see above)
-        if nxt.status == Status.OK and not certified(nxt.length_m, lower, nxt.omega):
-            nxt.status = Status.UNCERTIFIED
-            nxt.message = (
-                f"planned around the flight's problems, its length {nxt.length_m:.0f} m is "
-                f"above omega x the proven lower bound of the mission as given "
-                f"({nxt.omega * lower:.0f} m): flyable, the bound not proven"
-            )
-        t = with_flight(m, nxt, vehicle)
+        t = with_flight(m, _against_original(nxt, lower), vehicle)
         rounds[-1]["result"] = str(t.status)
+        if t.flight is not None and t.status != Status.FAILED:
+            rounds[-1]["result"] += f", {_ridge_kept(t):.0%} of its ridge share flown"
+        if _flies_better(t, best):
+            best, best_round = t, k
     if rounds:
+        if best_round != len(rounds):
+            which = f"round {best_round}'s" if best_round else "the first"
+            rounds[-1]["result"] += f"; {which} route flown"
+        t = best
         t.extra["flight_rounds"] = rounds
         tried = "; ".join(
             f"round {r['round']}: "
@@ -417,27 +426,87 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
             for j, r in enumerate(rounds)
         )
         lead = (
-            "planned again around its flight's problems"
-            if t.status != Status.FAILED
-            else f"no flyable route within {len(rounds)} rounds of planning around the flight"
+            f"no flyable route within {len(rounds)} rounds of planning around the flight"
+            if t.status == Status.FAILED
+            else "planned again around its flight's problems"
+            if best_round
+            else "planning again around its flight's problems flew no better"
         )
         t.message = f"{lead} ({tried})" + (f"; {t.message}" if t.message else "")
+    if t.flight is not None and t.status != Status.FAILED and _ridge_kept(t) < RIDGE_SAID:
+        f = t.flight
+        note = (
+            f"the flown route keeps {_ridge_kept(t):.0%} of the grid path's ridge share "
+            f"({f.ridge_ratio:.0%} against {t.ridge_ratio:.0%}): with turns of at least "
+            f"{f.turn_radius_m:g} m and its pitch and surface limits the vehicle cannot follow "
+            "the ridges closer"
+        )
+        t.message = f"{t.message}; {note}" if t.message else note
     return t
 
 
-def _around(m, t: Trajectory, k: int, margin: float) -> tuple:
+def _why_again(t: Trajectory) -> tuple | None:
+    """``(problem, places, kind)`` when the flight of ``t`` asks for another round: it fails
+    at places it names (``"fail"``), or it keeps too little of the ridges where the smoothing
+    that keeps them broke a limit at places (``"ridge"``); else None."""
+    f = t.flight
+    if t.status == Status.FAILED:
+        if f.trouble_xy is not None and len(f.trouble_xy):
+            return "; ".join(f.problems), f.trouble_xy, "fail"
+        return None
+    kept = _ridge_kept(t)
+    if f.ridge_trouble_xy is not None and kept < RIDGE_KEPT:
+        return (
+            f"the flown route keeps {kept:.0%} of the planned ridge share (a route along the "
+            "ridges breaks a limit)",
+            f.ridge_trouble_xy,
+            "ridge",
+        )
+    return None
+
+
+def _ridge_kept(t: Trajectory) -> float:
+    """The share of the grid path's ridge share its flight keeps (1 without ridge)."""
+    return t.flight.ridge_ratio / t.ridge_ratio if t.ridge_ratio > 0 else 1.0
+
+
+_RANK = {Status.OK: 0, Status.UNCERTIFIED: 1, Status.FAILED: 2}
+
+
+def _flies_better(new: Trajectory, old: Trajectory) -> bool:
+    """Whether ``new`` flies better than ``old``: a better status, or the same over more
+    ridge (of two failures, the later)."""
+    a, b = _RANK[Status(new.status)], _RANK[Status(old.status)]
+    if a != b or a == _RANK[Status.FAILED]:
+        return a <= b
+    return new.flight is not None and new.flight.ridge_ratio > old.flight.ridge_ratio
+
+
+def _against_original(t: Trajectory, lower: float) -> Trajectory:
+    """``t``, planned under added zones, certified against ``lower``, the bound proven for
+    the mission as given (:func:`fly_or_plan_again`)."""
+    t.extra["lower_bound_under_zones_m"] = t.lower_bound_m
+    t.lower_bound_m = lower
+    if t.status == Status.OK and not certified(t.length_m, lower, t.omega):
+        t.status = Status.UNCERTIFIED
+        t.message = (
+            f"planned around the flight's problems, its length {t.length_m:.0f} m is above "
+            f"omega x the proven lower bound of the mission as given ({t.omega * lower:.0f} "
+            "m): flyable, the bound not proven"
+        )
+    return t
+
+
+def _around(m, t: Trajectory, places: np.ndarray, k: int, margin: float) -> tuple:
     """``(zone, end)``: the zone round ``k`` keeps the mission away from, a disc of ``k``
-    times the turn radius and a cell round each place the flight names, less a disc round each
-    of the mission's own points (start, via points, goal: a point in a zone is refused), None
-    when nothing is left; ``end`` names the point ("start", "via 2", "goal") in whose own cell
-    the flight breaks a limit (no route can help), else None."""
+    times the turn radius and a cell round each of the ``places`` (map x, y), less a disc round
+    each of the mission's own points (start, via points, goal: a point in a zone is refused),
+    None when nothing is left; ``end`` names the point ("start", "via 2", "goal") in whose own
+    cell a place lies (no route can help), else None."""
     import shapely
 
     from ..constraints.zones import SLACK
 
-    f = t.flight
-    if f.trouble_xy is None or not len(f.trouble_xy):
-        return None, None
     a = m.cell_size
     via = np.asarray(t.extra.get("via_index", []), dtype=np.int64)
     own = [0, *via, len(t.cells) - 1]
@@ -445,9 +514,10 @@ def _around(m, t: Trajectory, k: int, margin: float) -> tuple:
     cells = t.cells[own]
     ends = np.column_stack([np.asarray(m.x)[cells[:, 1]], np.asarray(m.y)[cells[:, 0]]])
     for name, (x, y) in zip(names, ends, strict=True):
-        if np.any(np.maximum(*np.abs(f.trouble_xy - (x, y)).T) <= 0.5 * a):
+        if np.any(np.maximum(*np.abs(places - (x, y)).T) <= 0.5 * a):
             return None, name
-    zone = shapely.MultiPoint(f.trouble_xy).buffer(k * (f.turn_radius_m + a), quad_segs=8)
+    radius = k * (t.flight.turn_radius_m + a)
+    zone = shapely.MultiPoint(places).buffer(radius, quad_segs=8)
     zone = zone.difference(shapely.MultiPoint(ends).buffer(margin + (SLACK + 1.0) * a))
     return (None if zone.is_empty else zone), None
 

@@ -675,7 +675,8 @@ class _Recorder:
                 traj.runtime_s,
                 (
                     f"; flown {traj.flight.flown_length_m / 1e3:.1f} km in "
-                    f"{traj.flight.duration_s / 3600:.1f} h, {len(traj.flight.waypoints)} waypoints"
+                    f"{traj.flight.duration_s / 3600:.1f} h, {100 * traj.flight.ridge_ratio:.0f} % "
+                    f"ridge, {len(traj.flight.waypoints)} waypoints"
                     if traj.flight is not None
                     else ""
                 )

@@ -149,7 +149,10 @@ def test_flown_tracks_keep_clearance_pitch_turns_and_the_bound(
         opt = optimum(graph, ok.shape, s, g)
         assert f.flown_length_m <= omega * opt * (1 + 1e-9)
         assert f.route_length_m <= omega * opt * (1 + 1e-9)
-        assert len(w) < len(t.cells) / 3
+        # few waypoints, more where the ridges bend (the route keeps their cover)
+        assert len(w) < len(t.cells) / 2
+        kept = f.ridge_ratio / t.ridge_ratio
+        assert kept >= 0.85, kept
         # the ends are the mission's
         assert np.allclose([f.x[0], f.y[0]], t.points[0, :2])
         assert np.allclose([f.x[-1], f.y[-1]], t.points[-1, :2])
@@ -1578,7 +1581,7 @@ def test_a_mission_the_flight_cannot_fly_is_planned_again_and_flies(tmp_path):
     assert t.status == "ok", t.message
     rounds = t.extra["flight_rounds"]
     assert rounds[0]["problem"].startswith("the clearance from the seabed needs")
-    assert rounds[-1]["result"] == "ok" and t.message.startswith("planned again around")
+    assert rounds[-1]["result"].startswith("ok") and t.message.startswith("planned again around")
     f = t.flight
     assert not f.problems
     for xyz in (densify(f.waypoints[:, :3], 2.0), densify(np.column_stack([f.x, f.y, f.z]), 2.0)):
