@@ -51,6 +51,7 @@ SCRIPTS = [
     "flight",
     "constraints",
     "user_seabed",
+    "flight_aware",
 ]
 
 PAPER_INDEX = [

@@ -56,7 +56,7 @@ from .geometry import (
     Corridor,
     _corner_vertices,
     _line_usable,
-    _lookup,
+    _off_ridge,
     _path_off_ridge,
     _polyline_off_ridge,
     _route_samples,
@@ -66,6 +66,7 @@ from .geometry import (
     _too_tight,
     arc_sagitta,
     arcs,
+    ridge_share,
     widen_turns,
 )
 from .profile import (
@@ -92,10 +93,10 @@ WAYPOINT_BANDS = (0.25, 0.5, 1.0)
 WAYPOINT_SHARE = 0.1
 
 # the share of the planned path's ridge cover (the length over ridge cells) a smoothing keeps:
-# the waypoint route takes more waypoints (these multiples of the count wanted, the last
-# keeping every corner) rather than cut across more of the ridges
+# the waypoint route takes more waypoints (these multiples of the count wanted, then every
+# corner) rather than cut across more of the ridges
 RIDGE_KEPT = 0.9
-ROUTE_WAYPOINTS = (0.75, 1.5, 3.0, math.inf)
+ROUTE_WAYPOINTS = (0.75, 1.5, 3.0)
 
 
 def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
@@ -233,9 +234,12 @@ def _smoothings(ctx: _Context) -> tuple:
 
     def shortcuts(offs):
         def pulled(a, b):
-            return _shortcuts(
+            k = _shortcuts(
                 vr[a:b], vc[a:b], offs[a:b], along[a:b], cor.pas, cor.rdg, *usable[1:], most
             )
+            if offs is off:  # (the shortcuts that keep the ridges)
+                k = _ridge_restored(k, vr[a:b], vc[a:b], off[a:b], along[a:b], cor)
+            return k
 
         return _widened(*_by_leg(vr, vc, fixed, pulled), r_turn, usable)
 
@@ -245,6 +249,41 @@ def _smoothings(ctx: _Context) -> tuple:
         ("path vertices", lambda: _widened(vr, vc, fixed, r_turn, usable), r_turn),
         ("grid path", lambda: (vr, vc, fixed), 0.0),
     )
+
+
+def _ridge_restored(k, vr, vc, off, along, cor) -> np.ndarray:
+    """The kept corners ``k`` of the polyline ``v`` (the path's corners; ``off``, ``along``:
+    the path's off-ridge length and length up to each) with the path's own corners put back
+    between the two ends of the legs that lost the most ridge length, leg by leg, until the
+    polyline keeps ``RIDGE_KEPT`` of the path's ridge share: a shortcut keeps its legs' share,
+    but one across a winding ridge shortens the ridge more than the rest."""
+    span = along[-1] - along[0]
+    share = 1.0 - (off[-1] - off[0]) / span if span > 0 else 0.0
+    if share <= 0 or len(k) < 2:
+        return k
+    a, b = k[:-1], k[1:]
+    ln = np.hypot(vr[b] - vr[a], vc[b] - vc[a])
+    leg_off = np.array(
+        [
+            _off_ridge(cor.rdg, cor.slot, cor.tr, cor.tc, vr[i], vc[i], vr[j], vc[j])
+            for i, j in zip(a, b, strict=True)
+        ]
+    )
+    path_len = along[b] - along[a]
+    path_ridge = path_len - (off[b] - off[a])
+    lost = path_ridge - (ln - leg_off)
+    total, ridge = float(ln.sum()), float((ln - leg_off).sum())
+    back = np.zeros(len(a), dtype=bool)
+    for q in np.argsort(-lost):
+        if ridge >= RIDGE_KEPT * share * total or lost[q] <= 0:
+            break
+        back[q] = True
+        total += path_len[q] - ln[q]
+        ridge += lost[q]
+    if not back.any():
+        return k
+    out = [np.arange(i, j) if put else np.array([i]) for i, j, put in zip(a, b, back, strict=True)]
+    return np.concatenate([*out, k[-1:]]).astype(k.dtype)
 
 
 def _legs(fixed) -> list:
@@ -307,6 +346,8 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
             so, sa = _polyline_off_ridge(sr, sc, True, cor.rdg, *usable[1:4])
             if _ridge_share(so, sa) >= RIDGE_KEPT * share:
                 break
+        else:  # no simplification keeps the ridges: every corner is a waypoint
+            sr, sc, sf = wr, wc, fixed
         # a simplified route whose corners come too close together where no straight leg
         # can part them: every corner of the smoothing kept instead (more waypoints)
         if not (_tight_turns(sr, sc, rad) and not _tight_turns(wr, wc, rad)):
@@ -466,9 +507,6 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
     pitch = np.degrees(np.arctan2(np.abs(dz), ds))
     seg = np.hypot(ds, dz)
     t = np.concatenate(([0.0], np.cumsum(seg))) / veh.speed_m_s
-    mid_r = np.rint(0.5 * (pr[1:] + pr[:-1])).astype(np.int64)
-    mid_c = np.rint(0.5 * (pc[1:] + pc[:-1])).astype(np.int64)
-    on_ridge = _lookup(cor.rdg, cor.slot, cor.tr, cor.tc, mid_r, mid_c).astype(bool)
     total = float(seg.sum())
     x, y = _map_xy(m, pr, pc)
     # legs short enough that the map line, the geodesic and the rhumb line between their
@@ -512,7 +550,7 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
         duration_s=duration,
         max_pitch_deg=float(pitch.max()) if pitch.size else 0.0,
         min_turn_radius_m=min_turn,
-        ridge_ratio=float(seg[on_ridge].sum() / total) if total > 0 else 0.0,
+        ridge_ratio=ridge_share(cor.rdg, cor.slot, cor.tr, cor.tc, pr, pc) if total > 0 else 0.0,
         energy_wh=veh.power_w * duration / 3600.0 if veh.power_w is not None else None,
         surface_limit_m=ctx.top,
         waypoint_band_m=float(band),

@@ -170,12 +170,23 @@ def _off_ridge(rdg, slot, tr, tc, ar, ac, br, bc):
     return off
 
 
+# a shortcut gives up at most this share of the ridge share of the path it replaces (so that
+# on a path with little ridge the allowance ``share`` does not take what there is)
+RIDGE_SLACK = 0.1
+
+
 @njit(inline="always", cache=True)
 def _leg_limits(off, along, i, j, ln, share):
     """``(most, rate)``: the off-ridge length and share a leg of length ``ln`` from vertex ``i``
-    to ``j`` may fly (``off``, ``along``: the path's, :func:`_polyline_off_ridge`)."""
+    to ``j`` may fly (``off``, ``along``: the path's, :func:`_polyline_off_ridge`): the path's
+    own, plus half a cell and ``share`` of the leg but no more than ``RIDGE_SLACK`` of the
+    path's ridge length there, at a share of the leg no more than the path's plus ``share``
+    but at most ``RIDGE_SLACK`` of the path's ridge share."""
     path = off[j] - off[i]
-    return path + 0.5 + share * ln, path / (along[j] - along[i]) + share
+    span = along[j] - along[i]
+    rate = path / span
+    most = path + min(0.5 + share * ln, RIDGE_SLACK * max(span - path, 0.0))
+    return most, rate + min(share, RIDGE_SLACK * max(1.0 - rate, 0.0))
 
 
 @njit(inline="always", cache=True)
@@ -419,6 +430,19 @@ def _polyline_off_ridge(wr, wc, ridge, rdg, slot, tr, tc):
         else:
             off[k] = 2.0 * along[k]
     return off, along
+
+
+@njit(cache=True, nogil=True)
+def ridge_share(rdg, slot, tr, tc, pr, pc) -> float:
+    """The share of the polyline ``(pr, pc)`` (grid units) whose length lies over ridge cells,
+    each segment walked as :func:`_off_ridge` walks a leg (the rule the shortcuts and the route
+    keep); 1 for a polyline of no length."""
+    off = 0.0
+    along = 0.0
+    for k in range(1, pr.size):
+        along += math.hypot(pr[k] - pr[k - 1], pc[k] - pc[k - 1])
+        off += _off_ridge(rdg, slot, tr, tc, pr[k - 1], pc[k - 1], pr[k], pc[k])
+    return 1.0 - off / along if along > 0 else 1.0
 
 
 # legs of up to this many corners are walked once for all the route's simplifications

@@ -105,7 +105,7 @@ class Flight:
     duration_s: float
     max_pitch_deg: float  # the steepest flown
     min_turn_radius_m: float  # the tightest turn flown (inf: no turn)
-    ridge_ratio: float  # share of the flown 3-D length over ridge cells
+    ridge_ratio: float  # share of the flown track's length over ridge cells (horizontally)
     energy_wh: float | None
     surface_limit_m: float
     smoothing: str  # "shortcuts", "path vertices" or "grid path"

@@ -27,7 +27,7 @@ import numpy as np
 
 from .._types import ClientLike, Maps, VehicleLike
 from ..exceptions import InvalidParameterError, PipelineError
-from ..flight.fly import RIDGE_KEPT, with_flight
+from ..flight.fly import with_flight
 from ..flight.vehicle import Vehicle
 from ..mcpc.algorithm import coarse_rho
 from ..mcpc.certify import certified
@@ -356,7 +356,9 @@ def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory
 # how many times a mission whose flight breaks a limit at places it can name (a height above
 # the surface limit, unknown seabed, a turn too tight) is planned again around them
 FLIGHT_ROUNDS = 3
-# below this share of the grid path's ridge share kept by its flight, the message says so
+# below this share of the grid path's ridge share kept by its flight (where the route along
+# the ridges broke a limit) the mission is planned again around the places; if it still is,
+# its message says so
 RIDGE_SAID = 0.75
 
 
@@ -365,9 +367,9 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
     ``again(zones)`` around the places its flight names and flown again, up to
     :data:`FLIGHT_ROUNDS` rounds, each logged and recorded (``extra["flight_rounds"]``):
     while the flight fails at places (``Flight.trouble_xy``), or flies but keeps less than
-    ``RIDGE_KEPT`` of the planned ridge share because the smoothing that keeps the ridges broke
-    a limit at places (``Flight.ridge_trouble_xy``; the mission planned again is kept only
-    when it flies no worse and over more ridge). Round ``k``'s zone is a disc of ``k`` times
+    :data:`RIDGE_SAID` of the planned ridge share because the smoothing that keeps the ridges
+    broke a limit at places (``Flight.ridge_trouble_xy``); the best flight of the rounds is
+    kept (a better status, or the same over more ridge). Round ``k``'s zone is a disc of ``k`` times
     the turn radius and a cell round each place, less the mission's own points; every round's
     zone is kept.
 
@@ -455,7 +457,7 @@ def _why_again(t: Trajectory) -> tuple | None:
             return "; ".join(f.problems), f.trouble_xy, "fail"
         return None
     kept = _ridge_kept(t)
-    if f.ridge_trouble_xy is not None and kept < RIDGE_KEPT:
+    if f.ridge_trouble_xy is not None and kept < RIDGE_SAID:
         return (
             f"the flown route keeps {kept:.0%} of the planned ridge share (a route along the "
             "ridges breaks a limit)",
@@ -517,7 +519,10 @@ def _around(m, t: Trajectory, places: np.ndarray, k: int, margin: float) -> tupl
         if np.any(np.maximum(*np.abs(places - (x, y)).T) <= 0.5 * a):
             return None, name
     radius = k * (t.flight.turn_radius_m + a)
-    zone = shapely.MultiPoint(places).buffer(radius, quad_segs=8)
+    # the places a quarter cell apart at least (a flight names hundreds of samples along a
+    # stretch; a disc each took most of a round's time): the zone a little wider instead
+    snapped = np.unique(np.round(places / (0.25 * a)), axis=0) * (0.25 * a)
+    zone = shapely.MultiPoint(snapped).buffer(radius + 0.18 * a, quad_segs=4)
     zone = zone.difference(shapely.MultiPoint(ends).buffer(margin + (SLACK + 1.0) * a))
     return (None if zone.is_empty else zone), None
 

@@ -921,8 +921,9 @@ def test_a_shortcut_leg_is_allowed_by_its_two_rules():
     """``leg_allowed`` walks a leg once and stops early; it equals the rules written out
     (numpy): every cell its samples (4 a cell) pass is passable with the terrain loaded within
     the pad, a diagonal step cuts no corner, and its off-ridge length (midpoint samples) is at
-    most the path's plus half a cell plus the share, at a rate at most the path's plus the
-    share. Over random legs on tiles with unloaded ones and the map's edge."""
+    most the path's plus half a cell plus the share (at most a tenth of the path's ridge
+    length there), at a rate at most the path's plus the share (at most a tenth of the path's
+    ridge share). Over random legs on tiles with unloaded ones and the map's edge."""
     from pipeline.flight.geometry import leg_allowed
 
     rng = np.random.default_rng(3)
@@ -968,8 +969,11 @@ def test_a_shortcut_leg_is_allowed_by_its_two_rules():
         ]  # fmt: skip
         seg = float(np.sum(~np.array(on))) * math.hypot(dr, dc) / m
         ln, path = math.hypot(dr, dc), off[j] - off[i]
-        ridge_ok = seg <= path + 0.5 + share * ln + 1e-9 * ln
-        rate_ok = seg / ln <= path / (along[j] - along[i]) + share + 1e-9
+        span = along[j] - along[i]
+        rate = path / span
+        # (the slack at most a tenth of the path's ridge length and of its ridge share there)
+        ridge_ok = seg <= path + min(0.5 + share * ln, 0.1 * (span - path)) + 1e-9 * ln
+        rate_ok = seg / ln <= rate + min(share, 0.1 * (1 - rate)) + 1e-9
         return ok, ok and ridge_ok and rate_ok
 
     outcomes = set()
