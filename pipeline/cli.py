@@ -7,6 +7,7 @@ import logging
 import sys
 import time
 import traceback
+import warnings
 
 import click
 
@@ -453,6 +454,9 @@ class _errors:
             sys.exit(143)
         if isinstance(exc, KeyboardInterrupt):
             click.echo("error: interrupted", err=True)
+            # what the interrupt cut short (a store's read in zarr's event loop) is freed as
+            # Python ends, each unawaited coroutine with a warning of its own
+            warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
             sys.exit(130)
         if isinstance(exc, SchedulerError | CatalogBusyError):
             code, msg = EXIT_ENVIRONMENT, str(exc)
