@@ -369,9 +369,9 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
     while the flight fails at places (``Flight.trouble_xy``), or flies but keeps less than
     :data:`RIDGE_SAID` of the planned ridge share because the smoothing that keeps the ridges
     broke a limit at places (``Flight.ridge_trouble_xy``); the best flight of the rounds is
-    kept (a better status, or the same over more ridge). Round ``k``'s zone is a disc of ``k`` times
-    the turn radius and a cell round each place, less the mission's own points; every round's
-    zone is kept.
+    kept (a better status, or the same over more ridge). Round ``k``'s zone is a disc of ``k``
+    times the turn radius and a cell round each place, less the mission's own points; every
+    round's zone is kept.
 
     A path planned again is certified against the original problem: its length against
     ``omega`` times the lower bound proven in the first round (the zones only lengthen the
@@ -428,7 +428,8 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
             for j, r in enumerate(rounds)
         )
         lead = (
-            f"no flyable route within {len(rounds)} rounds of planning around the flight"
+            f"no flyable route within {len(rounds)} round{'s' * (len(rounds) > 1)} of "
+            "planning around the flight"
             if t.status == Status.FAILED
             else "planned again around its flight's problems"
             if best_round
