@@ -498,8 +498,9 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
     zq, wi, band, route_length = pick["zq"], pick["wi"], pick["band"], pick["route_length"]
     problems = list(pick["problems"])
     z, s, h = track["z"], track["s"], track["h"]
-    # a leg used up by its two arcs leaves a sample where the next arc starts: one sample each
-    once = np.concatenate(([True], np.diff(s) > 0))
+    # a leg used up by its two arcs leaves a sample where the next arc starts (up to rounding:
+    # a micrometre): one sample each
+    once = np.concatenate(([True], np.diff(s) > 1e-6))
     pr, pc, z, s, h = pr[once], pc[once], z[once], s[once], h[once]
     turns = radii[np.isfinite(radii)] * a
     min_turn = 0.0 if name == "grid path" else float(turns.min()) if turns.size else math.inf
@@ -649,23 +650,32 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
             break
         a, b = wi[:-1], wi[1:]
         dev = deviation(m.crs_wkt, qx[a], qy[a], qx[b], qy[b])
+        lines = []  # (leg, line's name, rows, cols, heights, x, y)
         for j in np.flatnonzero(dev > 1e-6 * ctx.clearance):
             length = math.hypot(qx[b[j]] - qx[a[j]], qy[b[j]] - qy[a[j]])
             f = np.linspace(0.0, 1.0, int(math.ceil(length / (ctx.step * ctx.a))) + 2)
             z = zq[a[j]] + (zq[b[j]] - zq[a[j]]) * f
-            lines = leg_lines(m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f)
-            for name, (lx, ly) in lines.items():
+            for name, (lx, ly) in leg_lines(
+                m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f
+            ).items():
                 lx, ly = lx.ravel(), ly.ravel()
-                r, c = _grid_rc(m, lx, ly)
+                lines.append((j, name, *_grid_rc(m, lx, ly), z, lx, ly))
+        if lines:  # all at once (each search starts from the least so far), then where
+            least = _least_clearance(ctx, grid, [(r, c, z, z) for _, _, r, c, z, _, _ in lines])
+        if least < ctx.clearance * (1 - 1e-6):
+            worst = math.inf
+            for j, name, r, c, z, _, _ in lines:
                 got = _least_clearance(ctx, grid, ((r, c, z, z),))
-                if got < least:
-                    least, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
-                hit = entered(m.keep_out, (lx, ly))
-                if hit and not zone:
-                    zone = (
-                        f"{name} between waypoints {j + 1} and {j + 2} enters keep-out zone "
-                        f"{', '.join(map(repr, hit))}"
-                    )
+                if got < worst:
+                    worst, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
+        for j, name, _, _, _, lx, ly in lines if m.keep_out is not None else ():
+            hit = entered(m.keep_out, (lx, ly))
+            if hit:
+                zone = (
+                    f"{name} between waypoints {j + 1} and {j + 2} enters keep-out zone "
+                    f"{', '.join(map(repr, hit))}"
+                )
+                break
         if least >= ctx.clearance * (1 - 1e-6) and not zone:
             break
         tol /= 4.0
