@@ -53,6 +53,7 @@ from ..methods import METHODS
 from ..trajectory import Status
 from .geometry import (
     _LEVELS,
+    RIDGE_SLACK,
     Corridor,
     _corner_vertices,
     _line_usable,
@@ -232,12 +233,13 @@ def _smoothings(ctx: _Context) -> tuple:
     r_turn = ctx.turn_m / ctx.a
     most = 4 * max(rows, cols)
 
-    def shortcuts(offs):
+    def shortcuts(offs, slack=RIDGE_SLACK):
         def pulled(a, b):
             k = _shortcuts(
-                vr[a:b], vc[a:b], offs[a:b], along[a:b], cor.pas, cor.rdg, *usable[1:], most
-            )
-            if offs is off:  # (the shortcuts that keep the ridges)
+                vr[a:b], vc[a:b], offs[a:b], along[a:b], cor.pas, cor.rdg, *usable[1:], most,
+                slack,
+            )  # fmt: skip
+            if offs is off and slack == RIDGE_SLACK:  # (the shortcuts that keep the ridges)
                 k = _ridge_restored(k, vr[a:b], vc[a:b], off[a:b], along[a:b], cor)
             return k
 
@@ -245,6 +247,8 @@ def _smoothings(ctx: _Context) -> tuple:
 
     return (
         ("shortcuts", lambda: shortcuts(off), r_turn),
+        # the ridge rule without its cap (they may cut where the ridge runs shallow)
+        ("loose shortcuts", lambda: shortcuts(off, math.inf), r_turn),
         ("straight shortcuts", lambda: shortcuts(along * 2.0), r_turn),
         ("path vertices", lambda: _widened(vr, vc, fixed, r_turn, usable), r_turn),
         ("grid path", lambda: (vr, vc, fixed), 0.0),
@@ -332,7 +336,8 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         share = max(_ridge_share(woff, walong), ctx.ridge_share)  # the corners', the path's
         # the closest route with few corners that keeps RIDGE_KEPT of the corners' ridge share
         # (more waypoints where fewer would cut across the ridges' bends)
-        for enough in ROUTE_WAYPOINTS if keep_ridge else ROUTE_WAYPOINTS[:1]:
+        hug = name in ("shortcuts", "path vertices")  # (the smoothings that keep the ridges)
+        for enough in ROUTE_WAYPOINTS if hug else ROUTE_WAYPOINTS[:1]:
 
             def route(i, j, enough=enough):  # (a leg between via points: its share)
                 most = enough * ctx.want * (j - i) / len(wr)
@@ -341,7 +346,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
                 )
 
             sr, sc, sf = _widened(*_by_leg(wr, wc, fixed, route), rad, usable)
-            if not keep_ridge:
+            if not hug:
                 break
             so, sa = _polyline_off_ridge(sr, sc, True, cor.rdg, *usable[1:4])
             if _ridge_share(so, sa) >= RIDGE_KEPT * share:

@@ -176,21 +176,24 @@ RIDGE_SLACK = 0.1
 
 
 @njit(inline="always", cache=True)
-def _leg_limits(off, along, i, j, ln, share):
+def _leg_limits(off, along, i, j, ln, share, slack):
     """``(most, rate)``: the off-ridge length and share a leg of length ``ln`` from vertex ``i``
     to ``j`` may fly (``off``, ``along``: the path's, :func:`_polyline_off_ridge`): the path's
-    own, plus half a cell and ``share`` of the leg but no more than ``RIDGE_SLACK`` of the
+    own, plus half a cell and ``share`` of the leg but no more than ``slack`` (a share) of the
     path's ridge length there, at a share of the leg no more than the path's plus ``share``
-    but at most ``RIDGE_SLACK`` of the path's ridge share."""
+    but at most ``slack`` of the path's ridge share (``slack`` inf: no such cap)."""
     path = off[j] - off[i]
     span = along[j] - along[i]
     rate = path / span
-    most = path + min(0.5 + share * ln, RIDGE_SLACK * max(span - path, 0.0))
-    return most, rate + min(share, RIDGE_SLACK * max(1.0 - rate, 0.0))
+    most = path + min(0.5 + share * ln, slack * max(span - path, 0.0))
+    return most, rate + min(share, slack * max(1.0 - rate, 0.0))
 
 
 @njit(inline="always", cache=True)
-def leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, share=0.02):
+def leg_allowed(
+    pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, share=0.02,
+    slack=RIDGE_SLACK,
+):  # fmt: skip
     """Whether the straight leg from vertex ``i`` to ``j`` crosses only usable cells
     (:func:`_line_usable`) and flies no more off the ridge cells (:func:`_off_ridge`) than the
     path between them (half a cell of slack, more with a larger ``share``), nor an off-ridge
@@ -198,17 +201,18 @@ def leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pa
     at the first unusable cell or once the off-ridge length is over a limit, sooner than the
     two functions when the answer is no (most probes of a leg too long)."""
     ln = math.hypot(pr[j] - pr[i], pc[j] - pc[i])
-    most, rate = _leg_limits(off, along, i, j, ln, share)
+    most, rate = _leg_limits(off, along, i, j, ln, share, slack)
     ar, ac, br, bc = pr[i], pc[i], pr[j], pc[j]
     return _walk(pas, rdg, slot, tr, tc, rows, cols, pad, ar, ac, br, bc, most, rate, True)[0]
 
 
 @njit(cache=True, nogil=True)
-def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_leg):
+def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_leg, slack):
     """Indices of the vertices kept by string pulling: from each kept vertex, the farthest
     later one (probed at doubling steps, then refined) reached by a usable straight leg that
     flies no more off the ridge cells than the path between them does (``off``: the path's
-    off-ridge length up to each vertex, grid units; half a cell of slack)."""
+    off-ridge length up to each vertex, grid units; :func:`_leg_limits`'s slack, ``slack``
+    its cap: ``RIDGE_SLACK``, or inf for none)."""
     n = pr.size
     keep = np.empty(n, dtype=np.int64)
     m = 0
@@ -225,7 +229,9 @@ def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_
             if j - i > max_leg:
                 nxt = j
                 break
-            if leg_allowed(pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad):
+            if leg_allowed(
+                pr, pc, off, along, i, j, pas, rdg, slot, tr, tc, rows, cols, pad, 0.02, slack
+            ):
                 best = j
                 nxt = min(i + 2 * step, n - 1)
             else:
@@ -240,7 +246,7 @@ def _shortcuts(pr, pc, off, along, pas, rdg, slot, tr, tc, rows, cols, pad, max_
         while hi - lo > 1:
             mid = (lo + hi) // 2
             if mid - i <= max_leg and leg_allowed(
-                pr, pc, off, along, i, mid, pas, rdg, slot, tr, tc, rows, cols, pad
+                pr, pc, off, along, i, mid, pas, rdg, slot, tr, tc, rows, cols, pad, 0.02, slack
             ):
                 lo = mid
             else:
@@ -500,7 +506,7 @@ def _route_vertices(wr, wc, off, along, levels, enough, rdg, pas, slot, tr, tc, 
                             offs[i, d] = seg
                     else:
                         usable, seg = known[i, d] == 1, offs[i, d]
-                    most, rate = _leg_limits(off, along, i, c, ln, share)
+                    most, rate = _leg_limits(off, along, i, c, ln, share, np.inf)
                     ok = usable and not (seg > most or seg / ln > rate)
                 if not ok:
                     break

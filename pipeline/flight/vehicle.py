@@ -108,7 +108,7 @@ class Flight:
     ridge_ratio: float  # share of the flown track's length over ridge cells (horizontally)
     energy_wh: float | None
     surface_limit_m: float
-    smoothing: str  # "shortcuts", "path vertices" or "grid path"
+    smoothing: str  # "shortcuts", "loose shortcuts", "straight shortcuts", "path vertices", ...
     problems: list = field(default_factory=list)
     over_bound: str = ""  # the problem saying the flown length exceeds the bound, if it does
     seconds: float = 0.0

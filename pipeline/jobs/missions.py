@@ -356,6 +356,8 @@ def _plan_and_fly(m, mission: dict, batch: _Batch, run_on, i: int) -> Trajectory
 # how many times a mission whose flight breaks a limit at places it can name (a height above
 # the surface limit, unknown seabed, a turn too tight) is planned again around them
 FLIGHT_ROUNDS = 3
+# a round's zone at these shares of its radius, the next where one closes every way around
+ZONE_SCALES = (1.0, 0.5, 0.25)
 # below this share of the grid path's ridge share kept by its flight (where the route along
 # the ridges broke a limit) the mission is planned again around the places; if it still is,
 # its message says so
@@ -402,13 +404,22 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
             break
         rounds.append({"round": k, "problem": problem})
         log.info("%s: flight round %d: %s; planning again around it", name, k, problem)
-        zones.append((f"flight round {k}", zone))
-        keep = KeepOut((*(user.zones if user is not None else ()), *zones), margin)
-        try:
-            nxt = again(keep)
-        except PipelineError as exc:
-            rounds[-1]["result"] = f"no path around it ({exc})"
+        nxt, failure = None, None
+        for scale in ZONE_SCALES:  # a zone that closes the way (a narrow strait): smaller
+            zone = _around(m, t, places, k, margin, scale)[0] if scale != 1 else zone
+            keep = KeepOut(
+                (*(user.zones if user is not None else ()), *zones, (f"flight round {k}", zone)),
+                margin,
+            )
+            try:
+                nxt = again(keep)
+                break
+            except PipelineError as exc:
+                failure = exc
+        if nxt is None:
+            rounds[-1]["result"] = f"no path around it ({failure})"
             break
+        zones.append((f"flight round {k}", zone))
         t = with_flight(m, _against_original(nxt, lower), vehicle)
         rounds[-1]["result"] = str(t.status)
         if t.flight is not None and t.status != Status.FAILED:
@@ -500,9 +511,10 @@ def _against_original(t: Trajectory, lower: float) -> Trajectory:
     return t
 
 
-def _around(m, t: Trajectory, places: np.ndarray, k: int, margin: float) -> tuple:
+def _around(m, t: Trajectory, places: np.ndarray, k: int, margin: float, scale=1.0) -> tuple:
     """``(zone, end)``: the zone round ``k`` keeps the mission away from, a disc of ``k``
-    times the turn radius and a cell round each of the ``places`` (map x, y), less a disc round
+    times the turn radius and a cell (times ``scale``) round each of the ``places`` (map x,
+    y), less a disc round
     each of the mission's own points (start, via points, goal: a point in a zone is refused),
     None when nothing is left; ``end`` names the point ("start", "via 2", "goal") in whose own
     cell a place lies (no route can help), else None."""
@@ -519,7 +531,7 @@ def _around(m, t: Trajectory, places: np.ndarray, k: int, margin: float) -> tupl
     for name, (x, y) in zip(names, ends, strict=True):
         if np.any(np.maximum(*np.abs(places - (x, y)).T) <= 0.5 * a):
             return None, name
-    radius = k * (t.flight.turn_radius_m + a)
+    radius = scale * k * (t.flight.turn_radius_m + a)
     # the places a quarter cell apart at least (a flight names hundreds of samples along a
     # stretch; a disc each took most of a round's time): the zone a little wider instead
     snapped = np.unique(np.round(places / (0.25 * a)), axis=0) * (0.25 * a)

@@ -1020,9 +1020,10 @@ def test_route_simplification_equals_the_greedy_rule_level_by_level():
                         t = min(1.0, max(0.0, t))
                         gap = math.hypot(wr[i] + t * dr - wr[q], wc[i] + t * dc - wc[q])
                         ok = ok and gap <= tol
-                    ok = ok and leg_allowed(
-                        wr, wc, off, along, i, c, pas, rdg, slot, tile, tile, rows, cols, pad, share
-                    )
+                    ok = ok and leg_allowed(  # (the route's rule: no cap on the ridge slack)
+                        wr, wc, off, along, i, c, pas, rdg, slot, tile, tile, rows, cols, pad,
+                        share, math.inf,
+                    )  # fmt: skip
                     if not ok:
                         break
                     j = c
