@@ -57,7 +57,6 @@ from .geometry import (
     Corridor,
     _corner_vertices,
     _line_usable,
-    _off_ridge,
     _path_off_ridge,
     _polyline_off_ridge,
     _route_samples,
@@ -205,16 +204,8 @@ def _context(m, traj: Trajectory, veh: Vehicle) -> _Context:
         limit=limit,
         bands=bands,
         want=max(2, int(WAYPOINT_SHARE * len(cells))),
-        ridge_share=_ridge_share(
-            *_polyline_off_ridge(
-                cells[:, 0].astype(np.float64),
-                cells[:, 1].astype(np.float64),
-                True,
-                cor.rdg,
-                cor.slot,
-                cor.tr,
-                cor.tc,
-            )
+        ridge_share=ridge_share(
+            cor.rdg, cor.slot, cor.tr, cor.tc, *cells.T.astype(np.float64)
         ),  # fmt: skip
     )
 
@@ -266,13 +257,10 @@ def _ridge_restored(k, vr, vc, off, along, cor) -> np.ndarray:
     if share <= 0 or len(k) < 2:
         return k
     a, b = k[:-1], k[1:]
-    ln = np.hypot(vr[b] - vr[a], vc[b] - vc[a])
-    leg_off = np.array(
-        [
-            _off_ridge(cor.rdg, cor.slot, cor.tr, cor.tc, vr[i], vc[i], vr[j], vc[j])
-            for i, j in zip(a, b, strict=True)
-        ]
+    kept_off, kept_along = _polyline_off_ridge(
+        vr[k], vc[k], True, cor.rdg, cor.slot, cor.tr, cor.tc
     )
+    ln, leg_off = np.diff(kept_along), np.diff(kept_off)
     path_len = along[b] - along[a]
     path_ridge = path_len - (off[b] - off[a])
     lost = path_ridge - (ln - leg_off)
@@ -333,10 +321,12 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
     if rad > 0:
         keep_ridge = name != "straight shortcuts"
         woff, walong = _polyline_off_ridge(wr, wc, keep_ridge, cor.rdg, *usable[1:4])
-        share = max(_ridge_share(woff, walong), ctx.ridge_share)  # the corners', the path's
         # the closest route with few corners that keeps RIDGE_KEPT of the corners' ridge share
-        # (more waypoints where fewer would cut across the ridges' bends)
+        # or the path's, the larger (more waypoints where fewer would cut across the ridges'
+        # bends)
         hug = name in ("shortcuts", "path vertices")  # (the smoothings that keep the ridges)
+        if hug:
+            share = max(ridge_share(cor.rdg, cor.slot, cor.tr, cor.tc, wr, wc), ctx.ridge_share)
         for enough in ROUTE_WAYPOINTS if hug else ROUTE_WAYPOINTS[:1]:
 
             def route(i, j, enough=enough):  # (a leg between via points: its share)
@@ -348,8 +338,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
             sr, sc, sf = _widened(*_by_leg(wr, wc, fixed, route), rad, usable)
             if not hug:
                 break
-            so, sa = _polyline_off_ridge(sr, sc, True, cor.rdg, *usable[1:4])
-            if _ridge_share(so, sa) >= RIDGE_KEPT * share:
+            if ridge_share(cor.rdg, cor.slot, cor.tr, cor.tc, sr, sc) >= RIDGE_KEPT * share:
                 break
         else:  # no simplification keeps the ridges: every corner is a waypoint
             sr, sc, sf = wr, wc, fixed
@@ -474,12 +463,6 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         grid=grid,
         trouble=trouble,
     )
-
-
-def _ridge_share(off: np.ndarray, along: np.ndarray) -> float:
-    """The share of a polyline's length over ridge cells, from
-    :func:`~pipeline.flight.geometry._polyline_off_ridge` (1 for a polyline of no length)."""
-    return 1.0 - float(off[-1]) / float(along[-1]) if along[-1] > 0 else 1.0
 
 
 def _pick(results: list) -> dict:
@@ -655,32 +638,23 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
             break
         a, b = wi[:-1], wi[1:]
         dev = deviation(m.crs_wkt, qx[a], qy[a], qx[b], qy[b])
-        lines = []  # (leg, line's name, rows, cols, heights, x, y)
         for j in np.flatnonzero(dev > 1e-6 * ctx.clearance):
             length = math.hypot(qx[b[j]] - qx[a[j]], qy[b[j]] - qy[a[j]])
             f = np.linspace(0.0, 1.0, int(math.ceil(length / (ctx.step * ctx.a))) + 2)
             z = zq[a[j]] + (zq[b[j]] - zq[a[j]]) * f
-            for name, (lx, ly) in leg_lines(
-                m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f
-            ).items():
+            lines = leg_lines(m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f)
+            for name, (lx, ly) in lines.items():
                 lx, ly = lx.ravel(), ly.ravel()
-                lines.append((j, name, *_grid_rc(m, lx, ly), z, lx, ly))
-        if lines:  # all at once (each search starts from the least so far), then where
-            least = _least_clearance(ctx, grid, [(r, c, z, z) for _, _, r, c, z, _, _ in lines])
-        if least < ctx.clearance * (1 - 1e-6):
-            worst = math.inf
-            for j, name, r, c, z, _, _ in lines:
+                r, c = _grid_rc(m, lx, ly)
                 got = _least_clearance(ctx, grid, ((r, c, z, z),))
-                if got < worst:
-                    worst, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
-        for j, name, _, _, _, lx, ly in lines if m.keep_out is not None else ():
-            hit = entered(m.keep_out, (lx, ly))
-            if hit:
-                zone = (
-                    f"{name} between waypoints {j + 1} and {j + 2} enters keep-out zone "
-                    f"{', '.join(map(repr, hit))}"
-                )
-                break
+                if got < least:
+                    least, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
+                hit = entered(m.keep_out, (lx, ly))
+                if hit and not zone:
+                    zone = (
+                        f"{name} between waypoints {j + 1} and {j + 2} enters keep-out zone "
+                        f"{', '.join(map(repr, hit))}"
+                    )
         if least >= ctx.clearance * (1 - 1e-6) and not zone:
             break
         tol /= 4.0
