@@ -272,3 +272,13 @@ def assert_upper_envelope(dem, z, x, y, crs=None, *, points=20000):
         assert dem.attrs["seabed_raise_max_m"] >= raised.max() - 1e-2
         assert dem.attrs["seabed_raise_mean_m"] == pytest.approx(raised.mean(), rel=0.05, abs=0.05)
     return raised
+
+
+def densify(xyz: np.ndarray, step: float) -> np.ndarray:
+    """The polyline ``xyz`` with points at most ``step`` apart (horizontally) on each leg."""
+    out = [xyz[:1]]
+    for p, q in zip(xyz[:-1], xyz[1:], strict=True):
+        n = max(1, int(math.ceil(math.hypot(*(q - p)[:2]) / step)))
+        t = (np.arange(1, n + 1) / n)[:, None]
+        out.append(p + t * (q - p))
+    return np.concatenate(out)

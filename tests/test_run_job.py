@@ -26,6 +26,7 @@ from conftest import (
     write_bag,
 )
 from matplotlib import image
+from references import densify
 from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
 from scipy.spatial import cKDTree
@@ -302,15 +303,6 @@ def test_the_report_opens_offline_in_chromium(done, tmp_path):
     assert shot.shape[0] > 1000 and shot[..., :3].std() > 0.05  # a page, not a blank
 
 
-def _densified(xyz: np.ndarray, step: float) -> np.ndarray:
-    """The polyline ``xyz`` with points at most ``step`` apart (horizontally) on each leg."""
-    out = [xyz[:1]]
-    for p, q in zip(xyz[:-1], xyz[1:], strict=True):
-        n = max(1, int(np.ceil(np.hypot(*(q - p)[:2]) / step)))
-        out.append(p + (np.arange(1, n + 1) / n)[:, None] * (q - p))
-    return np.concatenate(out)
-
-
 def test_min_clearance_against_brute_force(done):
     """The reported clearance of what is flown, against the DEM's bilinear seabed (scipy), and
     the grid path's clearance function against every grid point of the DEM (3-D distances)."""
@@ -343,7 +335,7 @@ def test_min_clearance_against_brute_force(done):
         )
         legs = np.column_stack([wps.geometry.x, wps.geometry.y, wps.geometry.z])
         fxyz = np.concatenate(
-            [np.column_stack([flown["x"], flown["y"], flown["z"]]), _densified(legs, 2.0)]
+            [np.column_stack([flown["x"], flown["y"], flown["z"]]), densify(legs, 2.0)]
         )
         a = float(dem["x"].values[1] - dem["x"].values[0])
         x, y = dem["x"].values, dem["y"].values[::-1]

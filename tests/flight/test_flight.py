@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from references import missions, optimum, reference_graph
+from references import densify, missions, optimum, reference_graph
 from scipy.spatial import cKDTree
 
 import pipeline
@@ -82,15 +82,6 @@ def circumradii(x, y) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         r = a * b * c / (2 * np.abs(cross))
     return np.where((np.abs(cross) < 1e-9 * a * b) | (a == 0) | (b == 0), np.inf, r)
-
-
-def densify(xyz: np.ndarray, step: float) -> np.ndarray:
-    out = [xyz[:1]]
-    for p, q in zip(xyz[:-1], xyz[1:], strict=True):
-        n = max(1, int(math.ceil(math.hypot(*(q - p)[:2]) / step)))
-        t = (np.arange(1, n + 1) / n)[:, None]
-        out.append(p + t * (q - p))
-    return np.concatenate(out)
 
 
 @pytest.fixture(scope="module")
