@@ -77,6 +77,7 @@ from .profile import (
     _bilinear,
     _closest,
     _required_threaded,
+    clearance_blocks,
     profile_figures,
     seabed_clearance,
     subdivisions,
@@ -501,7 +502,10 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
     # legs short enough that the map line, the geodesic and the rhumb line between their
     # waypoints are one (docs/flyable-missions.md, "Legs"), each checked as flown
     qx, qy = _map_xy(m, qr, qc)
-    wi, other, where, entered_by = _autopilot_legs(ctx, grid, qx, qy, zq, wi)
+    least = _least_clearance(ctx, grid, ((pr, pc, z, h), (qr, qc, zq, route["h"])))
+    # the legs' other lines measured only for less than what is flown on the map line keeps
+    known = max(least, ctx.clearance)
+    wi, other, where, entered_by = _autopilot_legs(ctx, grid, qx, qy, zq, wi, known)
     if other < ctx.clearance * (1 - 1e-6):
         problems.append(
             f"the {where} comes {other:.1f} m from the seabed, under the clearance "
@@ -515,7 +519,6 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
     rt = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(route["s"]), np.diff(zq)))))
     duration = float(t[-1])
     seabed = _bilinear(*grid, pr, pc)
-    least = _least_clearance(ctx, grid, ((pr, pc, z, h), (qr, qc, zq, route["h"])))
     if least < ctx.clearance * (1 - 1e-6):
         problems.append(
             f"the flown route comes {least:.1f} m from the seabed between grid points, under "
@@ -618,16 +621,17 @@ def _given_via(m, traj, snapped) -> tuple:
     return _map_xy(m, *snapped)
 
 
-def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
+def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi, known: float) -> tuple:
     """The waypoint indices with legs split until the map line, the geodesic and the rhumb
     line of each lie within :func:`leg_tolerance` of each other (closer, a quarter at a time,
     while one of them breaks the clearance or enters a zone; three times at most), and the
     least clearance of the geodesics and rhumb lines of the legs where they part from the map
     line by more than a millionth of the clearance (elsewhere the map line's own check holds
     for them: a clearance moves no more than the point does), where it is, and the zone one
-    of them enters ("" for none)."""
+    of them enters ("" for none). ``known``: a clearance the route keeps, at least the
+    clearance: the lines are measured for less only (what is at least it is reported as it)."""
     from ..constraints.zones import entered
-    from .legs import deviation, leg_lines, leg_tolerance, split_legs
+    from .legs import deviation, leg_points, leg_tolerance, split_legs
 
     m, veh = ctx.m, ctx.veh
     tol = leg_tolerance(ctx.clearance)
@@ -638,23 +642,41 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi) -> tuple:
             break
         a, b = wi[:-1], wi[1:]
         dev = deviation(m.crs_wkt, qx[a], qy[a], qx[b], qy[b])
-        for j in np.flatnonzero(dev > 1e-6 * ctx.clearance):
-            length = math.hypot(qx[b[j]] - qx[a[j]], qy[b[j]] - qy[a[j]])
-            f = np.linspace(0.0, 1.0, int(math.ceil(length / (ctx.step * ctx.a))) + 2)
-            z = zq[a[j]] + (zq[b[j]] - zq[a[j]]) * f
-            lines = leg_lines(m.crs_wkt, qx[a[j]], qy[a[j]], qx[b[j]], qy[b[j]], f)
-            for name, (lx, ly) in lines.items():
-                lx, ly = lx.ravel(), ly.ravel()
-                r, c = _grid_rc(m, lx, ly)
-                got = _least_clearance(ctx, grid, ((r, c, z, z),))
-                if got < least:
-                    least, where = got, f"{name} between waypoints {j + 1} and {j + 2}"
-                hit = entered(m.keep_out, (lx, ly))
-                if hit and not zone:
-                    zone = (
-                        f"{name} between waypoints {j + 1} and {j + 2} enters keep-out zone "
-                        f"{', '.join(map(repr, hit))}"
-                    )
+        legs = np.flatnonzero(dev > 1e-6 * ctx.clearance)
+        if not legs.size:
+            break
+        # every leg's lines sampled as the route is, all legs at once
+        a, b = a[legs], b[legs]
+        length = np.hypot(qx[b] - qx[a], qy[b] - qy[a])
+        count = np.ceil(length / (ctx.step * ctx.a)).astype(np.int64) + 2
+        leg = np.repeat(np.arange(legs.size), count)
+        first = np.concatenate(([0], np.cumsum(count)[:-1]))
+        f = (np.arange(leg.size) - first[leg]) / (count[leg] - 1)
+        z = zq[a][leg] + (zq[b] - zq[a])[leg] * f
+        lines = leg_points(m.crs_wkt, qx[a], qy[a], qx[b], qy[b], leg, f)
+        parts = np.split(np.arange(leg.size), first[1:])
+        for name, (lx, ly) in lines.items():
+            r, c = _grid_rc(m, lx, ly)
+            got = _least_clearance(ctx, grid, ((r, c, z, z),), known)
+            if got < least:
+                least = got
+                if got < ctx.clearance * (1 - 1e-6):  # which leg: measured leg by leg
+                    each = [
+                        _least_clearance(ctx, grid, ((r[at], c[at], z[at], z[at]),), known)
+                        for at in parts
+                    ]
+                    j = legs[int(np.argmin(each))]
+                    where = f"{name} between waypoints {j + 1} and {j + 2}"
+            if not zone and entered(m.keep_out, *((lx[at], ly[at]) for at in parts)):
+                for k, at in enumerate(parts):
+                    hit = entered(m.keep_out, (lx[at], ly[at]))
+                    if hit:
+                        j = legs[k]
+                        zone = (
+                            f"{name} between waypoints {j + 1} and {j + 2} enters keep-out "
+                            f"zone {', '.join(map(repr, hit))}"
+                        )
+                        break
         if least >= ctx.clearance * (1 - 1e-6) and not zone:
             break
         tol /= 4.0
@@ -672,20 +694,27 @@ def _at_rated_depth(floor: float | None, s: np.ndarray, h: np.ndarray) -> float:
     return float(0.5 * (step * at[:-1]).sum() + 0.5 * (step * at[1:]).sum())
 
 
-def _least_clearance(ctx: _Context, grid, lines) -> float:
+def _least_clearance(ctx: _Context, grid, lines, start: float = math.inf) -> float:
     """What is flown, measured anew against the continuous seabed at every sample of each of
     ``lines`` (``(rows, cols, heights, required heights)``): the least clearance of the track
     and of the waypoint legs, never under the clearance by construction (a mission whose route
     came under it would fail here). The samples nearest their required heights are measured
-    first, so that the others' searches stop early (:func:`seabed_clearance`)."""
+    first, so that the others' searches stop early (:func:`seabed_clearance`); a point given
+    twice (the track's samples on the route) is measured once. ``start``: as there."""
     p = ctx.m.parameters
     lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * ctx.a / ctx.clearance))))
     r, c, z, h = (np.concatenate(v) for v in zip(*lines, strict=True))
+    if len(lines) > 1:
+        _, once = np.unique(np.column_stack((r, c, z)), axis=0, return_index=True)
+        r, c, z, h = r[once], c[once], z[once], h[once]
     first = _closest(z - h)
     order = np.concatenate((first, np.setdiff1d(np.arange(len(z)), first)))
+    if ctx.cor.check_blocks is None:
+        ctx.cor.check_blocks = clearance_blocks(grid[0])
     return seabed_clearance(
-        *grid, r[order], c[order], z[order], ctx.a, p.reach_m, METHODS[p.method].code, lattice
-    )
+        *grid, r[order], c[order], z[order], ctx.a, p.reach_m, METHODS[p.method].code, lattice,
+        start, ctx.cor.check_blocks,
+    )  # fmt: skip
 
 
 def _sampling(method, a, clearance, radius, slope, turn_m, top) -> tuple:

@@ -593,6 +593,9 @@ class Corridor:
                     f.exception()  # waits: no decoding left running behind the error
             raise
         self.tiles = len(ti)
+        # the highest grid point of blocks of squares, for the flight's own clearance check
+        # (pipeline.flight.profile.clearance_blocks), made when it first runs
+        self.check_blocks = None
 
     def grid(self) -> tuple:
         """``(elevation tiles, slot, tr, tc, rows, cols)``, the elevation read by then."""

@@ -45,6 +45,18 @@ def leg_lines(crs_wkt: str, x0, y0, x1, y1, fractions) -> dict:
     """The points at ``fractions`` (k,) of each leg ``(x0, y0) -> (x1, y1)`` (n,) along the
     geodesic and along the rhumb line between its ends, in map coordinates: ``{"geodesic":
     (x, y), "rhumb line": (x, y)}``, each (n, k)."""
+    x0 = np.atleast_1d(np.asarray(x0, dtype=np.float64))
+    f = np.asarray(fractions, dtype=np.float64).ravel()
+    n, k = x0.size, f.size
+    points = leg_points(crs_wkt, x0, y0, x1, y1, np.repeat(np.arange(n), k), np.tile(f, n))
+    return {name: (x.reshape(n, k), y.reshape(n, k)) for name, (x, y) in points.items()}
+
+
+def leg_points(crs_wkt: str, x0, y0, x1, y1, leg, fractions) -> dict:
+    """The point at ``fractions[p]`` of leg ``leg[p]`` (each (p,)) of the legs ``(x0, y0) ->
+    (x1, y1)`` (n,) along the geodesic and along the rhumb line between its ends, in map
+    coordinates: ``{"geodesic": (x, y), "rhumb line": (x, y)}``, each (p,): the points of many
+    legs, each at fractions of its own, in one pass of pyproj."""
     to_ll, from_ll, to_merc, from_merc, geod = _transformers(crs_wkt)
     x0, y0, x1, y1 = (np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (x0, y0, x1, y1))
     lon0, lat0 = to_ll.transform(x0, y0)
@@ -53,25 +65,19 @@ def leg_lines(crs_wkt: str, x0, y0, x1, y1, fractions) -> dict:
         np.atleast_1d(np.asarray(v, dtype=np.float64)) for v in (lon0, lat0, lon1, lat1)
     )
     az, _, dist = geod.inv(lon0, lat0, lon1, lat1)
-    f = np.asarray(fractions, dtype=np.float64)[None, :]
-    n, k = lon0.size, f.shape[1]
-    glon, glat, _ = geod.fwd(
-        np.repeat(lon0, k),
-        np.repeat(lat0, k),
-        np.repeat(az, k),
-        (np.asarray(dist)[:, None] * f).ravel(),
+    leg = np.asarray(leg, dtype=np.int64)
+    f = np.asarray(fractions, dtype=np.float64)
+    glon, glat, _ = geod.fwd(lon0[leg], lat0[leg], np.asarray(az)[leg], np.asarray(dist)[leg] * f)
+    mx0, my0 = (np.asarray(v) for v in to_merc.transform(lon0, lat0))
+    mx1, my1 = (np.asarray(v) for v in to_merc.transform(lon1, lat1))
+    rlon, rlat = from_merc.transform(
+        mx0[leg] + (mx1 - mx0)[leg] * f, my0[leg] + (my1 - my0)[leg] * f
     )
-    mx0, my0 = to_merc.transform(lon0, lat0)
-    mx1, my1 = to_merc.transform(lon1, lat1)
-    mx = np.asarray(mx0)[:, None] + (np.asarray(mx1) - np.asarray(mx0))[:, None] * f
-    my = np.asarray(my0)[:, None] + (np.asarray(my1) - np.asarray(my0))[:, None] * f
-    rlon, rlat = from_merc.transform(mx.ravel(), my.ravel())
     gx, gy = from_ll.transform(glon, glat)
     rx, ry = from_ll.transform(rlon, rlat)
-    shape = (n, k)
     return {
-        "geodesic": (np.reshape(gx, shape), np.reshape(gy, shape)),
-        "rhumb line": (np.reshape(rx, shape), np.reshape(ry, shape)),
+        "geodesic": (np.asarray(gx, dtype=np.float64), np.asarray(gy, dtype=np.float64)),
+        "rhumb line": (np.asarray(rx, dtype=np.float64), np.asarray(ry, dtype=np.float64)),
     }
 
 

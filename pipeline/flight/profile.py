@@ -443,8 +443,39 @@ def _bilin(z00, z01, z10, z11, u, v):
 CHECK_LATTICE = 2
 
 
+# the flight's own check passes over blocks of up to this many grid squares a side at once
+# (their highest grid point kept, found once per flight: :func:`clearance_blocks`)
+CHECK_BLOCK = 8
+
+
+def clearance_blocks(el: np.ndarray) -> np.ndarray:
+    """The highest grid point of each block of grid squares of the elevation tiles ``el``
+    (``CHECK_BLOCK`` squares a side, from each tile's first row and column), not found yet
+    (NaN): :func:`seabed_clearance` finds each block's the first time it needs it."""
+    _, tr, tc = el.shape
+    return np.full((el.shape[0], -(-tr // CHECK_BLOCK), -(-tc // CHECK_BLOCK)), np.nan)
+
+
 @njit(cache=True, nogil=True)
-def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method, m):
+def _block_top(el, slot, tr, tc, rows, cols, blocks, s, lbi, lbj, r0, r1, c0, c1):
+    """The highest known grid point of the corners of squares ``r0..r1`` x ``c0..c1`` (the
+    block ``(lbi, lbj)`` of the tile in slot ``s``; the map's ``rows`` x ``cols`` points);
+    -inf for none."""
+    top = blocks[s, lbi, lbj]
+    if top == top:
+        return top
+    top = -np.inf
+    for i in range(r0, min(r1 + 1, rows - 1) + 1):
+        for j in range(c0, min(c1 + 1, cols - 1) + 1):
+            v = np.float64(_cell(slot, el, tr, tc, i, j, np.nan))
+            if v > top:
+                top = v
+    blocks[s, lbi, lbj] = top
+    return top
+
+
+@njit(cache=True, nogil=True)
+def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method, m, start, blocks):
     """The least clearance of the points ``(pr, pc)`` (grid units) at heights ``z`` from the
     continuous seabed, measured anew (not from the required heights): the bilinear seabed of
     every grid square near a point sampled on an ``(m + 1)`` x ``(m + 1)`` lattice. Spherical:
@@ -453,15 +484,18 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
     sample within ``radius`` horizontally; vertical: the height above the seabed under the
     point; a point under the seabed: the (negative) height above it. Each point's search
     starts from the least clearance found so far (a point that cannot come under it is not
-    measured further), so the points are best given nearest the seabed first: a square is
-    passed over where even its highest corner, at its box distance, is farther than that; one
-    with a no-data corner is not measured."""
+    measured further), so the points are best given nearest the seabed first: a block of
+    squares (``blocks``: :func:`clearance_blocks`), then a square, is passed over where even
+    its highest grid point, at its box distance, is farther than that; a square with a no-data
+    corner is not measured. ``start``: the least clearance known already (inf for none): the
+    result is the lesser of it and the points' own, found the sooner."""
     n = pr.size
-    least = np.inf
+    least = start
     # spherical: searched a quarter beyond the clearance, for the least distance itself
     far = 1.25 * radius if method == 2 else radius
     lim = far * far
     span = far / a + 1.0
+    bs = CHECK_BLOCK
     for s in range(n):
         p = pr[s]
         q = pc[s]
@@ -494,39 +528,70 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
         i1 = min(rows - 2, int(math.floor(p + span)))
         j0 = max(0, int(math.floor(q - span)))
         j1 = min(cols - 2, int(math.floor(q + span)))
-        for i in range(i0, i1 + 1):
-            di = max(0.0, i - p, p - (i + 1)) * a
-            if di * di >= lim:
-                continue
-            for j in range(j0, j1 + 1):
-                dj = max(0.0, j - q, q - (j + 1)) * a
-                d2 = di * di + dj * dj
-                if d2 >= lim:
-                    continue
-                z00, z01, z10, z11 = _corners(slot, el, tr, tc, i, j, np.nan)
-                if z00 != z00 or z01 != z01 or z10 != z10 or z11 != z11:
-                    continue  # no seabed to measure (the flight says where it is unknown)
-                top = max(z00, z01, z10, z11)
-                if method == 2:
-                    gap = max(h - top, 0.0)
-                    if d2 + gap * gap >= best:
+        bi = i0
+        while bi <= i1:  # the blocks of squares the search reaches, then their squares
+            ti = _tile_of(bi, tr)
+            lbi = (bi - ti * tr) // bs
+            ie = min(ti * tr + min((lbi + 1) * bs, tr) - 1, i1)
+            dbi = max(0.0, bi - p, p - (ie + 1)) * a
+            bj = j0
+            while bj <= j1 and dbi * dbi < (best if method == 2 else lim):
+                tj = _tile_of(bj, tc)
+                lbj = (bj - tj * tc) // bs
+                je = min(tj * tc + min((lbj + 1) * bs, tc) - 1, j1)
+                dbj = max(0.0, bj - q, q - (je + 1)) * a
+                db2 = dbi * dbi + dbj * dbj
+                sl = slot[ti, tj]
+                enter = sl >= 0 and db2 < (best if method == 2 else lim)
+                if enter:
+                    r0 = ti * tr + lbi * bs
+                    c0 = tj * tc + lbj * bs
+                    r1 = ti * tr + min((lbi + 1) * bs, tr) - 1
+                    c1 = tj * tc + min((lbj + 1) * bs, tc) - 1
+                    btop = _block_top(
+                        el, slot, tr, tc, rows, cols, blocks, sl, lbi, lbj, r0, r1, c0, c1
+                    )
+                    if method == 2:
+                        gap = max(h - btop, 0.0)
+                        enter = db2 + gap * gap < best
+                    else:
+                        enter = btop > best
+                for i in range(bi, ie + 1 if enter else bi):
+                    di = max(0.0, i - p, p - (i + 1)) * a
+                    if di * di >= (best if method == 2 else lim):
                         continue
-                elif top <= best:
-                    continue
-                for u in range(m + 1):
-                    fu = u / m
-                    for v in range(m + 1):
-                        fv = v / m
-                        dy = (i + fu - p) * a
-                        dx = (j + fv - q) * a
-                        e2 = dx * dx + dy * dy
-                        if e2 >= lim:
+                    for j in range(bj, je + 1):
+                        dj = max(0.0, j - q, q - (j + 1)) * a
+                        d2 = di * di + dj * dj
+                        # (spherical: no sample of a square farther than the least so far counts)
+                        if d2 >= (best if method == 2 else lim):
                             continue
-                        b = _bilin(z00, z01, z10, z11, fu, fv)
+                        z00, z01, z10, z11 = _corners(slot, el, tr, tc, i, j, np.nan)
+                        if z00 != z00 or z01 != z01 or z10 != z10 or z11 != z11:
+                            continue  # no seabed to measure (the flight says where it is unknown)
+                        top = max(z00, z01, z10, z11)
                         if method == 2:
-                            best = min(best, e2 + (h - b) * (h - b))
-                        else:
-                            best = max(best, b)
+                            gap = max(h - top, 0.0)
+                            if d2 + gap * gap >= best:
+                                continue
+                        elif top <= best:
+                            continue
+                        for u in range(m + 1):
+                            fu = u / m
+                            for v in range(m + 1):
+                                fv = v / m
+                                dy = (i + fu - p) * a
+                                dx = (j + fv - q) * a
+                                e2 = dx * dx + dy * dy
+                                if e2 >= lim:
+                                    continue
+                                b = _bilin(z00, z01, z10, z11, fu, fv)
+                                if method == 2:
+                                    best = min(best, e2 + (h - b) * (h - b))
+                                else:
+                                    best = max(best, b)
+                bj = je + 1
+            bi = ie + 1
         if method == 2:
             least = min(least, math.sqrt(best))
         else:

@@ -1356,7 +1356,7 @@ def test_the_flights_own_clearance_check_measures_the_bilinear_seabed(ratio):
     the height above the seabed under each point."""
     from scipy.interpolate import RegularGridInterpolator
 
-    from pipeline.flight.profile import seabed_clearance
+    from pipeline.flight.profile import clearance_blocks, seabed_clearance
 
     rng = np.random.default_rng(5)
     a, n = 100.0, 24
@@ -1369,15 +1369,85 @@ def test_the_flights_own_clearance_check_measures_the_bilinear_seabed(ratio):
     for _ in range(20):
         pr, pc = rng.uniform(6, n - 7, 1), rng.uniform(6, n - 7, 1)
         h = under([[pr[0] * a, pc[0] * a]]) + rng.uniform(0.2, 1.1) * radius
-        got = seabed_clearance(el, slot, n, n, n, n, pr, pc, h, a, radius, 2, m)
+        got = seabed_clearance(
+            el, slot, n, n, n, n, pr, pc, h, a, radius, 2, m, np.inf, clearance_blocks(el)
+        )
         ref = tree.query([[pc[0] * a, pr[0] * a, h[0]]])[0][0]
         ref = min(ref, 1.25 * radius)
         assert ref - a / 40 <= got <= ref + a / m, (got, ref)  # both samplings of the seabed
     below = under([[pr[0] * a, pc[0] * a]]) - 7.0
-    got = seabed_clearance(el, slot, n, n, n, n, pr, pc, below, a, radius, 2, m)
+    got = seabed_clearance(
+        el, slot, n, n, n, n, pr, pc, below, a, radius, 2, m, np.inf, clearance_blocks(el)
+    )
     assert got == pytest.approx(-7.0, abs=1e-3)
-    got = seabed_clearance(el, slot, n, n, n, n, pr, pc, below + 50.0, a, 0.0, 0, m)
+    got = seabed_clearance(
+        el, slot, n, n, n, n, pr, pc, below + 50.0, a, 0.0, 0, m, np.inf, clearance_blocks(el)
+    )
     assert got == pytest.approx(43.0, abs=1e-3)
+
+
+def _tiled(z: np.ndarray, tr: int, tc: int) -> tuple:
+    """``z`` as the flight holds a corridor: tiles of ``tr`` x ``tc`` (the last ones padded
+    with no-data) and their slot table."""
+    rows, cols = z.shape
+    nti, ntj = -(-rows // tr), -(-cols // tc)
+    el = np.full((nti * ntj, tr, tc), np.nan, dtype=np.float32)
+    slot = np.arange(nti * ntj, dtype=np.int64).reshape(nti, ntj)
+    for ti in range(nti):
+        for tj in range(ntj):
+            part = z[ti * tr : (ti + 1) * tr, tj * tc : (tj + 1) * tc]
+            el[slot[ti, tj], : part.shape[0], : part.shape[1]] = part
+    return el, slot
+
+
+@pytest.mark.parametrize("method", [2, 1])
+def test_the_flights_clearance_check_is_the_same_on_any_tiling(method):
+    """The check passes over blocks of grid squares too low to matter; many points in one
+    call, each search starting from the least so far: against scipy on the bilinear seabed
+    (spherical: KD-tree; horizontal: the highest seabed sample within the radius, brute force),
+    and the same figure to the bit on one tile and on tiles of 7 x 5 and 9 x 16 (blocks cut
+    by the tiles' edges, a last tile of one row), with no-data cells, and started from a
+    known clearance (the lesser of the two)."""
+    from pipeline.flight.profile import clearance_blocks, seabed_clearance
+
+    rng = np.random.default_rng(8)
+    a, rows, cols, radius, m = 50.0, 37, 29, 180.0, 8
+    y, x = np.mgrid[0:rows, 0:cols]
+    z = -1500 + 120 * np.sin(x / 4.0) * np.cos(y / 5.0) + 15 * rng.normal(size=(rows, cols))
+    z = z.astype(np.float32)
+    z[30:33, 2:6] = np.nan  # no seabed known there: its squares are not measured
+    pr, pc = rng.uniform(2, rows - 3, 60), rng.uniform(2, cols - 3, 60)
+    pr[pr > 29] -= 8.0  # (away from the no-data cells)
+    zf = np.where(np.isnan(z), -np.inf, z).astype(np.float64)
+    from scipy.interpolate import RegularGridInterpolator
+
+    under = RegularGridInterpolator((np.arange(rows) * a, np.arange(cols) * a), zf)
+    h = under(np.column_stack([pr * a, pc * a])) + rng.uniform(0.4, 1.2, 60) * radius
+    figures = []
+    for tr, tc in ((rows, cols), (7, 5), (9, 16)):
+        el, slot = _tiled(z, tr, tc)
+        for start in (np.inf, 140.0):
+            got = seabed_clearance(
+                el, slot, tr, tc, rows, cols, pr, pc, h, a, radius, method, m, start,
+                clearance_blocks(el),
+            )  # fmt: skip
+            figures.append((start, got))
+    assert len({g for s, g in figures if s == np.inf}) == 1  # every tiling: the same figure
+    assert len({g for s, g in figures if s != np.inf}) == 1
+    got = figures[0][1]
+    seabed = bilinear_seabed_points(np.where(np.isnan(z), np.nan, z), a, a / m)
+    seabed = seabed[np.isfinite(seabed[:, 2])]
+    # (the check's lattice of each square is this sampling's: the same seabed points)
+    if method == 2:
+        d = cKDTree(seabed).query(np.column_stack([pc * a, pr * a, h]))[0]
+        ref = float(np.minimum(d, 1.25 * radius).min())
+    else:
+        ref = math.inf
+        for k in range(len(pr)):
+            near = np.hypot(seabed[:, 0] - pc[k] * a, seabed[:, 1] - pr[k] * a) < radius
+            ref = min(ref, float(h[k] - seabed[near, 2].max()))
+    assert got == pytest.approx(ref, abs=1e-3)
+    assert figures[1][1] == pytest.approx(min(ref, 140.0), abs=1e-3)
 
 
 def test_profile_figures_count_reversals_and_altitudes():
