@@ -52,6 +52,7 @@ SCRIPTS = [
     "constraints",
     "user_seabed",
     "flight_aware",
+    "flight_cost",
 ]
 
 PAPER_INDEX = [
