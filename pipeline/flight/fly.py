@@ -631,17 +631,16 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi, known: float) -> tuple:
     of them enters ("" for none). ``known``: a clearance the route keeps, at least the
     clearance: the lines are measured for less only (what is at least it is reported as it)."""
     from ..constraints.zones import entered
-    from .legs import deviation, leg_points, leg_tolerance, split_legs
+    from .legs import leg_points, leg_tolerance, split_legs
 
     m, veh = ctx.m, ctx.veh
     tol = leg_tolerance(ctx.clearance)
     for _ in range(4):
-        wi = split_legs(m.crs_wkt, qx, qy, wi, tol, veh.max_leg_m)
+        wi, dev = split_legs(m.crs_wkt, qx, qy, wi, tol, veh.max_leg_m, deviations=True)
         least, where, zone = math.inf, "", ""
         if not m.crs_wkt or len(wi) < 2:
             break
         a, b = wi[:-1], wi[1:]
-        dev = deviation(m.crs_wkt, qx[a], qy[a], qx[b], qy[b])
         legs = np.flatnonzero(dev > 1e-6 * ctx.clearance)
         if not legs.size:
             break
@@ -667,7 +666,9 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi, known: float) -> tuple:
                     ]
                     j = legs[int(np.argmin(each))]
                     where = f"{name} between waypoints {j + 1} and {j + 2}"
-            if not zone and entered(m.keep_out, *((lx[at], ly[at]) for at in parts)):
+            if m.keep_out is None or zone:
+                continue
+            if entered(m.keep_out, *((lx[at], ly[at]) for at in parts)):
                 for k, at in enumerate(parts):
                     hit = entered(m.keep_out, (lx[at], ly[at]))
                     if hit:
@@ -681,6 +682,36 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi, known: float) -> tuple:
             break
         tol /= 4.0
     return wi, least, where, zone
+
+
+def check_leg_lines(
+    maps: Maps,
+    traj: Trajectory,
+    flight: Flight,
+    vehicle: VehicleLike = None,
+    clearance: float | None = None,
+) -> tuple:
+    """The check a flight makes of its legs' geodesics and rhumb lines, on its own: for the
+    flown ``flight`` of ``traj`` on ``maps`` (flown for ``vehicle``), the least clearance of
+    the lines (each measured fully, not only for less than the route keeps) and the line and
+    leg where it is, measured against ``clearance`` (default the maps'): ``(waypoint indices,
+    least clearance, where, the zone a line enters)``. Legs are split further where a line
+    comes under it, as in :func:`fly`."""
+    import dataclasses
+
+    from ..constraints.store import constrained
+    from ..store.maps_store import open_store
+
+    veh = Vehicle.of(vehicle)
+    depth = veh.max_depth_m if veh.max_depth_m is not None else traj.max_depth_m
+    m = constrained(open_store(maps), traj.keep_out, None, depth)
+    ctx = _context(m, traj, veh)
+    if clearance is not None:
+        ctx = dataclasses.replace(ctx, clearance=float(clearance))
+    q = flight.route
+    return _autopilot_legs(
+        ctx, ctx.cor.grid(), q[:, 0], q[:, 1], q[:, 2], flight.waypoint_index, math.inf
+    )
 
 
 def _at_rated_depth(floor: float | None, s: np.ndarray, h: np.ndarray) -> float:
@@ -708,7 +739,9 @@ def _least_clearance(ctx: _Context, grid, lines, start: float = math.inf) -> flo
         _, once = np.unique(np.column_stack((r, c, z)), axis=0, return_index=True)
         r, c, z, h = r[once], c[once], z[once], h[once]
     first = _closest(z - h)
-    order = np.concatenate((first, np.setdiff1d(np.arange(len(z)), first)))
+    rest = np.ones(len(z), dtype=bool)
+    rest[first] = False
+    order = np.concatenate((first, np.flatnonzero(rest)))
     if ctx.cor.check_blocks is None:
         ctx.cor.check_blocks = clearance_blocks(grid[0])
     return seabed_clearance(

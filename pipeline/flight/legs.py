@@ -96,21 +96,32 @@ def deviation(crs_wkt: str, x0, y0, x1, y1) -> np.ndarray:
     return out
 
 
-def split_legs(crs_wkt: str | None, x, y, wi, tol: float, max_leg: float | None) -> np.ndarray:
+def split_legs(
+    crs_wkt: str | None, x, y, wi, tol: float, max_leg: float | None, deviations: bool = False
+):
     """The waypoint indices ``wi`` into the route's samples ``x, y`` (map coordinates) with
     more of them, each leg halved at its middle sample until its map line, geodesic and rhumb
     line lie within ``tol`` of each other (with a CRS) and it is no longer than ``max_leg``;
-    a leg of two samples is not split further."""
+    a leg of two samples is not split further. With ``deviations``, also each leg's
+    :func:`deviation` (zeros without a CRS), each leg's computed once."""
     wi = np.asarray(wi, dtype=np.int64)
+    dev = np.full(max(wi.size - 1, 0), np.nan)
     for _ in range(64):
         a, b = wi[:-1], wi[1:]
-        bad = np.zeros(a.size, dtype=bool)
+        new = np.isnan(dev)
+        if crs_wkt and new.any():
+            dev[new] = deviation(crs_wkt, x[a[new]], y[a[new]], x[b[new]], y[b[new]])
+        elif not crs_wkt:
+            dev[:] = 0.0
+        bad = dev > tol
         if max_leg is not None:
             bad |= np.hypot(x[b] - x[a], y[b] - y[a]) > max_leg
-        if crs_wkt:
-            bad |= deviation(crs_wkt, x[a], y[a], x[b], y[b]) > tol
         bad &= b - a >= 2
         if not bad.any():
             break
+        # each leg split in two: its halves' deviations to be computed
+        keep = np.repeat(dev, np.where(bad, 2, 1))
+        keep[np.repeat(bad, np.where(bad, 2, 1))] = np.nan
         wi = np.unique(np.concatenate([wi, (a[bad] + b[bad]) // 2]))
-    return wi
+        dev = keep
+    return (wi, dev) if deviations else wi

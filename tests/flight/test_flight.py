@@ -1574,6 +1574,62 @@ def test_a_long_leg_is_split_until_the_geodesic_and_the_rhumb_line_agree():
     assert np.hypot(np.diff(x[wi]), np.diff(y[wi])).max() <= 20_000.0
 
 
+def test_the_legs_lines_are_measured_at_once_and_the_closest_leg_named(ridge_store):
+    """The geodesics and rhumb lines of every leg, sampled and measured in one pass: on a
+    flown mission (legs of at most 1.5 km), with a clearance above what is flown (so that
+    every leg's lines break it and the flight must say which leg), the least clearance it
+    reports lies between the least 3-D distance of the legs' lines (pyproj's Geod.npts and a
+    constant course flown on the ellipsoid, every 2 m) from the bilinear seabed (scipy,
+    sampled every 4 m) and that at the geodesics' own samples plus the flight's lattice; the
+    leg it names comes within that of the least."""
+    from pyproj import CRS
+    from scipy.interpolate import RegularGridInterpolator
+
+    from pipeline.flight.fly import check_leg_lines
+
+    path, ok, graph, pts = ridge_store
+    cells = np.argwhere(ok)  # corner to corner: legs far from the CRS's centre, whose lines part
+    t = pipeline.plan(
+        path, tuple(cells[10]), tuple(cells[-10]), planner="astar", client="synchronous"
+    )
+    veh = Vehicle.of({"max_leg_m": 1500.0})
+    f = pipeline.fly(path, t, veh)
+    wi, least, where, _ = check_leg_lines(path, t, f, veh, clearance=400.0)
+    qx, qy, zq = f.route[:, 0], f.route[:, 1], f.route[:, 2]
+    assert least < 400.0 and where, (least, where)
+    ds = pipeline.open_maps(path)
+    crs = CRS.from_wkt(ds["spatial_ref"].attrs["crs_wkt"])
+    xs, ys = ds["x"].values, ds["y"].values
+    iy = np.argsort(ys)
+    seabed = RegularGridInterpolator(
+        (ys[iy], xs), ds["elevation"].values.astype(np.float64)[iy]
+    )  # fmt: skip
+    per_leg = []
+    for a, b in zip(wi[:-1], wi[1:], strict=True):
+        length = math.hypot(qx[b] - qx[a], qy[b] - qy[a])
+        n = int(length / 2.0) + 2
+        lines = [  # (the geodesic's interior points, the rhumb line's every step with its ends)
+            _geodesic_points(crs, qx[a], qy[a], qx[b], qy[b], n),
+            _rhumb_points(crs, qx[a], qy[a], qx[b], qy[b], n, n),
+        ]
+        frac = np.concatenate([np.arange(1, n + 1) / (n + 1), np.arange(n + 1) / n])
+        lx = np.concatenate([np.asarray(v[0]) for v in lines])
+        ly = np.concatenate([np.asarray(v[1]) for v in lines])
+        lz = zq[a] + (zq[b] - zq[a]) * frac
+        # the seabed within 200 m of the leg (beyond the least clearance), every 4 m
+        x0, x1 = max(lx.min() - 200, xs.min()), min(lx.max() + 200, xs.max())
+        y0, y1 = max(ly.min() - 200, ys.min()), min(ly.max() + 200, ys.max())
+        gx, gy = np.meshgrid(np.arange(x0, x1, 4.0), np.arange(y0, y1, 4.0))
+        gz = seabed(np.column_stack([gy.ravel(), gx.ravel()]))
+        tree = cKDTree(np.column_stack([gx.ravel(), gy.ravel(), gz]))
+        per_leg.append(float(tree.query(np.column_stack([lx, ly, lz]))[0].min()))
+    ref = min(per_leg)
+    lattice = 50.0 / 2  # the flight's lattice at this clearance: 2 parts a square
+    assert ref - 3.0 <= least <= ref + lattice, (least, ref)
+    j = int(where.rsplit("between waypoints ", 1)[1].split(" and ")[0]) - 1
+    assert per_leg[j] <= ref + lattice + 3.0, (where, per_leg[j], ref)
+
+
 def test_max_leg_splits_the_waypoints_on_the_flown_profile(ridge_store):
     """With max_leg_m, no two waypoints are farther apart, and the waypoints added lie on the
     profile flown (the heights linear between the unsplit waypoints)."""
