@@ -127,6 +127,10 @@ def main(verbose: bool) -> None:
     _VERBOSE["on"] = verbose
     _setup_logging(verbose)
     _stop_on_sigterm()
+    from .runtime.env import check_environment
+
+    with _errors():  # a bad setting: one line before any work
+        check_environment()
 
 
 class Terminated(KeyboardInterrupt):

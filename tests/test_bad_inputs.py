@@ -800,7 +800,8 @@ def test_usage_errors_are_one_line(tmp_path, small_job, args, match):
 )
 def test_a_bad_environment_variable_is_one_line_naming_it(tmp_path, small_job, var, value):
     """Through the installed console script (a variable read at import time would fail before
-    the command's error handling)."""
+    the command's error handling), as the command starts: before any work (no catalog made,
+    no cluster started)."""
     env = {**os.environ, var: value}
     args = ["run", str(small_job)]
     if var == "AUV_PIPELINE_CONNECT_TIMEOUT_S":
@@ -813,6 +814,7 @@ def test_a_bad_environment_variable_is_one_line_naming_it(tmp_path, small_job, v
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines()[-1].startswith(f"error: the environment variable {var}")
+    assert not (small_job.parent / "cat").exists()
 
 
 def test_a_bare_array_is_not_a_dem():

@@ -248,9 +248,9 @@ def connect(address: str, *, timeout: float | None = None, set_as_default: bool 
     from distributed.comm.addressing import parse_address, parse_host_port
 
     if timeout is None:
-        from .env import env_number
+        from .env import setting
 
-        timeout = env_number("AUV_PIPELINE_CONNECT_TIMEOUT_S", 30.0, minimum=0.001)
+        timeout = setting("AUV_PIPELINE_CONNECT_TIMEOUT_S")
     try:  # before a Client is made: one refused for its address waited 60 s at exit
         scheme, location = parse_address(address)
         if scheme in ("tcp", "tls"):

@@ -26,3 +26,23 @@ def env_number(name: str, default: float, *, integer: bool = False, minimum: flo
             "set it so, or unset it for the default"
         )
     return value
+
+
+# the numbers the package reads from its environment: default, integer, least value
+SETTINGS = {
+    "AUV_PIPELINE_CHUNK_CACHE_MB": (1024, True, 0.0),
+    "AUV_PIPELINE_CONNECT_TIMEOUT_S": (30.0, False, 0.001),
+}
+
+
+def setting(name: str):
+    """The value of the package's environment setting ``name`` (:data:`SETTINGS`), checked."""
+    default, integer, minimum = SETTINGS[name]
+    return env_number(name, default, integer=integer, minimum=minimum)
+
+
+def check_environment() -> None:
+    """Every setting of :data:`SETTINGS` checked at once (the command line does it as it
+    starts: a bad value is one line before any work, not after a cluster has started)."""
+    for name in SETTINGS:
+        setting(name)

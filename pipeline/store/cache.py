@@ -38,9 +38,9 @@ class ChunkCache:
         """Bytes kept at most: ``AUV_PIPELINE_CHUNK_CACHE_MB`` (default 1024) MiB, read at
         first use (a bad value is then one line, not an error at import)."""
         if self._budget is None:
-            from ..runtime.env import env_number
+            from ..runtime.env import setting
 
-            self._budget = env_number("AUV_PIPELINE_CHUNK_CACHE_MB", 1024, integer=True) * 2**20
+            self._budget = setting("AUV_PIPELINE_CHUNK_CACHE_MB") * 2**20
         return self._budget
 
     def array(self, store: str, var: str):
