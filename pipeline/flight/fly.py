@@ -452,6 +452,7 @@ def _attempt(ctx: _Context, name: str, corners: tuple, rad: float) -> dict:
         track=track,
         route=route,
         qr=qr,
+        shared=shared,
         qc=qc,
         zq=zq,
         wi=wi,
@@ -502,7 +503,11 @@ def _flight(ctx: _Context, traj: Trajectory, pick: dict, t0: float) -> Flight:
     # legs short enough that the map line, the geodesic and the rhumb line between their
     # waypoints are one (docs/flyable-missions.md, "Legs"), each checked as flown
     qx, qy = _map_xy(m, qr, qc)
-    least = _least_clearance(ctx, grid, ((pr, pc, z, h), (qr, qc, zq, route["h"])))
+    # the route's samples that are the track's own (place and height) measured once
+    rest = _not_on_track(pick["shared"], once, (pr, pc, z), (qr, qc, zq))
+    least = _least_clearance(
+        ctx, grid, ((pr, pc, z, h), (qr[rest], qc[rest], zq[rest], route["h"][rest]))
+    )
     # the legs' other lines measured only for less than what is flown on the map line keeps
     known = max(least, ctx.clearance)
     wi, other, where, entered_by = _autopilot_legs(ctx, grid, qx, qy, zq, wi, known)
@@ -725,19 +730,31 @@ def _at_rated_depth(floor: float | None, s: np.ndarray, h: np.ndarray) -> float:
     return float(0.5 * (step * at[:-1]).sum() + 0.5 * (step * at[1:]).sum())
 
 
+def _not_on_track(shared, once, track, route) -> np.ndarray:
+    """Which samples of the ``route`` (rows, cols, heights) are not samples of the ``track``
+    (the same, after its samples ``once`` were kept): those :func:`_route_samples` took from
+    the track (``shared``: the track sample, or -1) at the same place and height are."""
+    keep = np.ones(len(shared), dtype=bool)
+    at = np.flatnonzero(shared >= 0)
+    at = at[once[shared[at]]]
+    j = (np.cumsum(once) - 1)[shared[at]]
+    same = np.ones(len(at), dtype=bool)
+    for t, r in zip(track, route, strict=True):
+        same &= r[at] == t[j]
+    keep[at[same]] = False
+    return keep
+
+
 def _least_clearance(ctx: _Context, grid, lines, start: float = math.inf) -> float:
     """What is flown, measured anew against the continuous seabed at every sample of each of
     ``lines`` (``(rows, cols, heights, required heights)``): the least clearance of the track
     and of the waypoint legs, never under the clearance by construction (a mission whose route
     came under it would fail here). The samples nearest their required heights are measured
-    first, so that the others' searches stop early (:func:`seabed_clearance`); a point given
-    twice (the track's samples on the route) is measured once. ``start``: as there."""
+    first, so that the others' searches stop early (:func:`seabed_clearance`). ``start``: as
+    there."""
     p = ctx.m.parameters
     lattice = int(min(32, max(CHECK_LATTICE, math.ceil(8 * ctx.a / ctx.clearance))))
     r, c, z, h = (np.concatenate(v) for v in zip(*lines, strict=True))
-    if len(lines) > 1:
-        _, once = np.unique(np.column_stack((r, c, z)), axis=0, return_index=True)
-        r, c, z, h = r[once], c[once], z[once], h[once]
     first = _closest(z - h)
     rest = np.ones(len(z), dtype=bool)
     rest[first] = False
