@@ -307,9 +307,12 @@ def _dijkstra_into(surface, passable, a, un, sources, dist):
     w = a * (1.0 - 1e-7)
     longest = math.sqrt(2.0 * a * a + (hi - lo) ** 2) if hi >= lo else a
     nb = int(longest / w) + 2
-    cap = np.full(nb, 1024, dtype=np.int64)
+    # each bucket's array made when a cell first goes into it: with a relief of many cells'
+    # lengths most buckets stay empty (30 x 40 cells of 2 cm and 17.7 km of relief: 884,000
+    # buckets, 7 GB of arrays made up front)
+    cap = np.zeros(nb, dtype=np.int64)
     fill = np.zeros(nb, dtype=np.int64)
-    buckets = [np.empty(1024, dtype=np.int64) for _ in range(nb)]
+    buckets = [np.empty(0, dtype=np.int64) for _ in range(nb)]
     off = flat_offsets(cols)
     h2 = np.empty(8)  # each move's squared horizontal length, as edge_cost computes it
     for k in range(8):
@@ -319,9 +322,9 @@ def _dijkstra_into(surface, passable, a, un, sources, dist):
         dist[s] = 0.0
         bk = buckets[0]
         if fill[0] == cap[0]:
-            bk = grown(bk, fill[0], 2 * cap[0])
+            cap[0] = max(2 * cap[0], 1024)
+            bk = grown(bk, fill[0], cap[0])
             buckets[0] = bk
-            cap[0] *= 2
         bk[fill[0]] = s
         fill[0] += 1
         queued += 1
@@ -363,8 +366,8 @@ def _dijkstra_into(surface, passable, a, un, sources, dist):
                     dist[v] = min(nd, un[1])
                     b = max(int(nd / w), cur) % nb
                     if fill[b] == cap[b]:
-                        buckets[b] = grown(buckets[b], fill[b], 2 * cap[b])
-                        cap[b] *= 2
+                        cap[b] = max(2 * cap[b], 1024)
+                        buckets[b] = grown(buckets[b], fill[b], cap[b])
                     buckets[b][fill[b]] = v
                     fill[b] += 1
                     queued += 1
