@@ -112,17 +112,8 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     >>> f.flown_length_m <= t.omega * t.lower_bound_m, len(f.waypoints)  # doctest: +SKIP
     (True, 41)
     """
-    from ..constraints.store import constrained
-    from ..store.maps_store import open_store
-
     t0 = time.perf_counter()
-    veh = Vehicle.of(vehicle)
-    # the zones it was planned to avoid; the rating it was planned for, or the vehicle's
-    depth = veh.max_depth_m if veh.max_depth_m is not None else traj.max_depth_m
-    m = constrained(open_store(maps), traj.keep_out, None, depth)
-    if not traj.planned or len(traj.cells) < 2:
-        raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
-    ctx = _context(m, traj, veh)
+    ctx = _flight_context(maps, traj, Vehicle.of(vehicle))
     results = []
     for name, make, rad in _smoothings(ctx):
         results.append(_attempt(ctx, name, make(), rad))
@@ -134,6 +125,19 @@ def fly(maps: Maps, traj: Trajectory, vehicle: VehicleLike = None) -> Flight:
     if pick is not first and len(first["trouble"]) and not first["zones"]:
         flight.ridge_trouble_xy = first["trouble"]
     return flight
+
+
+def _flight_context(maps: Maps, traj: Trajectory, veh: Vehicle) -> _Context:
+    """The :class:`_Context` of flying ``traj`` on the maps store ``maps`` for ``veh``."""
+    from ..constraints.store import constrained
+    from ..store.maps_store import open_store
+
+    # the zones it was planned to avoid; the rating it was planned for, or the vehicle's
+    depth = veh.max_depth_m if veh.max_depth_m is not None else traj.max_depth_m
+    m = constrained(open_store(maps), traj.keep_out, None, depth)
+    if not traj.planned or len(traj.cells) < 2:
+        raise InvalidParameterError("fly needs a planned trajectory of at least two cells")
+    return _context(m, traj, veh)
 
 
 @dataclass(frozen=True)
@@ -658,13 +662,14 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi, known: float) -> tuple:
         f = (np.arange(leg.size) - first[leg]) / (count[leg] - 1)
         z = zq[a][leg] + (zq[b] - zq[a])[leg] * f
         lines = leg_points(m.crs_wkt, qx[a], qy[a], qx[b], qy[b], leg, f)
-        parts = np.split(np.arange(leg.size), first[1:])
+        parts = None  # each leg's samples, where a leg must be named
         for name, (lx, ly) in lines.items():
             r, c = _grid_rc(m, lx, ly)
             got = _least_clearance(ctx, grid, ((r, c, z, z),), known)
             if got < least:
                 least = got
                 if got < ctx.clearance * (1 - 1e-6):  # which leg: measured leg by leg
+                    parts = parts or np.split(np.arange(leg.size), first[1:])
                     each = [
                         _least_clearance(ctx, grid, ((r[at], c[at], z[at], z[at]),), known)
                         for at in parts
@@ -673,6 +678,7 @@ def _autopilot_legs(ctx: _Context, grid, qx, qy, zq, wi, known: float) -> tuple:
                     where = f"{name} between waypoints {j + 1} and {j + 2}"
             if m.keep_out is None or zone:
                 continue
+            parts = parts or np.split(np.arange(leg.size), first[1:])
             if entered(m.keep_out, *((lx[at], ly[at]) for at in parts)):
                 for k, at in enumerate(parts):
                     hit = entered(m.keep_out, (lx[at], ly[at]))
@@ -704,13 +710,7 @@ def check_leg_lines(
     comes under it, as in :func:`fly`."""
     import dataclasses
 
-    from ..constraints.store import constrained
-    from ..store.maps_store import open_store
-
-    veh = Vehicle.of(vehicle)
-    depth = veh.max_depth_m if veh.max_depth_m is not None else traj.max_depth_m
-    m = constrained(open_store(maps), traj.keep_out, None, depth)
-    ctx = _context(m, traj, veh)
+    ctx = _flight_context(maps, traj, Vehicle.of(vehicle))
     if clearance is not None:
         ctx = dataclasses.replace(ctx, clearance=float(clearance))
     q = flight.route

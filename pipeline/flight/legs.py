@@ -105,14 +105,13 @@ def split_legs(
     a leg of two samples is not split further. With ``deviations``, also each leg's
     :func:`deviation` (zeros without a CRS), each leg's computed once."""
     wi = np.asarray(wi, dtype=np.int64)
-    dev = np.full(max(wi.size - 1, 0), np.nan)
+    unknown = np.nan if crs_wkt else 0.0  # a leg's deviation to compute (none without a CRS)
+    dev = np.full(max(wi.size - 1, 0), unknown)
     for _ in range(64):
         a, b = wi[:-1], wi[1:]
         new = np.isnan(dev)
-        if crs_wkt and new.any():
+        if new.any():
             dev[new] = deviation(crs_wkt, x[a[new]], y[a[new]], x[b[new]], y[b[new]])
-        elif not crs_wkt:
-            dev[:] = 0.0
         bad = dev > tol
         if max_leg is not None:
             bad |= np.hypot(x[b] - x[a], y[b] - y[a]) > max_leg
@@ -121,7 +120,7 @@ def split_legs(
             break
         # each leg split in two: its halves' deviations to be computed
         keep = np.repeat(dev, np.where(bad, 2, 1))
-        keep[np.repeat(bad, np.where(bad, 2, 1))] = np.nan
+        keep[np.repeat(bad, np.where(bad, 2, 1))] = unknown
         wi = np.unique(np.concatenate([wi, (a[bad] + b[bad]) // 2]))
         dev = keep
     return (wi, dev) if deviations else wi

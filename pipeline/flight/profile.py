@@ -532,22 +532,22 @@ def seabed_clearance(el, slot, tr, tc, rows, cols, pr, pc, z, a, radius, method,
         while bi <= i1:  # the blocks of squares the search reaches, then their squares
             ti = _tile_of(bi, tr)
             lbi = (bi - ti * tr) // bs
-            ie = min(ti * tr + min((lbi + 1) * bs, tr) - 1, i1)
+            r0 = ti * tr + lbi * bs  # the block's squares: rows r0..r1, columns c0..c1
+            r1 = ti * tr + min((lbi + 1) * bs, tr) - 1
+            ie = min(r1, i1)
             dbi = max(0.0, bi - p, p - (ie + 1)) * a
             bj = j0
             while bj <= j1 and dbi * dbi < (best if method == 2 else lim):
                 tj = _tile_of(bj, tc)
                 lbj = (bj - tj * tc) // bs
-                je = min(tj * tc + min((lbj + 1) * bs, tc) - 1, j1)
+                c0 = tj * tc + lbj * bs
+                c1 = tj * tc + min((lbj + 1) * bs, tc) - 1
+                je = min(c1, j1)
                 dbj = max(0.0, bj - q, q - (je + 1)) * a
                 db2 = dbi * dbi + dbj * dbj
                 sl = slot[ti, tj]
                 enter = sl >= 0 and db2 < (best if method == 2 else lim)
                 if enter:
-                    r0 = ti * tr + lbi * bs
-                    c0 = tj * tc + lbj * bs
-                    r1 = ti * tr + min((lbi + 1) * bs, tr) - 1
-                    c1 = tj * tc + min((lbj + 1) * bs, tc) - 1
                     btop = _block_top(
                         el, slot, tr, tc, rows, cols, blocks, sl, lbi, lbj, r0, r1, c0, c1
                     )
