@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import json
 import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from importlib import metadata
 from pathlib import Path
@@ -265,3 +267,18 @@ def passable_neighbour(ok, cell) -> tuple[int, int]:
         for dr, dc in ((0, 1), (1, 0), (0, -1), (-1, 0))
         if 0 <= r + dr < ok.shape[0] and 0 <= c + dc < ok.shape[1] and ok[r + dr, c + dc]
     )
+
+
+@contextlib.contextmanager
+def checkout(rev: str):
+    """The library as it was at the git revision ``rev``: a checkout's root, in a temporary git
+    worktree removed afterwards (a before/after measure, each version in a process of its own
+    run from its root)."""
+    root = Path(__file__).resolve().parents[1]
+    tree = Path(tempfile.mkdtemp(prefix="before-")) / "code"
+    git = ["git", "worktree"]
+    subprocess.run([*git, "add", "--detach", str(tree), rev], cwd=root, check=True)
+    try:
+        yield tree
+    finally:
+        subprocess.run([*git, "remove", "--force", str(tree)], cwd=root, check=False)

@@ -28,11 +28,10 @@ import json
 import statistics
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
-from _common import OUT, machine, maps_store
+from _common import OUT, checkout, machine, maps_store
 from _report import Report
 from bench_certify import csgraph, optimum
 
@@ -235,16 +234,11 @@ def main() -> None:
     if not args.quick:
         maps.append(("synthetic ridge 2000^2 (30 m)", maps_store(2000), None, 2.0, 20, 800))
     results = []
-    old = Path(tempfile.mkdtemp(prefix="before-")) / "code"
-    git = ["git", "worktree"]
-    subprocess.run([*git, "add", "--detach", str(old), args.before], cwd=ROOT, check=True)
-    try:
+    with checkout(args.before) as old:
         for label, store, vehicle, omega, count, min_cells in maps:
             ok = pipeline.open_maps(store)["passable"].values.astype(bool)
             missions = random_missions(ok, count // (4 if args.quick else 1), 74, min_cells)
             results.append(_versions(label, store, vehicle, omega, missions, old))
-    finally:
-        subprocess.run([*git, "remove", "--force", str(old)], cwd=ROOT, check=False)
     _report(results, args)
 
 

@@ -20,10 +20,9 @@ import json
 import statistics
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
-from _common import OUT, far_missions, machine, maps_store
+from _common import OUT, checkout, far_missions, machine, maps_store
 from _report import Report
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,11 +94,8 @@ def main() -> None:
     args = ap.parse_args()
     print(machine(), flush=True)
     sizes = [(2000, 20), (4000, 20)] + ([] if args.quick else [(10000, 10)])
-    old = Path(tempfile.mkdtemp(prefix="before-")) / "code"
-    git = ["git", "worktree"]
-    subprocess.run([*git, "add", "--detach", str(old), args.before], cwd=ROOT, check=True)
     rows, same = [], []
-    try:
+    with checkout(args.before) as old:
         for n, count in sizes:
             ms = _missions(n, count // (2 if args.quick else 1))
             got = {}
@@ -120,8 +116,6 @@ def main() -> None:
         for version, code in (("before", old), ("after", ROOT)):
             batch[version] = _run(THROUGHPUT, code, str(maps_store(4000)), json.dumps(ms))
             print(version, batch[version], flush=True)
-    finally:
-        subprocess.run([*git, "remove", "--force", str(old)], cwd=ROOT, check=False)
     _report(rows, same, batch, len(ms), args)
 
 
