@@ -407,6 +407,8 @@ def fly_or_plan_again(m, t: Trajectory, vehicle, again, name) -> Trajectory:
         nxt, failure = None, None
         for scale in ZONE_SCALES:  # a zone that closes the way (a narrow strait): smaller
             zone = _around(m, t, places, k, margin, scale)[0] if scale != 1 else zone
+            if zone is None:  # nothing left of it beside the mission's own points
+                break
             keep = KeepOut(
                 (*(user.zones if user is not None else ()), *zones, (f"flight round {k}", zone)),
                 margin,
