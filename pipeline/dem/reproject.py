@@ -376,7 +376,7 @@ def _warp_kernel(src, r0, c0, ny, nx, li, lj, fy, fx, upper, eps):
     return out, stats
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _lattice_row(li, lj, fy, fx, pi, pj):
     """The source rows ``pi`` and columns ``pj`` of a row of nodes: the lattice ``li``,
     ``lj`` interpolated bilinearly at fractional row ``fy`` and columns ``fx``."""
@@ -396,7 +396,7 @@ def _lattice_row(li, lj, fy, fx, pi, pj):
         ) * ta
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _dual_row(src, r0, c0, ny, nx, pi0, pi1, pj0, pj1, eps, out):
     """The highest of the source's bilinear surface over each dual cell between two rows of
     nodes (source rows ``pi0``, ``pi1``, columns ``pj0``, ``pj1``): over the box of its four
@@ -425,7 +425,7 @@ def _dual_row(src, r0, c0, ny, nx, pi0, pi1, pj0, pj1, eps, out):
         )  # fmt: skip
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _bilinear_at(src, r0, c0, ny, nx, fi, fj):
     """The source's bilinear value at fractional row ``fi``, column ``fj`` (clamped to its
     points); a neighbour of weight 0 (on a grid line) is the point itself, so its NaN does
@@ -448,7 +448,7 @@ def _bilinear_at(src, r0, c0, ny, nx, fi, fj):
     return v
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _row_breaks(src, k, jj, s, t0, th):
     """Row ``k`` of ``src`` at the column breakpoints of a box over ``s`` (1-3) cells from
     column ``jj``: its left side (at ``t0`` in the first cell), the grid points inside and
@@ -466,14 +466,14 @@ def _row_breaks(src, k, jj, s, t0, th):
     return g0, w1, w2, w2 + (w3 - w2) * th, (w0 + w1) + (w2 + w3)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _lerp_max(a0, a1, a2, a3, b0, b1, b2, b3, t):
     return max(
         max(a0 + (b0 - a0) * t, a1 + (b1 - a1) * t), max(a2 + (b2 - a2) * t, a3 + (b3 - a3) * t)
     )
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def small_box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
     """:func:`box_max`, in straight lines for a box over 1-2 source cells by 1-3 (a target
     cell about as fine as the source's; others go to :func:`box_max`): the surface's highest
@@ -508,7 +508,7 @@ def small_box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
     return top
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def box_max(src, r0, c0, lo_i, hi_i, lo_j, hi_j):
     """The highest value of the source's bilinear surface over the box of fractional rows
     ``lo_i..hi_i`` and columns ``lo_j..hi_j`` (within its points); NaN where a point with a

@@ -33,7 +33,7 @@ _GX = np.array([1.0, -1.0, 0.0, 0.0, 0.70710678, -0.70710678, 0.70710678, -0.707
 _GY = np.array([0.0, 0.0, 1.0, -1.0, 0.70710678, 0.70710678, -0.70710678, -0.70710678])
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _hash(ix, iy, salt):
     h = (ix * 374761393 + iy * 668265263 + salt * 982451653) & 0xFFFFFFFF
     h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
@@ -41,18 +41,18 @@ def _hash(ix, iy, salt):
     return h ^ (h >> 13)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _unit(h):
     """A hash to a float in [0, 1)."""
     return (h & 0xFFFFFF) / 16777216.0
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _fade(t):
     return t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _grad(ix, iy, salt, fx, fy):
     k = _hash(ix, iy, salt) & 7
     return _GX[k] * fx + _GY[k] * fy
@@ -82,7 +82,7 @@ def _noise(x, y, salt):
     return 1.4 * (a + v * (b - a))
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _fbm(x, y, octaves, salt):
     total = 0.0
     amp = 1.0
@@ -96,7 +96,7 @@ def _fbm(x, y, octaves, salt):
     return total / norm if norm > 0.0 else 0.0
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _ridged(x, y, octaves, salt):
     """Ridged multifractal (Musgrave): sharp, branching crest lines, roughly in [0, 1]."""
     total = 0.0
@@ -115,13 +115,13 @@ def _ridged(x, y, octaves, salt):
     return total / norm
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _smoothstep(t):
     t = min(1.0, max(0.0, t))
     return t * t * (3.0 - 2.0 * t)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _axis_u(v, seg_v, seg_u, salt):
     """Across-axis position of the spreading axis at along-axis position ``v``."""
     u = seg_u[0]
@@ -130,7 +130,7 @@ def _axis_u(v, seg_v, seg_u, salt):
     return u + 0.018 * _noise(v * 3.0, 0.37, salt)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _seafloor(d):
     """Depth-age subsidence plus the axial high with its summit graben (no noise)."""
     ad = abs(d)
@@ -252,7 +252,7 @@ def _synth_block(r0, r1, c0, c1, n_norm, cos_t, sin_t, seg_v, seg_u, islands, se
     return out
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _near_island(u, v, islands):
     for q in range(islands.shape[0]):
         cu = (islands[q, 0] + 0.5) / _LATTICE

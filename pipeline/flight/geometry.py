@@ -22,6 +22,9 @@ ROUTE_SIMPLIFICATIONS = ((2.0, 0.02), (2.0, 0.05), (3.0, 0.1), (4.0, 0.2), (4.0,
 _LEVELS = np.array(ROUTE_SIMPLIFICATIONS, dtype=np.float64)
 
 
+# the flight's helpers called once a grid cell or sample are inlined in numba's own IR
+# (``inline="always"``): called across compiled functions instead, the flight was measurably
+# slower (CHANGELOG.md); elsewhere LLVM's inlining does as well and compiles in less time
 @njit(inline="always", cache=True)
 def _tile_of(i, t):
     """``i // t`` for ``0 <= i < 2^32``, ``t > 0`` (a row or column and the tiles' side): a

@@ -30,6 +30,7 @@ LEG_MARGIN = 0.01
 # the maps' clearance methods, as the kernels know them
 
 
+# (the helpers below called once a sample are inlined in numba's IR: see flight.geometry)
 @njit(inline="always", cache=True)
 def _least_term(p, lo, hi, a):
     """The least ``(i - p)^2 a^2`` over the grid lines ``lo..hi``, computed as each line's own

@@ -100,7 +100,7 @@ def _outlets(z, top, left, bottom, right, at_top, at_left, at_bottom, at_right):
     return out
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _slot(keys, key):
     """The slot of ``key`` in an open-addressing table (linear probing; -1 marks empty)."""
     mask = keys.size - 1
@@ -113,12 +113,12 @@ def _slot(keys, key):
 _CACHE = 4096  # entries of the basin fill's pair cache (48 KiB: it stays in L2)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _new_table(cap):
     return np.full(cap, np.int64(-1), dtype=np.int64), np.empty(cap, dtype=np.float32)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _table_min(keys, vals, used, key, w):
     """``table[key] = min(table[key], w)`` in the open-addressing table (keys, vals), grown
     (doubled) when half full; returns the table and its count."""
@@ -587,7 +587,7 @@ def _fill_dask(z: da.Array, *, eager_solve: bool) -> da.Array:
 # --------------------------------------------------------------------------- D8 + accumulation
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _drop(wc, wv, k):
     """D8's drop per distance from a cell of height ``wc`` to its neighbour ``k`` of height
     ``wv`` (float32 values, computed in float64)."""
@@ -784,7 +784,7 @@ def _flow_links(dirs, acc, nodata, r0, c0, ncols):
     return src, dst, amount, cell[:nb], exits[:nb]
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _exit_link(dirs, link_id, memo, path, i, j):
     """The id of the link the flow from cell (i, j) leaves its block by (-1: it ends inside),
     walking downstream and remembering the answer for every cell walked (``memo``, -2 where

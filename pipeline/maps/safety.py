@@ -121,7 +121,7 @@ def _float(typingctx, x):
     return types.float32(types.int32), codegen
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _up32(v):
     """The least float32 at or above the float64 ``v`` (NaN and infinities as they are): the
     safety surface is a lowest safe height, so it is rounded up, never below the exact value.
@@ -135,7 +135,7 @@ def _up32(v):
     return _float(b + step) if np.float64(f) < v else f
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _max_into(dst, src, add):
     """``dst[j] = max(dst[j], src[j] + add)`` (a NaN: see :func:`_maximum`); two distinct
     contiguous views, so it vectorises."""
@@ -197,7 +197,7 @@ def _pair_maxima(zr, kmax, m):
         _max_pair(mk[k:n], zr[: n - k], zr[2 * k :])
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _max_of(dst, src):
     """``dst[j] = max(dst[j], src[j])``; two distinct contiguous views, so it vectorises (the
     values are sums ``z + b`` with ``b >= +0.0``, never -0.0: adding +0.0 first, as
@@ -206,7 +206,7 @@ def _max_of(dst, src):
         dst[j] = _maximum(dst[j], src[j])
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _max_pair(dst, x, y):
     """``dst[j] = max(x[j], y[j])``; three distinct contiguous views, so it vectorises."""
     for j in range(dst.size):

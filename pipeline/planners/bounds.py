@@ -132,7 +132,7 @@ def lagrangian_bound(ridge, passable, a, sr, sc, gr, gc, off_weight, hoff):
     return out
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _per_weight(h, octile, hoff, off_weight):
     """A cell's entry of :func:`lagrangian_bound` from a bound ``h`` on its cost to the goal:
     the larger of ``h`` and ``octile + off_weight hoff``, less the octile distance, over the

@@ -16,7 +16,7 @@ DC = np.array([1, 1, 0, -1, -1, -1, 0, 1], dtype=np.int64)
 DIST = np.array([1.0, math.sqrt(2.0)] * 4)  # step length in cells
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def flat_offsets(cols):
     """The flat-index step to each neighbour on a grid of ``cols`` columns."""
     off = np.empty(8, dtype=np.int64)
@@ -25,7 +25,7 @@ def flat_offsets(cols):
     return off
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def inside(r, c, k, rows, cols):
     """Whether neighbour ``k`` of cell (r, c) is on the ``rows x cols`` grid."""
     nr = r + DR[k]

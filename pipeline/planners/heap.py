@@ -11,7 +11,7 @@ import numpy as np
 from ..runtime.jit import njit
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def heap_push(keys, items, n, key, item):
     """Insert (key, item) into the heap of size ``n``; returns the new size."""
     k = n
@@ -28,7 +28,7 @@ def heap_push(keys, items, n, key, item):
     return n + 1
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def heap_pop(keys, items, n):
     """Remove the smallest entry of the heap of size ``n``; returns (key, item)."""
     key = keys[0]
@@ -71,7 +71,7 @@ def grown(arr, n, size):
     return new
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def heap_reserve(keys, items, n, extra):
     """The heap's arrays with room for ``extra`` more entries beyond its size ``n`` (doubled, or
     more, when short; lazy deletion can hold a node several times).

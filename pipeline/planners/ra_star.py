@@ -37,7 +37,7 @@ from .heap import heap_pop, heap_push, heap_reserve
 from .search import CLOSED, INWAIT, PARENT, SEEN, edge_cost, heuristic, relax_successors
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _focal_key(nor, f, gscale):
     # largest Nor first; among equals the smallest f_incons = g_incons + h (f / gscale < 1)
     return -np.float64(nor) + f / gscale

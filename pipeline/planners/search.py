@@ -22,13 +22,13 @@ from .grid import DC, DR
 from .heap import grown, heap_pop, heap_push, heap_reserve
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def edge_length(h2, dz):
     """The 3-D length of a move: ``h2`` its squared horizontal length, ``dz`` its rise."""
     return math.sqrt(h2 + dz * dz)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def edge_cost(surface, a, r, c, nr, nc):
     """The cost of the move (r, c) -> (nr, nc): its 3-D length along the surface."""
     dr = nr - r
@@ -42,7 +42,7 @@ def edge_cost(surface, a, r, c, nr, nc):
 TIE = 1e-10
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def heuristic(a, r, c, gr, gc, octile):
     """A lower bound on the length from (r, c) to the goal: the octile distance (the exact
     horizontal length on the open 8-connected grid) or the straight line of docs/method.md
@@ -83,7 +83,7 @@ def landmark_shrink(lm, a):
     return 1.0 - (2.0 * LANDMARK_MARGIN + 2.0**-22 * dmax / a)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def landmark_heuristic(lm, lg, shrink, v, h):
     """``max(h, shrink * max_l |d_l(v) - d_l(goal)|)`` less the rounding margin: a lower bound
     on the length from flat cell ``v`` of the window to the goal, by the triangle inequality,

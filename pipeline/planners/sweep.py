@@ -62,7 +62,7 @@ WHOLE_MAP_SWEEPS = 4096
 INF = np.inf
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _f(a, i, j, sr, sc, gr, gc):
     return heuristic(a, i, j, sr, sc, True) + heuristic(a, i, j, gr, gc, True)
 
@@ -106,7 +106,7 @@ def region_rows(rows, cols, a, sr, sc, gr, gc, bound):
     return lo, hi
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _along(surface, ok, a, u, d, i, j0, j1):
     """The move (i, j0) -> (i, j1) along a row, inf where a cell is not passable: with the
     heights scaled by ``u[0]``, in the units of ``d`` (:func:`whole_units`; in :data:`METRES` the
@@ -139,7 +139,7 @@ def height_at(surface, i, j):
     return np.float64(surface[i, j])
 
 
-@overload(height_at, inline="always")
+@overload(height_at)
 def _height_typed(surface, i, j):
     if isinstance(surface, types.BaseTuple):
 
@@ -161,7 +161,7 @@ def cell_error(surface, i, j):
     return 0.0
 
 
-@overload(cell_error, inline="always")
+@overload(cell_error)
 def _cell_error_typed(surface, i, j):
     if isinstance(surface, types.BaseTuple):
         return lambda surface, i, j: np.float64(
@@ -175,7 +175,7 @@ def grid_shape(surface):
     return surface.codes.shape if isinstance(surface, Quantised) else surface.shape
 
 
-@overload(grid_shape, inline="always")
+@overload(grid_shape)
 def _grid_shape_typed(surface):
     if isinstance(surface, types.BaseTuple):
         return lambda surface: surface.codes.shape
@@ -192,7 +192,7 @@ def lowered(dz, loss, surface):
     return dz
 
 
-@overload(lowered, inline="always")
+@overload(lowered)
 def _lowered_typed(dz, loss, surface):
     if isinstance(surface, types.BaseTuple):
         return lambda dz, loss, surface: max(abs(dz) - loss, 0.0)
@@ -206,7 +206,7 @@ def whole_units(x, d):
     return np.floor(x) if np.issubdtype(d.dtype, np.integer) else x
 
 
-@overload(whole_units, inline="always")
+@overload(whole_units)
 def _whole_typed(x, d):
     if isinstance(d.dtype, types.Integer):
         return lambda x, d: np.floor(x)
@@ -223,7 +223,7 @@ def passable_at(ok, i, j):
     return bool(v) if ok.dtype == np.bool_ else v == v
 
 
-@overload(passable_at, inline="always")
+@overload(passable_at)
 def _passable_typed(ok, i, j):
     if isinstance(ok, types.BaseTuple):
         return lambda ok, i, j: ok.codes[i, j] != IMPASSABLE
@@ -238,7 +238,7 @@ def flat_mask(ok):
     return ok.codes.ravel() if isinstance(ok, Quantised) else ok.ravel()
 
 
-@overload(flat_mask, inline="always")
+@overload(flat_mask)
 def _flat_mask_typed(ok):
     if isinstance(ok, types.BaseTuple):
         return lambda ok: ok.codes.ravel()
@@ -253,7 +253,7 @@ def passable_flat(ok, i):
     return bool(v) if ok.dtype == np.bool_ else v == v
 
 
-@overload(passable_flat, inline="always")
+@overload(passable_flat)
 def _passable_flat_typed(ok, i):
     if isinstance(ok.dtype, types.Boolean):
         return lambda ok, i: ok[i]
@@ -262,7 +262,7 @@ def _passable_flat_typed(ok, i):
     return lambda ok, i: ok[i] == ok[i]
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _lowest_of_three(d, pbase, lp, hp, j):
     """The least distance of row ``p``'s columns ``j - 1 .. j + 1`` (inf outside its span)."""
     m = INF
@@ -274,14 +274,14 @@ def _lowest_of_three(d, pbase, lp, hp, j):
     return m
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _lowered(d, base, pbase, lp, hp, low, j):
     """Whether a pull from row ``p`` may lower column ``j``: a neighbour there within ``low``
     (a lower bound on every move) of its distance."""
     return _lowest_of_three(d, pbase, lp, hp, j) + low < d[base + j]
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _inner_lowest(d, pbase, j):
     """:func:`_lowest_of_three` where all three columns lie in row ``p``'s span, without a
     branch (so that the loops over them vectorise)."""
@@ -292,7 +292,7 @@ def _inner_lowest(d, pbase, j):
     return m if m < z else z
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
     """The first column of ``j0 .. j1`` whose distance a neighbour in row ``p`` comes within
     ``low`` of (``j1 + 1``: none). Most rows a sweep revisits have none: the columns whose three
@@ -318,14 +318,14 @@ def _first_lowered(d, base, pbase, lp, hp, low, j0, j1):
     return j1 + 1
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _held(d, i, u):
     """Distance ``d[i]`` as the scratch rows hold it: inf where not reached (``u[2]``)."""
     v = d[i]
     return INF if v == u[2] else np.float64(v)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _stored(x, u):
     """A scratch row's distance ``x`` as ``d`` stores it in the units ``u``: held at the cap
     (``u[1]``), not reached (inf) as ``u[2]``."""
@@ -377,12 +377,12 @@ def _load_heights(surface, ok, r, j0, n, z, pen, e, u):
     load(surface, ok, r, j0, n, z, pen, e, u)
 
 
-@overload(_load_heights, inline="always")
+@overload(_load_heights)
 def _load_heights_typed(surface, ok, r, j0, n, z, pen, e, u):
     return _quantised_heights if isinstance(surface, types.BaseTuple) else _float_heights
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _load(surface, ok, d, r, base, first, last, j0, n, z, pen, dist, e, u):
     """Columns ``j0 .. j0 + n - 1`` of row ``r`` into scratch rows: heights, penalties and
     errors (:func:`_load_heights`) and distances (inf outside the row's span ``first ..
@@ -443,7 +443,7 @@ def _relax_row(surface, ok, a, u, i, p, lo, hi, off, d, s):
         start = j
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
     """How many columns of ``j0 .. j1`` a pull from row ``p`` may lower (as
     :func:`_first_lowered` tests them; without a branch where all three neighbours lie in
@@ -460,7 +460,7 @@ def _count_lowered(d, base, pbase, lp, hp, low, j0, j1):
     return count
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _extend(surface, ok, a, u, i, d, base, j, end, step):
     """Carry row ``i``'s distances on from column ``j`` towards ``end`` (``step`` +1 or -1)
     while each move along the row lowers the next; returns the last column lowered (``j``:
@@ -754,7 +754,7 @@ FIXED_CAP = 2.0**31
 FIXED_UNREACHED = 2**32 - 1
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def fixed_units(a, bits):
     """The fixed point of whole units of ``a * 2^-bits``: a cell's length in units and the
     units ``(heights' scale, cap, not reached)`` the searches take (:data:`METRES` their float64

@@ -196,7 +196,7 @@ def _clearances(win, r0, c0, ny, nx, fi, fj, z, si, sj, radius, method, tol):
     return out
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _value(win, r0, c0, p, q):
     i = min(int(math.floor(p)), r0 + win.shape[0] - 2)
     j = min(int(math.floor(q)), c0 + win.shape[1] - 2)
@@ -209,7 +209,7 @@ def _value(win, r0, c0, p, q):
     ) * u
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _box_d2(p, q, a0, a1, b0, b1, si, sj):
     """Squared ground distance from the point (row ``p``, column ``q``) to the rectangle of
     rows ``a0..a1`` and columns ``b0..b1``."""
@@ -218,7 +218,7 @@ def _box_d2(p, q, a0, a1, b0, b1, si, sj):
     return du * du + dv * dv
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True)
 def _bil(z00, z01, z10, z11, u, v):
     return (z00 * (1 - v) + z01 * v) * (1 - u) + (z10 * (1 - v) + z11 * v) * u
 
