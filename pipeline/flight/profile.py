@@ -254,10 +254,13 @@ def required_heights_fine(
     missing2 = missing * missing
     flags = partial.size > 0
     span = missing / a
-    mi = -1  # the previous point's highest square, and its highest part there
-    mj = -1
-    mu = -1
-    mv = -1
+    # no square or part yet: typed int64, so that numba compiles _parts_max once (not also
+    # for the literal -1 while it types these variables)
+    none = np.int64(-1)
+    mi = none  # the previous point's highest square, and its highest part there
+    mj = none
+    mu = none
+    mv = none
     stack = np.empty((64, 4), dtype=np.int64)
     for s in range(n):
         p = pr[s]
@@ -315,8 +318,9 @@ def required_heights_fine(
                 if i == first_i and j == first_j:
                     continue  # measured first
                 v, u, w = _parts_max(
-                    z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack, -1, -1
-                )
+                    z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack,
+                    none, none,
+                )  # fmt: skip
                 if v > best:
                     best = v
                     mi = i
@@ -377,7 +381,7 @@ def _part_bound(z00, z01, z10, z11, i, j, p, q, a, inv, u0, u1, v0, v1, lim2, rr
     return zm + (math.sqrt(rr - e2) if spherical else 0.0)
 
 
-@njit(inline="always", cache=True)
+@njit(cache=True, nogil=True)
 def _parts_max(z00, z01, z10, z11, i, j, p, q, a, k, lim2, rr, spherical, best, stack, hu, hv):
     """The highest of ``best`` and the values over the ``k`` x ``k`` parts of square ``(i,
     j)`` (corners ``z``) less than ``sqrt(lim2)`` from ``(p, q)``: a part's highest bilinear
