@@ -51,7 +51,7 @@ def test_compiles_once_in_two_halves_on_two_workers(local_client, stamp, caplog)
 
 
 def test_a_failed_warm_up_is_not_fatal(stamp, monkeypatch, caplog):
-    def broken(client):
+    def broken(client, parts):
         raise OSError("no space left on device")
 
     monkeypatch.setattr(warmup, "_compile", broken)
@@ -276,3 +276,45 @@ def test_the_stamps_read_every_form_of_relative_import(tmp_path):
         "pkg/sub/c.py",
         "pkg/sub/d.py",
     }
+
+
+def _job(tmp_path, dem: str, maps: str = "") -> object:
+    from pipeline.jobs.job_file import load_job
+
+    (tmp_path / "j.toml").write_text(
+        f'name = "j"\n{dem}\n{maps}\n[[missions]]\nname = "m"\nstart = [1, 1]\ngoal = [5, 5]\n'
+    )
+    return load_job(tmp_path / "j.toml")
+
+
+def test_a_job_compiles_only_the_parts_it_uses(tmp_path):
+    syn = "[dem.synthetic]\nshape = [{0}, {0}]\ncell_size = 30.0"
+    small = warmup.job_parts(_job(tmp_path, syn.format(2000)))
+    # a synthetic DEM is not reprojected; 2000^2 cells are fewer than the bucketed A*'s
+    assert small == warmup.CORE | {"synthetic"}
+    big = warmup.job_parts(_job(tmp_path, syn.format(2048)))
+    assert big == warmup.CORE | {"synthetic", "bucketed"}
+    (tmp_path / "d.tif").write_bytes(b"")  # never read: only the job file's keys matter
+    other = warmup.job_parts(
+        _job(tmp_path, '[dem]\npath = "d.tif"', '[maps]\nmethod = "vertical"\nclearance = 50.0')
+    )
+    # a file may be reprojected and of any size; the store's method is not the vertical one
+    assert other == warmup.ALL - {"synthetic"}
+
+
+def test_a_later_job_compiles_only_what_the_stamp_lacks(stamp, caplog):
+    caplog.set_level(logging.DEBUG, logger="pipeline.jobs.warmup")
+    assert warmup.ensure_compiled(None, parts={"synthetic"}) > 0
+    assert warmup.is_compiled({"synthetic"}) and not warmup.is_compiled({"warp"})
+    assert "compiling kernels, first run only" in caplog.text
+    caplog.clear()
+    assert warmup.ensure_compiled(None, parts={"synthetic", "warp"}) > 0
+    assert "compiling the kernels of warp, first use only" in caplog.text
+    ran = [r.args[0] for r in caplog.records if r.getMessage().startswith("warm-up parts")]
+    assert [list(p) for p in ran[0]] == [["warp"]]  # the synthetic DEM's were not run again
+    assert warmup.is_compiled({"synthetic", "warp"}) and not warmup.is_compiled()
+    caplog.clear()
+    assert warmup.ensure_compiled(None, parts={"warp"}) == 0.0
+    assert "compiling" not in caplog.text
+    with pytest.raises(ValueError, match="unknown warm-up parts"):
+        warmup.ensure_compiled(None, parts={"dem"})

@@ -260,7 +260,7 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
     from distributed import performance_report
 
     from ..runtime.cluster import session
-    from .warmup import ensure_compiled
+    from .warmup import ensure_compiled, job_parts
 
     with session(*cluster) as client:
         res = JobResult(
@@ -268,9 +268,9 @@ def _run_locked(job, dem_store, maps_store, overwrite, *cluster) -> JobResult:
         )
         res.workers = len(client.scheduler_info().get("workers", {}))
         log.info("dask dashboard: %s (%d workers)", client.dashboard_link, res.workers)
-        # the first run after an install compiles the kernels on both workers at once, so that
-        # no stage (and no mission's recorded runtime) holds the compilation
-        ensure_compiled(client)
+        # the first run after an install compiles the kernels the job uses on both workers at
+        # once, so that no stage (and no mission's recorded runtime) holds the compilation
+        ensure_compiled(client, parts=job_parts(job))
         tmp_report = job.catalog / f".performance-report.tmp-{res.run_id}.html"
         # dask's report takes about a second to draw at the end of a run (the scheduler's
         # task stream, profiles and bandwidths, with bokeh's scripts inlined)

@@ -20,6 +20,10 @@ once, and no process waits idle for the store (the halves were the store and the
 against the safety kernels, the DEM and the flight, which waited a third of its time for the
 store). Each kernel is compiled with the argument types
 the pipeline uses, so later calls load it from the cache.
+
+A job compiles only the parts it uses (:func:`job_parts`: no reprojection for a synthetic DEM,
+no bucketed A* for a small one, no other clearance method's kernels); the stamp lists the parts
+compiled, and a later job that needs another compiles just that.
 """
 
 from __future__ import annotations
@@ -40,7 +44,17 @@ from ..store.paths import write_atomically
 log = logging.getLogger(__name__)
 
 # the parts of the warm-up, in the order one process runs them all
-PARTS = ("maps", "search", "bucketed", "planners", "dem", "flight")
+PARTS = (
+    "maps",
+    "landmarks",
+    "safety",
+    "search",
+    "bucketed",
+    "planners",
+    "synthetic",
+    "warp",
+    "flight",
+)
 # how the parts are shared between two processes: the second compiles the landmark layers'
 # fixed-point search first, before the first's maps store needs it (the first starts with the
 # bucketed A* of large windows, which needs no store); the safety kernels, which the store
@@ -48,7 +62,15 @@ PARTS = ("maps", "search", "bucketed", "planners", "dem", "flight")
 # first's planners. Measured in a fresh cache, the halves in seconds: 24.7-25.8 and 27.1-27.9;
 # 30.4 and 29.7 with the maps first and the safety kernels before the landmarks (both halves
 # then compiled the fixed-point search at once), 22.1 and 21.3 before it existed
-HALVES = (("bucketed", "maps", "flight"), ("landmarks", "safety", "search", "dem", "planners"))
+HALVES = (
+    ("bucketed", "maps", "flight"),
+    ("landmarks", "safety", "search", "synthetic", "warp", "planners"),
+)
+# every part (what a warm-up without a job compiles, and the tests' warm-up)
+ALL = frozenset(PARTS)
+# what every job needs: compiled together (the planners and the flight use the tiny store the
+# maps part builds)
+CORE = frozenset({"maps", "landmarks", "search", "planners", "flight"})
 # how long a part waits for the tiny maps store another process builds, before building its own
 STORE_WAIT_S = 300.0
 # the package whose sources the kernels are compiled from
@@ -86,27 +108,59 @@ def _cpu_name() -> str:
         return ""
 
 
-def is_compiled() -> bool:
-    """Whether the kernels were compiled for this installation and these sources."""
+def _compiled_parts() -> frozenset:
+    """The parts the stamp says were compiled for this installation and these sources (none
+    when it is missing or for other sources)."""
     try:
-        return json.loads(_stamp_path().read_text()).get("fingerprint") == _fingerprint()
+        stamp = json.loads(_stamp_path().read_text())
     except (OSError, ValueError):
-        return False
+        return frozenset()
+    if not isinstance(stamp, dict) or stamp.get("fingerprint") != _fingerprint():
+        return frozenset()
+    return frozenset(stamp.get("parts", ALL)) & ALL
 
 
-def mark_compiled(seconds: float = 0.0) -> None:
-    """Stamp the kernels compiled for this installation and these sources (what
-    :func:`ensure_compiled` does once it has compiled them), for a caller that ran every part
-    of the warm-up itself (:func:`compile_parts`, say each of :data:`HALVES` in a process of
-    its own): later runs then skip it."""
+def is_compiled(parts=None) -> bool:
+    """Whether the kernels of ``parts`` (names of :data:`ALL`; every part by default) were
+    compiled for this installation and these sources."""
+    return frozenset(ALL if parts is None else parts) <= _compiled_parts()
+
+
+def mark_compiled(seconds: float = 0.0, parts=None) -> None:
+    """Stamp the kernels of ``parts`` (every part by default) compiled for this installation
+    and these sources (what :func:`ensure_compiled` does once it has compiled them), for a
+    caller that ran those parts of the warm-up itself (:func:`compile_parts`, say each of
+    :data:`HALVES` in a process of its own): later runs then skip them."""
     path = _stamp_path()
+    done = sorted(_compiled_parts() | frozenset(ALL if parts is None else parts))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        write_atomically(
-            path, json.dumps({"fingerprint": _fingerprint(), "seconds": round(seconds, 1)})
-        )
+        stamp = {"fingerprint": _fingerprint(), "parts": done, "seconds": round(seconds, 1)}
+        write_atomically(path, json.dumps(stamp))
     except OSError:  # a read-only installation: the warm-up runs again next time, harmlessly
         pass
+
+
+def job_parts(job) -> frozenset:
+    """The parts of the warm-up a job (:class:`~pipeline.jobs.job_file.Job`) needs: every part
+    but the synthetic DEM's kernels for a DEM file, the reprojection's for a synthetic DEM (a
+    file may be reprojected), the A* of windows of :data:`~pipeline.planners.search.BUCKET_CELLS`
+    cells for a synthetic DEM smaller than that (a file's size is not known before it is read),
+    and the safety kernels of the other methods for the spherical one (the maps part's store
+    is spherical)."""
+    from ..planners.search import BUCKET_CELLS
+
+    parts = set(ALL)
+    if job.dem_path is not None:
+        parts.discard("synthetic")
+    else:
+        parts.discard("warp")
+        shape = (job.synthetic or {}).get("shape")
+        if shape is not None and int(shape[0]) * int(shape[1]) < BUCKET_CELLS:
+            parts.discard("bucketed")
+    if (job.maps or {}).get("method", "spherical") == "spherical":
+        parts.discard("safety")
+    return frozenset(parts)
 
 
 def _tiny_dem():
@@ -147,7 +201,6 @@ def _store(tmp: Path, build: bool) -> Path:
         write_dem(_tiny_dem(), tmp / "dem.zarr", chunks=24, overwrite=True)
         dem = open_dem(tmp / "dem.zarr", chunks=24)
         build_maps(dem, store, clearance=60.0, min_accumulation=4, landmarks=2, overwrite=True)
-        _safety(dem)
         ready.touch()
         return store
     t0 = time.monotonic()
@@ -172,8 +225,9 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
     with dask.config.set(scheduler="synchronous"):
         for part in parts:
             t0 = time.perf_counter()
-            if part == "dem":
+            if part == "synthetic":
                 pipeline.synthetic_dem((64, 64), chunks=32).compute()
+            elif part == "warp":
                 _warp()
             elif part == "safety":
                 from ..dem.dem_store import write_dem
@@ -203,7 +257,7 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                     min_clearance(store, t, 60.0)  # a job's independent check of each mission
                     crc16(b"IMC")  # a mission's IMC plan, written by a job's client
             else:
-                known = sorted({*PARTS, *HALVES[0], *HALVES[1]})
+                known = sorted(ALL)
                 raise ValueError(f"unknown warm-up part {part!r}; known: {known}")
             took[part] = round(time.perf_counter() - t0, 1)
     return took
@@ -314,17 +368,29 @@ def _plan_each(store: Path, planners=None):
     return last
 
 
-def ensure_compiled(client=None, *, force: bool = False) -> float:
-    """Compile every kernel the pipeline uses, unless a stamp says they were compiled for this
-    installation: in two halves on two workers of ``client`` (a ``distributed.Client``), or in
-    this process when there is none or a single worker. Logs what it does; returns the seconds
-    spent (0 when skipped)."""
-    if not force and is_compiled():
+def ensure_compiled(client=None, *, force: bool = False, parts=None) -> float:
+    """Compile the kernels of ``parts`` (names of :data:`ALL`; every part by default, a job's
+    :func:`job_parts`), unless the stamp says they were compiled for this installation and
+    these sources: in two halves on two workers of ``client`` (a ``distributed.Client``), or
+    in this process when there is none or a single worker. Logs what it does; returns the
+    seconds spent (0 when skipped)."""
+    asked = frozenset(ALL if parts is None else parts)
+    unknown = asked - ALL
+    if unknown:
+        raise ValueError(f"unknown warm-up parts {sorted(unknown)}; known: {sorted(ALL)}")
+    have = frozenset() if force else _compiled_parts()
+    missing = asked - have
+    if not missing:
         return 0.0
-    log.info("compiling kernels, first run only (about a minute on 2 cores) ...")
+    if missing & CORE:
+        missing |= CORE & asked  # the planners and the flight need the maps part's store
+    if have:
+        log.info("compiling the kernels of %s, first use only ...", ", ".join(sorted(missing)))
+    else:
+        log.info("compiling kernels, first run only (about a minute on 2 cores) ...")
     t0 = time.perf_counter()
     try:
-        _compile(client)
+        _compile(client, missing)
     except Exception as exc:  # noqa: BLE001 - the kernels then compile as they are first used
         log.warning(
             "compiling the kernels up front failed (%s: %s); they compile as they are "
@@ -334,15 +400,27 @@ def ensure_compiled(client=None, *, force: bool = False) -> float:
         )
         return time.perf_counter() - t0
     seconds = time.perf_counter() - t0
-    mark_compiled(seconds)
+    mark_compiled(seconds, missing)
     log.info("kernels compiled in %.1f s (cached for the next runs)", seconds)
     return seconds
 
 
-def _compile(client) -> None:
+def _halves(parts) -> list:
+    """:data:`HALVES` with only ``parts``; without the bucketed A*, the first process starts
+    with the synthetic DEM instead (the store's build would otherwise reach the landmark
+    layers' search while the other process still compiles it, and compile it too)."""
+    first, second = HALVES
+    if "bucketed" not in parts and "synthetic" in parts:
+        first, second = ("synthetic", *first), tuple(p for p in second if p != "synthetic")
+    return [h for h in (tuple(p for p in half if p in parts) for half in (first, second)) if h]
+
+
+def _compile(client, parts=ALL) -> None:
+    halves = _halves(parts)
+    order = tuple(p for p in PARTS if p in parts)  # one process: the store before its users
     with tempfile.TemporaryDirectory(prefix="auv-warmup-") as tmp:
         workers = sorted(client.scheduler_info()["workers"]) if client is not None else []
-        if len(workers) >= 2:
+        if len(workers) >= 2 and len(halves) == 2:
             futures = [
                 client.submit(
                     compile_parts,
@@ -353,13 +431,13 @@ def _compile(client) -> None:
                     pure=False,
                     key=f"compile-kernels-{k}-{os.getpid()}",
                 )
-                for k, (w, half) in enumerate(zip(workers, HALVES, strict=False))
+                for k, (w, half) in enumerate(zip(workers, halves, strict=False))
             ]
             took = client.gather(futures)
         elif workers:
-            took = [client.submit(compile_parts, tmp, PARTS, workers=workers, pure=False).result()]
+            took = [client.submit(compile_parts, tmp, order, workers=workers, pure=False).result()]
         else:
-            took = [compile_parts(tmp, PARTS)]
+            took = [compile_parts(tmp, order)]
     log.debug("warm-up parts (seconds, per process): %s", took)
 
 
