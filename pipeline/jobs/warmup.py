@@ -330,9 +330,13 @@ def _search_bucketed() -> None:
 
 
 def _widen(store: Path, t) -> None:
-    """The kernels of corners too close for the turn radius (``widen_turns``), which the tiny
-    mission's flight may not meet: its grid path's corners with a radius of 10 cells."""
+    """The flight's kernels the tiny mission's flight does not meet: those of corners too close
+    for the turn radius (``widen_turns``; its grid path's corners with a radius of 10 cells),
+    and the required heights over whole grid squares (a clearance of at least
+    ``FINE_BELOW`` cells: the tiny store's is 2)."""
     from ..flight.geometry import Corridor, widen_turns
+    from ..flight.profile import FINE_BELOW, _required_threaded
+    from ..methods import METHODS
     from ..store.maps_store import open_store
 
     m = open_store(store)
@@ -340,6 +344,10 @@ def _widen(store: Path, t) -> None:
     cor = Corridor(m, cells, 3)
     usable = (cor.pas, cor.slot, cor.tr, cor.tc, *m.shape, 3)
     widen_turns(cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64), 10.0, usable)
+    clearance = FINE_BELOW * 30.0
+    terrain = (30.0, clearance, METHODS["spherical"].code, clearance, 0.0, 1)
+    pr, pc = cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64)
+    _required_threaded(cor.grid(), terrain, pr, pc)
 
 
 def _plan_each(store: Path, planners=None):
