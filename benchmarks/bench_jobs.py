@@ -183,12 +183,15 @@ def compiled_after_warm_up(package: Path) -> list:
     return sorted(p.name.split("-")[0] for p in package.rglob("*.nbi") if p.stat().st_mtime > after)
 
 
-def cold_start() -> dict:
-    """``./dev demo`` in a fresh clone of HEAD: total wall time, install, kernel compilation,
-    the job, and the missions' recorded runtimes (from the log's timestamps)."""
+def cold_start(rev: str | None = None) -> dict:
+    """``./dev demo`` in a fresh clone of HEAD (or of the commit ``rev``): total wall time,
+    install, kernel compilation, the job, and the missions' recorded runtimes (from the log's
+    timestamps)."""
     with tempfile.TemporaryDirectory(prefix="cold-start-") as tmp:
         clone = Path(tmp) / "clone"
         subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
+        if rev is not None:
+            subprocess.run(["git", "checkout", "-q", rev], cwd=clone, check=True)
         commit = subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=clone, capture_output=True, text=True
         ).stdout.strip()
