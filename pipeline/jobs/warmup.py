@@ -335,7 +335,7 @@ def _widen(store: Path, t) -> None:
     and the required heights over whole grid squares (a clearance of at least
     ``FINE_BELOW`` cells: the tiny store's is 2)."""
     from ..flight.geometry import Corridor, widen_turns
-    from ..flight.profile import FINE_BELOW, _required_threaded
+    from ..flight.profile import FINE_BELOW, required_heights
     from ..methods import METHODS
     from ..store.maps_store import open_store
 
@@ -345,9 +345,10 @@ def _widen(store: Path, t) -> None:
     usable = (cor.pas, cor.slot, cor.tr, cor.tc, *m.shape, 3)
     widen_turns(cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64), 10.0, usable)
     clearance = FINE_BELOW * 30.0
-    terrain = (30.0, clearance, METHODS["spherical"].code, clearance, 0.0, 1)
     pr, pc = cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64)
-    _required_threaded(cor.grid(), terrain, pr, pc)
+    partial = np.zeros(len(pr), dtype=np.uint8)
+    code = METHODS["spherical"].code
+    required_heights(*cor.grid(), pr, pc, 30.0, clearance, code, clearance, 42.4, partial)
 
 
 def _plan_each(store: Path, planners=None):
