@@ -772,13 +772,13 @@ def _wakeups(dask_worker=None, dask_scheduler=None) -> int:
 
 def _idle_wakeups(client) -> float:
     """How many times a second a worker's event loop wakes, idle (the mean of the workers
-    over two seconds)."""
+    over a second)."""
     import time
 
     time.sleep(0.5)  # what an earlier test left the workers to do
     client.run(_count_wakeups)
     t0 = time.perf_counter()
-    time.sleep(2.0)
+    time.sleep(1.0)
     got = client.run(_wakeups)
     return sum(got.values()) / len(got) / (time.perf_counter() - t0)
 
