@@ -290,6 +290,64 @@ def test_the_clearance_from_a_file_against_brute_force(tmp_path, geographic, met
             assert brute - step * 1.5 * slope <= got[k] <= brute + 1e-3
 
 
+@pytest.mark.parametrize("method", ["spherical", "horizontal"])
+def test_the_least_clearance_from_a_file_is_that_of_every_point_measured(tmp_path, method):
+    """``least_only`` (what a mission's check against the DEM file asks): the least clearance
+    of 3000 points along a wavy line over a rough lon/lat grid with no-data holes, and which
+    point has it, are those of every point measured in full (itself checked against brute force
+    above); the points over no-data are NaN either way; the others read their own clearance or
+    ``inf`` (not below the least before them), never less; in groups whose windows the
+    points' whole window holds, and read group by group when it is too large."""
+    from pipeline.verify import seabed as sbm
+    from pipeline.verify.seabed import SourceSeabed
+
+    rng = np.random.default_rng(5)
+    n = 120
+    z = rng.normal(-1000.0, 40.0, (n, n))
+    z[98:103, 57:63] = np.nan  # no-data the line crosses (half way along it)
+    path, x, y = _tif(tmp_path / "g.tif", z, 0.0005, -120.0, 45.0, "EPSG:4326")
+    sb = SourceSeabed.open(path)
+    map_crs = CRS.from_proj4("+proj=aeqd +lat_0=44.97 +lon_0=-119.97 +datum=WGS84 +units=m")
+    to_map = Transformer.from_crs("EPSG:4326", map_crs, always_xy=True)
+    t = np.linspace(0.05, 0.95, 3000)
+    lon = x[0] + (x[-1] - x[0]) * t
+    lat = y[-1] + (y[0] - y[-1]) * (0.5 + 0.35 * np.sin(9 * t))
+    px, py = to_map.transform(lon, lat)
+    f = RegularGridInterpolator((y[::-1], x), np.nan_to_num(z, nan=-1000.0)[::-1])
+    pz = f(np.column_stack([lat, lon])) + rng.uniform(30.0, 200.0, t.size)
+    R = 60.0
+    full = sb.clearances(px, py, pz, map_crs.to_wkt(), R, method)
+    for cells in (sbm.WINDOW_CELLS, 100):  # one window for all, and a window a group
+        sbm.WINDOW_CELLS, kept = cells, sbm.WINDOW_CELLS
+        try:
+            least = sb.clearances(px, py, pz, map_crs.to_wkt(), R, method, least_only=True)
+        finally:
+            sbm.WINDOW_CELLS = kept
+        assert np.isnan(full).any() and np.array_equal(np.isnan(least), np.isnan(full))
+        k = int(np.nanargmin(full))
+        assert int(np.nanargmin(least)) == k and abs(least[k] - full[k]) <= 1e-3
+        measured = np.isfinite(least)
+        assert np.all(np.abs(least[measured] - full[measured]) <= 1e-3)
+        assert 0 < measured.sum() < 0.5 * np.isfinite(full).sum()  # most points unmeasured
+    if method == "spherical":  # and the least against scipy's KD-tree over the surface
+        from scipy.spatial import cKDTree
+
+        k4 = 4 * (n - 1) + 1  # the surface every quarter cell, in the map's metres
+        fy, fx = np.linspace(y[-1], y[0], k4), np.linspace(x[0], x[-1], k4)
+        gx, gy = np.meshgrid(fx, fy)
+        gz = RegularGridInterpolator((y[::-1], x), z[::-1])(
+            np.column_stack([gy.ravel(), gx.ravel()])
+        )
+        mx, my = to_map.transform(gx.ravel(), gy.ravel())
+        keep = np.isfinite(gz)
+        tree = cKDTree(np.column_stack([mx[keep], my[keep], gz[keep]]))
+        ok = np.isfinite(least)
+        brute = tree.query(np.column_stack([px[ok], py[ok], pz[ok]]))[0].min()
+        step = 55.6 / 4 * math.sqrt(2)  # a quarter cell's diagonal, in metres (at most)
+        slope = np.nanmax(np.abs(np.diff(z, axis=1))) / 39.0
+        assert brute - step * (1 + slope) <= np.nanmin(least) <= brute + 1e-3
+
+
 def _verify_checks_the_rating_and_the_zones_it_is_given(walls_job, tmp_path):
     """pipeline verify with a rated depth shallower than the track's deepest point (numpy, from
     the track file) and a zone across the track (shapely's distance): both checks fail and

@@ -142,12 +142,12 @@ def mark_compiled(seconds: float = 0.0, parts=None) -> None:
 
 
 def job_parts(job) -> frozenset:
-    """The parts of the warm-up a job (:class:`~pipeline.jobs.job_file.Job`) needs: every part
-    but the synthetic DEM's kernels for a DEM file, the reprojection's for a synthetic DEM (a
-    file may be reprojected), the A* of windows of :data:`~pipeline.planners.search.BUCKET_CELLS`
-    cells for a synthetic DEM smaller than that (a file's size is not known before it is read),
-    and the safety kernels of the other methods for the spherical one (the maps part's store
-    is spherical)."""
+    """The parts of the warm-up a job (:class:`~pipeline.jobs.job_file.Job`) needs: every part but
+    the synthetic DEM's kernels for a DEM file, the reprojection's and the check against the
+    file's own seabed for a synthetic DEM (a file may be reprojected), the A* of windows of
+    :data:`~pipeline.planners.search.BUCKET_CELLS` cells for a synthetic DEM smaller than
+    that (a file's size is not known before it is read), and the safety kernels of the other
+    methods for the spherical one (the maps part's store is spherical)."""
     from ..planners.search import BUCKET_CELLS
 
     parts = set(ALL)
@@ -229,6 +229,7 @@ def compile_parts(workdir: str | os.PathLike, parts=PARTS) -> dict:
                 pipeline.synthetic_dem((64, 64), chunks=32).compute()
             elif part == "warp":
                 _warp()
+                _source_check()
             elif part == "safety":
                 from ..dem.dem_store import write_dem
                 from ..dem.open import open_dem
@@ -448,6 +449,19 @@ def _compile(client, parts=ALL) -> None:
         else:
             took = [compile_parts(tmp, order)]
     log.debug("warm-up parts (seconds, per process): %s", took)
+
+
+def _source_check() -> None:
+    """The kernel of a mission's check against its DEM file's own seabed (a job's client runs
+    it for a DEM read from a file), by every method, on the tiny DEM in memory."""
+    from ..verify.seabed import SourceSeabed
+
+    dem = _tiny_dem()
+    seabed = SourceSeabed(Path("warm-up"), dem, None)
+    x = np.linspace(100.0, 1300.0, 40)
+    y, z = np.full(40, 700.0), np.full(40, -2000.0)
+    for method in ("spherical", "horizontal", "vertical"):
+        seabed.clearances(x, y, z, None, 60.0, method, least_only=True)
 
 
 def _warp() -> None:

@@ -183,7 +183,7 @@ def _verify_one(item, seabed, clearance, method, horizontal, max_depth, zones, m
     unknown = 0
     for label, pts in lines.items():
         x, y, z, s = _walk(pts, step)
-        c = seabed.clearances(x, y, z, crs_wkt, reach, how)
+        c = seabed.clearances(x, y, z, crs_wkt, reach, how, least_only=True)
         unknown += int(np.isnan(c).sum())
         if np.isfinite(c).any():
             k = int(np.nanargmin(c))
@@ -317,7 +317,7 @@ def source_clearance(seabed: SourceSeabed, flight, maps) -> float:
     least = math.inf
     for pts in (np.column_stack([flight.x, flight.y, flight.z]), flight.route):
         x, y, z, _ = _walk(np.asarray(pts, dtype=np.float64), step)
-        c = seabed.clearances(x, y, z, maps.crs_wkt, par.reach_m, par.method)
+        c = seabed.clearances(x, y, z, maps.crs_wkt, par.reach_m, par.method, least_only=True)
         if np.isnan(c).any():
             return math.nan
         least = min(least, float(c.min()))

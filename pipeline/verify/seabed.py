@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,14 @@ TOLERANCE_M = 1e-3
 # points measured together: one window of the file read and one local scale for them
 GROUP = 256
 
+# the points' whole window of the file is read at once up to this many cells (else a window a
+# group); a grid read lazily costs tens of milliseconds a read
+WINDOW_CELLS = 2**22
+
+# with ``least_only``, the points of least vertical clearance measured first: their least
+# clearance bounds the rest's search from the start
+SEEDS = 16
+
 
 @dataclass
 class SourceSeabed:
@@ -41,6 +49,9 @@ class SourceSeabed:
     path: Path
     values: object
     crs: object
+    # the last whole window read (:meth:`_window`): a mission's track and route, and the
+    # checks of its rounds, lie in the same window of the file
+    _last: object = field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def open(cls, path, *, variable=None, uncertainty_k=None, uncertainty=None) -> SourceSeabed:
@@ -53,37 +64,120 @@ class SourceSeabed:
         return cls(path, values, crs)
 
     def clearances(
-        self, x, y, z, crs_wkt: str | None, radius: float, method: str = "spherical"
+        self,
+        x,
+        y,
+        z,
+        crs_wkt: str | None,
+        radius: float,
+        method: str = "spherical",
+        *,
+        least_only: bool = False,
     ) -> np.ndarray:
         """The clearance (metres) of each point ``x, y`` (the map CRS ``crs_wkt``), height
         ``z`` (metres, positive up) from this seabed: ``spherical``, the least 3-D distance
         to it (``inf`` beyond ``1.25 radius``, searched no farther); ``horizontal``, the
         height above its highest point within ``radius`` horizontally; ``vertical``, the
         height above it. Negative under the seabed; NaN where the point is off the grid or
-        over no-data (nothing known to measure)."""
+        over no-data (nothing known to measure). ``least_only``: a point whose clearance is not
+        below the least found before it (less the tolerance) reads ``inf``, unmeasured: the
+        least, and where it is, stay those of every point measured (the points of least
+        vertical clearance measured first, the rest's search bounded by theirs)."""
         x, y, z = (np.asarray(v, dtype=np.float64).ravel() for v in (x, y, z))
         code = METHODS[method].code
         fi, fj = self._index(x, y, crs_wkt)
-        out = np.full(x.size, np.nan)
-        ny, nx = self.values.shape
-        for g in range(0, x.size, GROUP):
+        reach = (1.25 * radius if code == 2 else radius) if code else 0.0
+        si, sj = self._scales(fi, fj)
+        window = self._window(fi, fj, reach, si, sj)
+        pts = (fi, fj, z, si, sj)
+        if not least_only or code == 0 or x.size <= SEEDS:
+            return self._measure(pts, window, reach, radius, code, math.inf)
+        under = self._measure(pts, window, 0.0, radius, 0, math.inf)
+        seeds = np.argsort(np.where(np.isnan(under), np.inf, under), kind="stable")[:SEEDS]
+        seeds = np.sort(seeds)
+        # (one at a time without a window for all: far apart, their window may be large)
+        picks = [seeds] if window is not None else [seeds[k : k + 1] for k in range(seeds.size)]
+        first = np.concatenate(
+            [self._measure(tuple(v[k] for v in pts), window, reach, radius, code, math.inf)
+             for k in picks]
+        )  # fmt: skip
+        known = first[np.isfinite(first)]
+        below = float(known.min()) if known.size else math.inf
+        out = self._measure(pts, window, reach, radius, code, below)
+        out[seeds] = first
+        return out
+
+    def _scales(self, fi, fj) -> tuple:
+        """Ground metres per source row and per column at each point: those of its group of
+        :data:`GROUP` points (:meth:`_scale` around their middle; NaN off the grid)."""
+        si, sj = np.full(fi.size, np.nan), np.full(fi.size, np.nan)
+        for g in range(0, fi.size, GROUP):
             sl = slice(g, g + GROUP)
-            gi, gj = fi[sl], fj[sl]
-            ok = np.isfinite(gi) & np.isfinite(gj)
-            if not ok.any():
-                continue
-            si, sj = self._scale(gi[ok], gj[ok])
-            reach = (1.25 * radius if code == 2 else radius) if code else 0.0
-            r0 = max(int(math.floor(np.nanmin(gi) - reach / si)) - 1, 0)
-            r1 = min(int(math.ceil(np.nanmax(gi) + reach / si)) + 2, ny)
-            c0 = max(int(math.floor(np.nanmin(gj) - reach / sj)) - 1, 0)
-            c1 = min(int(math.ceil(np.nanmax(gj) + reach / sj)) + 2, nx)
-            if r1 - r0 < 2 or c1 - c0 < 2:
-                continue
+            ok = np.isfinite(fi[sl]) & np.isfinite(fj[sl])
+            if ok.any():
+                si[sl], sj[sl] = self._scale(fi[sl][ok], fj[sl][ok])
+        return si, sj
+
+    def _window(self, fi, fj, reach: float, si, sj):
+        """The points' whole window of the file, read once (or the last one read, where it
+        holds it), when it is at most :data:`WINDOW_CELLS` cells: ``(array, r0, c0)``; else
+        None (a window a group)."""
+        bounds = self._bounds(fi, fj, reach, si, sj)
+        if bounds is None:
+            return None
+        r0, r1, c0, c1 = bounds
+        if (r1 - r0) * (c1 - c0) > WINDOW_CELLS:
+            return None
+        if _within(self._last, r0, r1, c0, c1) is None:
             win = np.ascontiguousarray(self.values[r0:r1, c0:c1].values, dtype=np.float64)
+            self._last = (win, r0, c0)
+        return self._last
+
+    def _bounds(self, fi, fj, reach: float, si, sj):
+        """The rows ``r0:r1`` and columns ``c0:c1`` of the file within ``reach`` (metres) of
+        the points at fractional rows ``fi`` and columns ``fj`` (``si``, ``sj`` metres per row
+        and column at each), and a cell more; None where no point is on the grid or fewer than
+        two rows or columns."""
+        ok = np.isfinite(fi) & np.isfinite(fj)
+        if not ok.any():
+            return None
+        fi, fj, di, dj = fi[ok], fj[ok], reach / si[ok], reach / sj[ok]
+        ny, nx = self.values.shape
+        r0 = max(int(math.floor(np.min(fi - di))) - 1, 0)
+        r1 = min(int(math.ceil(np.max(fi + di))) + 2, ny)
+        c0 = max(int(math.floor(np.min(fj - dj))) - 1, 0)
+        c1 = min(int(math.ceil(np.max(fj + dj))) + 2, nx)
+        if r1 - r0 < 2 or c1 - c0 < 2:
+            return None
+        return r0, r1, c0, c1
+
+    def _measure(self, pts, window, reach, radius, code, below) -> np.ndarray:
+        """:meth:`clearances` of the points ``pts`` (fractional rows and columns of the file,
+        heights, metres per row and column at each), :data:`GROUP` at a time, each searched for
+        less than ``below`` and than the least before it (``inf`` where none is found) but
+        where ``below`` is ``inf``."""
+        fi, fj, z, si, sj = pts
+        out = np.full(fi.size, np.nan)
+        ny, nx = self.values.shape
+        bounded = math.isfinite(below)
+        for g in range(0, fi.size, GROUP):
+            sl = slice(g, g + GROUP)
+            bounds = self._bounds(fi[sl], fj[sl], reach, si[sl], sj[sl])
+            if bounds is None:
+                continue
+            r0, r1, c0, c1 = bounds
+            part = _within(window, r0, r1, c0, c1)
+            if part is None:
+                part = self.values[r0:r1, c0:c1].values
+            part = np.ascontiguousarray(part, dtype=np.float64)
             out[sl] = _clearances(
-                win, r0, c0, ny, nx, gi, gj, z[sl], si, sj, radius, code, TOLERANCE_M
-            )
+                part, r0, c0, ny, nx, fi[sl], fj[sl], z[sl], si[sl], sj[sl], radius, code,
+                TOLERANCE_M, below,
+            )  # fmt: skip
+            if bounded:
+                got = out[sl][np.isfinite(out[sl])]
+                if got.size:
+                    below = min(below, float(got.min()))
         return out
 
     @functools.cached_property
@@ -144,19 +238,36 @@ class SourceSeabed:
         return float(d_row), float(d_col)
 
 
+def _within(window, r0: int, r1: int, c0: int, c1: int):
+    """Rows ``r0:r1`` and columns ``c0:c1`` of the file from ``window`` (``(array, first row,
+    first column)`` or None), or None where it does not hold them all (a group's own scale may
+    reach farther than the window's, measured at the points' middle)."""
+    if window is None:
+        return None
+    win, w0, v0 = window
+    if r0 < w0 or c0 < v0 or r1 > w0 + win.shape[0] or c1 > v0 + win.shape[1]:
+        return None
+    return win[r0 - w0 : r1 - w0, c0 - v0 : c1 - v0]
+
+
 @njit(cache=True, nogil=True)
-def _clearances(win, r0, c0, ny, nx, fi, fj, z, si, sj, radius, method, tol):
+def _clearances(win, r0, c0, ny, nx, fi, fj, z, ssi, ssj, radius, method, tol, below):
     """:meth:`SourceSeabed.clearances` for one group: ``win`` the file's window from row
-    ``r0``, column ``c0``; ``si``, ``sj`` metres per row and column."""
+    ``r0``, column ``c0``; ``ssi``, ``ssj`` metres per row and column at each point (NaN off
+    the grid). A point whose clearance is not below ``below`` and the least before it in the
+    group reads ``inf`` (``below`` inf: every point measured)."""
     n = fi.size
     out = np.full(n, np.nan)
     h, w = win.shape
     stack = np.empty((256, 4))
+    bounded = below < np.inf
     for s in range(n):
         p = fi[s]
         q = fj[s]
         if p != p or q != q:
             continue
+        si = ssi[s]
+        sj = ssj[s]
         p = min(max(p, 0.0), ny - 1.0)  # (the outer half cells hold their edge values)
         q = min(max(q, 0.0), nx - 1.0)
         under = _value(win, r0, c0, p, q)
@@ -166,9 +277,13 @@ def _clearances(win, r0, c0, ny, nx, fi, fj, z, si, sj, radius, method, tol):
         if method == 2:
             far = 1.25 * radius
             best = min(z[s] - under, far)  # (the seabed under the point is at that distance)
+            if bounded:
+                best = min(best, below)
         else:
             far = radius
             best = under  # the highest seabed within reach, at least that under the point
+            if bounded:
+                best = max(best, z[s] - below)
         i0 = max(int(math.floor(p - far / si)), r0, 0)
         i1 = min(int(math.floor(p + far / si)), r0 + h - 2, ny - 2)
         j0 = max(int(math.floor(q - far / sj)), c0, 0)
@@ -189,10 +304,14 @@ def _clearances(win, r0, c0, ny, nx, fi, fj, z, si, sj, radius, method, tol):
                 )
         if bad:
             out[s] = np.nan
-        elif method == 2:
-            out[s] = best
         else:
-            out[s] = z[s] - best
+            c = best if method == 2 else z[s] - best
+            if bounded:
+                if c >= below:
+                    c = np.inf  # nothing below the least so far: unmeasured
+                else:
+                    below = c
+            out[s] = c
     return out
 
 
