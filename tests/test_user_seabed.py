@@ -329,6 +329,19 @@ def test_the_least_clearance_from_a_file_is_that_of_every_point_measured(tmp_pat
         measured = np.isfinite(least)
         assert np.all(np.abs(least[measured] - full[measured]) <= 1e-3)
         assert 0 < measured.sum() < 0.5 * np.isfinite(full).sum()  # most points unmeasured
+    # the points lowest over the seabed under them are those next to the no-data (their own
+    # clearance unknown): the bound they give is under every other point's, which are then
+    # measured in full
+    vertical = sb.clearances(px, py, pz, map_crs.to_wkt(), R, "vertical")
+    near = np.isnan(full) & np.isfinite(vertical)
+    assert near.any()
+    low = pz + 400.0  # every other point well clear
+    low[near] = pz[near] - vertical[near] + 0.5
+    full2 = sb.clearances(px, py, low, map_crs.to_wkt(), R, method)
+    least2 = sb.clearances(px, py, low, map_crs.to_wkt(), R, method, least_only=True)
+    assert np.array_equal(np.isnan(least2), np.isnan(full2)) and np.nanmin(full2) > 1.5
+    k = int(np.nanargmin(full2))
+    assert int(np.nanargmin(least2)) == k and abs(least2[k] - full2[k]) <= 1e-3
     if method == "spherical":  # and the least against scipy's KD-tree over the surface
         from scipy.spatial import cKDTree
 

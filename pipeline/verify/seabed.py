@@ -34,9 +34,10 @@ GROUP = 256
 # group); a grid read lazily costs tens of milliseconds a read
 WINDOW_CELLS = 2**22
 
-# with ``least_only``, the points of least vertical clearance measured first: their least
-# clearance bounds the rest's search from the start
-SEEDS = 16
+# with ``least_only``, the search of every point is bounded from the start by the least height
+# of a point above the seabed under it plus this margin (metres; above the tolerance, so that
+# the point whose clearance is that height is measured)
+MARGIN_M = 1.0
 
 
 @dataclass
@@ -49,9 +50,10 @@ class SourceSeabed:
     path: Path
     values: object
     crs: object
-    # the last whole window read (:meth:`_window`): a mission's track and route, and the
-    # checks of its rounds, lie in the same window of the file
+    # the last whole window read (:meth:`_window`; all of a file of at most WINDOW_CELLS): a
+    # mission's track and route, and the checks of its rounds, lie in the same window of it
     _last: object = field(default=None, init=False, repr=False, compare=False)
+    _from_map: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def open(cls, path, *, variable=None, uncertainty_k=None, uncertainty=None) -> SourceSeabed:
@@ -80,9 +82,9 @@ class SourceSeabed:
         height above its highest point within ``radius`` horizontally; ``vertical``, the
         height above it. Negative under the seabed; NaN where the point is off the grid or
         over no-data (nothing known to measure). ``least_only``: a point whose clearance is not
-        below the least found before it (less the tolerance) reads ``inf``, unmeasured: the
-        least, and where it is, stay those of every point measured (the points of least
-        vertical clearance measured first, the rest's search bounded by theirs)."""
+        below the least found before it, nor below the least height of a point above the seabed
+        under it (plus :data:`MARGIN_M`), reads ``inf``, unmeasured: the least, and where it
+        is, stay those of every point measured."""
         x, y, z = (np.asarray(v, dtype=np.float64).ravel() for v in (x, y, z))
         code = METHODS[method].code
         fi, fj = self._index(x, y, crs_wkt)
@@ -90,22 +92,20 @@ class SourceSeabed:
         si, sj = self._scales(fi, fj)
         window = self._window(fi, fj, reach, si, sj)
         pts = (fi, fj, z, si, sj)
-        if not least_only or code == 0 or x.size <= SEEDS:
+        if not least_only or code == 0:
             return self._measure(pts, window, reach, radius, code, math.inf)
+        # a point's clearance is at most its height above the seabed under it (the seabed
+        # there is within reach; the highest within reach at least that high): the least is
+        # below the least such height and a margin, and the search of every point bounded by it
         under = self._measure(pts, window, 0.0, radius, 0, math.inf)
-        seeds = np.argsort(np.where(np.isnan(under), np.inf, under), kind="stable")[:SEEDS]
-        seeds = np.sort(seeds)
-        # (one at a time without a window for all: far apart, their window may be large)
-        picks = [seeds] if window is not None else [seeds[k : k + 1] for k in range(seeds.size)]
-        first = np.concatenate(
-            [self._measure(tuple(v[k] for v in pts), window, reach, radius, code, math.inf)
-             for k in picks]
-        )  # fmt: skip
-        known = first[np.isfinite(first)]
-        below = float(known.min()) if known.size else math.inf
-        out = self._measure(pts, window, reach, radius, code, below)
-        out[seeds] = first
-        return out
+        if np.isfinite(under).any():
+            out = self._measure(
+                pts, window, reach, radius, code, float(np.nanmin(under)) + MARGIN_M
+            )
+            if np.isfinite(out).any() or not np.isinf(out).any():
+                return out
+            # (every point below the bound is over no-data within its reach: measured in full)
+        return self._measure(pts, window, reach, radius, code, math.inf)
 
     def _scales(self, fi, fj) -> tuple:
         """Ground metres per source row and per column at each point: those of its group of
@@ -129,6 +129,9 @@ class SourceSeabed:
         if (r1 - r0) * (c1 - c0) > WINDOW_CELLS:
             return None
         if _within(self._last, r0, r1, c0, c1) is None:
+            ny, nx = self.values.shape
+            if ny * nx <= WINDOW_CELLS:  # a small file: all of it, once
+                r0, r1, c0, c1 = 0, ny, 0, nx
             win = np.ascontiguousarray(self.values[r0:r1, c0:c1].values, dtype=np.float64)
             self._last = (win, r0, c0)
         return self._last
@@ -201,7 +204,10 @@ class SourceSeabed:
         if self.crs is not None and crs_wkt:
             from pyproj import CRS, Transformer
 
-            tr = Transformer.from_crs(CRS.from_wkt(crs_wkt), self.crs, always_xy=True)
+            tr = self._from_map.get(crs_wkt)
+            if tr is None:  # made once a map (pyproj takes milliseconds to make one)
+                tr = Transformer.from_crs(CRS.from_wkt(crs_wkt), self.crs, always_xy=True)
+                self._from_map[crs_wkt] = tr
             sx, sy = tr.transform(x, y)
             if self.crs.is_geographic:
                 lon = np.asarray(self.values["x"].values, dtype=np.float64)
