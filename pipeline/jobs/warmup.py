@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import sys
 import tempfile
@@ -344,12 +345,14 @@ def _widen(store: Path, t) -> None:
     cells = np.asarray(t.cells, dtype=np.int64)
     cor = Corridor(m, cells, 3)
     usable = (cor.pas, cor.slot, cor.tr, cor.tc, *m.shape, 3)
-    widen_turns(cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64), 10.0, usable)
-    clearance = FINE_BELOW * 30.0
     pr, pc = cells[:, 0].astype(np.float64), cells[:, 1].astype(np.float64)
+    widen_turns(pr, pc, 10.0, usable)
+    # as the flight calls it for whole squares: the squares' diagonal added to every distance
+    a, clearance = 30.0, FINE_BELOW * 30.0
     partial = np.zeros(len(pr), dtype=np.uint8)
     code = METHODS["spherical"].code
-    required_heights(*cor.grid(), pr, pc, 30.0, clearance, code, clearance, 42.4, partial)
+    extra = a * math.sqrt(2.0)
+    required_heights(*cor.grid(), pr, pc, a, clearance, code, clearance, extra, partial)
 
 
 def _plan_each(store: Path, planners=None):
